@@ -9,6 +9,8 @@ defmodule Vws.MixProject do
       elixirc_paths: elixirc_paths(Mix.env()),
       start_permanent: Mix.env() == :prod,
       deps: [],
+      # PropEr comes from Debian's erlang-proper, not from hex: it is on the code path, not a dep
+      xref: [exclude: [:proper, :proper_types, :proper_statem, :proper_gen]],
       releases: [vws: [include_executables_for: [:unix]]]
     ]
   end

@@ -1,0 +1,373 @@
+defmodule Vws.Mailbox do
+  @moduledoc """
+  The CEC's mailboxes (seed §2.3.5–2.3.6): memory files shared by the partitions, here one ETS table
+  per workstation owned by `Vws.Mailbox.Owner`.
+
+  ## Layout
+
+    * **Device-status locations 1–14**, written by VWS_STATUS (and by ROBOT and MONARCH for what only
+      they can read) and answered by SUN_COMM's Status subroutine:
+
+      | loc | name          | loc | name          |
+      |-----|---------------|-----|---------------|
+      | 1   | `GRIPPER`     | 8   | `MONARCH`     |
+      | 2   | `TABLE`       | 9   | `WHERE_ROBOT` |
+      | 3   | `VISE`        | 10  | `PALLET`      |
+      | 4   | `TRAYS`       | 11  | `SENSORS` (the 16-element array B) |
+      | 5   | `VACUUM`      | 12–14 | spare       |
+      | 6   | `TLI_TABLE`   |     |               |
+      | 7   | `CHANGER_1`   |     |               |
+
+      Each holds a value (usually the status text) and the monotonic time it was written, so
+      a reader can tell a fresh reading from a stale one.
+
+    * **Command-status locations 34–39**, one per command partition: ROBOT 34, MONARCH 35,
+      GRIPPER 36, FIXTURE 37, VACUUM 38, HYDRAULIC 39. Each holds the number of the last command of
+      that set and its status: `:none`, `:executing`, `:done` or `{:error, reason}`.
+
+    * **CMD_IN**: the latest command text and number per set; **in flight**: the number of the
+      command a partition has been given and not yet finished (at most one per set).
+
+    * **NC file** (the program downloaded from the WC, DOWNLOAD_HP) and **NC_UP** (the program
+      uploaded from the GE-2000, UPLOAD_GE), as lists of lines.
+
+  ## LOCK/UNLOCK
+
+  Every write here is one atomic ETS operation (`insert_new` for dispatch, `select_replace` for a
+  compare-and-set of a command status), which is what LOCK … OUTPUT … UNLOCK achieved. For a
+  longer critical section, `locked/2` runs a function inside the owner process.
+  """
+
+  alias Vws.Mailbox.Owner
+
+  @type workstation :: term
+  @type partition :: :robot | :monarch | :gripper | :fixture | :vacuum | :hydraulic
+  @type status :: :none | :executing | :done | {:error, String.t()}
+
+  @device_locations %{
+    1 => "GRIPPER",
+    2 => "TABLE",
+    3 => "VISE",
+    4 => "TRAYS",
+    5 => "VACUUM",
+    6 => "TLI_TABLE",
+    7 => "CHANGER_1",
+    8 => "MONARCH",
+    9 => "WHERE_ROBOT",
+    10 => "PALLET",
+    11 => "SENSORS",
+    12 => "SPARE",
+    13 => "SPARE",
+    14 => "SPARE"
+  }
+
+  @command_locations [robot: 34, monarch: 35, gripper: 36, fixture: 37, vacuum: 38, hydraulic: 39]
+  @partitions Keyword.keys(@command_locations)
+
+  @doc "The command partitions, in mailbox-location order."
+  @spec partitions() :: [partition]
+  def partitions, do: @partitions
+
+  @doc "The command-status location (34–39) of a partition."
+  @spec command_location(partition) :: 34..39
+  def command_location(partition), do: Keyword.fetch!(@command_locations, partition)
+
+  @doc "The name of a device-status location (1–14)."
+  @spec device_name(1..14) :: String.t()
+  def device_name(loc), do: Map.fetch!(@device_locations, loc)
+
+  @doc "The device-status location (1–11) for a status name such as `\"VISE\"`."
+  @spec device_location(String.t()) :: 1..11 | nil
+  def device_location(name) do
+    Enum.find_value(@device_locations, fn {loc, n} -> if n == name and n != "SPARE", do: loc end)
+  end
+
+  @doc "The workstation's table. Raises `ArgumentError` if the workstation has no mailboxes."
+  @spec table(workstation) :: :ets.tid()
+  def table(ws) do
+    case Registry.lookup(Vws.Registry, {ws, :mailbox}) do
+      [{_pid, table}] -> table
+      [] -> raise ArgumentError, "workstation #{inspect(ws)} has no mailboxes (is it started?)"
+    end
+  end
+
+  @doc "True when the workstation's mailboxes exist."
+  @spec exists?(workstation) :: boolean
+  def exists?(ws), do: Registry.lookup(Vws.Registry, {ws, :mailbox}) != []
+
+  @doc false
+  def initialize(table) do
+    now = now()
+    for loc <- 1..14, do: :ets.insert(table, {{:device, loc}, nil, now})
+
+    for p <- @partitions do
+      :ets.insert(table, {{:command_status, p}, nil, :none})
+      :ets.insert(table, {{:cmd_in, p}, nil, nil})
+    end
+
+    :ets.insert(table, {:nc_file, []})
+    :ets.insert(table, {:nc_up, []})
+    :ets.insert(table, {:last_string, nil, nil})
+    :ok
+  end
+
+  @doc "Runs `fun.(table)` inside the owner, serialised with every other `locked/2` (LOCK/UNLOCK)."
+  @spec locked(workstation, (:ets.tid() -> result)) :: result when result: var
+  def locked(ws, fun) do
+    GenServer.call({:via, Registry, {Vws.Registry, {ws, :mailbox_owner}}}, {:locked, fun})
+  end
+
+  ## Device status (locations 1–14)
+
+  @doc "Writes a device-status location with the current monotonic time."
+  @spec put_device(workstation, 1..14, term) :: :ok
+  def put_device(ws, loc, value) when loc in 1..14 do
+    :ets.insert(table(ws), {{:device, loc}, value, now()})
+    :ok
+  end
+
+  @doc "Reads a device-status location: `{value, age_ms}`; value `nil` means never written."
+  @spec get_device(workstation, 1..14) :: {term, non_neg_integer}
+  def get_device(ws, loc) when loc in 1..14 do
+    [{_, value, at}] = :ets.lookup(table(ws), {:device, loc})
+    {value, now() - at}
+  end
+
+  ## Command status (locations 34–39), CMD_IN and the command in flight
+
+  @doc """
+  Hands a command to a partition, atomically: refused with `{:busy, number}` while the partition's
+  previous command is in flight, otherwise records it in flight, writes CMD_IN and sets the
+  command status to `:executing`.
+  """
+  @spec dispatch(workstation, partition, 0..9999, String.t()) :: :ok | {:busy, 0..9999}
+  def dispatch(ws, partition, number, text) when partition in @partitions do
+    table = table(ws)
+
+    if :ets.insert_new(table, {{:in_flight, partition}, number}) do
+      :ets.insert(table, {{:cmd_in, partition}, number, text})
+      :ets.insert(table, {{:command_status, partition}, number, :executing})
+      :ok
+    else
+      case :ets.lookup(table, {:in_flight, partition}) do
+        [{_, busy}] -> {:busy, busy}
+        # finished between the two calls: try again
+        [] -> dispatch(ws, partition, number, text)
+      end
+    end
+  end
+
+  @doc "The command a partition has in flight, if any."
+  @spec in_flight(workstation, partition) :: 0..9999 | nil
+  def in_flight(ws, partition) do
+    case :ets.lookup(table(ws), {:in_flight, partition}) do
+      [{_, n}] -> n
+      [] -> nil
+    end
+  end
+
+  @doc """
+  Ends the command `number` of a partition with `status` and clears it from flight.
+
+  The status location is only written while it still shows `number` (a newer command refused as
+  busy keeps its own answer). Returns `:ok`, or `:not_in_flight` when `number` was not the
+  partition's command in flight (nothing is written then).
+  """
+  @spec finish(workstation, partition, 0..9999, :done | {:error, String.t()}) ::
+          :ok | :not_in_flight
+  def finish(ws, partition, number, status) do
+    table = table(ws)
+
+    case :ets.select_delete(table, [{{{:in_flight, partition}, number}, [], [true]}]) do
+      1 ->
+        compare_and_set_status(table, partition, number, status)
+        :ok
+
+      0 ->
+        :not_in_flight
+    end
+  end
+
+  @doc """
+  Sets the status of command `number` of a partition that is not (or no longer) run: a command
+  refused by a rule of SUN_COMM. It does not touch the command in flight.
+  """
+  @spec put_status(workstation, partition, 0..9999, status) :: :ok
+  def put_status(ws, partition, number, status) do
+    :ets.insert(table(ws), {{:command_status, partition}, number, status})
+    :ok
+  end
+
+  @doc "The command status of a partition: `{number | nil, status}`."
+  @spec command_status(workstation, partition) :: {0..9999 | nil, status}
+  def command_status(ws, partition) do
+    [{_, number, status}] = :ets.lookup(table(ws), {:command_status, partition})
+    {number, status}
+  end
+
+  @doc "CMD_IN of a partition: `{number, text}` of its latest command (`{nil, nil}` before any)."
+  @spec cmd_in(workstation, partition) :: {0..9999 | nil, String.t() | nil}
+  def cmd_in(ws, partition) do
+    [{_, number, text}] = :ets.lookup(table(ws), {:cmd_in, partition})
+    {number, text}
+  end
+
+  defp compare_and_set_status(table, partition, number, status) do
+    key = {:command_status, partition}
+    :ets.select_replace(table, [{{key, number, :_}, [], [{{{key}, number, {:const, status}}}]}])
+  end
+
+  ## The last command string (retransmission rule)
+
+  @doc "Remembers the sequence number and bytes of the last accepted command string."
+  @spec put_last_string(workstation, 0..9999, binary) :: :ok
+  def put_last_string(ws, seq, line) do
+    :ets.insert(table(ws), {:last_string, seq, line})
+    :ok
+  end
+
+  @doc "The last accepted command string: `{seq, line}` or `{nil, nil}`."
+  @spec last_string(workstation) :: {0..9999 | nil, binary | nil}
+  def last_string(ws) do
+    [{_, seq, line}] = :ets.lookup(table(ws), :last_string)
+    {seq, line}
+  end
+
+  ## NC file and NC_UP
+
+  @doc "Replaces the NC file (the program downloaded from the WC)."
+  @spec put_nc_file(workstation, [binary]) :: :ok
+  def put_nc_file(ws, lines), do: put_lines(ws, :nc_file, lines)
+
+  @doc "The NC file's lines."
+  @spec nc_file(workstation) :: [binary]
+  def nc_file(ws), do: get_lines(ws, :nc_file)
+
+  @doc "Replaces NC_UP (the program uploaded from the machine tool)."
+  @spec put_nc_up(workstation, [binary]) :: :ok
+  def put_nc_up(ws, lines), do: put_lines(ws, :nc_up, lines)
+
+  @doc "NC_UP's lines."
+  @spec nc_up(workstation) :: [binary]
+  def nc_up(ws), do: get_lines(ws, :nc_up)
+
+  defp put_lines(ws, key, lines) when is_list(lines) do
+    :ets.insert(table(ws), {key, lines})
+    :ok
+  end
+
+  defp get_lines(ws, key) do
+    [{_, lines}] = :ets.lookup(table(ws), key)
+    lines
+  end
+
+  ## Inspection
+
+  @doc """
+  A snapshot of every mailbox as plain data (for iex, the dashboard and tests).
+  """
+  @spec snapshot(workstation) :: map
+  def snapshot(ws) do
+    devices =
+      for loc <- 1..14 do
+        {value, age} = get_device(ws, loc)
+        %{location: loc, name: device_name(loc), value: value, age_ms: age}
+      end
+
+    commands =
+      for p <- @partitions do
+        {number, status} = command_status(ws, p)
+        {in_number, in_text} = cmd_in(ws, p)
+
+        %{
+          location: command_location(p),
+          partition: p,
+          number: number,
+          status: status,
+          cmd_in: {in_number, in_text},
+          in_flight: in_flight(ws, p)
+        }
+      end
+
+    {seq, _} = last_string(ws)
+
+    %{
+      workstation: ws,
+      devices: devices,
+      commands: commands,
+      last_sequence: seq,
+      nc_file: nc_file(ws),
+      nc_up: nc_up(ws),
+      events: Vws.Events.list(ws)
+    }
+  end
+
+  @doc """
+  Prints a workstation's mailboxes as a table (from iex: `Vws.Mailbox.print("VWS1")`).
+  """
+  @spec print(workstation) :: :ok
+  def print(ws) do
+    IO.puts(format(ws))
+  end
+
+  @doc "The table `print/1` prints, as a string."
+  @spec format(workstation) :: String.t()
+  def format(ws) do
+    s = snapshot(ws)
+
+    device_rows =
+      for d <- s.devices do
+        [pad(d.location, 4), pad(d.name, 12), pad(age(d), 9), text(d.value)]
+      end
+
+    command_rows =
+      for c <- s.commands do
+        {in_n, in_text} = c.cmd_in
+
+        [
+          pad(c.location, 4),
+          pad(String.upcase(to_string(c.partition)), 10),
+          pad(number(c.number), 6),
+          pad(status_word(c.status), 24),
+          pad(if(c.in_flight, do: number(c.in_flight), else: "-"), 10),
+          if(in_n, do: "#{number(in_n)} #{in_text}", else: "-")
+        ]
+      end
+
+    [
+      "VWS mailboxes of workstation #{inspect(ws)}   last string: #{number(s.last_sequence)}",
+      "",
+      "DEVICE STATUS",
+      "loc name         age      value",
+      Enum.map(device_rows, &Enum.join/1),
+      "",
+      "COMMAND STATUS",
+      "loc partition  last   status                  in flight CMD_IN",
+      Enum.map(command_rows, &Enum.join/1),
+      "",
+      "NC file: #{length(s.nc_file)} lines   NC_UP: #{length(s.nc_up)} lines",
+      "EVENTS: " <> Enum.map_join(s.events, "  ", fn {e, n} -> "#{e}=#{n}" end)
+    ]
+    |> List.flatten()
+    |> Enum.join("\n")
+  end
+
+  @doc "The status word of a command status as the WC reads it."
+  @spec status_word(status) :: String.t()
+  def status_word(:none), do: "NONE"
+  def status_word(:executing), do: "EXECUTING"
+  def status_word(:done), do: "DONE"
+  def status_word({:error, reason}), do: "ERROR " <> reason
+
+  defp number(nil), do: "----"
+  defp number(n), do: n |> Integer.to_string() |> String.pad_leading(4, "0")
+  defp pad(v, n), do: v |> to_string() |> String.pad_trailing(n)
+  defp age(%{value: nil}), do: "-"
+  defp age(%{age_ms: ms}) when ms < 10_000, do: "#{ms}ms"
+  defp age(%{age_ms: ms}), do: "#{div(ms, 1000)}s"
+  defp text(nil), do: "(no data)"
+  defp text(v) when is_binary(v), do: v
+  defp text(v), do: inspect(v, limit: 20)
+
+  defp now, do: System.monotonic_time(:millisecond)
+end

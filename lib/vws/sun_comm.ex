@@ -1,0 +1,630 @@
+defmodule Vws.SunComm do
+  @moduledoc """
+  SUN_COMM (seed §2.3.1–2.3.7): owns the link to the workstation controller (WC), checks every
+  string's BCC and answers `05A…` or `E` at once, applies the Parser's rules, hands each command to
+  its partition (CMD_IN + CAUSE EVENT) and answers status commands from the mailboxes alone.
+
+  ## The link
+
+  One WC at a time, as on a serial line. On a TCP (or loopback) endpoint SUN_COMM listens and a new
+  connection takes over from the previous one, which is closed; both are logged. On a tty it opens
+  the device and reopens it if it goes away. Nothing is read before the workstation has caused
+  OK_TO_PROCEED.
+
+  ## Rules (PROTOCOLS.md §1)
+
+    1. a command-set letter appears at most once in a string;
+    2. a string with an S command contains nothing else;
+    3. a command for a set whose previous command is in flight is not run: `ERROR BUSY <previous>`;
+    4. a string that repeats the last accepted sequence number with the same bytes is a
+       retransmission: acknowledged again, nothing executed;
+    5. an intact string that breaks a rule is acknowledged, nothing in it runs, and each of its
+       commands answers `ERROR <rule>` on its next status query.
+
+  ## NC line transfers
+
+  After acknowledging a string carrying `M…DOWNLOAD_HP`, SUN_COMM reads program lines (`L` + BCC,
+  each answered `A` or `E`) until the closing `%` (a `%` as the very first line is the tape's leading
+  rewind stop and is kept), stores them as the NC file and ends the Monarch command `DONE`. After
+  acknowledging `M…UPLOAD_SUN` it sends NC_UP line by line, resending a line the WC answers `E`, and
+  ends the command `DONE` after the last line is acknowledged (`ERROR NO UPLOADED PROGRAM` when NC_UP is
+  empty). A transfer that stalls or loses the link ends the Monarch command `ERROR` with the reason.
+
+  ## Options
+
+    * `:workstation` (required), `:wc` — endpoint string or `nil` (no link)
+    * `:bcc` — `:sum` (default) or `:xor`
+    * `:max_line` — longest line accepted, default 1024 bytes
+    * `:download_timeout` — ms without a program line before a download is abandoned (30 000)
+    * `:upload_timeout` — ms to wait for the WC's `A`/`E` to an uploaded line (5 000)
+    * `:upload_retries` — resends of one uploaded line before giving up (5)
+    * `:max_program_bytes` — largest NC program accepted (4 MiB)
+    * `:tty_retry` — ms between attempts to (re)open a tty (1 000)
+  """
+  use GenServer
+  require Logger
+
+  alias Vws.{Events, Mailbox, Transport}
+  alias Vws.WC.{CommandString, LineDecoder, Reply}
+
+  @dialogue_length 200
+
+  @doc false
+  def child_spec(opts) do
+    %{id: :sun_comm, start: {__MODULE__, :start_link, [opts]}, shutdown: 5_000}
+  end
+
+  @spec start_link(keyword) :: GenServer.on_start()
+  def start_link(opts) do
+    ws = Keyword.fetch!(opts, :workstation)
+    GenServer.start_link(__MODULE__, opts, name: Vws.Workstation.via(ws, :sun_comm))
+  end
+
+  @doc """
+  SUN_COMM's state for inspection: endpoint, where it listens, the WC peer, the transfer mode and
+  counters.
+  """
+  @spec info(term) :: map
+  def info(ws), do: GenServer.call(Vws.Workstation.via(ws, :sun_comm), :info)
+
+  @doc "The endpoint SUN_COMM listens on (with the real port when port 0 was asked), or nil."
+  @spec listening(term) :: Vws.Endpoint.t() | nil
+  def listening(ws), do: info(ws).listening
+
+  @doc "The most recent lines of the WC dialogue, oldest first: `{monotonic_ms, :in | :out, line}`."
+  @spec dialogue(term) :: [{integer, :in | :out, binary}]
+  def dialogue(ws), do: GenServer.call(Vws.Workstation.via(ws, :sun_comm), :dialogue)
+
+  ## Server
+
+  @impl true
+  def init(opts) do
+    ws = Keyword.fetch!(opts, :workstation)
+    Logger.metadata(workstation: ws, partition: :sun_comm)
+    Process.flag(:trap_exit, true)
+    Events.create(ws, :wc_dialogue)
+    :ok = Events.subscribe(ws, :ok_to_proceed)
+
+    state = %{
+      workstation: ws,
+      endpoint: opts[:wc],
+      bcc: Keyword.get(opts, :bcc, :sum),
+      max_line: Keyword.get(opts, :max_line, 1024),
+      download_timeout: Keyword.get(opts, :download_timeout, 30_000),
+      upload_timeout: Keyword.get(opts, :upload_timeout, 5_000),
+      upload_retries: Keyword.get(opts, :upload_retries, 5),
+      max_program_bytes: Keyword.get(opts, :max_program_bytes, 4 * 1024 * 1024),
+      tty_retry: Keyword.get(opts, :tty_retry, 1_000),
+      ok_to_proceed: false,
+      listener: nil,
+      listening: nil,
+      acceptor: nil,
+      conn: nil,
+      decoder: nil,
+      mode: :command,
+      timer: nil,
+      dialogue: :queue.new(),
+      dialogue_size: 0,
+      counters: %{
+        strings: 0,
+        naks: 0,
+        retransmissions: 0,
+        rules_broken: 0,
+        status_answers: 0,
+        connections: 0,
+        lines_in: 0,
+        lines_out: 0
+      }
+    }
+
+    if (Events.count(ws, :ok_to_proceed) || 0) > 0 do
+      {:ok, %{state | ok_to_proceed: true}, {:continue, :open}}
+    else
+      {:ok, state}
+    end
+  end
+
+  @impl true
+  def handle_continue(:open, %{endpoint: nil} = s), do: {:noreply, s}
+
+  def handle_continue(:open, s) do
+    endpoint = Vws.Endpoint.parse!(s.endpoint)
+
+    if endpoint.kind == :tty do
+      {:noreply, open_tty(s)}
+    else
+      case Transport.listen(endpoint) do
+        {:ok, listener} ->
+          me = self()
+          acceptor = spawn_link(fn -> accept_loop(listener, me) end)
+          bound = Transport.listener_endpoint(listener)
+          Logger.info("SUN_COMM listening for the WC on #{bound}")
+          {:noreply, %{s | listener: listener, listening: bound, acceptor: acceptor}}
+
+        {:error, reason} ->
+          {:stop, {:cannot_listen, s.endpoint, reason}, s}
+      end
+    end
+  end
+
+  defp accept_loop(listener, owner) do
+    case Transport.accept(listener, :infinity) do
+      {:ok, conn} ->
+        :ok = Transport.controlling_process(conn, owner)
+        send(owner, {:wc_accepted, conn})
+        accept_loop(listener, owner)
+
+      {:error, reason} ->
+        exit({:accept_failed, reason})
+    end
+  end
+
+  defp open_tty(s) do
+    case Transport.connect(s.endpoint) do
+      {:ok, conn} ->
+        s = take_link(s, conn)
+        %{s | listening: conn.endpoint}
+
+      {:error, reason} ->
+        Logger.error("cannot open the WC tty #{s.endpoint}: #{inspect(reason)}; retrying")
+        Process.send_after(self(), :reopen_tty, s.tty_retry)
+        s
+    end
+  end
+
+  @impl true
+  def handle_info({:vws_event, ws, :ok_to_proceed, _}, %{workstation: ws} = s) do
+    if s.ok_to_proceed,
+      do: {:noreply, s},
+      else: {:noreply, %{s | ok_to_proceed: true}, {:continue, :open}}
+  end
+
+  def handle_info({:wc_accepted, conn}, s), do: {:noreply, take_link(s, conn)}
+
+  def handle_info(:reopen_tty, s), do: {:noreply, open_tty(s)}
+
+  def handle_info({:transfer_timeout, ref}, %{timer: {ref, _}} = s),
+    do: {:noreply, transfer_timeout(s)}
+
+  def handle_info({:transfer_timeout, _stale}, s), do: {:noreply, s}
+
+  def handle_info({:EXIT, pid, reason}, %{acceptor: pid} = s) do
+    {:stop, {:acceptor_down, reason}, s}
+  end
+
+  def handle_info({:EXIT, _pid, _reason}, s), do: {:noreply, s}
+
+  def handle_info(msg, %{conn: conn} = s) when conn != nil do
+    case Transport.handle_message(conn, msg) do
+      {:data, bytes} ->
+        {lines, decoder} = LineDecoder.feed(s.decoder, bytes)
+        s = Enum.reduce(lines, %{s | decoder: decoder}, &handle_line/2)
+        if s.conn, do: Transport.activate(s.conn)
+        {:noreply, s}
+
+      :closed ->
+        {:noreply, link_lost(s, "closed")}
+
+      {:error, reason} ->
+        {:noreply, link_lost(s, inspect(reason))}
+
+      :unknown ->
+        Logger.debug("SUN_COMM ignored #{inspect(msg, limit: 10)}")
+        {:noreply, s}
+    end
+  end
+
+  def handle_info(msg, s) do
+    Logger.debug("SUN_COMM ignored #{inspect(msg, limit: 10)}")
+    {:noreply, s}
+  end
+
+  @impl true
+  def handle_call(:info, _from, s) do
+    {:reply,
+     %{
+       workstation: s.workstation,
+       endpoint: s.endpoint,
+       listening: s.listening,
+       ok_to_proceed: s.ok_to_proceed,
+       peer: s.conn && Transport.peer(s.conn),
+       mode: mode_name(s.mode),
+       counters: s.counters
+     }, s}
+  end
+
+  def handle_call(:dialogue, _from, s), do: {:reply, :queue.to_list(s.dialogue), s}
+
+  @impl true
+  def terminate(_reason, s) do
+    if s.conn, do: Transport.close(s.conn)
+    if s.listener, do: Transport.close_listener(s.listener)
+    :ok
+  end
+
+  ## The link
+
+  defp take_link(s, conn) do
+    s =
+      if s.conn do
+        Logger.warning(
+          "WC connection from #{Transport.peer(conn)} takes over from #{Transport.peer(s.conn)}, which is closed"
+        )
+
+        old = s.conn
+        s = abort_transfer(s, "WC LINK TAKEN OVER")
+        Transport.close(old)
+
+        telemetry(s, :wc_disconnected, %{count: 1}, %{
+          peer: Transport.peer(old),
+          reason: :taken_over
+        })
+
+        s
+      else
+        s
+      end
+
+    Logger.info("WC connected: #{Transport.peer(conn)}")
+    telemetry(s, :wc_connected, %{count: 1}, %{peer: Transport.peer(conn)})
+    Transport.activate(conn)
+
+    %{
+      s
+      | conn: conn,
+        decoder: LineDecoder.new(max_line: s.max_line),
+        mode: :command,
+        counters: bump(s.counters, :connections)
+    }
+  end
+
+  defp link_lost(s, why) do
+    Logger.warning("WC link lost (#{why})")
+    telemetry(s, :wc_disconnected, %{count: 1}, %{peer: Transport.peer(s.conn), reason: why})
+    s = abort_transfer(s, "WC LINK LOST")
+    s = %{s | conn: nil, decoder: nil}
+
+    if s.listener == nil and s.endpoint do
+      # a tty: open it again
+      Process.send_after(self(), :reopen_tty, s.tty_retry)
+    end
+
+    s
+  end
+
+  ## Lines in
+
+  defp handle_line({:error, error}, s) do
+    record(s, :in, "<#{Exception.message(error)}>")
+    |> reject(error.reason)
+  end
+
+  defp handle_line(line, s) do
+    s = record(s, :in, line)
+
+    case s.mode do
+      :command -> command_line(line, s)
+      {:download, _} -> download_line(line, s)
+      {:upload, _} -> upload_answer(line, s)
+    end
+  end
+
+  defp reject(s, reason) do
+    telemetry(s, :string_rejected, %{bytes: 0}, %{reason: reason})
+    %{reply(s, :nak) | counters: bump(s.counters, :naks)}
+  end
+
+  defp command_line("", s), do: s
+
+  defp command_line(line, s) do
+    case CommandString.decode(line, bcc: s.bcc) do
+      {:error, error} ->
+        reject(s, error.reason)
+
+      {:ok, cs} ->
+        s = %{s | counters: bump(s.counters, :strings)}
+
+        telemetry(s, :string_received, %{bytes: byte_size(line)}, %{
+          sequence: cs.sequence,
+          commands: length(cs.commands)
+        })
+
+        accept_string(cs, line, s)
+    end
+  end
+
+  defp accept_string(cs, line, s) do
+    ws = s.workstation
+
+    cond do
+      status_string?(cs) ->
+        [status] = cs.commands
+        Mailbox.put_last_string(ws, cs.sequence, line)
+        text = Vws.Status.answer(ws, status.text)
+        s = %{s | counters: bump(s.counters, :status_answers)}
+        reply(s, {:status, status.number, text})
+
+      Mailbox.last_string(ws) == {cs.sequence, line} ->
+        Logger.info(
+          "string #{cs.sequence} is a retransmission: acknowledged again, nothing executed"
+        )
+
+        telemetry(s, :retransmission, %{count: 1}, %{sequence: cs.sequence})
+        s = %{s | counters: bump(s.counters, :retransmissions)}
+        reply(s, {:ack, cs.sequence})
+
+      broken = broken_rule(cs) ->
+        Mailbox.put_last_string(ws, cs.sequence, line)
+        s = reply(s, {:ack, cs.sequence})
+        Logger.warning("string #{cs.sequence} breaks a rule (#{broken}): nothing in it runs")
+        telemetry(s, :rule_broken, %{count: 1}, %{sequence: cs.sequence, rule: broken})
+
+        for %{set: set, number: n} <- cs.commands, set in Mailbox.partitions() do
+          Mailbox.put_status(ws, set, n, {:error, broken})
+        end
+
+        %{s | counters: bump(s.counters, :rules_broken)}
+
+      true ->
+        Mailbox.put_last_string(ws, cs.sequence, line)
+        s = reply(s, {:ack, cs.sequence})
+        Enum.reduce(cs.commands, s, &dispatch/2)
+    end
+  end
+
+  defp status_string?(%{commands: [%{set: :status}]}), do: true
+  defp status_string?(_), do: false
+
+  defp broken_rule(cs) do
+    letters = Enum.map(cs.commands, & &1.letter)
+
+    cond do
+      unknown = Enum.find(cs.commands, &match?({:unknown, _}, &1.set)) ->
+        "UNKNOWN COMMAND SET #{unknown.letter}"
+
+      Enum.any?(cs.commands, &(&1.set == :status)) ->
+        "RULE 2 STATUS COMMAND NOT ALONE"
+
+      dup = Enum.find(letters, &(Enum.count(letters, fn l -> l == &1 end) > 1)) ->
+        "RULE 1 SET #{dup} REPEATED"
+
+      true ->
+        nil
+    end
+  end
+
+  defp dispatch(%{set: :ack} = command, s) do
+    Logger.debug("acknowledgement command #{command.number} #{command.text}")
+    s
+  end
+
+  defp dispatch(%{set: set, number: number, text: text}, s) do
+    ws = s.workstation
+
+    case Mailbox.dispatch(ws, set, number, text) do
+      {:busy, previous} ->
+        Logger.warning("#{set} command #{number} refused: command #{previous} still in flight")
+        Mailbox.put_status(ws, set, number, {:error, "BUSY #{pad4(previous)}"})
+        s
+
+      :ok ->
+        telemetry(
+          s,
+          :command_dispatched,
+          %{count: 1},
+          %{partition: set, command: number, text: text},
+          :partition
+        )
+
+        case set == :monarch && Vws.Commands.parse(:monarch, text) do
+          {:ok, :download_hp} -> start_download(s, number)
+          {:ok, :upload_sun} -> start_upload(s, number)
+          _ -> cause(s, set, number)
+        end
+    end
+  end
+
+  defp cause(s, set, number) do
+    :ok = Events.cause(s.workstation, set, number)
+    s
+  end
+
+  ## NC download (WC → CEC)
+
+  defp start_download(s, number) do
+    Logger.info("DOWNLOAD_HP #{number}: reading program lines from the WC")
+
+    arm(
+      %{s | mode: {:download, %{number: number, lines: [], count: 0, bytes: 0}}},
+      s.download_timeout
+    )
+  end
+
+  defp download_line(line, %{mode: {:download, d}} = s) do
+    case Reply.decode_line(line, bcc: s.bcc) do
+      {:error, _} ->
+        s |> reject(:bad_bcc) |> arm(s.download_timeout)
+
+      {:ok, {:line, text}} ->
+        s = %{reply(s, :line_ack) | counters: bump(s.counters, :lines_in)}
+        telemetry(s, :nc_line, %{bytes: byte_size(text)}, %{direction: :in})
+
+        d = %{
+          d
+          | lines: [text | d.lines],
+            count: d.count + 1,
+            bytes: d.bytes + byte_size(text) + 1
+        }
+
+        cond do
+          String.trim(text) == "%" and d.count > 1 ->
+            lines = Enum.reverse(d.lines)
+            Mailbox.put_nc_file(s.workstation, lines)
+            Logger.info("DOWNLOAD_HP #{d.number}: #{d.count} lines stored as the NC file")
+            end_transfer(s, d.number, :done)
+
+          d.bytes > s.max_program_bytes ->
+            end_transfer(
+              s,
+              d.number,
+              {:error, "NC PROGRAM LARGER THAN #{s.max_program_bytes} BYTES"}
+            )
+
+          true ->
+            arm(%{s | mode: {:download, d}}, s.download_timeout)
+        end
+    end
+  end
+
+  ## NC upload (CEC → WC)
+
+  defp start_upload(s, number) do
+    case Mailbox.nc_up(s.workstation) do
+      [] ->
+        Mailbox.finish(s.workstation, :monarch, number, {:error, "NO UPLOADED PROGRAM"})
+        s
+
+      lines ->
+        Logger.info("UPLOAD_SUN #{number}: sending #{length(lines)} lines to the WC")
+
+        send_upload_line(%{
+          s
+          | mode: {:upload, %{number: number, lines: lines, sent: 0, retries: 0}}
+        })
+    end
+  end
+
+  defp send_upload_line(%{mode: {:upload, %{lines: [line | _]}}} = s) do
+    telemetry(s, :nc_line, %{bytes: byte_size(line)}, %{direction: :out})
+    s = %{reply(s, {:line, line}) | counters: bump(s.counters, :lines_out)}
+    arm(s, s.upload_timeout)
+  end
+
+  defp upload_answer(line, %{mode: {:upload, u}} = s) do
+    case Reply.decode(line, bcc: s.bcc) do
+      {:ok, :line_ack} ->
+        case u.lines do
+          [_last] ->
+            Logger.info("UPLOAD_SUN #{u.number}: #{u.sent + 1} lines sent")
+            end_transfer(s, u.number, :done)
+
+          [_ | rest] ->
+            send_upload_line(%{
+              s
+              | mode: {:upload, %{u | lines: rest, sent: u.sent + 1, retries: 0}}
+            })
+        end
+
+      {:ok, :nak} ->
+        resend_upload_line(s, u)
+
+      _ ->
+        Logger.warning("during UPLOAD_SUN the WC sent #{inspect(line)}; expected A or E")
+        s
+    end
+  end
+
+  defp resend_upload_line(s, u) do
+    if u.retries >= s.upload_retries do
+      end_transfer(
+        s,
+        u.number,
+        {:error, "UPLOAD LINE #{u.sent + 1} NOT ACKNOWLEDGED AFTER #{u.retries + 1} TRIES"}
+      )
+    else
+      send_upload_line(%{s | mode: {:upload, %{u | retries: u.retries + 1}}})
+    end
+  end
+
+  ## Transfer timers and endings
+
+  defp arm(s, ms) do
+    s = disarm(s)
+    ref = make_ref()
+    {ref, Process.send_after(self(), {:transfer_timeout, ref}, ms)} |> then(&%{s | timer: &1})
+  end
+
+  defp disarm(%{timer: nil} = s), do: s
+
+  defp disarm(%{timer: {_ref, tref}} = s) do
+    Process.cancel_timer(tref)
+    %{s | timer: nil}
+  end
+
+  defp transfer_timeout(%{mode: {:download, d}} = s) do
+    end_transfer(s, d.number, {:error, "DOWNLOAD STALLED AFTER #{d.count} LINES"})
+  end
+
+  defp transfer_timeout(%{mode: {:upload, u}} = s), do: resend_upload_line(s, u)
+  defp transfer_timeout(s), do: disarm(s)
+
+  defp abort_transfer(%{mode: {:download, d}} = s, why),
+    do: end_transfer(s, d.number, {:error, "#{why} DURING DOWNLOAD AFTER #{d.count} LINES"})
+
+  defp abort_transfer(%{mode: {:upload, u}} = s, why),
+    do: end_transfer(s, u.number, {:error, "#{why} DURING UPLOAD AFTER #{u.sent} LINES"})
+
+  defp abort_transfer(s, _why), do: s
+
+  defp end_transfer(s, number, status) do
+    Mailbox.finish(s.workstation, :monarch, number, status)
+
+    Vws.Telemetry.execute([:vws, :partition, :command_finished], %{duration: 0}, %{
+      workstation: s.workstation,
+      partition: :monarch,
+      command: number,
+      status: status
+    })
+
+    %{disarm(s) | mode: :command}
+  end
+
+  ## Replies out
+
+  defp reply(%{conn: nil} = s, _reply), do: s
+
+  defp reply(s, reply) do
+    iodata = Reply.encode(reply, bcc: s.bcc)
+    bytes = IO.iodata_to_binary(iodata)
+
+    case Transport.send(s.conn, bytes) do
+      :ok -> :ok
+      {:error, reason} -> Logger.warning("reply not sent: #{inspect(reason)}")
+    end
+
+    telemetry(s, :reply_sent, %{bytes: byte_size(bytes)}, %{kind: reply_kind(reply)})
+    record(s, :out, String.trim_trailing(bytes, "\r\n"))
+  end
+
+  defp reply_kind(reply) when is_atom(reply), do: reply
+  defp reply_kind(reply) when is_tuple(reply), do: elem(reply, 0)
+
+  defp record(s, direction, line) do
+    entry = {System.monotonic_time(:millisecond), direction, line}
+    Events.cause(s.workstation, :wc_dialogue, entry)
+    queue = :queue.in(entry, s.dialogue)
+
+    if s.dialogue_size >= @dialogue_length do
+      %{s | dialogue: :queue.drop(queue)}
+    else
+      %{s | dialogue: queue, dialogue_size: s.dialogue_size + 1}
+    end
+  end
+
+  ## Helpers
+
+  defp telemetry(s, event, measurements, metadata, component \\ :sun_comm) do
+    Vws.Telemetry.execute(
+      [:vws, component, event],
+      measurements,
+      Map.put(metadata, :workstation, s.workstation)
+    )
+  end
+
+  defp bump(counters, key), do: Map.update!(counters, key, &(&1 + 1))
+  defp pad4(n), do: n |> Integer.to_string() |> String.pad_leading(4, "0")
+
+  defp mode_name(:command), do: :command
+  defp mode_name({:download, d}), do: {:download, d.number, d.count}
+  defp mode_name({:upload, u}), do: {:upload, u.number, u.sent}
+end

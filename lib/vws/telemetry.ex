@@ -1,0 +1,207 @@
+defmodule Vws.Telemetry do
+  @moduledoc """
+  The one seam between VWS and telemetry, with the contract of the `:telemetry` library
+  (`execute/3`, `span/3`, `attach/4`, `attach_many/4`, `detach/1`).
+
+  When `:telemetry` is loaded (a deployment that has the hex package), every call is delegated to
+  it. Otherwise handlers are kept here, in `:persistent_term` (attaching is rare, emitting is
+  frequent), and called synchronously in the emitting process exactly as `:telemetry` would; a
+  handler that raises is detached and logged, as `:telemetry` does.
+
+  ## Events
+
+  Spans emit `prefix ++ [:start]` (measurements `%{system_time, monotonic_time}`),
+  `prefix ++ [:stop]` (`%{duration, monotonic_time}`) and `prefix ++ [:exception]`
+  (`%{duration, monotonic_time}`, metadata adds `:kind, :reason, :stacktrace`).
+
+  | event | measurements | metadata |
+  |-------|--------------|----------|
+  | `[:vws, :sun_comm, :string_received]` | `bytes` | `workstation, sequence, commands` |
+  | `[:vws, :sun_comm, :string_rejected]` | `bytes` | `workstation, reason` |
+  | `[:vws, :sun_comm, :retransmission]` | `count` | `workstation, sequence` |
+  | `[:vws, :sun_comm, :reply_sent]` | `bytes` | `workstation, kind` |
+  | `[:vws, :sun_comm, :rule_broken]` | `count` | `workstation, sequence, rule` |
+  | `[:vws, :sun_comm, :wc_connected]` / `:wc_disconnected` | `count` | `workstation, peer` |
+  | `[:vws, :sun_comm, :nc_line]` | `bytes` | `workstation, direction` |
+  | `[:vws, :partition, :command_dispatched]` | `count` | `workstation, partition, command, text` |
+  | `[:vws, :partition, :command, :start / :stop / :exception]` | span | `workstation, partition, command, text` (+ `result` on stop) |
+  | `[:vws, :partition, :command_finished]` | `duration` (native) | `workstation, partition, command, status` |
+  | `[:vws, :events, :caused]` | `count` | `workstation, event` |
+
+  `attach_default_handler/0` logs all of them with `Logger`.
+  """
+
+  require Logger
+
+  @type event_name :: [atom, ...]
+  @type handler_function :: (event_name, map, map, term -> any)
+
+  @events [
+    [:vws, :sun_comm, :string_received],
+    [:vws, :sun_comm, :string_rejected],
+    [:vws, :sun_comm, :retransmission],
+    [:vws, :sun_comm, :reply_sent],
+    [:vws, :sun_comm, :rule_broken],
+    [:vws, :sun_comm, :wc_connected],
+    [:vws, :sun_comm, :wc_disconnected],
+    [:vws, :sun_comm, :nc_line],
+    [:vws, :partition, :command_dispatched],
+    [:vws, :partition, :command, :start],
+    [:vws, :partition, :command, :stop],
+    [:vws, :partition, :command, :exception],
+    [:vws, :partition, :command_finished],
+    [:vws, :events, :caused]
+  ]
+
+  @doc "Every event name listed in the moduledoc."
+  @spec events() :: [event_name]
+  def events, do: @events
+
+  defp telemetry?, do: Code.ensure_loaded?(:telemetry)
+
+  @doc "Emits an event (`:telemetry.execute/3`)."
+  @spec execute(event_name, map, map) :: :ok
+  def execute(event, measurements, metadata \\ %{}) do
+    if telemetry?() do
+      apply(:telemetry, :execute, [event, measurements, metadata])
+    else
+      for {id, fun, config} <- :persistent_term.get({__MODULE__, event}, []) do
+        try do
+          fun.(event, measurements, metadata, config)
+        rescue
+          e ->
+            Logger.error(
+              "telemetry handler #{inspect(id)} failed and was detached: " <> Exception.message(e)
+            )
+
+            detach(id)
+        end
+      end
+
+      :ok
+    end
+  end
+
+  @doc """
+  Runs `fun` (which returns `{result, stop_metadata}`) between `prefix ++ [:start]` and
+  `prefix ++ [:stop]`, or `prefix ++ [:exception]` if it raises, exits or throws (`:telemetry.span/3`).
+  """
+  @spec span(event_name, map, (() -> {result, map})) :: result when result: var
+  def span(prefix, metadata, fun) do
+    if telemetry?() do
+      apply(:telemetry, :span, [prefix, metadata, fun])
+    else
+      start = System.monotonic_time()
+
+      execute(
+        prefix ++ [:start],
+        %{system_time: System.system_time(), monotonic_time: start},
+        metadata
+      )
+
+      try do
+        {result, stop_metadata} = fun.()
+        stop = System.monotonic_time()
+        execute(prefix ++ [:stop], %{duration: stop - start, monotonic_time: stop}, stop_metadata)
+        result
+      catch
+        kind, reason ->
+          stop = System.monotonic_time()
+
+          execute(
+            prefix ++ [:exception],
+            %{duration: stop - start, monotonic_time: stop},
+            Map.merge(metadata, %{kind: kind, reason: reason, stacktrace: __STACKTRACE__})
+          )
+
+          :erlang.raise(kind, reason, __STACKTRACE__)
+      end
+    end
+  end
+
+  @doc "Attaches a handler to one event (`:telemetry.attach/4`)."
+  @spec attach(term, event_name, handler_function, term) :: :ok | {:error, :already_exists}
+  def attach(id, event, fun, config), do: attach_many(id, [event], fun, config)
+
+  @doc "Attaches a handler to several events (`:telemetry.attach_many/4`)."
+  @spec attach_many(term, [event_name], handler_function, term) :: :ok | {:error, :already_exists}
+  def attach_many(id, events, fun, config) do
+    if telemetry?() do
+      apply(:telemetry, :attach_many, [id, events, fun, config])
+    else
+      :global.trans(
+        {__MODULE__, self()},
+        fn ->
+          if id in :persistent_term.get({__MODULE__, :ids}, []) do
+            {:error, :already_exists}
+          else
+            :persistent_term.put({__MODULE__, :ids}, [
+              id | :persistent_term.get({__MODULE__, :ids}, [])
+            ])
+
+            for event <- events do
+              key = {__MODULE__, event}
+              :persistent_term.put(key, :persistent_term.get(key, []) ++ [{id, fun, config}])
+            end
+
+            :persistent_term.put({__MODULE__, {:events_of, id}}, events)
+            :ok
+          end
+        end,
+        [node()]
+      )
+    end
+  end
+
+  @doc "Detaches a handler (`:telemetry.detach/1`)."
+  @spec detach(term) :: :ok | {:error, :not_found}
+  def detach(id) do
+    if telemetry?() do
+      apply(:telemetry, :detach, [id])
+    else
+      :global.trans(
+        {__MODULE__, self()},
+        fn ->
+          ids = :persistent_term.get({__MODULE__, :ids}, [])
+
+          if id in ids do
+            for event <- :persistent_term.get({__MODULE__, {:events_of, id}}, []) do
+              key = {__MODULE__, event}
+
+              :persistent_term.put(
+                key,
+                Enum.reject(:persistent_term.get(key, []), &(elem(&1, 0) == id))
+              )
+            end
+
+            :persistent_term.erase({__MODULE__, {:events_of, id}})
+            :persistent_term.put({__MODULE__, :ids}, List.delete(ids, id))
+            :ok
+          else
+            {:error, :not_found}
+          end
+        end,
+        [node()]
+      )
+    end
+  end
+
+  @doc "Attaches `handle_default_event/4` to every event of `events/0`: each is logged at `level`."
+  @spec attach_default_handler(Logger.level()) :: :ok | {:error, :already_exists}
+  def attach_default_handler(level \\ :debug) do
+    attach_many("vws-default-logger", @events, &__MODULE__.handle_default_event/4, level)
+  end
+
+  @doc false
+  def handle_default_event(event, measurements, metadata, level) do
+    meta = Map.take(metadata, [:workstation, :partition, :command])
+
+    Logger.log(
+      level,
+      fn ->
+        "#{Enum.join(event, ".")} #{inspect(measurements)} #{inspect(Map.drop(metadata, [:stacktrace]))}"
+      end,
+      Map.to_list(meta)
+    )
+  end
+end
