@@ -1,0 +1,104 @@
+defmodule Vws.WC.LineDecoder do
+  @moduledoc """
+  Splits the WC link's byte stream into lines (PROTOCOLS.md §1): each line ends at LF, and one CR
+  before the LF is stripped. Lines are returned without their terminator, an empty line as `""`.
+
+  A line longer than `max_line` bytes (default 1024, counted without its CR LF) is discarded up
+  to its LF and reported as exactly one `%Vws.WC.Error{reason: :line_too_long}`, in its place
+  among the lines, when its LF arrives: the reply `E` then follows the whole line, as the sender
+  expects. The decoder holds at most `max_line + 1` bytes (a full-length line and the CR that
+  may end it); while discarding it holds none.
+
+      iex> dec = Vws.WC.LineDecoder.new()
+      iex> {[], dec} = Vws.WC.LineDecoder.feed(dec, "*0055*S0039ROB")
+      iex> {lines, dec} = Vws.WC.LineDecoder.feed(dec, "OT_CMD*032\\r\\nE\\r\\n")
+      iex> lines
+      ["*0055*S0039ROBOT_CMD*032", "E"]
+      iex> Vws.WC.LineDecoder.buffered(dec)
+      0
+  """
+
+  alias Vws.WC.Error
+
+  @default_max_line 1024
+
+  @enforce_keys [:max_line]
+  defstruct buffer: "", max_line: @default_max_line, discarding: nil
+
+  # `discarding` is nil, or {bytes_discarded_so_far, last_byte_was_cr?} while an overlong line runs
+  # to its LF.
+  @opaque t :: %__MODULE__{
+            buffer: binary,
+            max_line: pos_integer,
+            discarding: nil | {non_neg_integer, boolean}
+          }
+
+  @doc "A decoder. Option `max_line:` the longest line accepted, in bytes (default 1024)."
+  @spec new(keyword) :: t
+  def new(opts \\ []) do
+    case Keyword.get(opts, :max_line, @default_max_line) do
+      max when is_integer(max) and max > 0 -> %__MODULE__{max_line: max}
+      other -> raise ArgumentError, "max_line: must be a positive integer, got #{inspect(other)}"
+    end
+  end
+
+  @doc "Feeds `bytes`; returns the lines completed by them (and errors, in order) and the decoder."
+  @spec feed(t, binary) :: {[binary | {:error, Error.t()}], t}
+  def feed(%__MODULE__{discarding: nil, buffer: buffer} = dec, bytes) when is_binary(bytes) do
+    lines(dec, buffer <> bytes, [])
+  end
+
+  def feed(%__MODULE__{discarding: {count, cr?}} = dec, bytes) when is_binary(bytes) do
+    case :binary.match(bytes, "\n") do
+      :nomatch when bytes == "" ->
+        {[], dec}
+
+      :nomatch ->
+        {[], %{dec | discarding: {count + byte_size(bytes), :binary.last(bytes) == ?\r}}}
+
+      {pos, 1} ->
+        cr? = if pos == 0, do: cr?, else: :binary.at(bytes, pos - 1) == ?\r
+        length = if cr?, do: count + pos - 1, else: count + pos
+        rest = binary_part(bytes, pos + 1, byte_size(bytes) - pos - 1)
+        lines(%{dec | discarding: nil}, rest, [too_long(length, dec.max_line)])
+    end
+  end
+
+  @doc "How many bytes of an unfinished line the decoder holds."
+  @spec buffered(t) :: non_neg_integer
+  def buffered(%__MODULE__{buffer: buffer}), do: byte_size(buffer)
+
+  defp lines(dec, data, acc) do
+    case :binary.split(data, "\n") do
+      [line, rest] ->
+        line = strip_cr(line)
+
+        item =
+          if byte_size(line) > dec.max_line,
+            do: too_long(byte_size(line), dec.max_line),
+            else: line
+
+        lines(dec, rest, [item | acc])
+
+      [partial] ->
+        if byte_size(strip_cr(partial)) > dec.max_line do
+          cr? = :binary.last(partial) == ?\r
+          {Enum.reverse(acc), %{dec | buffer: "", discarding: {byte_size(partial), cr?}}}
+        else
+          {Enum.reverse(acc), %{dec | buffer: partial}}
+        end
+    end
+  end
+
+  defp strip_cr(line) do
+    size = byte_size(line) - 1
+
+    case line do
+      <<content::binary-size(size), ?\r>> -> content
+      _ -> line
+    end
+  end
+
+  defp too_long(length, max_line),
+    do: {:error, %Error{reason: :line_too_long, data: %{length: length, max_line: max_line}}}
+end
