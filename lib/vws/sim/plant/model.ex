@@ -299,7 +299,8 @@ defmodule Vws.Sim.Plant.Model do
         move_part(m, m.robot, :gripper)
 
       # vise jaws closed on the part the gripper holds: the vise has it now
-      m.robot == :vise and held != nil and part(m, :vise) == nil and near(m.vise.jaw_mm, held) ->
+      m.robot == :vise and held != nil and part(m, :vise) == nil and vise_drive(m) == :close and
+          near(m.vise.jaw_mm, held) ->
         move_part(m, :gripper, :vise)
 
       # fingers opened off a held part: put it down here, or drop it
@@ -700,7 +701,7 @@ defmodule Vws.Sim.Plant.Model do
   @doc """
   Tells the plant where the robot's gripper is: `%{volume: atom}` (`:safe`, `:table`, `:vise`,
   `:pallet`, `:tray1`, `:tray2`, …) and optionally `carrying: boolean` to put a part into the
-  gripper or take it away, as a robot simulator may do.
+  gripper (between its fingers, as if picked) or take it away, as a robot simulator may do.
   """
   @spec set_robot(t, map) :: t
   def set_robot(m, %{volume: volume} = robot) when is_atom(volume) do
@@ -709,7 +710,7 @@ defmodule Vws.Sim.Plant.Model do
     m =
       case Map.fetch(robot, :carrying) do
         {:ok, true} ->
-          %{m | parts: %{m.parts | gripper: m.parts.gripper || m.config.part_width_mm}}
+          carry(m, m.parts.gripper || m.config.part_width_mm)
 
         {:ok, false} ->
           %{m | parts: %{m.parts | gripper: nil}}
@@ -719,6 +720,12 @@ defmodule Vws.Sim.Plant.Model do
       end
 
     settle(m)
+  end
+
+  # The part is between the fingers, so they are at least as wide as it.
+  defp carry(m, width) do
+    finger = max(m.gripper.finger_mm, width)
+    %{m | parts: %{m.parts | gripper: width}, gripper: %{m.gripper | finger_mm: finger}}
   end
 
   @doc """
