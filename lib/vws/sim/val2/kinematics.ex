@@ -110,6 +110,21 @@ defmodule Vws.Sim.VAL2.Kinematics do
     end
   end
 
+  @doc "The pose of joint values `[j1, …, j6]` (forward kinematics; no range check)."
+  @spec forward([number], map) :: pose
+  def forward([j1, j2, j3, j4, j5, j6], arm) do
+    boom = mul(rz(j1), ry(-j2))
+
+    wrist =
+      add(
+        {0.0, 0.0, arm.shoulder_height},
+        apply_rotation(boom, {arm.boom_retracted + j3, 0.0, 0.0})
+      )
+
+    rotation = mul(boom, euler(j4, j5, j6))
+    %{position: add(wrist, scale(tool_z(rotation), arm.tool_length)), rotation: rotation}
+  end
+
   @doc "The straight-line distance between two poses' positions, mm."
   @spec distance(pose, pose) :: float
   def distance(%{position: p}, %{position: q}), do: norm(sub(p, q))
