@@ -22,6 +22,9 @@ defmodule Vws.Workstation do
     * `:sun_comm` — further SUN_COMM options (`bcc:`, timeouts; see `Vws.SunComm`)
     * `:links` — child specs of device links, started under the links supervisor
     * `:partitions` — per partition, keyword options: `[robot: [link: …, module: …, options: …]]`
+    * `:devices` — equipment reached through a link this module starts (see `device_links/2`):
+      `robot: "tcp://host:port"` (or `robot: [endpoint: …, ddcmp: […]]`) starts a `Vws.VAL`
+      (with its `Vws.DDCMP` link) under the links supervisor and gives it to ROBOT
   """
   use Supervisor
 
@@ -58,7 +61,7 @@ defmodule Vws.Workstation do
   @impl true
   def init(opts) do
     ws = Keyword.fetch!(opts, :id)
-    partition_opts = Keyword.get(opts, :partitions, [])
+    {device_links, partition_opts} = device_links(ws, opts)
 
     partitions =
       [
@@ -84,7 +87,7 @@ defmodule Vws.Workstation do
         start:
           {Supervisor, :start_link,
            [
-             Keyword.get(opts, :links, []),
+             Keyword.get(opts, :links, []) ++ device_links,
              [strategy: :one_for_one, max_restarts: 50, max_seconds: 5, name: via(ws, :links)]
            ]}
       },
@@ -113,6 +116,36 @@ defmodule Vws.Workstation do
     ]
 
     Supervisor.init(children, strategy: :rest_for_one, max_restarts: 10, max_seconds: 5)
+  end
+
+  @doc """
+  The link children for the `:devices` option, and the `:partitions` option with each device's
+  partition given its link (unless a `link:` was given there explicitly).
+
+    * `robot: endpoint | [endpoint: …, ddcmp: […]]` — a `Vws.VAL` named `via(id, :val)` on a
+      `Vws.DDCMP` link to the VAL II; ROBOT's `ctx.link` is that name.
+  """
+  @spec device_links(term, keyword) :: {[Supervisor.child_spec()], keyword}
+  def device_links(ws, opts) do
+    partitions = Keyword.get(opts, :partitions, [])
+
+    Enum.reduce(Keyword.get(opts, :devices, []), {[], partitions}, fn
+      {:robot, spec}, {links, partitions} ->
+        spec = if is_binary(spec), do: [endpoint: spec], else: spec
+        ddcmp = Keyword.merge(Keyword.get(spec, :ddcmp, []), endpoint: spec[:endpoint])
+
+        val =
+          {Vws.VAL,
+           [id: :val, name: via(ws, :val), ddcmp: ddcmp] ++ Keyword.take(spec, [:link_module])}
+
+        link = via(ws, :val)
+
+        {links ++ [val],
+         Keyword.update(partitions, :robot, [link: link], &Keyword.put_new(&1, :link, link))}
+
+      {device, _spec}, _acc ->
+        raise ArgumentError, "unknown device #{inspect(device)} in :devices"
+    end)
   end
 
   @doc "Starts a workstation under the node's workstation supervisor."

@@ -16,10 +16,22 @@ defmodule Mix.Tasks.Vws.Serve do
     * `--wc ENDPOINT` — any endpoint instead (`tcp://host:port`, `tty:/dev/…?baud=…`, `loopback:name`)
     * `--id ID` — the workstation id (default `VWS`)
     * `--bcc sum|xor` — the WC link's block check (default sum)
+    * `--robot ENDPOINT` — the VAL II's supervisory port (`tty:/dev/ttyS1?baud=9600`, a terminal
+      server's `tcp://host:port`); without it a simulated VAL II (`Vws.Sim.VAL2`) is started on a
+      free local port and ROBOT is connected to it
+    * `--robot-time-scale F` — the simulated robot's motion time factor (default 1.0)
   """
   use Mix.Task
 
-  @switches [wc_port: :integer, bind: :string, wc: :string, id: :string, bcc: :string]
+  @switches [
+    wc_port: :integer,
+    bind: :string,
+    wc: :string,
+    id: :string,
+    bcc: :string,
+    robot: :string,
+    robot_time_scale: :float
+  ]
 
   @impl true
   def run(args) do
@@ -39,12 +51,32 @@ defmodule Mix.Tasks.Vws.Serve do
         other -> Mix.raise("--bcc must be sum or xor, not #{other}")
       end
 
-    {:ok, _} = Vws.Workstation.start(id: id, wc: wc, sun_comm: [bcc: bcc])
+    robot = robot(opts)
+
+    {:ok, _} =
+      Vws.Workstation.start(id: id, wc: wc, sun_comm: [bcc: bcc], devices: [robot: robot])
+
     listening = wait_listening(id, 50)
     Mix.shell().info("VWS workstation #{id}: SUN_COMM waits for the WC on #{listening || wc}")
     Mix.shell().info("Inspect it: Vws.Mailbox.print(#{inspect(id)})   Stop: Ctrl-C twice")
 
     unless iex_running?(), do: Process.sleep(:infinity)
+  end
+
+  # the real VAL II, or a simulated one started here (outside the workstation: it is equipment)
+  defp robot(opts) do
+    case opts[:robot] do
+      nil ->
+        {:ok, sim} = Vws.Sim.VAL2.start_link(time_scale: opts[:robot_time_scale] || 1.0)
+        Process.unlink(sim)
+        endpoint = Vws.Sim.VAL2.endpoint(sim)
+        Mix.shell().info("Simulated VAL II robot controller on #{endpoint}")
+        endpoint
+
+      endpoint ->
+        Mix.shell().info("ROBOT connects to the VAL II at #{endpoint}")
+        endpoint
+    end
   end
 
   defp wait_listening(_id, 0), do: nil
