@@ -27,6 +27,9 @@ defmodule Vws.Telemetry do
   | `[:vws, :partition, :command, :start / :stop / :exception]` | span | `workstation, partition, command, text` (+ `result` on stop) |
   | `[:vws, :partition, :command_finished]` | `duration` (native) | `workstation, partition, command, status` |
   | `[:vws, :events, :caused]` | `count` | `workstation, event` |
+  | `[:vws, :val, :message]` | `bytes` | `name, direction, lun, function, qualifier` |
+  | `[:vws, :val, :request_finished]` | `duration` (native) | `name, text, result` |
+  | `[:vws, :val, :async]` | `count` | `name, code, text` (every LUN 3 message) |
 
   `attach_default_handler/0` logs all of them with `Logger`.
   """
@@ -50,7 +53,10 @@ defmodule Vws.Telemetry do
     [:vws, :partition, :command, :stop],
     [:vws, :partition, :command, :exception],
     [:vws, :partition, :command_finished],
-    [:vws, :events, :caused]
+    [:vws, :events, :caused],
+    [:vws, :val, :message],
+    [:vws, :val, :request_finished],
+    [:vws, :val, :async]
   ]
 
   @doc "Every event name listed in the moduledoc."
