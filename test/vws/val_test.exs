@@ -160,6 +160,30 @@ defmodule Vws.VALTest do
     assert VAL.info(val).state == {:ready, :still}
   end
 
+  test "a prompt that arrived just before the link went down lets nothing go", %{
+    val: val,
+    link: link
+  } do
+    # everything lands in the mailbox before the process looks: request, prompt, then the down
+    :sys.suspend(val)
+    task = run(fn -> VAL.command(val, "DO MOVE SAFE", 300) end)
+    wait_queue(val, 1)
+    prompt(link)
+    FakeDDCMP.down(link, :too_many_failures)
+    :sys.resume(val)
+
+    nothing_sent(link)
+    assert Task.await(task) == {:error, :timeout}
+    assert VAL.info(val).state == {:down, :still}
+  end
+
+  defp wait_queue(pid, n) do
+    assert Vws.Test.Eventually.eventually(fn ->
+             {:message_queue_len, len} = Process.info(pid, :message_queue_len)
+             len >= n
+           end)
+  end
+
   test "a peer restart mid-motion ends it ERROR; the next command waits for the new prompt", %{
     val: val,
     link: link

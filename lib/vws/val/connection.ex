@@ -40,7 +40,6 @@ defmodule Vws.VAL.Connection do
       link_module: Keyword.get(opts, :link_module, Vws.DDCMP),
       link_opts: Keyword.get(opts, :ddcmp, []),
       link: nil,
-      restarting: false,
       queue: [],
       lun2_request: nil,
       activity_request: nil,
@@ -48,7 +47,7 @@ defmodule Vws.VAL.Connection do
       prompt: nil,
       short_status: nil,
       last_async: [],
-      counts: %{in: 0, out: 0, bad: 0, unexpected: 0, requests: 0, errors: 0}
+      counts: %{in: 0, out: 0, bad: 0, stale: 0, unexpected: 0, requests: 0, errors: 0}
     }
 
     # the link is started after init returns: never block in init
@@ -128,10 +127,9 @@ defmodule Vws.VAL.Connection do
       {:keep_state_and_data, [{:reply, from, {:error, :busy}}]}
     else
       :ok = data.link_module.restart(data.link)
-      # data already on its way from the old session (a prompt) must not count: ignore it until
-      # the link is up again
-      {:next_state, {:down, :still}, %{data | restarting: true, prompt: nil},
-       [{:reply, from, :ok}]}
+      # data already on its way from the old session (a prompt) must not count: while :down,
+      # data is ignored until the link is up again
+      {:next_state, {:down, :still}, %{data | prompt: nil}, [{:reply, from, :ok}]}
     end
   end
 
@@ -161,7 +159,7 @@ defmodule Vws.VAL.Connection do
   def handle_event(:info, {:ddcmp, link, :up}, {lun2, activity}, %{link: link} = data) do
     Logger.info("VAL II link up")
     lun2 = if lun2 == :down, do: :idle, else: lun2
-    {:next_state, {lun2, activity}, %{data | restarting: false}}
+    {:next_state, {lun2, activity}, data}
   end
 
   def handle_event(:info, {:ddcmp, link, {:down, reason}}, _state, %{link: link} = data) do
@@ -170,28 +168,28 @@ defmodule Vws.VAL.Connection do
     dispatch({:down, :still}, %{data | prompt: nil}, actions)
   end
 
-  def handle_event(:info, {:ddcmp, link, :peer_restarted}, {lun2, _}, %{link: link} = data) do
+  def handle_event(:info, {:ddcmp, link, :peer_restarted}, _state, %{link: link} = data) do
     Logger.warning("the VAL II controller restarted its link")
     {data, actions} = fail_in_flight(data, :peer_restarted)
-    lun2 = if lun2 == :down, do: :down, else: :idle
-    dispatch({lun2, :still}, %{data | prompt: nil}, actions)
+    # the link starts up again and says :up; the units start afresh then
+    dispatch({:down, :still}, %{data | prompt: nil}, actions)
+  end
+
+  # The link delivers data only while running, so data met while :down is from a session that
+  # has ended (it was in the mailbox before the :down): a stale prompt must not let a command go.
+  def handle_event(:info, {:ddcmp, link, {:data, _}}, {:down, _}, %{link: link} = data) do
+    {:keep_state, count(data, :stale)}
   end
 
   def handle_event(:info, {:ddcmp, link, {:data, bytes}}, state, %{link: link} = data) do
-    cond do
-      data.restarting ->
-        :keep_state_and_data
+    case Message.decode(bytes) do
+      {:ok, message} ->
+        telemetry_message(data, :in, message, byte_size(bytes))
+        receive_message(message, state, count(data, :in))
 
-      true ->
-        case Message.decode(bytes) do
-          {:ok, message} ->
-            telemetry_message(data, :in, message, byte_size(bytes))
-            receive_message(message, state, count(data, :in))
-
-          {:error, error} ->
-            Logger.warning("undecodable VAL message: #{Exception.message(error)}")
-            {:keep_state, count(data, :bad)}
-        end
+      {:error, error} ->
+        Logger.warning("undecodable VAL message: #{Exception.message(error)}")
+        {:keep_state, count(data, :bad)}
     end
   end
 
@@ -376,22 +374,39 @@ defmodule Vws.VAL.Connection do
         dispatch(state, data, actions ++ more)
 
       {:go, request} ->
-        data = %{data | queue: List.delete(data.queue, request.ref), prompt: nil}
-
-        data =
-          send_message(data, %Message{lun: @lun_monitor, function: :write, text: request.text})
-
-        data = %{data | lun2_request: request.ref}
-
-        if request.wait == :response do
-          {:next_state, {:busy, activity}, data, actions}
-        else
-          {:next_state, {:busy, :moving}, %{data | activity_request: request.ref}, actions}
+        case link_trouble(data.link) do
+          nil -> send_request(state, data, actions, request)
+          # the link went down while we were busy: handle that first, send nothing
+          trouble -> {:next_state, state, data, actions ++ [{:next_event, :info, trouble}]}
         end
     end
   end
 
   defp dispatch(state, data, actions), do: {:next_state, state, data, actions}
+
+  # A :down or :peer_restarted already waiting in the mailbox, taken out of it.
+  defp link_trouble(link) do
+    receive do
+      {:ddcmp, ^link, {:down, _}} = trouble -> trouble
+      {:ddcmp, ^link, :peer_restarted} = trouble -> trouble
+    after
+      0 -> nil
+    end
+  end
+
+  defp send_request({:ready, activity}, data, actions, request) do
+    data = %{data | queue: List.delete(data.queue, request.ref), prompt: nil}
+
+    data = send_message(data, %Message{lun: @lun_monitor, function: :write, text: request.text})
+
+    data = %{data | lun2_request: request.ref}
+
+    if request.wait == :response do
+      {:next_state, {:busy, activity}, data, actions}
+    else
+      {:next_state, {:busy, :moving}, %{data | activity_request: request.ref}, actions}
+    end
+  end
 
   defp next_request(data, activity) do
     Enum.find_value(data.queue, fn ref ->
