@@ -17,7 +17,7 @@ defmodule Vws.SunCommWireTest do
     WCPeer.send_line(peer, "*0055*S0039ROBOT_CMD*032")
 
     assert WCPeer.recv_line(peer) ==
-             "35S00390009ERROR NO LINK TO VAL II" <> bcc("35S00390009ERROR NO LINK TO VAL II")
+             "32S00390009ERROR NO LINK TO VAL II" <> bcc("32S00390009ERROR NO LINK TO VAL II")
   end
 
   defp bcc(text),
