@@ -151,7 +151,7 @@ defmodule Vws.Transport.Serial do
   end
 
   defp find_socat(opts) do
-    case Keyword.get(opts, :socat) || System.find_executable("socat") do
+    case System.find_executable(Keyword.get(opts, :socat, "socat")) do
       nil -> {:error, :socat_not_found}
       path -> {:ok, path}
     end
