@@ -209,7 +209,8 @@ defmodule Vws.VAL do
       :exit, {:timeout, _} ->
         {:error, :timeout}
 
-      :exit, {reason, _} when reason in [:noproc, :normal, :shutdown] ->
+      # not running, or ended during the call: the command's fate is unknown, never a crash here
+      :exit, {reason, _} ->
         {:error, {:link_down, reason}}
     end
   end
