@@ -114,9 +114,15 @@ defmodule Vws.Demo do
     end
   end
 
-  @doc "The default cycle script: `priv/sims/machining_cycle.vws`."
+  @doc """
+  The default cycle script: `priv/sims/machining_cycle.vws` of the project (in the current
+  directory when it is there, else in the application's priv directory).
+  """
   @spec default_script() :: Path.t()
-  def default_script, do: Application.app_dir(:vws, "priv/sims/machining_cycle.vws")
+  def default_script do
+    local = "priv/sims/machining_cycle.vws"
+    if File.regular?(local), do: local, else: Application.app_dir(:vws, local)
+  end
 
   @doc """
   Starts the shop floor, connects a WC, runs the script and prints the dialogue and the summary
@@ -148,7 +154,7 @@ defmodule Vws.Demo do
     simulated =
       if floor.simulated == [], do: "nothing yet", else: Enum.join(floor.simulated, ", ")
 
-    IO.puts("simulated equipment: #{simulated} (time scale ×#{floor.time_scale})")
+    IO.puts("simulated equipment: #{simulated} (time scale ×#{scale(floor.time_scale)})")
 
     for {partition, device} <- floor.unlinked do
       IO.puts(
@@ -256,6 +262,9 @@ defmodule Vws.Demo do
     arrow = if direction == :sent, do: "→", else: "←"
     IO.puts("#{time(at)}  #{arrow} #{String.pad_trailing(line || "", 52)}  #{meaning}")
   end
+
+  defp scale(x) when is_float(x) and x == trunc(x), do: trunc(x)
+  defp scale(x), do: x
 
   defp time(ms), do: String.pad_leading(seconds(ms), 8)
   defp seconds(ms), do: :erlang.float_to_binary(ms / 1000, decimals: 3) <> "s"

@@ -60,12 +60,13 @@ defmodule Mix.Tasks.Vws.Demo do
     case Vws.Demo.run(demo_opts) do
       {:ok, summary, floor, _client} ->
         completed? = Vws.WC.Runner.Summary.completed?(summary)
+        once? = Keyword.get(opts, :once, false)
 
         cond do
-          opts[:once] and completed? ->
+          once? and completed? ->
             :ok
 
-          opts[:once] ->
+          once? ->
             exit({:shutdown, 1})
 
           true ->

@@ -77,7 +77,7 @@ defmodule Vws.WC.Runner.Summary do
       [
         "steps done:      #{s.steps_done} of #{s.steps_total}",
         "WC commands:     #{s.commands}",
-        "strings sent:    #{s.strings} (#{s.status_queries} status queries)",
+        "strings sent:    #{s.strings} (#{s.status_queries} #{if s.status_queries == 1, do: "status query", else: "status queries"})",
         "resends:         #{s.resends} (E received: #{s.naks}, no reply in time: #{s.timeouts})",
         "program lines:   #{s.program_lines_sent} sent, #{s.program_lines_received} received",
         "elapsed:         #{:erlang.float_to_binary(s.elapsed_ms / 1000, decimals: 2)} s"
