@@ -98,7 +98,7 @@ defmodule Vws.Workstation do
             start:
               {Supervisor, :start_link,
                [
-                 Keyword.get(opts, :links, []),
+                 Keyword.get(opts, :links, []) ++ device_links,
                  [strategy: :one_for_one, max_restarts: 50, max_seconds: 5, name: via(ws, :links)]
                ]}
           },
