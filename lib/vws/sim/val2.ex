@@ -252,6 +252,9 @@ defmodule Vws.Sim.VAL2 do
     {:noreply, %{s | up: false, waiting: %{}}}
   end
 
+  # data still in the mailbox from a session that has ended (restart, down) is not obeyed
+  def handle_info({:ddcmp, link, {:data, _}}, %{link: link, up: false} = s), do: {:noreply, s}
+
   def handle_info({:ddcmp, link, {:data, bytes}}, %{link: link} = s) do
     case Message.decode(bytes) do
       {:ok, m} ->
