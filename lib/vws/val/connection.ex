@@ -181,15 +181,15 @@ defmodule Vws.VAL.Connection do
     {:keep_state, count(data, :stale)}
   end
 
-  def handle_event(:info, {:ddcmp, link, {:data, bytes}}, state, %{link: link} = data) do
-    case Message.decode(bytes) do
-      {:ok, message} ->
-        telemetry_message(data, :in, message, byte_size(bytes))
-        receive_message(message, state, count(data, :in))
+  def handle_event(:info, {:ddcmp, link, {:data, bytes}} = event, state, %{link: link} = data) do
+    case link_trouble(link) do
+      nil ->
+        receive_data(bytes, state, data)
 
-      {:error, error} ->
-        Logger.warning("undecodable VAL message: #{Exception.message(error)}")
-        {:keep_state, count(data, :bad)}
+      # the session this data belongs to has already ended: take the end first, so the data
+      # is met while :down (stale), and nothing is answered into the next session
+      trouble ->
+        {:keep_state_and_data, [{:next_event, :info, trouble}, {:next_event, :info, event}]}
     end
   end
 
@@ -217,6 +217,18 @@ defmodule Vws.VAL.Connection do
   def terminate(_reason, _state, _data), do: :ok
 
   # Messages from the logical units ------------------------------------------------------------
+
+  defp receive_data(bytes, state, data) do
+    case Message.decode(bytes) do
+      {:ok, message} ->
+        telemetry_message(data, :in, message, byte_size(bytes))
+        receive_message(message, state, count(data, :in))
+
+      {:error, error} ->
+        Logger.warning("undecodable VAL message: #{Exception.message(error)}")
+        {:keep_state, count(data, :bad)}
+    end
+  end
 
   # LUN 2 READ: the monitor prompts for the next command
   defp receive_message(%Message{lun: @lun_monitor, function: :read} = m, {lun2, activity}, data) do

@@ -73,23 +73,39 @@ defmodule Vws.Partitions.RobotE2ETest do
     File.mkdir_p!(dir)
     {val_tty, cec_tty} = {Path.join(dir, "val"), Path.join(dir, "cec")}
 
-    socat =
+    # a null-modem cable: -d -d makes socat say when both ptys exist and it relays between them
+    cable =
       Port.open({:spawn_executable, System.find_executable("socat")}, [
         :binary,
         :exit_status,
-        args: ["pty,rawer,echo=0,link=#{val_tty}", "pty,rawer,echo=0,link=#{cec_tty}"]
+        :stderr_to_stdout,
+        args: ["-d", "-d", "pty,raw,echo=0,link=#{val_tty}", "pty,raw,echo=0,link=#{cec_tty}"]
       ])
 
-    on_exit(fn -> File.rm_rf(dir) end)
+    {:os_pid, cable_pid} = Port.info(cable, :os_pid)
+    await_log(cable, "starting data transfer loop", "")
 
-    assert Vws.Test.Eventually.eventually(fn ->
-             File.exists?(val_tty) and File.exists?(cec_tty)
-           end)
+    on_exit(fn ->
+      System.cmd("kill", [Integer.to_string(cable_pid)], stderr_to_stdout: true)
+      File.rm_rf(dir)
+    end)
 
     sim = start_sim(endpoint: "tty:#{val_tty}?baud=9600")
     %{peer: peer} = start_workstation("tty:#{cec_tty}?baud=9600")
     table1(peer, sim)
-    Port.close(socat)
+  end
+
+  defp await_log(port, line, seen) do
+    if seen =~ line do
+      :ok
+    else
+      receive do
+        {^port, {:data, log}} -> await_log(port, line, seen <> log)
+        {^port, {:exit_status, status}} -> flunk("socat exited with #{status}: #{seen}")
+      after
+        5000 -> flunk("socat never said #{inspect(line)}: #{seen}")
+      end
+    end
   end
 
   describe "line faults" do
