@@ -17,6 +17,15 @@ defmodule Vws.VAL do
     * **LUN 1, short status.** WRITEs of a terse status text; the CEC keeps the latest (see
       `info/1`) and REPLYs.
 
+  ## Numbers
+
+  On LUNs 1 and 2 the qualifier of a message a unit initiates is its number (1–255, counting
+  on), and the CEC's answer carries the same number: the command answering a prompt (READ)
+  carries the prompt's number, a REPLY the number of what it replies to (on LUN 3 the qualifier
+  is the message code, echoed the same way). A controller can so tell an answer from one left
+  over from before a restart of the link, and never obeys a command that answers an old prompt.
+  (Our decision, PROTOCOLS.md §3 leaving the qualifier of LUNs 1 and 2 open.)
+
   The rule of seed §4.3.3: VAL II initiates everything, and after each message a logical unit
   initiates, the CEC replies before that unit sends again — so a LUN waits for its reply while the
   other LUNs carry on (LUN 3 reports motion while LUN 2 answers a `WHERE`). This process replies

@@ -56,6 +56,20 @@ defmodule Vws.VALTest do
     assert Task.await(task) == {:ok, ""}
   end
 
+  test "the command carries the number of the prompt it answers; replies echo numbers", %{
+    val: val,
+    link: link
+  } do
+    deliver(link, 2, :read, 17, ".")
+    task = run(fn -> VAL.command(val, "WHERE") end)
+    assert sent(link) == {2, :write, 17, "WHERE"}
+    deliver(link, 2, :write, 18, "0 W")
+    assert sent(link) == {2, :reply, 18, ""}
+    assert Task.await(task) == {:ok, "W"}
+    deliver(link, 1, :write, 5, "MONITOR")
+    assert sent(link) == {1, :reply, 5, ""}
+  end
+
   test "a negative response is the error code and its text", %{val: val, link: link} do
     prompt(link)
     task = run(fn -> VAL.command(val, "DO MOVE NOWHERE") end)

@@ -27,6 +27,12 @@ defmodule Vws.Sim.VAL2 do
   reply nothing waits for, a READ (VAL II initiates everything) — is not obeyed: it is logged and
   counted in `info/1` as a `violation`, so tests can check the CEC side never breaks a rule.
 
+  On LUNs 1 and 2 each message a unit initiates is numbered in its qualifier, and an answer
+  must carry the number of what it answers (`Vws.VAL`, "Numbers"). An answer with a number
+  this session of the link never used is left over from before a restart (the CEC gave it to
+  its link as the link was starting again): it is not obeyed, and counted as `stale`, not as a
+  violation.
+
   A new connection takes over from the previous one, as a new cable would.
 
   ## The plant
@@ -83,7 +89,8 @@ defmodule Vws.Sim.VAL2 do
   @doc """
   The controller's state: `location` (name of the location it is at, `nil` between names),
   `world`, `joints`, `volume`, `speed`, `moving`, `program`, `link` (up?), `commands` (every
-  monitor command received, in order), `violations` (CEC rule breaks), `restarts`.
+  monitor command obeyed, in order), `violations` (CEC rule breaks), `stale` (answers left over
+  from an earlier session, not obeyed), `restarts`.
   """
   @spec info(GenServer.server()) :: map
   def info(sim), do: GenServer.call(sim, :info)
@@ -138,6 +145,10 @@ defmodule Vws.Sim.VAL2 do
       # per LUN: what the unit waits for from the CEC (nil, :reply or :input) and its queue
       waiting: %{},
       outbox: %{},
+      # per LUN: the numbers (LUN 3: the codes) sent in this session of the link
+      session: %{},
+      numbers: %{},
+      stale: 0,
       motion: nil,
       fault: nil,
       commands: [],
@@ -197,6 +208,7 @@ defmodule Vws.Sim.VAL2 do
       link: s.up,
       commands: Enum.reverse(s.commands),
       violations: s.violations,
+      stale: s.stale,
       restarts: s.restarts,
       carrying: s.carrying
     }
@@ -237,7 +249,7 @@ defmodule Vws.Sim.VAL2 do
 
   def handle_info({:ddcmp, link, :up}, %{link: link} = s) do
     # every start-up: the units start afresh, LUN 2 prompts, LUN 1 tells its status
-    s = %{s | up: true, waiting: %{}, outbox: Map.delete(s.outbox, @lun_monitor)}
+    s = %{s | up: true, waiting: %{}, session: %{}, outbox: Map.delete(s.outbox, @lun_monitor)}
     s = enqueue(s, @lun_monitor, {:read, 0, @prompt})
     {:noreply, s |> enqueue_status() |> pump_all()}
   end
@@ -253,7 +265,8 @@ defmodule Vws.Sim.VAL2 do
   end
 
   # data still in the mailbox from a session that has ended (restart, down) is not obeyed
-  def handle_info({:ddcmp, link, {:data, _}}, %{link: link, up: false} = s), do: {:noreply, s}
+  def handle_info({:ddcmp, link, {:data, _}}, %{link: link, up: false} = s),
+    do: {:noreply, %{s | stale: s.stale + 1}}
 
   def handle_info({:ddcmp, link, {:data, bytes}}, %{link: link} = s) do
     case Message.decode(bytes) do
@@ -315,22 +328,24 @@ defmodule Vws.Sim.VAL2 do
 
   ## The logical units
 
-  defp receive_message(%Message{lun: lun, function: :reply}, s) do
-    if s.waiting[lun] == :reply do
-      pump(%{s | waiting: Map.put(s.waiting, lun, nil)}, lun)
-    else
-      Logger.warning("VAL II simulator: REPLY on LUN #{lun} that nothing waits for")
-      violation(s)
+  defp receive_message(%Message{lun: lun, function: :reply, qualifier: q}, s) do
+    case s.waiting[lun] do
+      {:reply, ^q} ->
+        pump(%{s | waiting: Map.put(s.waiting, lun, nil)}, lun)
+
+      _ ->
+        unanswered(s, lun, q, "REPLY on LUN #{lun} (#{inspect(q)}) that nothing waits for")
     end
   end
 
-  defp receive_message(%Message{lun: @lun_monitor, function: :write, text: text}, s) do
-    if s.waiting[@lun_monitor] == :input do
-      s = %{s | waiting: Map.put(s.waiting, @lun_monitor, nil), commands: [text | s.commands]}
-      monitor_command(s, text)
-    else
-      Logger.warning("VAL II simulator: command #{inspect(text)} without a prompt, not obeyed")
-      violation(s)
+  defp receive_message(%Message{lun: @lun_monitor, function: :write, qualifier: q} = m, s) do
+    case s.waiting[@lun_monitor] do
+      {:input, ^q} ->
+        s = %{s | waiting: Map.put(s.waiting, @lun_monitor, nil), commands: [m.text | s.commands]}
+        monitor_command(s, m.text)
+
+      _ ->
+        unanswered(s, @lun_monitor, q, "command #{inspect(m.text)} (#{q}) without its prompt")
     end
   end
 
@@ -467,10 +482,17 @@ defmodule Vws.Sim.VAL2 do
     case {s.waiting[lun], Map.get(s.outbox, lun, [])} do
       {nil, [{function, qualifier, text} | rest]} ->
         text = binary_part(text, 0, min(byte_size(text), Message.max_text()))
-        {:ok, message} = Message.new(lun, function, qualifier, text)
+        {q, s} = number(s, lun, qualifier)
+        {:ok, message} = Message.new(lun, function, q, text)
         :ok = Vws.DDCMP.send_data(s.link, Message.encode(message))
         wait = if function == :read, do: :input, else: :reply
-        %{s | waiting: Map.put(s.waiting, lun, wait), outbox: Map.put(s.outbox, lun, rest)}
+
+        %{
+          s
+          | waiting: Map.put(s.waiting, lun, {wait, message.qualifier}),
+            outbox: Map.put(s.outbox, lun, rest),
+            session: Map.update(s.session, lun, [message.qualifier], &[message.qualifier | &1])
+        }
 
       _ ->
         s
@@ -480,5 +502,25 @@ defmodule Vws.Sim.VAL2 do
   defp pump(s, _lun), do: s
 
   defp violation(s), do: %{s | violations: s.violations + 1}
+
+  # An answer that answers nothing waiting: left over from an earlier session when its number
+  # was never used in this one, else the CEC broke a rule. Neither is obeyed.
+  defp unanswered(s, lun, q, what) do
+    if q in Map.get(s.session, lun, []) do
+      Logger.warning("VAL II simulator: #{what}, not obeyed")
+      violation(s)
+    else
+      Logger.info("VAL II simulator: #{what}: left over from before the link restarted")
+      %{s | stale: s.stale + 1}
+    end
+  end
+
+  defp number(s, @lun_async, code), do: {code, s}
+
+  defp number(s, lun, _qualifier) do
+    n = rem(Map.get(s.numbers, lun, 0), 255) + 1
+    {n, %{s | numbers: Map.put(s.numbers, lun, n)}}
+  end
+
   defp now, do: System.monotonic_time(:millisecond)
 end

@@ -240,7 +240,7 @@ defmodule Vws.VAL.Connection do
         {data, []}
       end
 
-    dispatch({:ready, activity}, %{data | prompt: m.text}, actions)
+    dispatch({:ready, activity}, %{data | prompt: {m.qualifier, m.text}}, actions)
   end
 
   # LUN 2 WRITE: the numbered response to the command (or unsolicited monitor output)
@@ -407,9 +407,17 @@ defmodule Vws.VAL.Connection do
   end
 
   defp send_request({:ready, activity}, data, actions, request) do
+    # the command answers this prompt: it carries the prompt's number (see Vws.VAL, "Numbers")
+    {number, _text} = data.prompt
     data = %{data | queue: List.delete(data.queue, request.ref), prompt: nil}
 
-    data = send_message(data, %Message{lun: @lun_monitor, function: :write, text: request.text})
+    data =
+      send_message(data, %Message{
+        lun: @lun_monitor,
+        function: :write,
+        qualifier: number,
+        text: request.text
+      })
 
     data = %{data | lun2_request: request.ref}
 

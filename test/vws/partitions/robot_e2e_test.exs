@@ -58,7 +58,7 @@ defmodule Vws.Partitions.RobotE2ETest do
     assert robot(peer, 62, 13, "DO MOVE MV9") == "0013ERROR -301 UNDEFINED LOCATION MV9"
     assert robot(peer, 63, 14, "RELEASE_TRAY1") == "0014DONE"
     assert robot(peer, 64, 15, "DO MOVES SAFE") == "0015DONE"
-    assert VAL2.info(sim).violations == 0
+    assert %{violations: 0, stale: 0} = VAL2.info(sim)
   end
 
   test "Table 1 over TCP" do
@@ -173,7 +173,7 @@ defmodule Vws.Partitions.RobotE2ETest do
              "0001ERROR VAL II RESTARTED"
 
     assert robot(peer, 3, 2, "WHERE") == "0002DONE"
-    assert VAL2.info(sim).commands == ["DO MOVE VISE", "WHERE"]
+    assert %{commands: ["DO MOVE VISE", "WHERE"], violations: 0} = VAL2.info(sim)
   end
 
   defp val_text(%Frame.Data{data: data}) do
