@@ -30,7 +30,10 @@ defmodule Vws.DNC do
       A transmission either completes with every block acknowledged or ends with an error; a
       receiver never hands on a partial transmission.
     * A bad block received (bad BCC, malformed) is answered NAK; ENQ is answered by repeating the
-      last reply.
+      last reply. An EOT right after our NAK or WACK means the sender gave up: what arrived is not
+      handed on as a transmission (a request waiting for it ends `:aborted`).
+    * Limit of the line discipline (no ETB in this link): when a sender gives up after its
+      acknowledgements were lost, the receiver cannot tell that EOT from a normal end.
 
   ## Options (`start_link/1`)
 
@@ -65,6 +68,8 @@ defmodule Vws.DNC do
       `R` command: answer with `answer(link, ref, text_blocks)` within `answer_timeout`; the link
       bids and sends them
     * `{:unsolicited, text_blocks}` — the peer bid and sent text without a command
+    * `{:aborted, command | nil, text_blocks}` — the peer gave its transmission up (EOT right
+      after our NAK or WACK): not a whole transmission, only for the record
     * `{:answer_failed, %Vws.DNC.LinkError{}}` — an answer could not be delivered
 
   ## Telemetry
@@ -176,7 +181,7 @@ defmodule Vws.DNC do
     * `:drop_replies` — the first reply to every block received is lost (the peer's ENQ gets it)
     * `{:wack, n}` — the next `n` replies are WACK (busy) instead of the acknowledgement
     * `:corrupt` — the first copy of every block sent has its block check damaged
-    * `:silent` — nothing is sent at all
+    * `:silent` — nothing is sent, and what arrives is ignored (a dead peer)
     * `{:bid_contention, blocks}` — at the peer's next bid, bid at the same moment (and send
       `blocks` unsolicited when this end wins)
   """

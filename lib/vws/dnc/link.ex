@@ -336,7 +336,7 @@ defmodule Vws.DNC.Link do
         _ -> {data, data.rx.last}
       end
 
-    data = send_control(data, reply)
+    data = send_control(%{data | rx: %{data.rx | sent: reply}}, reply)
     {:keep_state, data, [receive_timer(data)]}
   end
 
@@ -665,6 +665,7 @@ defmodule Vws.DNC.Link do
       count: 0,
       bytes: 0,
       last: :ack0,
+      sent: :ack0,
       naked: 0,
       dropped: 0,
       ref: nil,
@@ -704,16 +705,36 @@ defmodule Vws.DNC.Link do
             _ -> {data, ack}
           end
 
-        data = if reply, do: send_control(data, reply), else: data
+        data =
+          if reply,
+            do: send_control(%{data | rx: %{data.rx | sent: reply}}, reply),
+            else: data
+
         {:keep_state, data, [receive_timer(data)]}
     end
   end
 
   defp reply_nak(data) do
     data = send_control(data, :nak)
-    data = bump(%{data | rx: %{data.rx | last: :nak}}, :naks_sent)
+    data = bump(%{data | rx: %{data.rx | last: :nak, sent: :nak}}, :naks_sent)
     emit(data, :retry, %{kind: :nak_sent, block: data.rx.count + 1})
     {:keep_state, data, [receive_timer(data)]}
+  end
+
+  # EOT right after our NAK or WACK: the sender gave up (a working sender never ends there), so
+  # what arrived is not a whole transmission and is never handed on as one.
+  defp end_reception(%{rx: %{sent: sent} = rx} = data) when sent in [:nak, :wack] do
+    blocks = Enum.reverse(rx.blocks)
+    Logger.warning("DNC: the peer gave up its transmission after #{rx.count} blocks")
+
+    case rx.kind do
+      :reply ->
+        {:next_state, :idle, %{fail(data, :aborted, rx.count + 1, nil) | rx: nil}}
+
+      :slave ->
+        notify(data, {:aborted, rx.command, blocks})
+        after_slave(%{data | rx: nil})
+    end
   end
 
   defp end_reception(%{rx: rx} = data) do
@@ -814,6 +835,11 @@ defmodule Vws.DNC.Link do
     due = max(System.monotonic_time(), line.tx_free) + byte_size(bytes) * line.char
     line = %{line | tx_free: due, tx: :queue.in({due, bytes}, line.tx)}
     %{data | line: arm(line, :tx)}
+  end
+
+  defp received(_bytes, %{fault: :silent} = data) do
+    :ok = Transport.activate(data.conn)
+    :keep_state_and_data
   end
 
   defp received(bytes, %{line: %{char: nil}} = data) do

@@ -98,6 +98,10 @@ defmodule Vws.Sim.GE2000 do
   @spec cycle_start(GenServer.server()) :: :ok
   def cycle_start(sim), do: GenServer.call(sim, :cycle_start)
 
+  @doc "Ends the running cycle now, as the program's end would (for an operator or a test)."
+  @spec end_cycle(GenServer.server()) :: :ok
+  def end_cycle(sim), do: GenServer.call(sim, :end_cycle)
+
   @doc "The machine's state: `%{state, selected, alarm, directory, cycles}`."
   @spec state(GenServer.server()) :: map
   def state(sim), do: GenServer.call(sim, :state)
@@ -208,6 +212,7 @@ defmodule Vws.Sim.GE2000 do
   def handle_call({:set_fault, fault}, _from, s), do: {:reply, DNC.set_fault(s.link, fault), s}
 
   def handle_call(:cycle_start, _from, s), do: {:reply, :ok, start_cycle(s)}
+  def handle_call(:end_cycle, _from, s), do: {:reply, :ok, end_cycle_now(s)}
 
   def handle_call(:state, _from, s) do
     {:reply,
@@ -247,11 +252,8 @@ defmodule Vws.Sim.GE2000 do
     {:noreply, s}
   end
 
-  def handle_info(:cycle_end, s) do
-    Logger.info("GE-2000 simulator: cycle of #{s.selected} ended")
-    plant(s, :table_in_park)
-    {:noreply, %{s | active: false}}
-  end
+  def handle_info({:cycle_end, n}, %{cycles: n} = s), do: {:noreply, end_cycle_now(s)}
+  def handle_info({:cycle_end, _earlier}, s), do: {:noreply, s}
 
   def handle_info({:EXIT, pid, reason}, s) when pid in [s.link, s.acceptor] do
     {:stop, reason, s}
@@ -371,11 +373,19 @@ defmodule Vws.Sim.GE2000 do
     if s.selected && Map.has_key?(s.programs, "#{s.selected}.PRO") do
       Logger.info("GE-2000 simulator: cycle start, running #{s.selected}")
       plant(s, :table_out_of_park)
-      Process.send_after(self(), :cycle_end, s.cycle_time)
+      Process.send_after(self(), {:cycle_end, s.cycles + 1}, s.cycle_time)
       %{alarm(s, :none) | active: true, cycles: s.cycles + 1}
     else
       alarm(s, :nothing_selected)
     end
+  end
+
+  defp end_cycle_now(%{active: false} = s), do: s
+
+  defp end_cycle_now(s) do
+    Logger.info("GE-2000 simulator: cycle of #{s.selected} ended")
+    plant(s, :table_in_park)
+    %{s | active: false}
   end
 
   defp report(s) do
