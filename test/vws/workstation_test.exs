@@ -34,8 +34,7 @@ defmodule Vws.WorkstationTest do
     {:ok, _} = WS.start(id: id, wc: "loopback:rt-#{id}")
     assert id in WS.list()
     :ok = WS.stop(id)
-    refute id in WS.list()
-    refute Mailbox.exists?(id)
+    assert Eventually.eventually(fn -> id not in WS.list() and not Mailbox.exists?(id) end)
   end
 
   describe "crash isolation" do
@@ -77,7 +76,7 @@ defmodule Vws.WorkstationTest do
       assert WCPeer.await_status(peer, 39, "ROBOT_CMD", &(&1 == "0010DONE")) == "0010DONE"
     end
 
-    test "every partition, the links and the partitions supervisor can be killed; SUN_COMM stays",
+    test "every partition and every link process can be killed; SUN_COMM stays",
          %{ws: ws, peer: peer, sun_comm: sun_comm} do
       for p <- [:vws_status | Mailbox.partitions()] do
         pid = Partition.whereis(ws, p)
@@ -89,9 +88,15 @@ defmodule Vws.WorkstationTest do
         assert WCPeer.status(peer, 5, 1, "GRIPPER_CMD") == "0000NONE"
       end
 
-      links = WS.whereis(ws, :links)
-      Process.exit(links, :kill)
-      assert Eventually.eventually(fn -> WS.whereis(ws, :links) not in [nil, links] end)
+      for {id, pid, _, _} <- Supervisor.which_children(WS.whereis(ws, :links)), is_pid(pid) do
+        Process.exit(pid, :kill)
+
+        assert Eventually.eventually(fn ->
+                 Enum.any?(Supervisor.which_children(WS.whereis(ws, :links)), fn {i, p, _, _} ->
+                   i == id and is_pid(p) and p != pid
+                 end)
+               end)
+      end
 
       assert WS.whereis(ws, :sun_comm) == sun_comm
       assert WCPeer.status(peer, 6, 1, "ROBOT_CMD") == "0000NONE"
