@@ -13,18 +13,20 @@ defmodule Vws.Partitions.MonarchTest do
   @link_opts [reply_timeout: 300, wack_delay: 50, backoff_min: 10, backoff_max: 50]
 
   setup context do
+    if context[:pty], do: pty_setup(context), else: tcp_setup(context)
+  end
+
+  defp tcp_setup(context) do
     test = self()
 
-    sim_opts =
-      [
-        cycle_time: 60_000,
-        plant: fn event -> send(test, {:plant, event}) end,
-        link: @link_opts,
-        programs: %{"000100.PRO" => "%\nO100\nN10 M30\n%\n"}
-      ] ++ Map.get(context, :sim, [])
+    sim_opts = [
+      cycle_time: 60_000,
+      plant: fn event -> send(test, {:plant, event}) end,
+      link: @link_opts,
+      programs: %{"000100.PRO" => "%\nO100\nN10 M30\n%\n"}
+    ]
 
     sim = start_supervised!({GE2000, sim_opts})
-    endpoint = Map.get_lazy(context, :endpoint, fn -> GE2000.endpoint(sim) end)
 
     monarch_options =
       if context[:no_relay],
@@ -35,6 +37,31 @@ defmodule Vws.Partitions.MonarchTest do
           poll_interval: 20
         ]
 
+    workstation(GE2000.endpoint(sim), sim, monarch_options)
+  end
+
+  # A socat pty pair: the simulator on one end, the workstation's DNC link on the other.
+  defp pty_setup(%{tmp_dir: dir}) do
+    a = Path.join(dir, "ge")
+    b = Path.join(dir, "cec")
+    socat = System.find_executable("socat") || flunk("socat is not installed")
+
+    port =
+      Port.open({:spawn_executable, socat}, [
+        :binary,
+        :stderr_to_stdout,
+        args: ["-d", "-d", "pty,raw,echo=0,link=#{a}", "pty,raw,echo=0,link=#{b}"]
+      ])
+
+    {:os_pid, os_pid} = Port.info(port, :os_pid)
+    on_exit(fn -> System.cmd("kill", [Integer.to_string(os_pid)]) end)
+    assert eventually(fn -> File.exists?(a) and File.exists?(b) end)
+
+    sim = start_supervised!({GE2000, endpoint: "tty:#{a}?baud=38400", link: @link_opts})
+    workstation("tty:#{b}?baud=38400", sim, [])
+  end
+
+  defp workstation(endpoint, sim, monarch_options) do
     %{ws: ws, wc: wc} =
       Vws.Test.Workstation.start(
         devices: [ge2000: [endpoint: endpoint] ++ @link_opts],
@@ -126,9 +153,8 @@ defmodule Vws.Partitions.MonarchTest do
   end
 
   describe "over a socat pty pair" do
-    setup :pty_pair
-
-    @tag :tmp_dir
+    @describetag :pty
+    @describetag :tmp_dir
     test "the same round trip, byte-exact", ctx do
       round_trip(ctx.peer, ctx.sim, ctx.ws, program(20_000))
       assert DNC.info(ctx.link).endpoint =~ "tty:"
@@ -270,38 +296,5 @@ defmodule Vws.Partitions.MonarchTest do
     start_supervised!({GE2000, endpoint: endpoint, link: @link_opts})
     assert eventually(fn -> DNC.info(ctx.link).state == :idle end)
     assert monarch(ctx.peer, 2, "STATUS") == "0002DONE"
-  end
-
-  ## pty pair set-up
-
-  defp pty_pair(%{tmp_dir: dir} = ctx) do
-    a = Path.join(dir, "ge")
-    b = Path.join(dir, "cec")
-    socat = System.find_executable("socat") || flunk("socat is not installed")
-
-    port =
-      Port.open({:spawn_executable, socat}, [
-        :binary,
-        :stderr_to_stdout,
-        args: ["-d", "-d", "pty,raw,echo=0,link=#{a}", "pty,raw,echo=0,link=#{b}"]
-      ])
-
-    {:os_pid, os_pid} = Port.info(port, :os_pid)
-    on_exit(fn -> System.cmd("kill", [Integer.to_string(os_pid)]) end)
-    assert eventually(fn -> File.exists?(a) and File.exists?(b) end)
-
-    # the workstation of the main setup talks to a TCP simulator; this one uses the ptys
-    stop_supervised!(GE2000)
-    sim = start_supervised!({GE2000, endpoint: "tty:#{a}?baud=38400", link: @link_opts})
-
-    %{ws: ws, wc: wc} =
-      Vws.Test.Workstation.start(
-        devices: [ge2000: [endpoint: "tty:#{b}?baud=38400"] ++ @link_opts]
-      )
-
-    link = Workstation.whereis(ws, :ge2000)
-    assert eventually(fn -> DNC.info(link).state == :idle end)
-    {:ok, peer} = WCPeer.connect(wc)
-    Map.merge(ctx, %{ws: ws, peer: peer, sim: sim, link: link})
   end
 end
