@@ -114,7 +114,18 @@ defmodule Vws.DNC.Link do
       win_contention: Keyword.get(o, :win_contention, role == :ge),
       limits: Map.new(Keyword.drop(o, [:name, :owner, :endpoint, :role, :pad, :win_contention])),
       backoff: 0,
-      line: %{char: pace, tx_free: 0, rx_free: 0, tx: :queue.new(), rx: :queue.new(), timers: %{}},
+      # (monotonic time may be negative: the line is free "now", not at 0)
+      line: %{
+        char: pace,
+        tx_free: System.monotonic_time(),
+        rx_free: System.monotonic_time(),
+        tx: :queue.new(),
+        rx: :queue.new(),
+        timers: %{},
+        slack: System.convert_time_unit(1, :millisecond, :native),
+        logical: nil,
+        sent: nil
+      },
       counters: Map.new(@counters, &{&1, 0})
     }
 
@@ -830,9 +841,18 @@ defmodule Vws.DNC.Link do
   end
 
   defp send_bytes(%{line: line} = data, bytes) do
-    # paced: the bytes reach the peer when the line has had time to carry them
+    # paced: the bytes reach the peer when the line has had time to carry them. A reply to what
+    # was just taken off the line starts when that ended on the line, not when our timer fired.
     bytes = IO.iodata_to_binary(bytes)
-    due = max(System.monotonic_time(), line.tx_free) + byte_size(bytes) * line.char
+    now = System.monotonic_time()
+
+    start =
+      case line.logical do
+        {ended, at} when now - at <= line.slack -> ended
+        _ -> now
+      end
+
+    due = max(start, line.tx_free) + byte_size(bytes) * line.char
     line = %{line | tx_free: due, tx: :queue.in({due, bytes}, line.tx)}
     %{data | line: arm(line, :tx)}
   end
@@ -850,30 +870,49 @@ defmodule Vws.DNC.Link do
 
   defp received(bytes, %{line: line} = data) do
     now = System.monotonic_time()
-    due = max(now, line.rx_free) + byte_size(bytes) * line.char
+
+    # Our last bytes reached the peer `late` after they were due on the modelled line (a timer
+    # of ours, a busy scheduler): its answer is taken to have started that much earlier, never
+    # before our bytes were due. The peer's own reaction time still counts.
+    start =
+      case line.sent do
+        {due, late} -> max(now - late, due)
+        nil -> now
+      end
+
+    due = max(start, line.rx_free) + byte_size(bytes) * line.char
     line = %{line | rx_free: due, rx: :queue.in({due, bytes}, line.rx)}
     {:keep_state, %{data | line: arm(line, :rx)}}
   end
 
   defp flush_rx(%{line: line} = data) do
     now = System.monotonic_time()
-    {ready, rest} = take_due(line.rx, now, [])
-    line = arm(%{line | rx: rest, timers: Map.delete(line.timers, :rx)}, :rx)
+    {ready, rest, ended} = take_due(line.rx, now + line.slack, [], now)
+    line = %{line | rx: rest, timers: Map.delete(line.timers, :rx), logical: {ended, now}}
+    line = arm(line, :rx)
     {frames, decoder} = Frame.feed(data.decoder, IO.iodata_to_binary(ready))
     if :queue.is_empty(rest) and data.conn, do: :ok = Transport.activate(data.conn)
     {:keep_state, %{data | decoder: decoder, line: line}, frame_events(frames)}
   end
 
   defp flush_tx(%{line: line} = data) do
-    {ready, rest} = take_due(line.tx, System.monotonic_time(), [])
+    now = System.monotonic_time()
+    {ready, rest, last} = take_due(line.tx, now + line.slack, [], nil)
     if data.conn && ready != [], do: Transport.send(data.conn, ready)
-    %{data | line: arm(%{line | tx: rest, timers: Map.delete(line.timers, :tx)}, :tx)}
+    sent = if last, do: {last, max(now - last, 0)}, else: line.sent
+    line = %{line | tx: rest, timers: Map.delete(line.timers, :tx), sent: sent}
+    %{data | line: arm(line, :tx)}
   end
 
-  defp take_due(queue, now, acc) do
+  # Timers have millisecond resolution: what is due within `slack` (1 ms) goes now, so the error
+  # averages out instead of always running late.
+  defp take_due(queue, limit, acc, last) do
     case :queue.peek(queue) do
-      {:value, {due, bytes}} when due <= now -> take_due(:queue.drop(queue), now, [acc | bytes])
-      _ -> {acc, queue}
+      {:value, {due, bytes}} when due <= limit ->
+        take_due(:queue.drop(queue), limit, [acc | bytes], due)
+
+      _ ->
+        {acc, queue, last}
     end
   end
 
@@ -881,7 +920,7 @@ defmodule Vws.DNC.Link do
   defp arm(line, dir) do
     case {line.timers[dir], :queue.peek(Map.fetch!(line, dir))} do
       {nil, {:value, {due, _}}} ->
-        ms = System.convert_time_unit(due, :native, :millisecond) + 1
+        ms = System.convert_time_unit(due, :native, :millisecond)
         ref = :erlang.start_timer(ms, self(), :"line_#{dir}", abs: true)
         %{line | timers: Map.put(line.timers, dir, ref)}
 

@@ -333,9 +333,16 @@ defmodule Vws.Sim.GE2000 do
 
   # R commands: the text to send back.
   defp requested(%Command{operation: :part_program, text: name}, s) do
-    name = if String.trim(name) == "" and s.selected, do: "#{s.selected}.PRO", else: name
+    name =
+      case {String.trim(name), s.selected} do
+        {"", nil} -> :none_selected
+        {"", selected} -> "#{selected}.PRO"
+        {name, _} -> name
+      end
 
-    with {:ok, name} <- file_name(name), {:ok, text} <- Map.fetch(s.programs, name) do
+    with true <- name != :none_selected || :error,
+         {:ok, name} <- file_name(name),
+         {:ok, text} <- Map.fetch(s.programs, name) do
       {text, alarm(s, :none)}
     else
       {:error, :bad_name} -> {"", alarm(s, :bad_name)}

@@ -29,7 +29,7 @@ defmodule Vws.DNC.ReportTest do
         table = Map.to_list(Map.new(table))
         {:ok, parsed} = Report.parse_offsets(Report.offsets(table))
 
-        Map.keys(parsed) == Enum.map(table, &elem(&1, 0)) |> Enum.sort() and
+        Enum.sort(Map.keys(parsed)) == Enum.sort(Enum.map(table, &elem(&1, 0))) and
           Enum.all?(table, fn {n, v} ->
             abs(String.to_float(parsed[n]) - v) <= 0.00005 + 1.0e-9
           end)
