@@ -38,8 +38,6 @@ defmodule Vws.Mailbox do
   longer critical section, `locked/2` runs a function inside the owner process.
   """
 
-  alias Vws.Mailbox.Owner
-
   @type workstation :: term
   @type partition :: :robot | :monarch | :gripper | :fixture | :vacuum | :hydraulic
   @type status :: :none | :executing | :done | {:error, String.t()}

@@ -338,8 +338,9 @@ defmodule Vws.SunComm do
 
     cond do
       status_string?(cs) ->
+        # status strings are not remembered for rule 4: answering one twice is harmless, and a
+        # status poll between a lost acknowledgement and its resend must not hide the resend
         [status] = cs.commands
-        Mailbox.put_last_string(ws, cs.sequence, line)
         text = Vws.Status.answer(ws, status.text)
         s = %{s | counters: bump(s.counters, :status_answers)}
         reply(s, {:status, status.number, text})

@@ -1,0 +1,35 @@
+defmodule Vws.Sim.Plant.ConfigTest do
+  use ExUnit.Case, async: true
+
+  alias Vws.Sim.Plant.Config
+
+  doctest Config
+
+  @config Config.load()
+
+  test "the channel map is checked" do
+    assert Config.channel(@config, :table_park) == {:daq1, 104}
+    assert Config.channel(@config, :nothing) == nil
+
+    assert_raise ArgumentError, ~r/daq1 channel 118/, fn ->
+      Config.load(%{daq1: %{118 => %{kind: :switch, signal: :vise_jaw_mm}}})
+    end
+
+    assert_raise ArgumentError, ~r/two channels/, fn ->
+      Config.load(%{daq1: %{118 => %{kind: :switch, signal: :table_park}}})
+    end
+
+    assert_raise ArgumentError, ~r/volts_per_unit/, fn ->
+      Config.load(%{daq1: %{103 => %{kind: :pot, signal: :vise_jaw_mm, volts_per_unit: nil}}})
+    end
+  end
+
+  test "every signal of the shipped map is wired exactly once" do
+    wired = @config.channels |> Map.values() |> Enum.map(& &1.signal) |> Enum.sort()
+    known = Config.signals() |> Map.values() |> Enum.concat() |> Enum.sort()
+    assert wired == known
+
+    assert Enum.count(@config.channels, fn {{daq, ch}, _} -> daq == :daq1 and ch in 101..116 end) ==
+             16
+  end
+end
