@@ -218,7 +218,8 @@ defmodule Vws.DDCMP do
   @doc """
   Re-initialises the link (the seed's STRT between robot commands): sends STRT and goes back
   through start-up; `{:down, :restart}` if it was RUNNING, then `:up` again once the peer answers.
-  Unacknowledged and queued messages are dropped.
+  Unacknowledged and queued messages are dropped. A link halted by a maintenance message starts
+  again this way; one whose transport is down starts by itself once it is back.
   """
   @spec restart(link) :: :ok
   def restart(link), do: :gen_statem.call(link, :restart)
