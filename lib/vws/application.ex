@@ -24,11 +24,11 @@ defmodule Vws.Application do
         opts = Enum.reject(opts, fn {_k, v} -> v == nil end)
 
         [
-          %{
+          Supervisor.child_spec(
+            {Task, fn -> {:ok, _} = Vws.Workstation.start(opts) end},
             id: :configured_workstation,
-            restart: :transient,
-            start: {Vws.Workstation, :start, [opts]}
-          }
+            restart: :temporary
+          )
         ]
     end
   end
