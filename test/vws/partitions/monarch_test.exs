@@ -42,27 +42,9 @@ defmodule Vws.Partitions.MonarchTest do
 
   # A socat pty pair: the simulator on one end, the workstation's DNC link on the other.
   defp pty_setup(_context) do
-    # a short path without blanks or commas: socat's address syntax would split on them
-    dir = Path.join(System.tmp_dir!(), "vws-pty-#{System.unique_integer([:positive])}")
-    File.mkdir_p!(dir)
-    on_exit(fn -> File.rm_rf(dir) end)
-    a = Path.join(dir, "ge")
-    b = Path.join(dir, "cec")
-    socat = System.find_executable("socat") || flunk("socat is not installed")
-
-    port =
-      Port.open({:spawn_executable, socat}, [
-        :binary,
-        :stderr_to_stdout,
-        args: ["-d", "-d", "pty,raw,echo=0,link=#{a}", "pty,raw,echo=0,link=#{b}"]
-      ])
-
-    {:os_pid, os_pid} = Port.info(port, :os_pid)
-    on_exit(fn -> System.cmd("kill", [Integer.to_string(os_pid)]) end)
-    assert eventually(fn -> File.exists?(a) and File.exists?(b) end)
-
-    sim = start_supervised!({GE2000, endpoint: "tty:#{a}?baud=38400", link: @link_opts})
-    workstation("tty:#{b}?baud=38400", sim, [])
+    pair = Vws.Test.PtyPair.start!()
+    sim = start_supervised!({GE2000, endpoint: "tty:#{pair.a}?baud=38400", link: @link_opts})
+    workstation("tty:#{pair.b}?baud=38400", sim, [])
   end
 
   defp workstation(endpoint, sim, monarch_options) do
