@@ -134,8 +134,9 @@ defmodule Vws.Workstation do
   The link children for the `devices:` option, and the partition options updated to use them.
 
   `ge2000: endpoint` (or `ge2000: [endpoint: …, …more Vws.DNC options]`) adds a `Vws.DNC` link
-  registered as `{ws, :ge2000}` (`whereis(ws, :ge2000)`), and makes it MONARCH's `link:` unless
-  the partition options already name one.
+  registered as `{ws, :ge2000}` (`whereis(ws, :ge2000)`) and the `Vws.Partitions.Monarch.Monitor`
+  that keeps the MONARCH status current through it (`status_interval:` ms, default 1 000;
+  `nil` for none), and makes the link MONARCH's `link:` unless the partition options name one.
   """
   @spec device_links(term, keyword, keyword) ::
           {[Supervisor.child_spec() | {module, term}], keyword}
@@ -143,10 +144,17 @@ defmodule Vws.Workstation do
     Enum.reduce(devices, {[], partition_opts}, fn
       {:ge2000, spec}, {links, popts} ->
         link_opts = if is_binary(spec), do: [endpoint: spec], else: spec
+        {interval, link_opts} = Keyword.pop(link_opts, :status_interval, 1_000)
         name = via(ws, :ge2000)
-        child = {Vws.DNC, [id: :ge2000, name: name] ++ link_opts}
+        link = {Vws.DNC, [id: :ge2000, name: name] ++ link_opts}
+
+        monitor =
+          for i <- [interval],
+              i != nil,
+              do: {Vws.Partitions.Monarch.Monitor, workstation: ws, link: name, interval: i}
+
         monarch = Keyword.put_new(Keyword.get(popts, :monarch, []), :link, name)
-        {links ++ [child], Keyword.put(popts, :monarch, monarch)}
+        {links ++ [link | monitor], Keyword.put(popts, :monarch, monarch)}
 
       {device, _spec}, _acc ->
         raise ArgumentError, "unknown device #{inspect(device)} (known: :ge2000)"

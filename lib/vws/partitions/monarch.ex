@@ -30,6 +30,11 @@ defmodule Vws.Partitions.Monarch do
   `ERROR NO LINK TO DAQ #1` and sets nothing). RELEASE_TABLE clears the flag once the machine
   reports IDLE.
 
+  **Following the machine.** The `MONARCH` status is kept current without the WC asking:
+  `Vws.Partitions.Monarch.Monitor`, started with the DNC link by the workstation's `devices:`
+  option, reads the status report every second (as VWS_STATUS reads DAQ #1), so the WC follows a
+  cycle — and finds the machine IDLE before its first Monarch command — with `S MONARCH` alone.
+
   ## Options (`partitions: [monarch: [options: …]]`)
 
     * `:cycle_start` — the relay function above
@@ -186,6 +191,17 @@ defmodule Vws.Partitions.Monarch do
     else
       {:ok, nil}
     end
+  end
+
+  @doc """
+  Reads the GE-2000's status report (`RNL`) through `link` and writes the `MONARCH` device status
+  (location 8) of workstation `ws`: `{:ok, %{state, program, alarm}}`, or `{:error, reason}` in
+  the words of an `ERROR` status. Options: `:check`, `:request_timeout` (as the partition's).
+  """
+  @spec refresh_status(Mailbox.workstation(), DNC.link(), keyword) ::
+          {:ok, Report.status()} | {:error, String.t()}
+  def refresh_status(ws, link, options \\ []) do
+    status_report(%{workstation: ws, link: link, options: options})
   end
 
   # RNL → the report; every report read refreshes the MONARCH device status.

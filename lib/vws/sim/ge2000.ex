@@ -118,6 +118,27 @@ defmodule Vws.Sim.GE2000 do
   @spec put_program(GenServer.server(), String.t(), binary) :: :ok
   def put_program(sim, name, text), do: GenServer.call(sim, {:put_program, name, text})
 
+  @doc """
+  Puts a simulated GE-2000 on the demo's shop floor (`Vws.Demo`): started under the node's
+  workstation supervisor with a cycle of 5 s divided by `:time_scale`, linked to workstation
+  `:workstation` through `Vws.Workstation.device_links/3`; its cycle-start button stands in for
+  the DAQ #1 relay until a DAQ simulator closes that relay.
+  """
+  @spec shop_floor(keyword) :: {:ok, map} | {:error, term}
+  def shop_floor(opts) do
+    ws = Keyword.fetch!(opts, :workstation)
+    scale = Keyword.get(opts, :time_scale, 1.0)
+    cycle = if scale > 0, do: round(5_000 / scale), else: 5_000
+    spec = Supervisor.child_spec({__MODULE__, cycle_time: cycle}, id: {__MODULE__, ws})
+
+    with {:ok, sim} <- DynamicSupervisor.start_child(Vws.WorkstationSupervisor, spec) do
+      {links, partitions} = Vws.Workstation.device_links(ws, [ge2000: endpoint(sim)], [])
+      relay = [cycle_start: fn -> cycle_start(sim) end]
+      partitions = Keyword.update!(partitions, :monarch, &Keyword.put(&1, :options, relay))
+      {:ok, %{name: "GE-2000", links: links, partitions: partitions}}
+    end
+  end
+
   ## Server
 
   @impl true
