@@ -166,7 +166,11 @@ defmodule Vws.DNC do
     end
   end
 
-  @doc "The link's state, role, endpoint, peer, fault, block size, pacing and counters."
+  @doc """
+  The link's state (`:disconnected`, `:idle`, `:bidding`, `:sending`, `:turnaround` — waiting for
+  the peer's bid after our `R` command —, `:receiving`, `:answering` — the owner preparing the
+  answer to the peer's `R` command), role, endpoint, peer, fault, block size, pacing and counters.
+  """
   @spec info(link) :: map
   def info(link), do: :gen_statem.call(link, :info)
 

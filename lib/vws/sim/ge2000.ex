@@ -15,7 +15,7 @@ defmodule Vws.Sim.GE2000 do
   | `SND` + `nnnnnn.PRO`/`.GSU` | deletes the file |
   | `RNS` + file name | sends the file (the selected program without a name); nothing if there is none |
   | `RNO` + `TOFFSET` | sends the tool-offset table |
-  | `RNL` | sends the status report `STATE=ACTIVE|IDLE;PROG=nnnnnn;ALARM=n` |
+  | `RNL` | sends the status report (`Vws.DNC.Report`): `STATE=IDLE;PROG=001234;ALARM=0` |
   | `RNF` | sends the directory, one file name per line |
 
   The alarm number (decision, for the simulator) is the outcome of the last DNC command or
