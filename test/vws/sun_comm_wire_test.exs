@@ -41,4 +41,13 @@ defmodule Vws.SunCommWireTest do
     assert WCPeer.status(peer2, 56, 40, "GRIPPER_CMD") == "0004ERROR NO LINK TO DAQ #1"
     assert WCPeer.recv_line(peer, 500) == {:timeout, :closed}
   end
+
+  @tag :tty
+  test "over a serial line (a socat pty pair)" do
+    pair = Vws.Test.PtyPair.start!()
+    %{ws: ws} = Workstation.start(wc: "tty:#{pair.a}?baud=9600")
+    assert Vws.Test.Eventually.eventually(fn -> Vws.SunComm.info(ws).peer != nil end)
+    {:ok, peer} = WCPeer.connect("tty:#{pair.b}?baud=9600")
+    table1_dialogue(peer, ws)
+  end
 end
