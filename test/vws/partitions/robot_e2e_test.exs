@@ -69,43 +69,10 @@ defmodule Vws.Partitions.RobotE2ETest do
 
   @tag :tty
   test "Table 1 over a socat pty pair" do
-    dir = Path.join(System.tmp_dir!(), "vws-val-#{System.unique_integer([:positive])}")
-    File.mkdir_p!(dir)
-    {val_tty, cec_tty} = {Path.join(dir, "val"), Path.join(dir, "cec")}
-
-    # a null-modem cable: -d -d makes socat say when both ptys exist and it relays between them
-    cable =
-      Port.open({:spawn_executable, System.find_executable("socat")}, [
-        :binary,
-        :exit_status,
-        :stderr_to_stdout,
-        args: ["-d", "-d", "pty,raw,echo=0,link=#{val_tty}", "pty,raw,echo=0,link=#{cec_tty}"]
-      ])
-
-    {:os_pid, cable_pid} = Port.info(cable, :os_pid)
-    await_log(cable, "starting data transfer loop", "")
-
-    on_exit(fn ->
-      System.cmd("kill", [Integer.to_string(cable_pid)], stderr_to_stdout: true)
-      File.rm_rf(dir)
-    end)
-
+    %{a: val_tty, b: cec_tty} = Vws.Test.PtyPair.start!()
     sim = start_sim(endpoint: "tty:#{val_tty}?baud=9600")
     %{peer: peer} = start_workstation("tty:#{cec_tty}?baud=9600")
     table1(peer, sim)
-  end
-
-  defp await_log(port, line, seen) do
-    if seen =~ line do
-      :ok
-    else
-      receive do
-        {^port, {:data, log}} -> await_log(port, line, seen <> log)
-        {^port, {:exit_status, status}} -> flunk("socat exited with #{status}: #{seen}")
-      after
-        5000 -> flunk("socat never said #{inspect(line)}: #{seen}")
-      end
-    end
   end
 
   describe "line faults" do
