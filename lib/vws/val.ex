@@ -136,9 +136,12 @@ defmodule Vws.VAL do
   def reinitialise(val), do: :gen_statem.call(val, :reinitialise)
 
   @doc """
-  What the layer is doing: `%{state: {lun2, activity}, link, prompt, short_status, last_async,
-  requests, counts}`; `lun2` is `:down`, `:idle` (waiting for the prompt), `:ready` or `:busy`,
-  `activity` is `:still` or `:moving` (a `DO` or program in flight).
+  What the layer is doing: `state` `{lun2, activity}` — `lun2` is `:down` (link not running),
+  `:idle` (waiting for the prompt), `:ready` or `:busy` (a command awaits its response);
+  `activity` is `:still` or `:moving` (a `DO` or program in flight) — and `link` (the DDCMP
+  link's pid), `prompt` (`{number, text}` of the outstanding prompt), `short_status` (LUN 1's
+  latest), `last_async` (the latest LUN 3 messages, `{code, text}`, oldest first), `queued`,
+  `in_flight` (texts), `counts`.
   """
   @spec info(val) :: map
   def info(val), do: :gen_statem.call(val, :info)
