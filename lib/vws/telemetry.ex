@@ -37,6 +37,11 @@ defmodule Vws.Telemetry do
   | `[:vws, :ddcmp, :receive_error]` | `count` | `link, reason, num` |
   | `[:vws, :ddcmp, :state_change]` | `count` | `link, from, to` |
   | `[:vws, :ddcmp, :link_down]` | `count` | `link, reason` |
+  | `[:vws, :dnc, :connected]` / `:disconnected` | `count` | `link, role, peer` (+ `reason`) |
+  | `[:vws, :dnc, :block_sent]` | `bytes` | `link, role, block, retransmission` |
+  | `[:vws, :dnc, :block_received]` | `bytes` | `link, role, block` |
+  | `[:vws, :dnc, :retry]` | `count` | `link, role, kind, block` |
+  | `[:vws, :dnc, :transmission]` | `duration, blocks, bytes` | `link, role, direction, result` |
 
   `attach_default_handler/0` logs all of them with `Logger`.
   """
@@ -71,7 +76,13 @@ defmodule Vws.Telemetry do
     [:vws, :ddcmp, :retransmission],
     [:vws, :ddcmp, :receive_error],
     [:vws, :ddcmp, :state_change],
-    [:vws, :ddcmp, :link_down]
+    [:vws, :ddcmp, :link_down],
+    [:vws, :dnc, :connected],
+    [:vws, :dnc, :disconnected],
+    [:vws, :dnc, :block_sent],
+    [:vws, :dnc, :block_received],
+    [:vws, :dnc, :retry],
+    [:vws, :dnc, :transmission]
   ]
 
   @doc "Every event name listed in the moduledoc."
