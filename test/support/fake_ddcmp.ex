@@ -14,7 +14,9 @@ defmodule Vws.Test.FakeDDCMP do
 
   def start_link(opts), do: GenServer.start_link(__MODULE__, opts)
 
-  def send_data(link, iodata), do: GenServer.call(link, {:send, IO.iodata_to_binary(iodata)})
+  def send_data(link, iodata, _opts \\ []),
+    do: GenServer.call(link, {:send, IO.iodata_to_binary(iodata)})
+
   def restart(link), do: GenServer.call(link, :restart)
   def info(link), do: GenServer.call(link, :info)
 

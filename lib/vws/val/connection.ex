@@ -445,7 +445,8 @@ defmodule Vws.VAL.Connection do
     bytes = Message.encode(message)
     telemetry_message(data, :out, message, IO.iodata_length(bytes))
 
-    case data.link_module.send_data(data.link, bytes) do
+    # hold: false — never let the link keep a message for a later session
+    case data.link_module.send_data(data.link, bytes, hold: false) do
       :ok -> :ok
       other -> Logger.warning("VAL message not sent: #{inspect(other)}")
     end
