@@ -65,6 +65,7 @@ defmodule Vws.DDCMP do
     * `:max_data` — longest data message sent or received, bytes, default 4096 (at most 16383);
       longer received messages are NAKed (reason 16);
     * `:name` — registers the link (`atom`, `{:global, term}` or `{:via, module, term}`);
+    * `:workstation` — the id of the workstation the link serves, for telemetry metadata;
     * `:backoff` — `{min, max}` reconnect delay for `:endpoint`, ms.
 
   ## States (DDCMP V4.1 §5)
@@ -114,7 +115,8 @@ defmodule Vws.DDCMP do
 
   ## Telemetry
 
-  `[:vws, :ddcmp, event]`, metadata always with `link` (the `:name`, else the pid):
+  `[:vws, :ddcmp, event]`, metadata always with `link` (the `:name`, else the pid) and
+  `workstation` (the `:workstation` option, nil without):
 
   | event | measurements | metadata |
   |-------|--------------|----------|
@@ -144,6 +146,7 @@ defmodule Vws.DDCMP do
           | {:max_data, 0..16383}
           | {:backoff, {pos_integer, pos_integer}}
           | {:id, term}
+          | {:workstation, term}
 
   @defaults [
     window: 7,
