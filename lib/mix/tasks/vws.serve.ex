@@ -7,6 +7,7 @@ defmodule Mix.Tasks.Vws.Serve do
       mix vws.serve                       # WC on tcp://127.0.0.1:7070
       mix vws.serve --wc-port 7071 --bind 0.0.0.0
       mix vws.serve --wc tty:/dev/ttyUSB0?baud=9600
+      mix vws.serve --ge2000 tty:/dev/ttyS1?baud=4800   # the real VMC instead of the simulator
       iex -S mix vws.serve                # the same, with a shell to inspect it live
 
   Options:
@@ -16,10 +17,22 @@ defmodule Mix.Tasks.Vws.Serve do
     * `--wc ENDPOINT` — any endpoint instead (`tcp://host:port`, `tty:/dev/…?baud=…`, `loopback:name`)
     * `--id ID` — the workstation id (default `VWS`)
     * `--bcc sum|xor` — the WC link's block check (default sum)
+    * `--ge2000 ENDPOINT` — the real GE-2000's DNC port (`tty:/dev/ttyS1?baud=4800`, a terminal
+      server's `tcp://host:port`). Without it a simulated GE-2000 (`Vws.Sim.GE2000`) is started on
+      a free local port and connected; its cycle-start button stands in for the DAQ #1 relay.
+    * `--ge2000-baud N` — pace the simulated GE-2000's line at N Bd (default: unpaced)
   """
   use Mix.Task
 
-  @switches [wc_port: :integer, bind: :string, wc: :string, id: :string, bcc: :string]
+  @switches [
+    wc_port: :integer,
+    bind: :string,
+    wc: :string,
+    id: :string,
+    bcc: :string,
+    ge2000: :string,
+    ge2000_baud: :integer
+  ]
 
   @impl true
   def run(args) do
@@ -39,12 +52,36 @@ defmodule Mix.Tasks.Vws.Serve do
         other -> Mix.raise("--bcc must be sum or xor, not #{other}")
       end
 
-    {:ok, _} = Vws.Workstation.start(id: id, wc: wc, sun_comm: [bcc: bcc])
+    {ge2000, monarch} = ge2000(opts)
+
+    {:ok, _} =
+      Vws.Workstation.start(
+        id: id,
+        wc: wc,
+        sun_comm: [bcc: bcc],
+        devices: [ge2000: ge2000],
+        partitions: [monarch: [options: monarch]]
+      )
+
     listening = wait_listening(id, 50)
     Mix.shell().info("VWS workstation #{id}: SUN_COMM waits for the WC on #{listening || wc}")
+    Mix.shell().info("GE-2000 DNC link: #{ge2000}")
     Mix.shell().info("Inspect it: Vws.Mailbox.print(#{inspect(id)})   Stop: Ctrl-C twice")
 
     unless iex_running?(), do: Process.sleep(:infinity)
+  end
+
+  # The real machine's endpoint, or a simulator started here (its button stands in for the relay).
+  defp ge2000(opts) do
+    case opts[:ge2000] do
+      nil ->
+        {:ok, sim} = Vws.Sim.GE2000.start_link(pace: opts[:ge2000_baud] || false)
+        Mix.shell().info("Simulated GE-2000 on #{Vws.Sim.GE2000.endpoint(sim)}")
+        {Vws.Sim.GE2000.endpoint(sim), [cycle_start: fn -> Vws.Sim.GE2000.cycle_start(sim) end]}
+
+      endpoint ->
+        {endpoint, []}
+    end
   end
 
   defp wait_listening(_id, 0), do: nil
