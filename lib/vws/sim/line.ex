@@ -252,8 +252,12 @@ defmodule Vws.Sim.Line do
     Counters.add(state.counters, :connections)
 
     case Transport.controlling_process(conn, pid) do
-      :ok -> Session.begin(pid, conn)
-      {:error, _closed} -> Transport.close(conn)
+      :ok ->
+        Session.begin(pid, conn)
+
+      {:error, _closed} ->
+        Transport.close(conn)
+        GenServer.stop(pid)
     end
 
     {:noreply, %{state | accepted: n + 1, sessions: Map.put(state.sessions, pid, n)}}

@@ -73,6 +73,28 @@ defmodule Vws.Sim.LineTest do
       wait_until(fn -> Line.info(line).open == 0 end)
       assert Line.info(line).closes == 1
     end
+
+    test "… also while the other direction is still sending to the end that closed" do
+      %{client: client, server: server} = through(:tcp, to_target: [delay: 50])
+
+      chatter =
+        Task.async(fn ->
+          Enum.reduce_while(1..1_000, :ok, fn _, _ ->
+            case Transport.send(server, :binary.copy("c", 4_096)) do
+              :ok -> Process.sleep(1) && {:cont, :ok}
+              error -> {:halt, error}
+            end
+          end)
+        end)
+
+      Process.sleep(20)
+      :ok = Transport.send(client, "bye")
+      :ok = Transport.close(client)
+      # the server (busy sending) sees "bye", then the close
+      assert {"bye", end_} = recv_until_closed(server)
+      assert end_ in [:closed, {:error, :econnreset}]
+      Task.shutdown(chatter, :brutal_kill)
+    end
   end
 
   describe "faults through the process" do

@@ -11,8 +11,10 @@ defmodule Vws.Sim.Line.Pump do
   # UART.
   #
   # It tells its session {:pump, self(), dir, event} with event :eof (the source closed and
-  # everything before the close is out), {:cut, why} (disconnect_after reached and its bytes out,
-  # or a random cut), or {:error, reason}.
+  # everything before the close is out), {:error, reason} (the source failed; likewise drained),
+  # {:cut, why} (disconnect_after reached and its bytes out, or a random cut) — each ends the
+  # connection, and comes once — or {:dest_failed, reason}: a send failed, the destination has
+  # gone, which the other direction will see as the end of its source.
 
   use GenServer
 
@@ -57,7 +59,8 @@ defmodule Vws.Sim.Line.Pump do
       eof: nil,
       tick: nil,
       cut_timer: nil,
-      reported: false
+      reported: false,
+      dest_failed: false
     }
 
     {:ok, state}
@@ -138,7 +141,7 @@ defmodule Vws.Sim.Line.Pump do
             state
 
           {:error, reason} ->
-            report(state, {:error, {:destination, reason}})
+            dest_failed(state, reason)
         end
       else
         state
@@ -198,12 +201,19 @@ defmodule Vws.Sim.Line.Pump do
     end
   end
 
-  # One report per pump: the session ends the connection on the first.
+  # One end report per pump: the session ends the connection on the first.
   defp report(%{reported: true} = state, _event), do: state
 
   defp report(state, event) do
     send(state.session, {:pump, self(), state.dir, event})
     %{state | reported: true}
+  end
+
+  defp dest_failed(%{dest_failed: true} = state, _reason), do: state
+
+  defp dest_failed(state, reason) do
+    send(state.session, {:pump, self(), state.dir, {:dest_failed, reason}})
+    %{state | dest_failed: true}
   end
 
   defp now, do: System.monotonic_time(:microsecond)

@@ -52,11 +52,14 @@ defmodule Vws.Sim.Line.Session do
     end
   end
 
+  # The destination of one direction went away: the other direction reads from that same
+  # connection and will report its end once it has delivered what it holds.
+  def handle_info({:pump, _pid, _dir, {:dest_failed, _reason}}, state), do: {:noreply, state}
+
   def handle_info({:pump, _pid, _dir, event}, state) do
     case event do
-      :eof -> Counters.add(state.counters, :closes)
       {:cut, _why} -> Counters.add(state.counters, :disconnects)
-      {:error, _reason} -> Counters.add(state.counters, :closes)
+      _eof_or_error -> Counters.add(state.counters, :closes)
     end
 
     {:stop, :normal, state}
@@ -83,14 +86,10 @@ defmodule Vws.Sim.Line.Session do
   end
 
   @impl true
+  # (Never before {:begin, _}: the line sends that first, and the dial runs inside it.)
   def handle_cast(:disconnect, state) do
-    if state.target_conn do
-      Counters.add(state.counters, :disconnects)
-      {:stop, :normal, state}
-    else
-      # Not connected through yet: the cut comes as soon as it is.
-      {:noreply, state}
-    end
+    Counters.add(state.counters, :disconnects)
+    {:stop, :normal, state}
   end
 
   # Both legs close before the pumps go, so a pump blocked in a send returns.
