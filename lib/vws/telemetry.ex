@@ -27,6 +27,9 @@ defmodule Vws.Telemetry do
   | `[:vws, :partition, :command, :start / :stop / :exception]` | span | `workstation, partition, command, text` (+ `result` on stop) |
   | `[:vws, :partition, :command_finished]` | `duration` (native) | `workstation, partition, command, status` |
   | `[:vws, :events, :caused]` | `count` | `workstation, event` |
+  | `[:vws, :val, :message]` | `bytes` | `name, direction, lun, function, qualifier` |
+  | `[:vws, :val, :request_finished]` | `duration` (native) | `name, text, result` |
+  | `[:vws, :val, :async]` | `count` | `name, code, text` (every LUN 3 message) |
   | `[:vws, :ddcmp, :frame_sent]` / `:frame_received` | `count` | `link` + the frame's fields |
   | `[:vws, :ddcmp, :nak]` | `count` | `link, direction, reason, resp` |
   | `[:vws, :ddcmp, :rep]` | `count` | `link, direction, num` |
@@ -63,6 +66,9 @@ defmodule Vws.Telemetry do
     [:vws, :partition, :command, :exception],
     [:vws, :partition, :command_finished],
     [:vws, :events, :caused],
+    [:vws, :val, :message],
+    [:vws, :val, :request_finished],
+    [:vws, :val, :async],
     [:vws, :ddcmp, :frame_sent],
     [:vws, :ddcmp, :frame_received],
     [:vws, :ddcmp, :nak],

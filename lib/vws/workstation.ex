@@ -24,7 +24,8 @@ defmodule Vws.Workstation do
     * `:sun_comm` — further SUN_COMM options (`bcc:`, timeouts; see `Vws.SunComm`)
     * `:links` — child specs of device links, started under the links supervisor
     * `:devices` — device endpoints turned into links (see `device_links/3`):
-      `[ge2000: "tcp://host:port"]` adds the DNC link to the GE-2000 and gives it to MONARCH
+      `[ge2000: "tcp://host:port"]` adds the DNC link to the GE-2000 and gives it to MONARCH;
+      `[robot: "tcp://host:port"]` adds a `Vws.VAL` (with its `Vws.DDCMP` link) and gives it to ROBOT
     * `:partitions` — per partition, keyword options: `[robot: [link: …, module: …, options: …]]`
   """
   use Supervisor
@@ -137,6 +138,10 @@ defmodule Vws.Workstation do
   registered as `{ws, :ge2000}` (`whereis(ws, :ge2000)`) and the `Vws.Partitions.Monarch.Monitor`
   that keeps the MONARCH status current through it (`status_interval:` ms, default 1 000;
   `nil` for none), and makes the link MONARCH's `link:` unless the partition options name one.
+
+  `robot: endpoint` (or `robot: [endpoint: …, ddcmp: […more Vws.DDCMP options]]`) adds a
+  `Vws.VAL` registered as `{ws, :val}`, which starts its own `Vws.DDCMP` link to the VAL II, and
+  makes it ROBOT's `link:` unless the partition options name one.
   """
   @spec device_links(term, keyword, keyword) ::
           {[Supervisor.child_spec() | {module, term}], keyword}
@@ -156,8 +161,19 @@ defmodule Vws.Workstation do
         monarch = Keyword.put_new(Keyword.get(popts, :monarch, []), :link, name)
         {links ++ [link | monitor], Keyword.put(popts, :monarch, monarch)}
 
+      {:robot, spec}, {links, popts} ->
+        spec = if is_binary(spec), do: [endpoint: spec], else: spec
+        ddcmp = Keyword.merge(Keyword.get(spec, :ddcmp, []), endpoint: spec[:endpoint])
+        name = via(ws, :val)
+
+        val =
+          {Vws.VAL, [id: :val, name: name, ddcmp: ddcmp] ++ Keyword.take(spec, [:link_module])}
+
+        robot = Keyword.put_new(Keyword.get(popts, :robot, []), :link, name)
+        {links ++ [val], Keyword.put(popts, :robot, robot)}
+
       {device, _spec}, _acc ->
-        raise ArgumentError, "unknown device #{inspect(device)} (known: :ge2000)"
+        raise ArgumentError, "unknown device #{inspect(device)} (known: :ge2000, :robot)"
     end)
   end
 

@@ -17,6 +17,10 @@ defmodule Mix.Tasks.Vws.Serve do
     * `--wc ENDPOINT` — any endpoint instead (`tcp://host:port`, `tty:/dev/…?baud=…`, `loopback:name`)
     * `--id ID` — the workstation id (default `VWS`)
     * `--bcc sum|xor` — the WC link's block check (default sum)
+    * `--robot ENDPOINT` — the VAL II's supervisory port (`tty:/dev/ttyS1?baud=9600`, a terminal
+      server's `tcp://host:port`); without it a simulated VAL II (`Vws.Sim.VAL2`) is started on a
+      free local port and ROBOT is connected to it
+    * `--robot-time-scale F` — the simulated robot's motion time factor (default 1.0)
     * `--ge2000 ENDPOINT` — the real GE-2000's DNC port (`tty:/dev/ttyS1?baud=4800`, a terminal
       server's `tcp://host:port`). Without it a simulated GE-2000 (`Vws.Sim.GE2000`) is started on
       a free local port and connected; its cycle-start button stands in for the DAQ #1 relay.
@@ -30,6 +34,8 @@ defmodule Mix.Tasks.Vws.Serve do
     wc: :string,
     id: :string,
     bcc: :string,
+    robot: :string,
+    robot_time_scale: :float,
     ge2000: :string,
     ge2000_baud: :integer
   ]
@@ -52,6 +58,7 @@ defmodule Mix.Tasks.Vws.Serve do
         other -> Mix.raise("--bcc must be sum or xor, not #{other}")
       end
 
+    robot = robot(opts)
     {ge2000, monarch} = ge2000(opts)
 
     {:ok, _} =
@@ -59,7 +66,7 @@ defmodule Mix.Tasks.Vws.Serve do
         id: id,
         wc: wc,
         sun_comm: [bcc: bcc],
-        devices: [ge2000: ge2000],
+        devices: [ge2000: ge2000, robot: robot],
         partitions: [monarch: [options: monarch]]
       )
 
@@ -69,6 +76,22 @@ defmodule Mix.Tasks.Vws.Serve do
     Mix.shell().info("Inspect it: Vws.Mailbox.print(#{inspect(id)})   Stop: Ctrl-C twice")
 
     unless iex_running?(), do: Process.sleep(:infinity)
+  end
+
+  # the real VAL II, or a simulated one started here (outside the workstation: it is equipment)
+  defp robot(opts) do
+    case opts[:robot] do
+      nil ->
+        {:ok, sim} = Vws.Sim.VAL2.start_link(time_scale: opts[:robot_time_scale] || 1.0)
+        Process.unlink(sim)
+        endpoint = Vws.Sim.VAL2.endpoint(sim)
+        Mix.shell().info("Simulated VAL II robot controller on #{endpoint}")
+        endpoint
+
+      endpoint ->
+        Mix.shell().info("ROBOT connects to the VAL II at #{endpoint}")
+        endpoint
+    end
   end
 
   # The real machine's endpoint, or a simulator started here (its button stands in for the relay).
