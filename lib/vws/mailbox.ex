@@ -31,12 +31,19 @@ defmodule Vws.Mailbox do
     * **NC file** (the program downloaded from the WC, DOWNLOAD_HP) and **NC_UP** (the program
       uploaded from the GE-2000, UPLOAD_GE), as lists of lines.
 
+  ## Durability
+
+  With a journal (`Vws.Journal`), every command-status change is written to disk before it is
+  written here, and a restarted workstation gets its command statuses back.
+
   ## LOCK/UNLOCK
 
   Every write here is one atomic ETS operation (`insert_new` for dispatch, `select_replace` for a
   compare-and-set of a command status), which is what LOCK … OUTPUT … UNLOCK achieved. For a
   longer critical section, `locked/2` runs a function inside the owner process.
   """
+
+  require Logger
 
   @type workstation :: term
   @type partition :: :robot | :monarch | :gripper | :fixture | :vacuum | :hydraulic
@@ -143,6 +150,7 @@ defmodule Vws.Mailbox do
     table = table(ws)
 
     if :ets.insert_new(table, {{:in_flight, partition}, number}) do
+      journal(table, {:status, partition, number, :executing, text})
       :ets.insert(table, {{:cmd_in, partition}, number, text})
       :ets.insert(table, {{:command_status, partition}, number, :executing})
       :ok
@@ -178,6 +186,7 @@ defmodule Vws.Mailbox do
 
     case :ets.select_delete(table, [{{{:in_flight, partition}, number}, [], [true]}]) do
       1 ->
+        journal(table, {:finish, partition, number, status})
         compare_and_set_status(table, partition, number, status)
         :ok
 
@@ -192,8 +201,21 @@ defmodule Vws.Mailbox do
   """
   @spec put_status(workstation, partition, 0..9999, status) :: :ok
   def put_status(ws, partition, number, status) do
-    :ets.insert(table(ws), {{:command_status, partition}, number, status})
+    table = table(ws)
+    journal(table, {:status, partition, number, status})
+    :ets.insert(table, {{:command_status, partition}, number, status})
     :ok
+  end
+
+  # Durable before visible: the journal (when the workstation has one) gets the change first.
+  defp journal(table, record) do
+    case Vws.Journal.record(table, record) do
+      :ok ->
+        :ok
+
+      {:error, reason} ->
+        Logger.error("journal write failed (#{inspect(reason)}): #{inspect(record, limit: 8)}")
+    end
   end
 
   @doc "The command status of a partition: `{number | nil, status}`."

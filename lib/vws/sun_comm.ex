@@ -354,6 +354,10 @@ defmodule Vws.SunComm do
         s = %{s | counters: bump(s.counters, :retransmissions)}
         reply(s, {:ack, cs.sequence})
 
+      journal_string(ws, cs, line) != :ok ->
+        # not durable, so not acknowledged: the WC sends it again
+        reject(s, :journal_unavailable)
+
       broken = broken_rule(cs) ->
         Mailbox.put_last_string(ws, cs.sequence, line)
         s = reply(s, {:ack, cs.sequence})
@@ -371,6 +375,13 @@ defmodule Vws.SunComm do
         s = reply(s, {:ack, cs.sequence})
         Enum.reduce(cs.commands, s, &dispatch/2)
     end
+  end
+
+  defp journal_string(ws, cs, line) do
+    commands =
+      for %{set: set, number: n} <- cs.commands, set in Mailbox.partitions(), do: {set, n}
+
+    Vws.Journal.record(Mailbox.table(ws), {:string, cs.sequence, line, commands})
   end
 
   defp status_string?(%{commands: [%{set: :status}]}), do: true

@@ -5,6 +5,7 @@ defmodule Vws.Workstation do
   ```
   Vws.Workstation (rest_for_one)          VWS_CONTROL
   ├── Vws.Mailbox.Owner                   the mailbox table; survives every crash below
+  ├── Vws.Journal (optional)              durable log of strings and command statuses; restores them
   ├── links (one_for_one)                 device links, each with its transport
   ├── partitions (one_for_one)            VWS_STATUS, ROBOT, MONARCH, GRIPPER, FIXTURE, VACUUM, HYDRAULIC
   ├── OK_TO_PROCEED                       caused once everything above is up
@@ -19,6 +20,7 @@ defmodule Vws.Workstation do
     * `:id` — the workstation id (required)
     * `:wc` — the WC endpoint SUN_COMM serves (`"tcp://127.0.0.1:7070"`, `"tty:/dev/ttyS0?baud=9600"`,
       `"loopback:name"`); `nil` starts SUN_COMM without a link
+    * `:journal` — a directory for the command journal (`Vws.Journal`), or its options; none by default
     * `:sun_comm` — further SUN_COMM options (`bcc:`, timeouts; see `Vws.SunComm`)
     * `:links` — child specs of device links, started under the links supervisor
     * `:partitions` — per partition, keyword options: `[robot: [link: …, module: …, options: …]]`
@@ -76,41 +78,50 @@ defmodule Vws.Workstation do
            options: Keyword.get(popts, :options, [])}
         end
 
-    children = [
-      {Mailbox.Owner, workstation: ws},
-      %{
-        id: :links,
-        type: :supervisor,
-        start:
-          {Supervisor, :start_link,
-           [
-             Keyword.get(opts, :links, []),
-             [strategy: :one_for_one, max_restarts: 50, max_seconds: 5, name: via(ws, :links)]
-           ]}
-      },
-      %{
-        id: :partitions,
-        type: :supervisor,
-        start:
-          {Supervisor, :start_link,
-           [
-             partitions,
-             [
-               strategy: :one_for_one,
-               max_restarts: 50,
-               max_seconds: 5,
-               name: via(ws, :partitions)
-             ]
-           ]}
-      },
-      %{
-        id: :ok_to_proceed,
-        restart: :transient,
-        start: {Task, :start_link, [fn -> :ok = Vws.Events.cause(ws, :ok_to_proceed) end]}
-      },
-      {Vws.SunComm,
-       [workstation: ws, wc: Keyword.get(opts, :wc)] ++ Keyword.get(opts, :sun_comm, [])}
-    ]
+    journal =
+      case Keyword.get(opts, :journal) do
+        nil -> []
+        dir when is_binary(dir) -> [{Vws.Journal, workstation: ws, dir: dir}]
+        jopts when is_list(jopts) -> [{Vws.Journal, [workstation: ws] ++ jopts}]
+      end
+
+    children =
+      [{Mailbox.Owner, workstation: ws}] ++
+        journal ++
+        [
+          %{
+            id: :links,
+            type: :supervisor,
+            start:
+              {Supervisor, :start_link,
+               [
+                 Keyword.get(opts, :links, []),
+                 [strategy: :one_for_one, max_restarts: 50, max_seconds: 5, name: via(ws, :links)]
+               ]}
+          },
+          %{
+            id: :partitions,
+            type: :supervisor,
+            start:
+              {Supervisor, :start_link,
+               [
+                 partitions,
+                 [
+                   strategy: :one_for_one,
+                   max_restarts: 50,
+                   max_seconds: 5,
+                   name: via(ws, :partitions)
+                 ]
+               ]}
+          },
+          %{
+            id: :ok_to_proceed,
+            restart: :transient,
+            start: {Task, :start_link, [fn -> :ok = Vws.Events.cause(ws, :ok_to_proceed) end]}
+          },
+          {Vws.SunComm,
+           [workstation: ws, wc: Keyword.get(opts, :wc)] ++ Keyword.get(opts, :sun_comm, [])}
+        ]
 
     Supervisor.init(children, strategy: :rest_for_one, max_restarts: 10, max_seconds: 5)
   end

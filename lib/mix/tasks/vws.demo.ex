@@ -1,0 +1,85 @@
+defmodule Mix.Tasks.Vws.Demo do
+  @shortdoc "Runs a machining cycle as the workstation controller against a simulated shop floor"
+  @moduledoc """
+  Starts a workstation with every device that can be simulated, then acts as the workstation
+  controller (the Sun): runs a cycle script over the WC link and prints the dialogue — time,
+  line sent, reply, meaning — and a summary. See `Vws.Demo`.
+
+      mix vws.demo                          # the full machining cycle, then keeps running
+      mix vws.demo --once                   # exit at the end: status 0 only if the cycle completed
+      mix vws.demo --script priv/sims/table1.vws
+      mix vws.demo --time-scale 10          # simulated equipment ten times faster
+
+  Options:
+
+    * `--once` — exit when the script ends; the exit status is 0 only if it completed
+    * `--script FILE` — another cycle script (format: `Vws.WC.Script`); default
+      `priv/sims/machining_cycle.vws`
+    * `--time-scale N` — passed to the shop floor's simulators (default 1)
+    * `--wc-port N` — the TCP port SUN_COMM serves the WC on (default: a free port); another WC
+      connecting there takes over the link
+    * `--http-port N` — the dashboard's port (the dashboard is not available yet)
+    * `--id ID` — the workstation id (default `VWS-DEMO`)
+    * `--verbose` — keep the application's info logs (by default only warnings interleave with
+      the dialogue)
+
+  Without `--once` the shop floor keeps running after the script, until Ctrl-C.
+  """
+  use Mix.Task
+
+  @switches [
+    once: :boolean,
+    script: :string,
+    time_scale: :float,
+    wc_port: :integer,
+    http_port: :integer,
+    id: :string,
+    verbose: :boolean
+  ]
+
+  @impl true
+  def run(args) do
+    {opts, rest, invalid} = OptionParser.parse(args, strict: @switches)
+    if invalid != [], do: Mix.raise("unknown or bad options: #{inspect(invalid)}")
+    if rest != [], do: Mix.raise("unexpected arguments: #{Enum.join(rest, " ")}")
+
+    time_scale = opts[:time_scale] || 1.0
+    if time_scale <= 0, do: Mix.raise("--time-scale must be positive")
+
+    Mix.Task.run("app.start")
+    unless opts[:verbose], do: Logger.configure(level: :warning)
+
+    demo_opts =
+      [time_scale: time_scale, wc: "tcp://127.0.0.1:#{opts[:wc_port] || 0}"] ++
+        Keyword.take(opts, [:script, :id])
+
+    if port = opts[:http_port] do
+      IO.puts("--http-port #{port}: the dashboard is not available yet; nothing listens there")
+    end
+
+    case Vws.Demo.run(demo_opts) do
+      {:ok, summary, floor, _client} ->
+        completed? = Vws.WC.Runner.Summary.completed?(summary)
+        once? = Keyword.get(opts, :once, false)
+
+        cond do
+          once? and completed? ->
+            :ok
+
+          once? ->
+            exit({:shutdown, 1})
+
+          true ->
+            IO.puts(
+              "The shop floor keeps running: SUN_COMM serves the WC on #{floor.wc}. " <>
+                "No dashboard yet. Ctrl-C to stop."
+            )
+
+            unless Code.ensure_loaded?(IEx) and IEx.started?(), do: Process.sleep(:infinity)
+        end
+
+      {:error, message} ->
+        Mix.raise(message)
+    end
+  end
+end

@@ -1,0 +1,273 @@
+defmodule Vws.Demo do
+  @moduledoc """
+  The demonstration behind `mix vws.demo`: a workstation with its shop floor, a workstation
+  controller (`Vws.WC.Client`) running a cycle script (`Vws.WC.Script`) against it, and the
+  dialogue printed as it happens.
+
+  ## The shop floor
+
+  `start_shop_floor/1` is the one place that decides what runs: the simulated equipment first,
+  then the workstation with a link to each simulator. Each simulator is a module in
+  `@simulators` with one function,
+
+      shop_floor(opts) :: {:ok, %{name: String.t(), links: [child_spec], partitions: keyword}}
+
+  which starts the simulated device (the `opts` carry `:workstation` and `:time_scale`) and says
+  which workstation links and partition options reach it. Today the list is empty: the robot,
+  the GE-2000, the DAQs and the hydraulic controller are being built, so every partition starts
+  without a device link and answers each valid command `ERROR NO LINK TO <device>` — truthfully —
+  and a cycle stops at its first command with that reason.
+
+  ## The printed dialogue
+
+  One row per line on the link: the time since the WC connected, `→` for WC to CEC or `←` for
+  CEC to WC, the line as on the wire, and its meaning. Script steps are announced on rows of
+  their own (`──`). A status query answered exactly as the previous one is not printed again;
+  a row `… asked N more times` says how often it was repeated.
+  """
+
+  alias Vws.WC.{Client, Runner, Script}
+  alias Vws.WC.Runner.Summary
+
+  # Modules that put a simulated device on the shop floor (see the moduledoc). Filled in by the
+  # issues that build the simulators.
+  @simulators []
+
+  @partition_devices [
+    robot: Vws.Partitions.Robot,
+    monarch: Vws.Partitions.Monarch,
+    gripper: Vws.Partitions.Gripper,
+    fixture: Vws.Partitions.Fixture,
+    vacuum: Vws.Partitions.Vacuum,
+    hydraulic: Vws.Partitions.Hydraulic
+  ]
+
+  @type shop_floor :: %{
+          workstation: term,
+          wc: String.t(),
+          time_scale: number,
+          simulated: [String.t()],
+          unlinked: [{atom, String.t()}]
+        }
+
+  @doc """
+  Starts the shop floor: every simulator there is, then a workstation linked to them, whose
+  SUN_COMM serves the WC at `:wc`. Options: `:id` (default `"VWS-DEMO"`), `:wc` (default
+  `"tcp://127.0.0.1:0"`, a free port), `:time_scale` (default 1.0; the simulators run this many
+  times faster than real time), `:bcc`. Returns where SUN_COMM listens, what is simulated and
+  which partitions have no device link.
+  """
+  @spec start_shop_floor(keyword) :: {:ok, shop_floor} | {:error, term}
+  def start_shop_floor(opts \\ []) do
+    id = Keyword.get(opts, :id, "VWS-DEMO")
+    wc = Keyword.get(opts, :wc, "tcp://127.0.0.1:0")
+    time_scale = Keyword.get(opts, :time_scale, 1.0)
+    sim_opts = [workstation: id, time_scale: time_scale]
+
+    with {:ok, sims} <- start_simulators(sim_opts),
+         {:ok, _pid} <-
+           Vws.Workstation.start(
+             id: id,
+             wc: wc,
+             sun_comm: [bcc: Keyword.get(opts, :bcc, :sum)],
+             links: Enum.flat_map(sims, & &1.links),
+             partitions: merge_partitions(sims)
+           ),
+         {:ok, listening} <- wait_listening(id, 100) do
+      unlinked =
+        for {partition, module} <- @partition_devices,
+            Vws.Partition.info(id, partition).link == nil,
+            do: {partition, module.device()}
+
+      {:ok,
+       %{
+         workstation: id,
+         wc: to_string(listening),
+         time_scale: time_scale,
+         simulated: Enum.map(sims, & &1.name),
+         unlinked: unlinked
+       }}
+    end
+  end
+
+  defp start_simulators(opts) do
+    Enum.reduce_while(@simulators, {:ok, []}, fn module, {:ok, acc} ->
+      case module.shop_floor(opts) do
+        {:ok, sim} -> {:cont, {:ok, acc ++ [sim]}}
+        {:error, reason} -> {:halt, {:error, {module, reason}}}
+      end
+    end)
+  end
+
+  defp merge_partitions(sims) do
+    Enum.reduce(sims, [], fn sim, acc ->
+      Keyword.merge(acc, Map.get(sim, :partitions, []), fn _p, a, b -> Keyword.merge(a, b) end)
+    end)
+  end
+
+  defp wait_listening(_id, 0), do: {:error, :sun_comm_not_listening}
+
+  defp wait_listening(id, n) do
+    case Vws.SunComm.listening(id) do
+      nil -> Process.sleep(20) && wait_listening(id, n - 1)
+      endpoint -> {:ok, endpoint}
+    end
+  end
+
+  @doc """
+  The default cycle script: `priv/sims/machining_cycle.vws` of the project (in the current
+  directory when it is there, else in the application's priv directory).
+  """
+  @spec default_script() :: Path.t()
+  def default_script do
+    local = "priv/sims/machining_cycle.vws"
+    if File.regular?(local), do: local, else: Application.app_dir(:vws, local)
+  end
+
+  @doc """
+  Starts the shop floor, connects a WC, runs the script and prints the dialogue and the summary
+  to the group leader. Options: `:script` (a path, default `default_script/0`), `:id`, `:wc`,
+  `:time_scale` (see `start_shop_floor/1`) and the `Vws.WC.Runner` options. Returns the summary,
+  the shop floor and the client, which stay up for the caller.
+  """
+  @spec run(keyword) :: {:ok, Summary.t(), shop_floor, Client.client()} | {:error, String.t()}
+  def run(opts \\ []) do
+    path = Keyword.get_lazy(opts, :script, &default_script/0)
+
+    with {:script, {:ok, script}} <- {:script, Script.parse_file(path)},
+         {:floor, {:ok, floor}} <- {:floor, start_shop_floor(opts)},
+         {:client, {:ok, client}} <- {:client, Client.connect(floor.wc, subscribe: self())} do
+      print_floor(floor, path, script)
+      summary = run_printing(client, script, opts)
+      Enum.each(Summary.format(summary), &IO.puts/1)
+      {:ok, summary, floor, client}
+    else
+      {:script, {:error, error}} -> {:error, Exception.message(error)}
+      {:floor, {:error, reason}} -> {:error, "cannot start the shop floor: #{inspect(reason)}"}
+      {:client, {:error, reason}} -> {:error, "the WC cannot connect: #{inspect(reason)}"}
+    end
+  end
+
+  defp print_floor(floor, path, script) do
+    IO.puts("VWS demo — workstation #{floor.workstation}, SUN_COMM serves the WC on #{floor.wc}")
+
+    simulated =
+      if floor.simulated == [], do: "nothing yet", else: Enum.join(floor.simulated, ", ")
+
+    IO.puts("simulated equipment: #{simulated} (time scale ×#{scale(floor.time_scale)})")
+
+    for {partition, device} <- floor.unlinked do
+      IO.puts(
+        "  #{String.upcase(to_string(partition))} has no link to the #{device}: " <>
+          "its commands end ERROR NO LINK TO #{device}"
+      )
+    end
+
+    IO.puts("script: #{path} (#{length(script.steps)} steps)")
+    IO.puts("")
+    IO.puts("   time   line on the WC link (→ WC to CEC, ← CEC to WC)           meaning")
+  end
+
+  defp run_printing(client, script, opts) do
+    task = Task.async(fn -> Runner.run(client, script, opts) end)
+    printer = print_until(task, client, new_printer())
+    # every event the client sent before answering this call is already in our mailbox
+    _ = Client.info(client)
+    printer = drain(client, printer)
+    flush(printer)
+    IO.puts("")
+    printer.summary
+  end
+
+  defp print_until(%Task{ref: ref} = task, client, printer) do
+    receive do
+      {:wc_client, ^client, event} ->
+        print_until(task, client, print_event(event, printer))
+
+      {^ref, summary} ->
+        Process.demonitor(ref, [:flush])
+        %{printer | summary: summary}
+    end
+  end
+
+  defp drain(client, printer) do
+    receive do
+      {:wc_client, ^client, event} -> drain(client, print_event(event, printer))
+    after
+      0 -> printer
+    end
+  end
+
+  ## Printing, with repeated status polls folded
+
+  @doc false
+  def new_printer, do: %{held: nil, last: nil, repeats: 0, since: nil, until: nil, summary: nil}
+
+  @doc false
+  # Prints one event (or holds a status query until its answer shows whether it repeats).
+  def print_event(%{kind: :status_query} = event, printer) do
+    printer = release(printer)
+    %{printer | held: event}
+  end
+
+  def print_event(%{kind: :status} = answer, %{held: query} = printer) when query != nil do
+    pair = {query.meaning, answer.meaning}
+
+    if pair == printer.last do
+      %{
+        printer
+        | held: nil,
+          repeats: printer.repeats + 1,
+          since: printer.since || query.at,
+          until: answer.at
+      }
+    else
+      printer = flush(%{printer | held: nil})
+      row(query)
+      row(answer)
+      %{printer | last: pair}
+    end
+  end
+
+  def print_event(event, printer) do
+    printer = flush(release(printer))
+    row(event)
+    %{printer | last: nil}
+  end
+
+  defp release(%{held: nil} = printer), do: printer
+
+  defp release(%{held: query} = printer) do
+    printer = flush(printer)
+    row(query)
+    %{printer | held: nil, last: nil}
+  end
+
+  defp flush(%{repeats: 0} = printer), do: printer
+
+  defp flush(printer) do
+    span = seconds(printer.until - printer.since)
+
+    IO.puts(
+      "          … asked #{printer.repeats} more #{plural(printer.repeats, "time")} over #{span}: same answer"
+    )
+
+    %{printer | repeats: 0, since: nil, until: nil}
+  end
+
+  defp row(%{direction: :note, meaning: meaning, at: at}),
+    do: IO.puts("#{time(at)}  ── #{meaning}")
+
+  defp row(%{direction: direction, line: line, meaning: meaning, at: at}) do
+    arrow = if direction == :sent, do: "→", else: "←"
+    IO.puts("#{time(at)}  #{arrow} #{String.pad_trailing(line || "", 52)}  #{meaning}")
+  end
+
+  defp scale(x) when is_float(x) and x == trunc(x), do: trunc(x)
+  defp scale(x), do: x
+
+  defp time(ms), do: String.pad_leading(seconds(ms), 8)
+  defp seconds(ms), do: :erlang.float_to_binary(ms / 1000, decimals: 3) <> "s"
+  defp plural(1, word), do: word
+  defp plural(_, word), do: word <> "s"
+end

@@ -1,0 +1,213 @@
+defmodule Vws.Journal do
+  @moduledoc """
+  The workstation's durable command journal, on OTP's `disk_log`.
+
+  Every accepted command string and every command-status change is written and synced to disk
+  before SUN_COMM acknowledges the string or the mailbox shows the status, so a WC that asks the
+  status of any command it sent gets the true answer even after the workstation — or the whole
+  node — restarted.
+
+  ## Records
+
+    * `{:string, seq, line, [{partition, number}]}` — a command string SUN_COMM accepted (before `05A`)
+    * `{:status, partition, number, status}` — a command status written outright (dispatch, a rule)
+    * `{:finish, partition, number, status}` — a command ended: applied only while the status
+      location still shows `number`, exactly as `Vws.Mailbox.finish/4` does
+    * `{:snapshot, state}` — the whole restorable state, written when the journal opens and every
+      `:snapshot_every` records, so the newest state survives the wrap of old files
+
+  ## Restart
+
+  When the journal opens on a fresh mailbox table it replays the log: command statuses, CMD_IN and
+  the last sequence number come back as they were. A command that was `EXECUTING` — or acknowledged
+  but not yet dispatched — when the workstation went down answers `ERROR INTERRUPTED BY RESTART`
+  and is never run again by itself: a robot move is physical.
+
+  The log is a wrap log (`:max_bytes` × `:max_files`, bounded) opened with `repair: true`, so a torn
+  last record (power lost in the middle of a write) is cut off and the records before it are kept.
+
+  ## Options
+
+    * `:workstation` (required), `:dir` — the directory of the log files (required)
+    * `:max_bytes` (256 KiB per file), `:max_files` (8), `:snapshot_every` (500 records)
+  """
+  use GenServer
+  require Logger
+
+  alias Vws.Mailbox
+
+  @interrupted {:error, "INTERRUPTED BY RESTART"}
+
+  @doc false
+  def child_spec(opts), do: %{id: __MODULE__, start: {__MODULE__, :start_link, [opts]}}
+
+  @spec start_link(keyword) :: GenServer.on_start()
+  def start_link(opts) do
+    ws = Keyword.fetch!(opts, :workstation)
+    GenServer.start_link(__MODULE__, opts, name: Vws.Workstation.via(ws, :journal))
+  end
+
+  @doc """
+  Appends `record` to the workstation's journal and syncs it to disk. Does nothing when the
+  workstation has no journal. Returns `{:error, reason}` when the record could not be made durable.
+  """
+  @spec record(:ets.tid(), tuple) :: :ok | {:error, term}
+  def record(table, record) do
+    case :ets.lookup(table, :journal) do
+      [] ->
+        :ok
+
+      [{:journal, log, every}] ->
+        # A snapshot goes before the record: the table does not show the record's change yet.
+        if :ets.update_counter(table, :journal_records, 1, {:journal_records, 0}) >= every do
+          :ets.insert(table, {:journal_records, 0})
+          :disk_log.log(log, {:snapshot, state_of(table)})
+        end
+
+        with :ok <- :disk_log.log(log, record), do: :disk_log.sync(log)
+    end
+  end
+
+  @doc "Every record in the journal, oldest first (for inspection and tests)."
+  @spec records(term) :: [tuple]
+  def records(ws) do
+    [{:journal, log, _}] = :ets.lookup(Mailbox.table(ws), :journal)
+    read_all(log)
+  end
+
+  ## Server
+
+  @impl true
+  def init(opts) do
+    ws = Keyword.fetch!(opts, :workstation)
+    dir = Keyword.fetch!(opts, :dir)
+    File.mkdir_p!(dir)
+    log = {:vws_journal, ws}
+    size = {Keyword.get(opts, :max_bytes, 256 * 1024), Keyword.get(opts, :max_files, 8)}
+
+    case :disk_log.open(
+           name: log,
+           file: String.to_charlist(Path.join(dir, "journal")),
+           type: :wrap,
+           size: size,
+           repair: true
+         ) do
+      {:ok, ^log} ->
+        :ok
+
+      {:repaired, ^log, {:recovered, n}, {:badbytes, bad}} ->
+        Logger.warning(
+          "journal of #{inspect(ws)} repaired: #{n} records kept, #{bad} torn bytes dropped"
+        )
+    end
+
+    table = Mailbox.table(ws)
+
+    # Restore only into a fresh table: if only the journal restarted, the mailboxes are current.
+    if :ets.insert_new(table, {:journal_restored, true}) do
+      restore(table, read_all(log))
+    end
+
+    :ets.insert(table, {:journal, log, Keyword.get(opts, :snapshot_every, 500)})
+    :ok = :disk_log.log(log, {:snapshot, state_of(table)})
+    :ok = :disk_log.sync(log)
+    {:ok, %{workstation: ws, log: log}}
+  end
+
+  @impl true
+  def terminate(_reason, s) do
+    :disk_log.close(s.log)
+    :ok
+  end
+
+  defp read_all(log), do: read_all(log, :start, [])
+
+  defp read_all(log, cont, acc) do
+    case :disk_log.chunk(log, cont) do
+      :eof ->
+        acc |> Enum.reverse() |> List.flatten()
+
+      {:error, reason} ->
+        # Better a workstation that starts with what could be read than one that cannot start.
+        Logger.error(
+          "journal partly unreadable (#{inspect(reason)}): restoring from the records before it"
+        )
+
+        acc |> Enum.reverse() |> List.flatten()
+
+      {cont, terms} ->
+        read_all(log, cont, [terms | acc])
+
+      {cont, terms, _badbytes} ->
+        read_all(log, cont, [terms | acc])
+    end
+  end
+
+  ## Restoring
+
+  # The restorable state: per partition {number, status, cmd_in}, and the last string.
+  defp state_of(table) do
+    partitions =
+      Map.new(Mailbox.partitions(), fn p ->
+        [{_, number, status}] = :ets.lookup(table, {:command_status, p})
+        [{_, in_number, in_text}] = :ets.lookup(table, {:cmd_in, p})
+        {p, %{number: number, status: status, cmd_in: {in_number, in_text}}}
+      end)
+
+    [{_, seq, line}] = :ets.lookup(table, :last_string)
+    %{partitions: partitions, last_string: {seq, line}}
+  end
+
+  defp restore(_table, []), do: :ok
+
+  defp restore(table, records) do
+    state = Enum.reduce(records, state_of(table), &apply_record/2)
+
+    for {p, %{number: number, status: status, cmd_in: {in_n, in_text}}} <- state.partitions do
+      status = if status == :executing, do: @interrupted, else: status
+      :ets.insert(table, {{:command_status, p}, number, status})
+      :ets.insert(table, {{:cmd_in, p}, in_n, in_text})
+    end
+
+    {seq, line} = state.last_string
+    :ets.insert(table, {:last_string, seq, line})
+
+    interrupted = for {p, %{status: :executing, number: n}} <- state.partitions, do: {p, n}
+
+    if interrupted != [] do
+      Logger.warning(
+        "restored from the journal; interrupted by the restart: #{inspect(interrupted)}"
+      )
+    end
+
+    :ok
+  end
+
+  defp apply_record({:snapshot, snapshot}, _state), do: snapshot
+
+  defp apply_record({:string, seq, line, commands}, state) do
+    # acknowledged: until a later record says otherwise, each command counts as under way
+    state = %{state | last_string: {seq, line}}
+
+    Enum.reduce(commands, state, fn {p, n}, st ->
+      update_in(st.partitions[p], &%{&1 | number: n, status: :executing})
+    end)
+  end
+
+  defp apply_record({:status, p, n, status, text}, state) do
+    update_in(state.partitions[p], &%{&1 | number: n, status: status, cmd_in: {n, text}})
+  end
+
+  defp apply_record({:status, p, n, status}, state) do
+    update_in(state.partitions[p], &%{&1 | number: n, status: status})
+  end
+
+  defp apply_record({:finish, p, n, status}, state) do
+    update_in(state.partitions[p], fn
+      %{number: ^n} = entry -> %{entry | status: status}
+      entry -> entry
+    end)
+  end
+
+  defp apply_record(_unknown, state), do: state
+end

@@ -1,0 +1,209 @@
+defmodule Vws.Transport do
+  @moduledoc """
+  Byte links to equipment — TCP, a serial tty, or an in-memory loopback — behind one API.
+
+  This module is both the behaviour every transport implements and the facade protocol code
+  calls. The facade picks the transport from the endpoint (`Vws.Endpoint`), so a driver written
+  once runs unchanged over a real serial line, a terminal server, a simulator on TCP, or a
+  loopback pair in tests.
+
+  ## Receiving: active-once
+
+  Received bytes are delivered as messages to the connection's *controlling process* (the process
+  that connected or accepted, until `controlling_process/2` hands it on). Nothing is delivered
+  until the owner calls `activate/1`; then the next chunk arrives as one message and delivery
+  stops again until the next `activate/1`. The owner passes every message it does not recognise
+  to `handle_message/2`, which says whether it was data, the end of the connection, an error, or
+  not this connection's at all:
+
+      def handle_info(msg, state) do
+        case Vws.Transport.handle_message(state.conn, msg) do
+          {:data, bytes} -> Vws.Transport.activate(state.conn); decode(bytes, state)
+          :closed -> link_down(state)
+          {:error, reason} -> link_down(reason, state)
+          :unknown -> unexpected(msg, state)
+        end
+      end
+
+  The serial transport cannot hold bytes back (an Erlang port has no flow control), so it is
+  always active and `activate/1` does nothing there; code written for active-once works unchanged.
+
+  ## Example
+
+      iex> {:ok, listener} = Vws.Transport.listen("loopback:transport-doc")
+      iex> {:ok, client} = Vws.Transport.connect("loopback:transport-doc")
+      iex> {:ok, server} = Vws.Transport.accept(listener, 1000)
+      iex> Vws.Transport.send(client, ["ENQ", 5])
+      :ok
+      iex> Vws.Transport.activate(server)
+      :ok
+      iex> receive do msg -> Vws.Transport.handle_message(server, msg) end
+      {:data, <<"ENQ", 5>>}
+      iex> Vws.Transport.close(client)
+      :ok
+      iex> Vws.Transport.activate(server)
+      :ok
+      iex> receive do msg -> Vws.Transport.handle_message(server, msg) end
+      :closed
+      iex> Vws.Transport.close_listener(listener)
+      :ok
+
+  ## Implementing a transport
+
+  A transport module implements the callbacks below; they are named like the facade functions
+  and take the transport's own `handle` instead of a `Vws.Transport.Conn`. Errors are returned
+  as `{:error, reason}` with the `:inet`-style atoms where one fits (`:closed`, `:timeout`,
+  `:econnrefused`, `:eaddrinuse`, `:not_owner`).
+  """
+
+  import Kernel, except: [send: 2]
+
+  alias Vws.Endpoint
+  alias Vws.Transport.{Conn, Listener}
+
+  @typedoc "A transport's own value for one connection."
+  @type handle :: term()
+  @typedoc "A transport's own value for one listener."
+  @type listener_handle :: term()
+  @typedoc "An endpoint, or its string form."
+  @type endpoint :: Endpoint.t() | String.t()
+  @typedoc "What a message to the controlling process meant for the connection."
+  @type message_result :: {:data, binary()} | :closed | {:error, term()} | :unknown
+
+  @doc "Opens a connection to `endpoint`; the caller becomes its controlling process."
+  @callback connect(Endpoint.t(), keyword()) :: {:ok, handle()} | {:error, term()}
+
+  @doc "Starts listening on `endpoint`; `{:error, :not_listenable}` if it cannot."
+  @callback listen(Endpoint.t(), keyword()) :: {:ok, listener_handle()} | {:error, term()}
+
+  @doc "The bound endpoint of a listener."
+  @callback listener_endpoint(listener_handle()) :: Endpoint.t()
+
+  @doc "Waits for the next incoming connection; the caller becomes its controlling process."
+  @callback accept(listener_handle(), timeout()) :: {:ok, handle()} | {:error, term()}
+
+  @doc "Stops listening; pending, not yet accepted connections are closed."
+  @callback close_listener(listener_handle()) :: :ok
+
+  @doc "Sends bytes."
+  @callback send(handle(), iodata()) :: :ok | {:error, term()}
+
+  @doc "Closes the connection; the peer sees it closed once it has received everything sent before."
+  @callback close(handle()) :: :ok
+
+  @doc "Makes `pid` the controlling process. Only the current controlling process may do it."
+  @callback controlling_process(handle(), pid()) :: :ok | {:error, term()}
+
+  @doc "Arms delivery of the next chunk of received bytes (or of the close) to the owner."
+  @callback activate(handle()) :: :ok
+
+  @doc "Classifies a message received by the controlling process."
+  @callback handle_message(handle(), term()) :: message_result()
+
+  @doc "A printable description of the other end."
+  @callback peer(handle()) :: String.t()
+
+  @doc """
+  Connects to `endpoint` (a `Vws.Endpoint` or its string form).
+
+  TCP dials `host:port` (option `timeout`, default 5000 ms); tty opens the device; loopback
+  connects to the listener registered under the name. The caller becomes the controlling process
+  and must `activate/1` to receive.
+  """
+  @spec connect(endpoint(), keyword()) :: {:ok, Conn.t()} | {:error, term()}
+  def connect(endpoint, opts \\ []) do
+    with {:ok, endpoint} <- to_endpoint(endpoint) do
+      module = module_for(endpoint)
+
+      with {:ok, handle} <- module.connect(endpoint, opts) do
+        {:ok, %Conn{module: module, handle: handle, endpoint: endpoint}}
+      end
+    end
+  end
+
+  @doc """
+  Listens on `endpoint`.
+
+  TCP listens with `reuseaddr` (option `ip` overrides the address taken from the endpoint; port 0
+  picks a free port, see `listener_endpoint/1`); loopback registers the name in `Vws.Registry`
+  (`{:error, :eaddrinuse}` if taken). A tty cannot listen: `{:error, :not_listenable}`. The
+  listener is closed when the calling process exits.
+  """
+  @spec listen(endpoint(), keyword()) :: {:ok, Listener.t()} | {:error, term()}
+  def listen(endpoint, opts \\ []) do
+    with {:ok, endpoint} <- to_endpoint(endpoint) do
+      module = module_for(endpoint)
+
+      with {:ok, handle} <- module.listen(endpoint, opts) do
+        {:ok,
+         %Listener{module: module, handle: handle, endpoint: module.listener_endpoint(handle)}}
+      end
+    end
+  end
+
+  @doc "The endpoint a listener is bound to, with the real port when port 0 was asked for."
+  @spec listener_endpoint(Listener.t()) :: Endpoint.t()
+  def listener_endpoint(%Listener{endpoint: endpoint}), do: endpoint
+
+  @doc """
+  Waits up to `timeout` for a connection on `listener` (blocking: run it in an acceptor process).
+
+  The caller becomes the controlling process of the returned connection; hand it on with
+  `controlling_process/2`.
+  """
+  @spec accept(Listener.t(), timeout()) :: {:ok, Conn.t()} | {:error, :timeout | term()}
+  def accept(%Listener{module: module, handle: handle, endpoint: endpoint}, timeout) do
+    with {:ok, conn_handle} <- module.accept(handle, timeout) do
+      {:ok, %Conn{module: module, handle: conn_handle, endpoint: endpoint}}
+    end
+  end
+
+  @doc "Stops listening."
+  @spec close_listener(Listener.t()) :: :ok
+  def close_listener(%Listener{module: module, handle: handle}), do: module.close_listener(handle)
+
+  @doc "Sends `data`; blocks while the peer is far behind (TCP and loopback)."
+  @spec send(Conn.t(), iodata()) :: :ok | {:error, term()}
+  def send(%Conn{module: module, handle: handle}, data), do: module.send(handle, data)
+
+  @doc "Closes the connection. Always `:ok`, also when it was already closed."
+  @spec close(Conn.t()) :: :ok
+  def close(%Conn{module: module, handle: handle}), do: module.close(handle)
+
+  @doc "Hands the connection to `pid`; must be called by the current controlling process."
+  @spec controlling_process(Conn.t(), pid()) :: :ok | {:error, term()}
+  def controlling_process(%Conn{module: module, handle: handle}, pid),
+    do: module.controlling_process(handle, pid)
+
+  @doc """
+  Arms delivery of the next chunk of received bytes (or of the close) to the controlling process.
+
+  Always `:ok`: on a connection that is already closed it does nothing, the close having been
+  reported (or being reported) through `handle_message/2`. A no-op on the serial transport,
+  which is always active.
+  """
+  @spec activate(Conn.t()) :: :ok
+  def activate(%Conn{module: module, handle: handle}), do: module.activate(handle)
+
+  @doc """
+  Classifies `msg`, received by the controlling process: `{:data, bytes}`, `:closed`,
+  `{:error, reason}` (the connection is unusable after it), or `:unknown` when the message does
+  not belong to this connection.
+  """
+  @spec handle_message(Conn.t(), term()) :: message_result()
+  def handle_message(%Conn{module: module, handle: handle}, msg),
+    do: module.handle_message(handle, msg)
+
+  @doc "A printable description of the other end, for logs."
+  @spec peer(Conn.t()) :: String.t()
+  def peer(%Conn{module: module, handle: handle}), do: module.peer(handle)
+
+  @doc "The transport module serving an endpoint."
+  @spec module_for(Endpoint.t()) :: module()
+  def module_for(%Endpoint{kind: :tcp}), do: Vws.Transport.TCP
+  def module_for(%Endpoint{kind: :tty}), do: Vws.Transport.Serial
+  def module_for(%Endpoint{kind: :loopback}), do: Vws.Transport.Loopback
+
+  defp to_endpoint(%Endpoint{} = endpoint), do: {:ok, endpoint}
+  defp to_endpoint(string), do: Endpoint.parse(string)
+end

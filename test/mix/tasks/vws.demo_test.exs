@@ -1,0 +1,28 @@
+defmodule Mix.Tasks.Vws.DemoTest do
+  use ExUnit.Case, async: true
+
+  # The task as a user runs it, in a VM of its own: its exit status is the point.
+  @tag timeout: 300_000
+  test "mix vws.demo --once prints the dialogue and a summary, and exits 0 only if it completed" do
+    {output, status} =
+      System.cmd(
+        System.find_executable("mix"),
+        ~w(vws.demo --once --time-scale 50 --http-port 4999),
+        env: [{"MIX_ENV", "test"}],
+        stderr_to_stdout: true
+      )
+
+    assert output =~ "--http-port 4999: the dashboard is not available yet"
+    assert output =~ ~r/^ +\d+\.\d{3}s  → \*0001\*R0001DISABLE_TRAY1\*\d{3} /m
+    assert output =~ ~r/^ +\d+\.\d{3}s  ← 05A0001\d{3} +ack: string 0001 received intact$/m
+    assert output =~ "== Summary =="
+    assert [result] = Regex.run(~r/^result: +(.*)$/m, output, capture: :all_but_first)
+
+    if result == "COMPLETED" do
+      assert status == 0
+    else
+      assert status != 0, output
+      assert result =~ ~r/^STOPPED at line \d+ \(step \d+ of \d+\): \S/
+    end
+  end
+end
