@@ -57,8 +57,7 @@ defmodule Vws.DAQ do
     config = Config.load(Keyword.get(opts, :channel_map, Config.default_path()))
     daq = Keyword.get(opts, :daq, :daq1)
 
-    entries =
-      for {{^daq, channel}, entry} <- config.channels, into: %{}, do: {channel, entry}
+    entries = for {{^daq, channel}, entry} <- config.channels, into: %{}, do: {channel, entry}
 
     entries =
       Enum.reduce(Keyword.get(opts, :switches, []), entries, fn {signal, channel}, acc ->
@@ -83,8 +82,7 @@ defmodule Vws.DAQ do
       volt_channels: Enum.sort(by_kind.([:switch, :pot, :spare])),
       ohm_channels: Enum.sort(by_kind.([:gauge])),
       sensors: sensors,
-      actuators:
-        for({ch, %{kind: :actuator, signal: s}} <- entries, into: %{}, do: {s, ch}),
+      actuators: for({ch, %{kind: :actuator, signal: s}} <- entries, into: %{}, do: {s, ch}),
       threshold_volts: config.switch.threshold_volts * 1.0
     }
   end
@@ -118,8 +116,10 @@ defmodule Vws.DAQ do
       end
 
     channels =
-      for {ch, %{kind: kind, signal: signal}} <- daq.sensors, kind != :spare, into: %{},
-        do: {signal, ch}
+      for {ch, %{kind: kind, signal: signal}} <- daq.sensors,
+          kind != :spare,
+          into: %{},
+          do: {signal, ch}
 
     %Readings{
       seq: Keyword.get(opts, :seq, 0),
@@ -181,7 +181,11 @@ defmodule Vws.DAQ do
         closes = for {ch, true} <- expected, do: ch
 
         commands =
-          [{:rout_open, opens}, {:rout_clos, closes}, {:rout_clos?, Enum.map(expected, &elem(&1, 0))}]
+          [
+            {:rout_open, opens},
+            {:rout_clos, closes},
+            {:rout_clos?, Enum.map(expected, &elem(&1, 0))}
+          ]
           |> Enum.reject(&match?({_, []}, &1))
 
         {:ok, commands, expected}
@@ -194,8 +198,7 @@ defmodule Vws.DAQ do
   """
   @spec check_relays([{pos_integer, boolean}], [boolean]) :: :ok | {:error, [pos_integer]}
   def check_relays(expected, states) do
-    wrong =
-      for {{ch, want}, got} <- Enum.zip(expected, states), want != got, do: ch
+    wrong = for {{ch, want}, got} <- Enum.zip(expected, states), want != got, do: ch
 
     if wrong == [] and length(states) == length(expected), do: :ok, else: {:error, wrong}
   end

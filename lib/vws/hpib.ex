@@ -54,7 +54,7 @@ defmodule Vws.HPIB do
   @type address :: 0..30
   @type device :: {bus, address}
   @type result :: Vws.SCPI.response() | :ok
-  @opaque request_id :: term
+  @type request_id :: {address, :gen_statem.request_id()}
 
   @call_margin 2_000
 

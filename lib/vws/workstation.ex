@@ -24,6 +24,10 @@ defmodule Vws.Workstation do
     * `:sun_comm` — further SUN_COMM options (`bcc:`, timeouts; see `Vws.SunComm`)
     * `:links` — child specs of device links, started under the links supervisor
     * `:partitions` — per partition, keyword options: `[robot: [link: …, module: …, options: …]]`
+    * `:devices` — equipment by endpoint, each adding its links and partition options (explicit
+      `:partitions` options win): `daq1: "tcp://host:5025"` (or `daq1: [endpoint: …, …]`, see
+      `Vws.Partitions.VwsStatus.wiring/3`) puts DAQ #1 on the HPIB and links VWS_STATUS, GRIPPER,
+      FIXTURE and VACUUM to it, and gives MONARCH its cycle-start relay and ROBOT its tray locks
   """
   use Supervisor
 
@@ -60,7 +64,8 @@ defmodule Vws.Workstation do
   @impl true
   def init(opts) do
     ws = Keyword.fetch!(opts, :id)
-    partition_opts = Keyword.get(opts, :partitions, [])
+    {device_links, device_partitions} = devices(ws, Keyword.get(opts, :devices, []))
+    partition_opts = merge_partitions(device_partitions, Keyword.get(opts, :partitions, []))
 
     partitions =
       [
@@ -95,7 +100,7 @@ defmodule Vws.Workstation do
             start:
               {Supervisor, :start_link,
                [
-                 Keyword.get(opts, :links, []),
+                 Keyword.get(opts, :links, []) ++ device_links,
                  [strategy: :one_for_one, max_restarts: 50, max_seconds: 5, name: via(ws, :links)]
                ]}
           },
@@ -124,6 +129,33 @@ defmodule Vws.Workstation do
         ]
 
     Supervisor.init(children, strategy: :rest_for_one, max_restarts: 10, max_seconds: 5)
+  end
+
+  # `devices:` — what each device adds: link child specs and partition options.
+  defp devices(ws, devices) do
+    Enum.reduce(devices, {[], []}, fn {kind, spec}, {links, partitions} ->
+      %{links: more_links, partitions: more} = device(ws, kind, spec)
+      {links ++ more_links, merge_partitions(partitions, more)}
+    end)
+  end
+
+  defp device(ws, :daq1, endpoint) when is_binary(endpoint),
+    do: Vws.Partitions.VwsStatus.wiring(ws, endpoint)
+
+  defp device(ws, :daq1, opts) when is_list(opts),
+    do: Vws.Partitions.VwsStatus.wiring(ws, Keyword.fetch!(opts, :endpoint), opts)
+
+  defp device(_ws, kind, spec),
+    do: raise(ArgumentError, "unknown device #{inspect(kind)}: #{inspect(spec)}")
+
+  # Partition options merged per partition, and their `options:` merged too; `right` wins.
+  defp merge_partitions(left, right) do
+    Keyword.merge(left, right, fn _partition, l, r ->
+      Keyword.merge(l, r, fn
+        :options, lo, ro -> Keyword.merge(lo, ro)
+        _key, _lv, rv -> rv
+      end)
+    end)
   end
 
   @doc "Starts a workstation under the node's workstation supervisor."

@@ -31,7 +31,13 @@ defmodule Vws.DAQ.Readings do
           channels: %{atom => pos_integer}
         }
 
-  defstruct seq: 0, requested_at: 0, received_at: 0, volts: %{}, ohms: %{}, values: %{}, channels: %{}
+  defstruct seq: 0,
+            requested_at: 0,
+            received_at: 0,
+            volts: %{},
+            ohms: %{},
+            values: %{},
+            channels: %{}
 
   @doc "The value of a signal: a switch state, millimetres, newtons, `:open_circuit`; nil if not read."
   @spec get(t, atom) :: value | nil

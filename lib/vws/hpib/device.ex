@@ -78,7 +78,10 @@ defmodule Vws.HPIB.Device do
 
       {:error, reason} ->
         if data.was_connected,
-          do: Logger.warning("HPIB device #{data.address}: cannot connect to #{endpoint(data)}: #{inspect(reason)}"),
+          do:
+            Logger.warning(
+              "HPIB device #{data.address}: cannot connect to #{endpoint(data)}: #{inspect(reason)}"
+            ),
           else: Logger.debug("HPIB device #{data.address}: cannot connect: #{inspect(reason)}")
 
         {:next_state, :disconnected,
@@ -86,7 +89,9 @@ defmodule Vws.HPIB.Device do
     end
   end
 
-  def connecting({:call, _from}, {:request, _, _, _}, _data), do: {:keep_state_and_data, :postpone}
+  def connecting({:call, _from}, {:request, _, _, _}, _data),
+    do: {:keep_state_and_data, :postpone}
+
   def connecting(event, content, data), do: common(:connecting, event, content, data)
 
   ## disconnected
@@ -119,31 +124,31 @@ defmodule Vws.HPIB.Device do
       # it waited its whole time behind other requests: never sent
       {:keep_state, data, [{:reply, from, {:error, timeout_error(data, timeout)}}]}
     else
-        case Transport.send(data.conn, Enum.map(commands, &SCPI.encode_command/1)) do
-          :ok ->
-            queries = Enum.filter(commands, &SCPI.response?/1)
+      case Transport.send(data.conn, Enum.map(commands, &SCPI.encode_command/1)) do
+        :ok ->
+          queries = Enum.filter(commands, &SCPI.response?/1)
 
-            current = %{
-              from: from,
-              commands: commands,
-              waiting: queries,
-              answers: [],
-              error: nil,
-              deadline: deadline,
-              timeout: timeout
-            }
+          current = %{
+            from: from,
+            commands: commands,
+            waiting: queries,
+            answers: [],
+            error: nil,
+            deadline: deadline,
+            timeout: timeout
+          }
 
-            if queries == [] do
-              {:keep_state, data, [{:reply, from, {:ok, results(commands, [])}}]}
-            else
-              {:next_state, :busy, %{data | current: current}}
-            end
+          if queries == [] do
+            {:keep_state, data, [{:reply, from, {:ok, results(commands, [])}}]}
+          else
+            {:next_state, :busy, %{data | current: current}}
+          end
 
-          {:error, reason} ->
-            error = %Error{reason: :send_failed, address: data.address, detail: reason}
-            data = drop_connection(data, {:send, reason})
-            {:next_state, :disconnected, data, [{:reply, from, {:error, error}}]}
-        end
+        {:error, reason} ->
+          error = %Error{reason: :send_failed, address: data.address, detail: reason}
+          data = drop_connection(data, {:send, reason})
+          {:next_state, :disconnected, data, [{:reply, from, {:error, error}}]}
+      end
     end
   end
 

@@ -1,0 +1,4 @@
+defmodule Vws.HPIBTest do
+  use ExUnit.Case, async: true
+  doctest Vws.HPIB
+end
