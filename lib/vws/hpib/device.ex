@@ -2,13 +2,14 @@ defmodule Vws.HPIB.Device do
   @moduledoc false
   # One device on the HPIB: a gen_statem behind the `Vws.HPIB` facade.
   #
-  #   connecting ──ok──▶ ready ◀──answered── busy
-  #       ▲  └─failed─▶ disconnected ◀──timeout/closed──┘
+  #   connecting ──ok──▶ ready ◀──answered, queue empty── busy ◀─┐ answered, next in queue
+  #       ▲  └─failed─▶ disconnected ◀──timeout / closed──────┘ ──┘
   #       └──backoff───────┘
   #
-  # `connecting` opens the endpoint (requests wait, postponed); `disconnected` answers requests
-  # :not_connected at once and retries after the back-off; `ready` sends a request and goes
-  # `busy` until every query of it is answered (requests wait, postponed) or its deadline passes.
+  # `connecting` opens the endpoint (requests are postponed until it knows); `disconnected`
+  # answers requests :not_connected at once and retries after the back-off; `ready` sends a
+  # request and goes `busy` until every query of it is answered or its deadline passes. Requests
+  # that arrive while busy wait in `queue` (visible in `info`), in arrival order.
   @behaviour :gen_statem
 
   require Logger
@@ -43,6 +44,7 @@ defmodule Vws.HPIB.Device do
       conn: nil,
       decoder: SCPI.new(),
       current: nil,
+      queue: :queue.new(),
       was_connected: false,
       connects: 0,
       timeouts: 0,
@@ -77,12 +79,11 @@ defmodule Vws.HPIB.Device do
          }}
 
       {:error, reason} ->
-        if data.was_connected,
-          do:
-            Logger.warning(
-              "HPIB device #{data.address}: cannot connect to #{endpoint(data)}: #{inspect(reason)}"
-            ),
-          else: Logger.debug("HPIB device #{data.address}: cannot connect: #{inspect(reason)}")
+        if data.was_connected do
+          Logger.warning(
+            "HPIB device #{data.address}: cannot connect to #{endpoint(data)}: #{inspect(reason)}"
+          )
+        end
 
         {:next_state, :disconnected,
          %{data | was_connected: false, last_error: {:connect, reason}}}
@@ -104,9 +105,8 @@ defmodule Vws.HPIB.Device do
 
   def disconnected(:state_timeout, :retry, data), do: {:next_state, :connecting, data}
 
-  def disconnected({:call, from}, {:request, _commands, _deadline, _timeout}, data) do
-    error = %Error{reason: :not_connected, address: data.address, detail: data.last_error}
-    {:keep_state, count_request(data), [{:reply, from, {:error, error}}]}
+  def disconnected({:call, from}, {:request, _, _, _}, data) do
+    {:keep_state, count_request(data), [{:reply, from, {:error, not_connected(data)}}]}
   end
 
   def disconnected(event, content, data), do: common(:disconnected, event, content, data)
@@ -115,69 +115,170 @@ defmodule Vws.HPIB.Device do
 
   def ready(:enter, _old, _data), do: :keep_state_and_data
 
-  def ready({:call, from}, {:request, commands, deadline, timeout}, data) do
+  def ready({:call, from}, {:request, _, _, _} = request, data) do
     data = count_request(data)
-    timeout = timeout || data.timeout
-    deadline = deadline || now() + timeout
-
-    if deadline <= now() do
-      # it waited its whole time behind other requests: never sent
-      {:keep_state, data, [{:reply, from, {:error, timeout_error(data, timeout)}}]}
-    else
-      case Transport.send(data.conn, Enum.map(commands, &SCPI.encode_command/1)) do
-        :ok ->
-          queries = Enum.filter(commands, &SCPI.response?/1)
-
-          current = %{
-            from: from,
-            commands: commands,
-            waiting: queries,
-            answers: [],
-            error: nil,
-            deadline: deadline,
-            timeout: timeout
-          }
-
-          if queries == [] do
-            {:keep_state, data, [{:reply, from, {:ok, results(commands, [])}}]}
-          else
-            {:next_state, :busy, %{data | current: current}}
-          end
-
-        {:error, reason} ->
-          error = %Error{reason: :send_failed, address: data.address, detail: reason}
-          data = drop_connection(data, {:send, reason})
-          {:next_state, :disconnected, data, [{:reply, from, {:error, error}}]}
-      end
-    end
+    serve(%{data | queue: :queue.in({from, request}, data.queue)}, [])
   end
 
-  def ready(:info, msg, data), do: transport_message(msg, :ready, data)
+  def ready(:info, msg, data), do: transport_message(msg, data)
   def ready(event, content, data), do: common(:ready, event, content, data)
 
   ## busy
 
-  def busy(:enter, _old, data) do
-    {:keep_state_and_data, [{:state_timeout, max(data.current.deadline - now(), 0), :answer}]}
-  end
+  def busy(:enter, _old, _data), do: :keep_state_and_data
 
-  def busy({:call, _from}, {:request, _, _, _}, _data), do: {:keep_state_and_data, :postpone}
+  def busy({:call, from}, {:request, _, _, _} = request, data) do
+    data = count_request(data)
+    {:keep_state, %{data | queue: :queue.in({from, request}, data.queue)}}
+  end
 
   def busy(:state_timeout, :answer, data) do
     %{from: from, commands: commands, timeout: timeout} = data.current
-    error = timeout_error(data, timeout)
+    error = %Error{reason: :timeout, address: data.address, detail: timeout}
     Logger.warning("HPIB device #{data.address}: #{Exception.message(error)}; reconnecting")
     telemetry(:timeout, data, %{commands: commands})
-    data = drop_connection(%{data | current: nil, timeouts: data.timeouts + 1}, :timeout)
+    data = %{data | current: nil, timeouts: data.timeouts + 1}
     # reconnect at once: the device may only have been slow
-    data = %{data | backoff: 0}
-    {:next_state, :disconnected, data, [{:reply, from, {:error, error}}]}
+    lose_connection(%{data | backoff: 0}, :timeout, [{:reply, from, {:error, error}}])
   end
 
-  def busy(:info, msg, data), do: transport_message(msg, :busy, data)
+  def busy(:info, msg, data), do: transport_message(msg, data)
   def busy(event, content, data), do: common(:busy, event, content, data)
 
-  ## every state
+  ## Serving the queue
+
+  # Sends the next request of the queue, skipping (and failing) those whose time ran out while
+  # they waited; ends in `busy` with its deadline as the state timeout, or `ready`.
+  defp serve(data, actions) do
+    case :queue.out(data.queue) do
+      {:empty, _} ->
+        {:next_state, :ready, data, actions}
+
+      {{:value, {from, {:request, commands, deadline, timeout}}}, rest} ->
+        data = %{data | queue: rest}
+        timeout = timeout || data.timeout
+        deadline = deadline || now() + timeout
+
+        if deadline <= now() do
+          # it waited its whole time behind other requests: never sent
+          error = %Error{reason: :timeout, address: data.address, detail: timeout}
+          serve(data, actions ++ [{:reply, from, {:error, error}}])
+        else
+          send_request(data, actions, from, commands, deadline, timeout)
+        end
+    end
+  end
+
+  defp send_request(data, actions, from, commands, deadline, timeout) do
+    case Transport.send(data.conn, Enum.map(commands, &SCPI.encode_command/1)) do
+      :ok ->
+        case Enum.filter(commands, &SCPI.response?/1) do
+          [] ->
+            serve(data, actions ++ [{:reply, from, {:ok, results(commands, [])}}])
+
+          queries ->
+            current = %{
+              from: from,
+              commands: commands,
+              waiting: queries,
+              answers: [],
+              error: nil,
+              timeout: timeout
+            }
+
+            {:next_state, :busy, %{data | current: current},
+             actions ++ [{:state_timeout, max(deadline - now(), 0), :answer}]}
+        end
+
+      {:error, reason} ->
+        error = %Error{reason: :send_failed, address: data.address, detail: reason}
+        lose_connection(data, {:send, reason}, actions ++ [{:reply, from, {:error, error}}])
+    end
+  end
+
+  ## Bytes from the device
+
+  defp transport_message(msg, data) do
+    case Transport.handle_message(data.conn, msg) do
+      {:data, bytes} ->
+        Transport.activate(data.conn)
+        {lines, decoder} = SCPI.feed(data.decoder, bytes)
+        lines |> Enum.reduce(%{data | decoder: decoder}, &line/2) |> answered()
+
+      :closed ->
+        connection_closed(data, :closed)
+
+      {:error, reason} ->
+        connection_closed(data, reason)
+
+      :unknown ->
+        Logger.debug("HPIB device: unexpected message #{inspect(msg, limit: 10)}")
+        :keep_state_and_data
+    end
+  end
+
+  # One answer line: the answer to the oldest query still waiting, or unsolicited.
+  defp line(line, %{current: %{waiting: [query | rest]} = c} = data) do
+    {answer, error} =
+      case line do
+        {:error, e} ->
+          {nil, c.error || e}
+
+        text ->
+          case SCPI.decode_response(query, text) do
+            {:ok, response} -> {response, c.error}
+            {:error, e} -> {nil, c.error || e}
+          end
+      end
+
+    %{data | current: %{c | waiting: rest, answers: [answer | c.answers], error: error}}
+  end
+
+  defp line(line, data) do
+    Logger.warning("HPIB device #{data.address}: unsolicited line #{inspect(line, limit: 10)}")
+    %{data | unsolicited: data.unsolicited + 1}
+  end
+
+  defp answered(%{current: %{waiting: []} = c} = data) do
+    reply =
+      if c.error,
+        do: {:error, %Error{reason: :bad_response, address: data.address, detail: c.error}},
+        else: {:ok, results(c.commands, Enum.reverse(c.answers))}
+
+    serve(%{data | current: nil}, [{:reply, c.from, reply}])
+  end
+
+  defp answered(data), do: {:keep_state, data}
+
+  defp connection_closed(data, reason) do
+    Logger.warning("HPIB device #{data.address}: connection lost (#{inspect(reason)})")
+
+    actions =
+      case data.current do
+        %{from: from} ->
+          [{:reply, from, {:error, %Error{reason: :closed, address: data.address}}}]
+
+        nil ->
+          []
+      end
+
+    lose_connection(%{data | current: nil}, reason, actions)
+  end
+
+  # Closes the connection; every request still queued fails :not_connected.
+  defp lose_connection(data, reason, actions) do
+    if data.conn, do: Transport.close(data.conn)
+    telemetry(:disconnected, data, %{reason: reason})
+    data = %{data | conn: nil, decoder: SCPI.new(), last_error: reason}
+    error = not_connected(data)
+
+    queued =
+      for {from, _request} <- :queue.to_list(data.queue), do: {:reply, from, {:error, error}}
+
+    {:next_state, :disconnected, %{data | queue: :queue.new()}, actions ++ queued}
+  end
+
+  ## Every state
 
   defp common(state, {:call, from}, :info, data) do
     info = %{
@@ -187,6 +288,7 @@ defmodule Vws.HPIB.Device do
       connects: data.connects,
       timeouts: data.timeouts,
       requests: data.requests,
+      queued: :queue.len(data.queue),
       unsolicited: data.unsolicited,
       last_error: data.last_error
     }
@@ -204,79 +306,6 @@ defmodule Vws.HPIB.Device do
     :keep_state_and_data
   end
 
-  defp transport_message(msg, state, data) do
-    case Transport.handle_message(data.conn, msg) do
-      {:data, bytes} ->
-        Transport.activate(data.conn)
-        {lines, decoder} = SCPI.feed(data.decoder, bytes)
-        Enum.reduce(lines, {state, %{data | decoder: decoder}}, &line/2) |> settle(state)
-
-      :closed ->
-        lost(data, :closed)
-
-      {:error, reason} ->
-        lost(data, reason)
-
-      :unknown ->
-        common(state, :info, msg, data)
-    end
-  end
-
-  # One answer line: the answer to the oldest query still waiting, or unsolicited.
-  defp line(line, {state, %{current: %{waiting: [query | rest]} = c} = data}) do
-    {answer, error} =
-      case line do
-        {:error, e} ->
-          {nil, c.error || e}
-
-        text ->
-          case SCPI.decode_response(query, text) do
-            {:ok, response} -> {response, c.error}
-            {:error, e} -> {nil, c.error || e}
-          end
-      end
-
-    {state, %{data | current: %{c | waiting: rest, answers: [answer | c.answers], error: error}}}
-  end
-
-  defp line(line, {state, data}) do
-    Logger.warning("HPIB device #{data.address}: unsolicited line #{inspect(line, limit: 10)}")
-    {state, %{data | unsolicited: data.unsolicited + 1}}
-  end
-
-  defp settle({_state, %{current: %{waiting: []} = c} = data}, _old) do
-    reply =
-      if c.error,
-        do: {:error, %Error{reason: :bad_response, address: data.address, detail: c.error}},
-        else: {:ok, results(c.commands, Enum.reverse(c.answers))}
-
-    {:next_state, :ready, %{data | current: nil}, [{:reply, c.from, reply}]}
-  end
-
-  defp settle({_state, data}, _old), do: {:keep_state, data}
-
-  defp lost(data, reason) do
-    Logger.warning("HPIB device #{data.address}: connection lost (#{inspect(reason)})")
-
-    actions =
-      case data.current do
-        %{from: from} ->
-          [{:reply, from, {:error, %Error{reason: :closed, address: data.address}}}]
-
-        nil ->
-          []
-      end
-
-    data = drop_connection(%{data | current: nil}, reason)
-    {:next_state, :disconnected, data, actions}
-  end
-
-  defp drop_connection(data, reason) do
-    if data.conn, do: Transport.close(data.conn)
-    telemetry(:disconnected, data, %{reason: reason})
-    %{data | conn: nil, decoder: SCPI.new(), last_error: reason}
-  end
-
   # Results in command order: the answers of the queries, :ok for the others.
   defp results(commands, answers) do
     {results, []} =
@@ -292,8 +321,8 @@ defmodule Vws.HPIB.Device do
     results
   end
 
-  defp timeout_error(data, timeout),
-    do: %Error{reason: :timeout, address: data.address, detail: timeout}
+  defp not_connected(data),
+    do: %Error{reason: :not_connected, address: data.address, detail: data.last_error}
 
   defp count_request(data), do: %{data | requests: data.requests + 1}
 
