@@ -39,6 +39,12 @@ defmodule Vws.Test.DAQFloor do
       )
 
     {:ok, peer} = WCPeer.connect(wc)
+
+    # the first poll has been answered: tests start from readings, not from NOT READ YET
+    assert Vws.Test.Eventually.eventually(fn ->
+             match?({:ok, _}, Vws.Partitions.VwsStatus.readings(ws))
+           end)
+
     %{ws: ws, plant: plant, daq: daq, peer: peer, endpoint: endpoint}
   end
 

@@ -550,6 +550,7 @@ defmodule Vws.Partitions.VwsStatus do
     case s.stats.last_error do
       _ when s.poll != nil -> "#{@device} NOT ANSWERING"
       %HPIB.Error{reason: :timeout} -> "#{@device} NOT ANSWERING"
+      %HPIB.Error{reason: :not_connected, detail: :timeout} -> "#{@device} NOT ANSWERING"
       %HPIB.Error{reason: :bad_response} -> "#{@device} BAD ANSWER"
       %HPIB.Error{} -> "#{@device} NOT CONNECTED"
       nil -> s.stale || "#{@device} NOT ANSWERING"
@@ -598,6 +599,10 @@ defmodule Vws.Partitions.VwsStatus do
   # An HPIB error as a command status shows it.
   def hpib_reason(%HPIB.Error{reason: :timeout, detail: ms}),
     do: "#{@device} NOT ANSWERING (NO ANSWER IN #{ms} MS)"
+
+  # the connection was dropped because the DAQ did not answer, and is being made again
+  def hpib_reason(%HPIB.Error{reason: :not_connected, detail: :timeout}),
+    do: "#{@device} NOT ANSWERING (TIMED OUT, RECONNECTING)"
 
   def hpib_reason(%HPIB.Error{reason: :bad_response}), do: "#{@device} BAD ANSWER"
   def hpib_reason(%HPIB.Error{reason: :closed}), do: "#{@device} CONNECTION LOST"
