@@ -13,7 +13,8 @@ defmodule Vws.Test.DAQFloor do
   @doc """
   Starts plant (time scale 1000 unless `:time_scale`), DAQ #1 simulator on TCP, a workstation
   with `devices: [daq1: …]` and a connected WC peer. Options: `:time_scale`, `:vws_status`
-  (VWS_STATUS options, default a 5 ms poll), `:hpib` (device options), `:partitions`
+  (VWS_STATUS options, default a 10 ms poll and stale after 1 s, so that a
+  loaded test machine does not make readings stale where a test does not mean it), `:hpib` (device options), `:partitions`
   (more partition options). Returns `%{ws, plant, daq, peer, endpoint}`.
   """
   def start(opts \\ []) do
@@ -28,7 +29,8 @@ defmodule Vws.Test.DAQFloor do
 
     daq1 = [
       endpoint: endpoint,
-      vws_status: Keyword.merge([poll_ms: 5], Keyword.get(opts, :vws_status, [])),
+      vws_status:
+        Keyword.merge([poll_ms: 10, stale_after_ms: 1_000], Keyword.get(opts, :vws_status, [])),
       hpib: Keyword.get(opts, :hpib, [])
     ]
 

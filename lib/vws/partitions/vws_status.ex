@@ -125,7 +125,7 @@ defmodule Vws.Partitions.VwsStatus do
   `{:wait, what_was_read}` (not yet), or `{:fail, what_was_read}` (it never will: stop now).
 
   Returns `:ok`, or `{:error, what_was_read}`: at a `:fail`, or after `timeout_ms` with the last
-  fresh reading's `what` — or, when no fresh reading came, the stale reason or
+  fresh reading's `what` — or, when no fresh reading came at all, the stale reason or
   `DAQ #1 NOT ANSWERING (NO FRESH READING IN n MS)`.
   """
   @spec await(workstation, integer, non_neg_integer, check) :: :ok | {:error, String.t()}
@@ -134,7 +134,7 @@ defmodule Vws.Partitions.VwsStatus do
   def await(ws, since, timeout_ms, check) do
     check = if is_function(check, 1), do: fn r, _prev -> check.(r) end, else: check
     deadline = System.monotonic_time(:millisecond) + timeout_ms
-    do_await(ws, since, deadline, timeout_ms, check, %{prev: nil, last: nil})
+    do_await(ws, since, deadline, timeout_ms, check, %{prev: nil, read: nil, no_data: nil})
   end
 
   defp do_await(ws, since, deadline, timeout_ms, check, acc) do
@@ -146,7 +146,7 @@ defmodule Vws.Partitions.VwsStatus do
           else
             case check.(r, acc.prev) do
               :ok -> {:ok, acc}
-              {:wait, what} -> {:wait, %{acc | prev: r, last: {:read, what}}}
+              {:wait, what} -> {:wait, %{acc | prev: r, read: what}}
               {:fail, what} -> {{:fail, what}, acc}
             end
           end
@@ -155,7 +155,7 @@ defmodule Vws.Partitions.VwsStatus do
           {:wait, acc}
 
         {:no_data, why} ->
-          {:wait, %{acc | last: {:no_data, why}}}
+          {:wait, %{acc | no_data: why}}
       end
 
     cond do
@@ -166,11 +166,10 @@ defmodule Vws.Partitions.VwsStatus do
         {:error, elem(verdict, 1)}
 
       System.monotonic_time(:millisecond) > deadline ->
-        case acc.last do
-          {:read, what} -> {:error, what}
-          {:no_data, why} -> {:error, why}
-          nil -> {:error, "#{@device} NOT ANSWERING (NO FRESH READING IN #{timeout_ms} MS)"}
-        end
+        # what was read says most; failing that, why nothing could be read
+        {:error,
+         acc.read || acc.no_data ||
+           "#{@device} NOT ANSWERING (NO FRESH READING IN #{timeout_ms} MS)"}
 
       true ->
         Process.sleep(2)

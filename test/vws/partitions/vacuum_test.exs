@@ -3,6 +3,7 @@ defmodule Vws.Partitions.VacuumTest do
 
   alias Vws.Sim.{DAQ, Plant}
   alias Vws.Test.DAQFloor
+  import Vws.Test.Eventually
 
   @short [partitions: [vacuum: [options: [timeout_ms: 300]]]]
 
@@ -42,8 +43,9 @@ defmodule Vws.Partitions.VacuumTest do
   end
 
   test "a DAQ that is gone: ERROR DAQ #1 NOT CONNECTED" do
-    %{peer: peer, daq: daq} = DAQFloor.start(@short)
+    %{peer: peer, daq: daq, ws: ws} = DAQFloor.start(@short)
     GenServer.stop(daq)
+    assert eventually(fn -> Vws.HPIB.info({ws, 9}).state == :disconnected end)
     assert DAQFloor.command(peer, "V", 1, "ON") == "ERROR DAQ #1 NOT CONNECTED"
   end
 
