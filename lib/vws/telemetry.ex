@@ -34,6 +34,11 @@ defmodule Vws.Telemetry do
   | `[:vws, :ddcmp, :receive_error]` | `count` | `link, reason, num` |
   | `[:vws, :ddcmp, :state_change]` | `count` | `link, from, to` |
   | `[:vws, :ddcmp, :link_down]` | `count` | `link, reason` |
+  | `[:vws, :hpib, :connected]` / `:disconnected` | `count` | `bus, address, endpoint` (+ `reason`) |
+  | `[:vws, :hpib, :timeout]` | `count` | `bus, address, endpoint, commands` |
+  | `[:vws, :vws_status, :poll]` | `started_at, lateness, duration, handling` (µs) | `workstation, seq, result` |
+  | `[:vws, :vws_status, :missed]` | `count` | `workstation, reason` |
+  | `[:vws, :vws_status, :stale]` | `count` | `workstation, reason` |
 
   `attach_default_handler/0` logs all of them with `Logger`.
   """
@@ -65,7 +70,13 @@ defmodule Vws.Telemetry do
     [:vws, :ddcmp, :retransmission],
     [:vws, :ddcmp, :receive_error],
     [:vws, :ddcmp, :state_change],
-    [:vws, :ddcmp, :link_down]
+    [:vws, :ddcmp, :link_down],
+    [:vws, :hpib, :connected],
+    [:vws, :hpib, :disconnected],
+    [:vws, :hpib, :timeout],
+    [:vws, :vws_status, :poll],
+    [:vws, :vws_status, :missed],
+    [:vws, :vws_status, :stale]
   ]
 
   @doc "Every event name listed in the moduledoc."

@@ -2,11 +2,14 @@ defmodule Mix.Tasks.Vws.Serve do
   @shortdoc "Starts a VWS workstation and waits for a workstation controller"
   @moduledoc """
   Starts one workstation (VWS_CONTROL, the mailboxes, the partitions and SUN_COMM) and waits for a
-  workstation controller.
+  workstation controller. The simulated plant and DAQ #1 (`Vws.Sim.Floor`) start first and the
+  workstation is connected to them, unless `--daq1` points at a real instrument.
 
       mix vws.serve                       # WC on tcp://127.0.0.1:7070
       mix vws.serve --wc-port 7071 --bind 0.0.0.0
       mix vws.serve --wc tty:/dev/ttyUSB0?baud=9600
+      mix vws.serve --time-scale 10       # the simulated plant ten times faster
+      mix vws.serve --daq1 tcp://10.0.0.9:5025   # a real DAQ #1 (LAN SCPI socket): no simulators
       iex -S mix vws.serve                # the same, with a shell to inspect it live
 
   Options:
@@ -16,10 +19,22 @@ defmodule Mix.Tasks.Vws.Serve do
     * `--wc ENDPOINT` — any endpoint instead (`tcp://host:port`, `tty:/dev/…?baud=…`, `loopback:name`)
     * `--id ID` — the workstation id (default `VWS`)
     * `--bcc sum|xor` — the WC link's block check (default sum)
+    * `--time-scale N` — the simulated plant runs N times faster than real time (default 1)
+    * `--daq1 ENDPOINT` — DAQ #1 is real equipment there; the plant and DAQ #1 are not simulated
+    * `--daq1-port N` — the TCP port the simulated DAQ #1 listens on (default: a free port)
   """
   use Mix.Task
 
-  @switches [wc_port: :integer, bind: :string, wc: :string, id: :string, bcc: :string]
+  @switches [
+    wc_port: :integer,
+    bind: :string,
+    wc: :string,
+    id: :string,
+    bcc: :string,
+    time_scale: :float,
+    daq1: :string,
+    daq1_port: :integer
+  ]
 
   @impl true
   def run(args) do
@@ -39,12 +54,31 @@ defmodule Mix.Tasks.Vws.Serve do
         other -> Mix.raise("--bcc must be sum or xor, not #{other}")
       end
 
-    {:ok, _} = Vws.Workstation.start(id: id, wc: wc, sun_comm: [bcc: bcc])
+    devices = daq1_device(id, opts)
+    {:ok, _} = Vws.Workstation.start(id: id, wc: wc, sun_comm: [bcc: bcc], devices: devices)
     listening = wait_listening(id, 50)
     Mix.shell().info("VWS workstation #{id}: SUN_COMM waits for the WC on #{listening || wc}")
     Mix.shell().info("Inspect it: Vws.Mailbox.print(#{inspect(id)})   Stop: Ctrl-C twice")
 
     unless iex_running?(), do: Process.sleep(:infinity)
+  end
+
+  # DAQ #1: the real instrument given with --daq1, or the simulated plant and DAQ #1, started here.
+  defp daq1_device(id, opts) do
+    case opts[:daq1] do
+      nil ->
+        scale = opts[:time_scale] || 1.0
+        if scale <= 0, do: Mix.raise("--time-scale must be positive")
+        endpoint = "tcp://127.0.0.1:#{opts[:daq1_port] || 0}"
+        {:ok, _} = Vws.Sim.Floor.start_link(workstation: id, time_scale: scale, daq1: endpoint)
+        daq1 = Vws.Sim.Floor.daq1_endpoint(id)
+        Mix.shell().info("simulated plant (time scale ×#{scale}) and DAQ #1 on #{daq1}")
+        [daq1: daq1]
+
+      real ->
+        Mix.shell().info("DAQ #1: #{real}")
+        [daq1: real]
+    end
   end
 
   defp wait_listening(_id, 0), do: nil

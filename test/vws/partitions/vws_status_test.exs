@@ -193,5 +193,12 @@ defmodule Vws.Partitions.VwsStatusTest do
       vacuum = :sys.get_state(Partition.whereis(ws, :vacuum))
       assert vacuum.options == [timeout_ms: 1] and vacuum.link == {ws, 9}
     end
+
+    test "a device the workstation does not know is refused at start" do
+      Process.flag(:trap_exit, true)
+
+      assert {:error, {%ArgumentError{message: "unknown device :daq7" <> _}, _}} =
+               Vws.Workstation.start_link(id: "no-daq7", wc: nil, devices: [daq7: "tcp://x:1"])
+    end
   end
 end
