@@ -4,12 +4,32 @@ defmodule Vws.Application do
 
   @impl true
   def start(_type, _args) do
-    children = [
-      {Registry, keys: :unique, name: Vws.Registry},
-      {Registry, keys: :duplicate, name: Vws.Events, partitions: System.schedulers_online()},
-      {DynamicSupervisor, name: Vws.WorkstationSupervisor, strategy: :one_for_one}
-    ]
+    children =
+      [
+        {Registry, keys: :unique, name: Vws.Registry},
+        {Registry, keys: :duplicate, name: Vws.Events, partitions: System.schedulers_online()},
+        {DynamicSupervisor, name: Vws.WorkstationSupervisor, strategy: :one_for_one}
+      ] ++ configured_workstation()
 
     Supervisor.start_link(children, strategy: :one_for_one, name: Vws.Supervisor)
+  end
+
+  # The workstation of config/runtime.exs (a deployment), started under the workstation supervisor.
+  defp configured_workstation do
+    case Application.get_env(:vws, :workstation) do
+      nil ->
+        []
+
+      opts ->
+        opts = Enum.reject(opts, fn {_k, v} -> v == nil end)
+
+        [
+          Supervisor.child_spec(
+            {Task, fn -> {:ok, _} = Vws.Workstation.start(opts) end},
+            id: :configured_workstation,
+            restart: :temporary
+          )
+        ]
+    end
   end
 end

@@ -23,11 +23,11 @@ defmodule Vws.Workstation do
     * `:journal` — a directory for the command journal (`Vws.Journal`), or its options; none by default
     * `:sun_comm` — further SUN_COMM options (`bcc:`, timeouts; see `Vws.SunComm`)
     * `:links` — child specs of device links, started under the links supervisor
+    * `:devices` — device endpoints turned into links (see `device_links/3`):
+      `[ge2000: "tcp://host:port"]` adds the DNC link to the GE-2000 and gives it to MONARCH;
+      `[daq1: "tcp://host:5025"]` puts DAQ #1 on the HPIB, links VWS_STATUS, GRIPPER, FIXTURE and
+      VACUUM to it, and gives MONARCH its cycle-start relay and ROBOT its tray locks
     * `:partitions` — per partition, keyword options: `[robot: [link: …, module: …, options: …]]`
-    * `:devices` — equipment by endpoint, each adding its links and partition options (explicit
-      `:partitions` options win): `daq1: "tcp://host:5025"` (or `daq1: [endpoint: …, …]`, see
-      `Vws.Partitions.VwsStatus.wiring/3`) puts DAQ #1 on the HPIB and links VWS_STATUS, GRIPPER,
-      FIXTURE and VACUUM to it, and gives MONARCH its cycle-start relay and ROBOT its tray locks
   """
   use Supervisor
 
@@ -64,8 +64,9 @@ defmodule Vws.Workstation do
   @impl true
   def init(opts) do
     ws = Keyword.fetch!(opts, :id)
-    {device_links, device_partitions} = devices(ws, Keyword.get(opts, :devices, []))
-    partition_opts = merge_partitions(device_partitions, Keyword.get(opts, :partitions, []))
+
+    {device_links, partition_opts} =
+      device_links(ws, Keyword.get(opts, :devices, []), Keyword.get(opts, :partitions, []))
 
     partitions =
       [
@@ -131,22 +132,50 @@ defmodule Vws.Workstation do
     Supervisor.init(children, strategy: :rest_for_one, max_restarts: 10, max_seconds: 5)
   end
 
-  # `devices:` — what each device adds: link child specs and partition options.
-  defp devices(ws, devices) do
-    Enum.reduce(devices, {[], []}, fn {kind, spec}, {links, partitions} ->
-      %{links: more_links, partitions: more} = device(ws, kind, spec)
-      {links ++ more_links, merge_partitions(partitions, more)}
+  @doc """
+  The link children for the `devices:` option, and the partition options updated to use them.
+
+  `ge2000: endpoint` (or `ge2000: [endpoint: …, …more Vws.DNC options]`) adds a `Vws.DNC` link
+  registered as `{ws, :ge2000}` (`whereis(ws, :ge2000)`) and the `Vws.Partitions.Monarch.Monitor`
+  that keeps the MONARCH status current through it (`status_interval:` ms, default 1 000;
+  `nil` for none), and makes the link MONARCH's `link:` unless the partition options name one.
+
+  `daq1: endpoint` (or `daq1: [endpoint: …, …]`) puts DAQ #1 on the HPIB and merges in the
+  partition options of `Vws.Partitions.VwsStatus.wiring/3` (explicit ones win).
+  """
+  @spec device_links(term, keyword, keyword) ::
+          {[Supervisor.child_spec() | {module, term}], keyword}
+  def device_links(ws, devices, partition_opts) do
+    Enum.reduce(devices, {[], partition_opts}, fn
+      {:ge2000, spec}, {links, popts} ->
+        link_opts = if is_binary(spec), do: [endpoint: spec], else: spec
+        {interval, link_opts} = Keyword.pop(link_opts, :status_interval, 1_000)
+        name = via(ws, :ge2000)
+        link = {Vws.DNC, [id: :ge2000, name: name] ++ link_opts}
+
+        monitor =
+          for i <- [interval],
+              i != nil,
+              do: {Vws.Partitions.Monarch.Monitor, workstation: ws, link: name, interval: i}
+
+        monarch = Keyword.put_new(Keyword.get(popts, :monarch, []), :link, name)
+        {links ++ [link | monitor], Keyword.put(popts, :monarch, monarch)}
+
+      {:daq1, spec}, {links, popts} ->
+        %{links: more, partitions: wired} = daq1(ws, spec)
+        {links ++ more, merge_partitions(wired, popts)}
+
+      {device, _spec}, _acc ->
+        raise ArgumentError, "unknown device #{inspect(device)} (known: :ge2000, :daq1)"
     end)
   end
 
-  defp device(ws, :daq1, endpoint) when is_binary(endpoint),
+  # DAQ #1 on the HPIB: its link and the partition options that reach it.
+  defp daq1(ws, endpoint) when is_binary(endpoint),
     do: Vws.Partitions.VwsStatus.wiring(ws, endpoint)
 
-  defp device(ws, :daq1, opts) when is_list(opts),
+  defp daq1(ws, opts) when is_list(opts),
     do: Vws.Partitions.VwsStatus.wiring(ws, Keyword.fetch!(opts, :endpoint), opts)
-
-  defp device(_ws, kind, spec),
-    do: raise(ArgumentError, "unknown device #{inspect(kind)}: #{inspect(spec)}")
 
   # Partition options merged per partition, and their `options:` merged too; `right` wins.
   defp merge_partitions(left, right) do

@@ -10,6 +10,7 @@ defmodule Mix.Tasks.Vws.Serve do
       mix vws.serve --wc tty:/dev/ttyUSB0?baud=9600
       mix vws.serve --time-scale 10       # the simulated plant ten times faster
       mix vws.serve --daq1 tcp://10.0.0.9:5025   # a real DAQ #1 (LAN SCPI socket): no simulators
+      mix vws.serve --ge2000 tty:/dev/ttyS1?baud=4800   # the real VMC instead of the simulator
       iex -S mix vws.serve                # the same, with a shell to inspect it live
 
   Options:
@@ -22,6 +23,10 @@ defmodule Mix.Tasks.Vws.Serve do
     * `--time-scale N` — the simulated plant runs N times faster than real time (default 1)
     * `--daq1 ENDPOINT` — DAQ #1 is real equipment there; the plant and DAQ #1 are not simulated
     * `--daq1-port N` — the TCP port the simulated DAQ #1 listens on (default: a free port)
+    * `--ge2000 ENDPOINT` — the real GE-2000's DNC port (`tty:/dev/ttyS1?baud=4800`, a terminal
+      server's `tcp://host:port`). Without it a simulated GE-2000 (`Vws.Sim.GE2000`) is started on
+      a free local port and connected; its cycle-start button stands in for the DAQ #1 relay.
+    * `--ge2000-baud N` — pace the simulated GE-2000's line at N Bd (default: unpaced)
   """
   use Mix.Task
 
@@ -33,7 +38,9 @@ defmodule Mix.Tasks.Vws.Serve do
     bcc: :string,
     time_scale: :float,
     daq1: :string,
-    daq1_port: :integer
+    daq1_port: :integer,
+    ge2000: :string,
+    ge2000_baud: :integer
   ]
 
   @impl true
@@ -54,10 +61,22 @@ defmodule Mix.Tasks.Vws.Serve do
         other -> Mix.raise("--bcc must be sum or xor, not #{other}")
       end
 
-    devices = daq1_device(id, opts)
-    {:ok, _} = Vws.Workstation.start(id: id, wc: wc, sun_comm: [bcc: bcc], devices: devices)
+    {ge2000, monarch} = ge2000(opts)
+    devices = [ge2000: ge2000] ++ daq1_device(id, opts)
+
+    # a simulated GE-2000's own button is MONARCH's cycle start; else the DAQ #1 relay is
+    {:ok, _} =
+      Vws.Workstation.start(
+        id: id,
+        wc: wc,
+        sun_comm: [bcc: bcc],
+        devices: devices,
+        partitions: [monarch: [options: monarch]]
+      )
+
     listening = wait_listening(id, 50)
     Mix.shell().info("VWS workstation #{id}: SUN_COMM waits for the WC on #{listening || wc}")
+    Mix.shell().info("GE-2000 DNC link: #{ge2000}")
     Mix.shell().info("Inspect it: Vws.Mailbox.print(#{inspect(id)})   Stop: Ctrl-C twice")
 
     unless iex_running?(), do: Process.sleep(:infinity)
@@ -78,6 +97,19 @@ defmodule Mix.Tasks.Vws.Serve do
       real ->
         Mix.shell().info("DAQ #1: #{real}")
         [daq1: real]
+    end
+  end
+
+  # The real machine's endpoint, or a simulator started here (its button stands in for the relay).
+  defp ge2000(opts) do
+    case opts[:ge2000] do
+      nil ->
+        {:ok, sim} = Vws.Sim.GE2000.start_link(pace: opts[:ge2000_baud] || false)
+        Mix.shell().info("Simulated GE-2000 on #{Vws.Sim.GE2000.endpoint(sim)}")
+        {Vws.Sim.GE2000.endpoint(sim), [cycle_start: fn -> Vws.Sim.GE2000.cycle_start(sim) end]}
+
+      endpoint ->
+        {endpoint, []}
     end
   end
 
