@@ -232,9 +232,12 @@ defmodule Vws.Partitions.VwsStatus do
     case {pressed, released} do
       {:ok, :ok} -> :ok
       {{:error, _} = error, _} -> error
-      {:ok, {:error, why}} -> {:error, "CYCLE START RELAY NOT RELEASED: " <> why}
+      {:ok, {:error, why}} -> {:error, "RELAY #{relay_name(relay)} NOT RELEASED: " <> why}
     end
   end
+
+  defp relay_name(relay) when is_atom(relay), do: relay |> to_string() |> String.upcase()
+  defp relay_name(relay), do: to_string(relay)
 
   @doc """
   The function MONARCH's CYCLE_START calls (`ctx.options[:cycle_start]`): presses the
