@@ -209,10 +209,17 @@ defmodule Vws.DDCMP do
   Queues a data message for the peer. `:ok` once queued; it is sent within the transmit window and
   retransmitted until acknowledged. Before the link is RUNNING the message waits for it.
   `{:error, :too_long}` if it is longer than `:max_data`.
+
+  With `hold: false` a message is refused with `{:error, :not_running}` unless the link is RUNNING:
+  a command meant for this session must never be delivered in the next one (after a restart).
   """
-  @spec send_data(link, iodata) :: :ok | {:error, :too_long}
-  def send_data(link, iodata) do
-    :gen_statem.call(link, {:send, IO.iodata_to_binary(iodata)})
+  @spec send_data(link, iodata, keyword) :: :ok | {:error, :too_long | :not_running}
+  def send_data(link, iodata, opts \\ []) do
+    if Keyword.get(opts, :hold, true) do
+      :gen_statem.call(link, {:send, IO.iodata_to_binary(iodata)})
+    else
+      :gen_statem.call(link, {:send_now, IO.iodata_to_binary(iodata)})
+    end
   end
 
   @doc """

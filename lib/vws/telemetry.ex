@@ -27,6 +27,9 @@ defmodule Vws.Telemetry do
   | `[:vws, :partition, :command, :start / :stop / :exception]` | span | `workstation, partition, command, text` (+ `result` on stop) |
   | `[:vws, :partition, :command_finished]` | `duration` (native) | `workstation, partition, command, status` |
   | `[:vws, :events, :caused]` | `count` | `workstation, event` |
+  | `[:vws, :val, :message]` | `bytes` | `name, direction, lun, function, qualifier` |
+  | `[:vws, :val, :request_finished]` | `duration` (native) | `name, text, result` |
+  | `[:vws, :val, :async]` | `count` | `name, code, text` (every LUN 3 message) |
   | `[:vws, :ddcmp, :frame_sent]` / `:frame_received` | `count` | `link` + the frame's fields |
   | `[:vws, :ddcmp, :nak]` | `count` | `link, direction, reason, resp` |
   | `[:vws, :ddcmp, :rep]` | `count` | `link, direction, num` |
@@ -34,6 +37,11 @@ defmodule Vws.Telemetry do
   | `[:vws, :ddcmp, :receive_error]` | `count` | `link, reason, num` |
   | `[:vws, :ddcmp, :state_change]` | `count` | `link, from, to` |
   | `[:vws, :ddcmp, :link_down]` | `count` | `link, reason` |
+  | `[:vws, :dnc, :connected]` / `:disconnected` | `count` | `link, role, peer` (+ `reason`) |
+  | `[:vws, :dnc, :block_sent]` | `bytes` | `link, role, block, retransmission` |
+  | `[:vws, :dnc, :block_received]` | `bytes` | `link, role, block` |
+  | `[:vws, :dnc, :retry]` | `count` | `link, role, kind, block` |
+  | `[:vws, :dnc, :transmission]` | `duration, blocks, bytes` | `link, role, direction, result` |
   | `[:vws, :hpib, :connected]` / `:disconnected` | `count` | `bus, address, endpoint` (+ `reason`) |
   | `[:vws, :hpib, :timeout]` | `count` | `bus, address, endpoint, commands` |
   | `[:vws, :vws_status, :poll]` | `started_at, lateness, duration, handling` (µs) | `workstation, seq, result` |
@@ -63,6 +71,9 @@ defmodule Vws.Telemetry do
     [:vws, :partition, :command, :exception],
     [:vws, :partition, :command_finished],
     [:vws, :events, :caused],
+    [:vws, :val, :message],
+    [:vws, :val, :request_finished],
+    [:vws, :val, :async],
     [:vws, :ddcmp, :frame_sent],
     [:vws, :ddcmp, :frame_received],
     [:vws, :ddcmp, :nak],
@@ -71,6 +82,12 @@ defmodule Vws.Telemetry do
     [:vws, :ddcmp, :receive_error],
     [:vws, :ddcmp, :state_change],
     [:vws, :ddcmp, :link_down],
+    [:vws, :dnc, :connected],
+    [:vws, :dnc, :disconnected],
+    [:vws, :dnc, :block_sent],
+    [:vws, :dnc, :block_received],
+    [:vws, :dnc, :retry],
+    [:vws, :dnc, :transmission],
     [:vws, :hpib, :connected],
     [:vws, :hpib, :disconnected],
     [:vws, :hpib, :timeout],

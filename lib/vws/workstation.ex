@@ -25,6 +25,7 @@ defmodule Vws.Workstation do
     * `:links` — child specs of device links, started under the links supervisor
     * `:devices` — device endpoints turned into links (see `device_links/3`):
       `[ge2000: "tcp://host:port"]` adds the DNC link to the GE-2000 and gives it to MONARCH;
+      `[robot: "tcp://host:port"]` adds a `Vws.VAL` (with its `Vws.DDCMP` link) and gives it to ROBOT;
       `[daq1: "tcp://host:5025"]` puts DAQ #1 on the HPIB, links VWS_STATUS, GRIPPER, FIXTURE and
       VACUUM to it, and gives MONARCH its cycle-start relay and ROBOT its tray locks
     * `:partitions` — per partition, keyword options: `[robot: [link: …, module: …, options: …]]`
@@ -140,6 +141,10 @@ defmodule Vws.Workstation do
   that keeps the MONARCH status current through it (`status_interval:` ms, default 1 000;
   `nil` for none), and makes the link MONARCH's `link:` unless the partition options name one.
 
+  `robot: endpoint` (or `robot: [endpoint: …, ddcmp: […more Vws.DDCMP options]]`) adds a
+  `Vws.VAL` registered as `{ws, :val}`, which starts its own `Vws.DDCMP` link to the VAL II, and
+  makes it ROBOT's `link:` unless the partition options name one.
+
   `daq1: endpoint` (or `daq1: [endpoint: …, …]`) puts DAQ #1 on the HPIB and merges in the
   partition options of `Vws.Partitions.VwsStatus.wiring/3` (explicit ones win).
   """
@@ -161,12 +166,23 @@ defmodule Vws.Workstation do
         monarch = Keyword.put_new(Keyword.get(popts, :monarch, []), :link, name)
         {links ++ [link | monitor], Keyword.put(popts, :monarch, monarch)}
 
+      {:robot, spec}, {links, popts} ->
+        spec = if is_binary(spec), do: [endpoint: spec], else: spec
+        ddcmp = Keyword.merge(Keyword.get(spec, :ddcmp, []), endpoint: spec[:endpoint])
+        name = via(ws, :val)
+
+        val =
+          {Vws.VAL, [id: :val, name: name, ddcmp: ddcmp] ++ Keyword.take(spec, [:link_module])}
+
+        robot = Keyword.put_new(Keyword.get(popts, :robot, []), :link, name)
+        {links ++ [val], Keyword.put(popts, :robot, robot)}
+
       {:daq1, spec}, {links, popts} ->
         %{links: more, partitions: wired} = daq1(ws, spec)
         {links ++ more, merge_partitions(wired, popts)}
 
       {device, _spec}, _acc ->
-        raise ArgumentError, "unknown device #{inspect(device)} (known: :ge2000, :daq1)"
+        raise ArgumentError, "unknown device #{inspect(device)} (known: :ge2000, :robot, :daq1)"
     end)
   end
 

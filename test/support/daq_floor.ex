@@ -15,7 +15,7 @@ defmodule Vws.Test.DAQFloor do
   with `devices: [daq1: …]` and a connected WC peer. Options: `:time_scale`, `:vws_status`
   (VWS_STATUS options, default a 10 ms poll and stale after 1 s, so that a
   loaded test machine does not make readings stale where a test does not mean it), `:hpib` (device options), `:partitions`
-  (more partition options). Returns `%{ws, plant, daq, peer, endpoint}`.
+  (more partition options), `:devices` (more devices, e.g. `robot:`). Returns `%{ws, plant, daq, peer, endpoint}`.
   """
   def start(opts \\ []) do
     plant =
@@ -36,7 +36,7 @@ defmodule Vws.Test.DAQFloor do
 
     %{ws: ws, wc: wc} =
       Workstation.start(
-        devices: [daq1: daq1],
+        devices: Keyword.get(opts, :devices, []) ++ [daq1: daq1],
         partitions: Keyword.get(opts, :partitions, [])
       )
 

@@ -149,6 +149,18 @@ defmodule Vws.DDCMPTest do
   end
 
   @tag timeout: 300_000
+  test "send_data with hold: false is refused unless the link is RUNNING; the default holds it" do
+    {:ok, link} =
+      DDCMP.start_link(
+        endpoint: "loopback:nobody-#{System.unique_integer([:positive])}",
+        owner: self()
+      )
+
+    assert DDCMP.send_data(link, "DO MOVE SAFE", hold: false) == {:error, :not_running}
+    assert DDCMP.send_data(link, "held") == :ok
+    assert DDCMP.info(link).state != :running
+  end
+
   test "lossy line (PropEr over seeds, windows, loss and damage rates): each message once, in order" do
     assert_property(lossy_line_property(), 4)
   end

@@ -23,6 +23,10 @@ defmodule Mix.Tasks.Vws.Serve do
     * `--time-scale N` — the simulated plant runs N times faster than real time (default 1)
     * `--daq1 ENDPOINT` — DAQ #1 is real equipment there; the plant and DAQ #1 are not simulated
     * `--daq1-port N` — the TCP port the simulated DAQ #1 listens on (default: a free port)
+    * `--robot ENDPOINT` — the VAL II's supervisory port (`tty:/dev/ttyS1?baud=9600`, a terminal
+      server's `tcp://host:port`); without it a simulated VAL II (`Vws.Sim.VAL2`) is started on a
+      free local port and ROBOT is connected to it
+    * `--robot-time-scale F` — the simulated robot's motion time factor (default 1.0)
     * `--ge2000 ENDPOINT` — the real GE-2000's DNC port (`tty:/dev/ttyS1?baud=4800`, a terminal
       server's `tcp://host:port`). Without it a simulated GE-2000 (`Vws.Sim.GE2000`) is started on
       a free local port and connected; its cycle-start button stands in for the DAQ #1 relay.
@@ -39,6 +43,8 @@ defmodule Mix.Tasks.Vws.Serve do
     time_scale: :float,
     daq1: :string,
     daq1_port: :integer,
+    robot: :string,
+    robot_time_scale: :float,
     ge2000: :string,
     ge2000_baud: :integer
   ]
@@ -61,8 +67,9 @@ defmodule Mix.Tasks.Vws.Serve do
         other -> Mix.raise("--bcc must be sum or xor, not #{other}")
       end
 
+    robot = robot(opts)
     {ge2000, monarch} = ge2000(opts)
-    devices = [ge2000: ge2000] ++ daq1_device(id, opts)
+    devices = [ge2000: ge2000, robot: robot] ++ daq1_device(id, opts)
 
     # a simulated GE-2000's own button is MONARCH's cycle start; else the DAQ #1 relay is
     {:ok, _} =
@@ -97,6 +104,22 @@ defmodule Mix.Tasks.Vws.Serve do
       real ->
         Mix.shell().info("DAQ #1: #{real}")
         [daq1: real]
+    end
+  end
+
+  # the real VAL II, or a simulated one started here (outside the workstation: it is equipment)
+  defp robot(opts) do
+    case opts[:robot] do
+      nil ->
+        {:ok, sim} = Vws.Sim.VAL2.start_link(time_scale: opts[:robot_time_scale] || 1.0)
+        Process.unlink(sim)
+        endpoint = Vws.Sim.VAL2.endpoint(sim)
+        Mix.shell().info("Simulated VAL II robot controller on #{endpoint}")
+        endpoint
+
+      endpoint ->
+        Mix.shell().info("ROBOT connects to the VAL II at #{endpoint}")
+        endpoint
     end
   end
 

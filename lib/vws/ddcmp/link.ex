@@ -395,6 +395,14 @@ defmodule Vws.DDCMP.Link do
     end
   end
 
+  defp common(state, {:call, from}, {:send_now, bytes}, data) when is_binary(bytes) do
+    if state == :running do
+      common(state, {:call, from}, {:send, bytes}, data)
+    else
+      {:keep_state_and_data, [{:reply, from, {:error, :not_running}}]}
+    end
+  end
+
   defp common(state, {:call, from}, :info, data) do
     {:keep_state_and_data, [{:reply, from, info(state, data)}]}
   end

@@ -91,9 +91,10 @@ defmodule Vws.Partitions.Fixture do
   @doc """
   The table interlock flag (seed §2.3.8, Table 3): the mailbox entry `{:interlock, :table}`
   holds who disabled the machine table (`:fixture`, `:robot`, …); no entry means the table is
-  released. `:disable` takes the flag for `holder` (at once, atomically; again by the same holder
-  is fine) and fails when another holder has it; `:release` gives it back and fails only when
-  another holder has it. The rules that read it (cycle start, robot approach) come with the
+  released (the same flag ROBOT's DISABLE_TABLE takes, see `Vws.Partitions.Robot`). `:disable`
+  takes the flag for `holder` (at once, atomically; again by the same holder is fine) and fails
+  `TABLE HELD BY <holder>` when another holder has it; `:release` gives it back (and is fine when
+  nobody has it), and fails the same way when another holder has it. The rules that read it (cycle start, robot approach) come with the
   interlock issue.
   """
   @spec table_interlock(Mailbox.workstation(), atom, :disable | :release) ::
@@ -106,7 +107,7 @@ defmodule Vws.Partitions.Fixture do
     else
       case :ets.lookup(table, {:interlock, :table}) do
         [{_, ^holder}] -> :ok
-        [{_, other}] -> {:error, "TABLE ALREADY DISABLED BY #{name(other)}"}
+        [{_, other}] -> {:error, "TABLE HELD BY #{name(other)}"}
         [] -> table_interlock(ws, holder, :disable)
       end
     end
@@ -123,7 +124,7 @@ defmodule Vws.Partitions.Fixture do
         case :ets.lookup(table, {:interlock, :table}) do
           [] -> :ok
           [{_, ^holder}] -> table_interlock(ws, holder, :release)
-          [{_, other}] -> {:error, "TABLE DISABLED BY #{name(other)}, NOT BY #{name(holder)}"}
+          [{_, other}] -> {:error, "TABLE HELD BY #{name(other)}"}
         end
     end
   end

@@ -250,20 +250,22 @@ defmodule Vws.Partitions.VwsStatus do
   end
 
   @doc """
-  The function ROBOT's DISABLE_TRAYn / RELEASE_TRAYn call (`ctx.options[:tray_lock]`): sets the
-  tray's lock relay and waits (`:timeout_ms`, default 2000) until its lock-pin switch confirms.
+  The function ROBOT's DISABLE_TRAYn / RELEASE_TRAYn call (`ctx.options[:tray_lock]`, with
+  `:lock` and `:release` — `:unlock` is the same): sets the tray's lock relay and waits
+  (`:timeout_ms`, default 2000) until its lock-pin switch confirms.
   """
   @spec tray_lock_fun(workstation, keyword) ::
-          (1 | 2, :lock | :unlock -> :ok | {:error, String.t()})
+          (1 | 2, :lock | :release | :unlock -> :ok | {:error, String.t()})
   def tray_lock_fun(ws, opts \\ []) do
     timeout = Keyword.get(opts, :timeout_ms, 2_000)
     fn tray, how -> tray_lock(ws, tray, how, timeout) end
   end
 
   @doc "Locks or unlocks tray 1 or 2 and confirms it on its lock-pin switch."
-  @spec tray_lock(workstation, 1 | 2, :lock | :unlock, non_neg_integer) ::
+  @spec tray_lock(workstation, 1 | 2, :lock | :release | :unlock, non_neg_integer) ::
           :ok | {:error, String.t()}
-  def tray_lock(ws, tray, how, timeout_ms) when tray in [1, 2] and how in [:lock, :unlock] do
+  def tray_lock(ws, tray, how, timeout_ms)
+      when tray in [1, 2] and how in [:lock, :release, :unlock] do
     relay = if tray == 1, do: :tray1_lock, else: :tray2_lock
     switch = if tray == 1, do: :tray1_locked, else: :tray2_locked
     locked? = how == :lock

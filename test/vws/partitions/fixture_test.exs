@@ -133,10 +133,10 @@ defmodule Vws.Partitions.FixtureTest do
     assert Fixture.table_interlock(ws, :robot, :disable) == :ok
 
     assert DAQFloor.command(peer, "F", 5, "DISABLE_TABLE") ==
-             "ERROR TABLE ALREADY DISABLED BY ROBOT"
+             "ERROR TABLE HELD BY ROBOT"
 
     assert DAQFloor.command(peer, "F", 6, "RELEASE_TABLE") ==
-             "ERROR TABLE DISABLED BY ROBOT, NOT BY FIXTURE"
+             "ERROR TABLE HELD BY ROBOT"
 
     assert Fixture.table_interlock_holder(ws) == :robot
   end

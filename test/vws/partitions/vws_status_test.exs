@@ -164,6 +164,23 @@ defmodule Vws.Partitions.VwsStatusTest do
       assert lock.(2, :lock) == {:error, "TRAY 2 LOCK PIN NOT ENGAGED"}
     end
 
+    test "ROBOT's DISABLE_TRAYn / RELEASE_TRAYn lock the tray through DAQ #1, end to end" do
+      val2 = start_supervised!({Vws.Sim.VAL2, time_scale: 0.001}, id: :val2)
+
+      %{peer: peer, plant: plant} = DAQFloor.start(devices: [robot: Vws.Sim.VAL2.endpoint(val2)])
+
+      assert DAQFloor.command(peer, "R", 1, "DISABLE_TRAY1") == "DONE"
+      assert Plant.snapshot(plant).trays[1].locked
+      assert Plant.move_tray(plant, 1, :out) == {:error, :locked}
+      assert DAQFloor.command(peer, "R", 2, "RELEASE_TRAY1") == "DONE"
+      refute Plant.snapshot(plant).trays[1].locked
+
+      :ok = Plant.inject_fault(plant, :stuck_valve, actuator: :tray2_lock)
+
+      assert DAQFloor.command(peer, "R", 3, "DISABLE_TRAY2") ==
+               "ERROR TRAY 2 LOCK FAILED TRAY 2 LOCK PIN NOT ENGAGED"
+    end
+
     test "with the DAQ mute, actuate ends with the timeout" do
       %{ws: ws, daq: daq} = DAQFloor.start(vws_status: [timeout_ms: 100])
       :ok = DAQ.set_fault(daq, :mute)
