@@ -33,8 +33,9 @@ defmodule Vws.HPIB do
   from the moment it is made, waiting behind other requests included. A request whose time runs
   out while the device is answering closes the connection (a late answer must never be taken for
   the answer to a later query); the device process reconnects at once. While the endpoint is not
-  connected, requests fail at once with `:not_connected` rather than wait: callers (VWS_STATUS's
-  poll, a partition's command) decide what a missing answer means.
+  connected, requests fail at once with `:not_connected` rather than wait (only while a
+  connection attempt is under way do they wait for its outcome): callers (VWS_STATUS's poll, a
+  partition's command) decide what a missing answer means.
 
   `send_request/3` and `check_response/2` make the same request without blocking the caller
   (`:gen_statem.send_request/2` underneath), for a process that must keep its own schedule.
