@@ -153,14 +153,11 @@ defmodule Vws.Inspect do
   @doc "Every interlock in the mailboxes: `%{what, holder, extra}` (`extra` is the rest of the entry)."
   @spec interlock_rows(workstation) :: [map]
   def interlock_rows(ws) do
-    spec = [
-      {:"$1",
-       [
-         {:is_tuple, {:element, 1, :"$1"}},
-         {:==, {:tuple_size, {:element, 1, :"$1"}}, 2},
-         {:==, {:element, 1, {:element, 1, :"$1"}}, :interlock}
-       ], [:"$1"]}
-    ]
+    # one clause per entry size: {{:interlock, what}, holder, ...}
+    spec =
+      for extra <- 0..6 do
+        {List.to_tuple([{:interlock, :_} | List.duplicate(:_, extra)]), [], [:"$_"]}
+      end
 
     Mailbox.table(ws)
     |> :ets.select(spec)
