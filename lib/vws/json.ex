@@ -75,12 +75,14 @@ defmodule Vws.JSON do
   defp escape(<<?\n, rest::binary>>, acc), do: escape(rest, [~S(\n) | acc])
   defp escape(<<?\r, rest::binary>>, acc), do: escape(rest, [~S(\r) | acc])
   defp escape(<<?\t, rest::binary>>, acc), do: escape(rest, [~S(\t) | acc])
-  defp escape(<<c, rest::binary>>, acc) when c < 0x20 or c == 0x7F, do: escape(rest, [u(c) | acc])
+  defp escape(<<?\b, rest::binary>>, acc), do: escape(rest, [~S(\b) | acc])
+  defp escape(<<?\f, rest::binary>>, acc), do: escape(rest, [~S(\f) | acc])
+  defp escape(<<c, rest::binary>>, acc) when c < 0x20, do: escape(rest, [u(c) | acc])
   defp escape(<<0x2028::utf8, rest::binary>>, acc), do: escape(rest, [~S(\u2028) | acc])
   defp escape(<<0x2029::utf8, rest::binary>>, acc), do: escape(rest, [~S(\u2029) | acc])
   defp escape(<<c::utf8, rest::binary>>, acc), do: escape(rest, [<<c::utf8>> | acc])
   # not UTF-8: the byte as the Latin-1 character of that code
   defp escape(<<c, rest::binary>>, acc), do: escape(rest, [u(c) | acc])
 
-  defp u(c), do: "\\u" <> String.pad_leading(Integer.to_string(c, 16), 4, "0")
+  defp u(c), do: "\\u" <> String.pad_leading(String.downcase(Integer.to_string(c, 16)), 4, "0")
 end

@@ -51,6 +51,29 @@ defmodule Vws.Web do
   @spec start(keyword) :: DynamicSupervisor.on_start_child()
   def start(opts), do: DynamicSupervisor.start_child(Vws.WebSupervisor, {__MODULE__, opts})
 
+  @doc """
+  Starts the web server from the command-line options of `mix vws.serve` and `mix vws.demo`
+  (`http_port` default 4000, `http_bind` default 127.0.0.1, `http_token` default
+  `$VWS_HTTP_TOKEN`). Returns the dashboard's URL, or a message saying why it could not start.
+  """
+  @spec start_from_cli(keyword) :: {:ok, String.t()} | {:error, String.t()}
+  def start_from_cli(opts) do
+    port = Keyword.get(opts, :http_port, 4000)
+    bind = Keyword.get(opts, :http_bind, "127.0.0.1")
+    token = Keyword.get_lazy(opts, :http_token, fn -> System.get_env("VWS_HTTP_TOKEN") end)
+
+    case start(port: port, bind: bind, token: token) do
+      {:ok, web} ->
+        mode = if token in [nil, ""], do: "read-only", else: "control actions need the token"
+        {:ok, "#{url(web)} (#{mode})"}
+
+      {:error, reason} ->
+        {:error,
+         "the dashboard cannot listen on #{bind}:#{port} (#{inspect(reason, limit: 8)}); " <>
+           "choose another port with --http-port N"}
+    end
+  end
+
   @impl true
   def init({ref, opts}) do
     agent = {:via, Registry, {Vws.Registry, {__MODULE__, ref, :agent}}}
