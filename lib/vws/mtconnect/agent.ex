@@ -14,9 +14,11 @@ defmodule Vws.MTConnect.Agent do
   `firstSequence..nextSequence` or a `count` outside `1..bufferSize` is answered with an
   `MTConnectError` document (`OUT_OF_RANGE`), an unknown device with `NO_DEVICE`.
 
-  When a workstation stops, every data item of its device becomes `UNAVAILABLE` (those
-  observations stay in the buffer) and the device leaves the probe; `deviceModelChangeTime` says
-  when the set of devices last changed.
+  When a workstation stops, every data item of its device becomes `UNAVAILABLE` and the agent's
+  `DeviceRemoved` names it; the device stays in the probe (as a machine that is switched off stays
+  on the shop floor) and comes back to life if the workstation starts again. Before any
+  workstation has run, the probe is a `NO_DEVICE` error: an MTConnect device list cannot be empty.
+  `deviceModelChangeTime` says when a device was last added.
   """
   use GenServer
 
@@ -85,14 +87,24 @@ defmodule Vws.MTConnect.Agent do
       sender: sender,
       instance_id: div(now, 1_000_000),
       model_change_time: XML.timestamp(now),
+      agent_device: Model.agent_device(sender),
       devices: %{},
       order: [],
+      gone: MapSet.new(),
       programs: %{},
       current: %{},
       buffer: %{},
       first: 1,
       next: 1
     }
+
+    [avail, added, removed] = Model.items(s.agent_device)
+
+    s =
+      s
+      |> record(avail, "AVAILABLE", now)
+      |> record(added, "UNAVAILABLE", now)
+      |> record(removed, "UNAVAILABLE", now)
 
     send(self(), :tick)
     {:ok, s}
@@ -110,7 +122,9 @@ defmodule Vws.MTConnect.Agent do
 
     reply =
       with {:ok, devices} <- devices(s, device) do
-        {:ok, XML.devices(header(s), devices)}
+        if s.order == [],
+          do: {:error, 404, XML.error(header(s), "NO_DEVICE", "no workstation has run yet")},
+          else: {:ok, XML.devices(header(s), devices)}
       end
 
     {:reply, reply, s}
@@ -161,10 +175,11 @@ defmodule Vws.MTConnect.Agent do
 
   defp out_of_range(s, text), do: {:error, 400, XML.error(header(s), "OUT_OF_RANGE", text)}
 
-  defp devices(s, nil), do: {:ok, Enum.map(s.order, &Map.fetch!(s.devices, &1))}
+  defp devices(s, nil),
+    do: {:ok, [s.agent_device | Enum.map(s.order, &Map.fetch!(s.devices, &1))]}
 
   defp devices(s, name) do
-    case Enum.find(Map.values(s.devices), &(&1.name == name)) do
+    case Enum.find([s.agent_device | Map.values(s.devices)], &(&1.name == name)) do
       nil -> {:error, 404, XML.error(header(s), "NO_DEVICE", "no device named #{name}")}
       d -> {:ok, [d]}
     end
@@ -210,21 +225,37 @@ defmodule Vws.MTConnect.Agent do
   defp refresh(s) do
     now = System.system_time(:microsecond)
     live = Enum.filter(s.workstations.(), &Mailbox.exists?/1)
-    gone = Map.keys(s.devices) -- live
-
+    gone = Enum.reject(s.order, &(&1 in live or MapSet.member?(s.gone, &1)))
     s = Enum.reduce(gone, s, &remove(&2, &1, now))
-    Enum.reduce(live, %{s | order: live}, &observe(&2, &1, now))
+    Enum.reduce(live, s, &observe(&2, &1, now))
   end
 
   defp observe(s, ws, now) do
     {device, s} =
       case s.devices do
         %{^ws => d} ->
-          {d, s}
+          if MapSet.member?(s.gone, ws),
+            do:
+              {d,
+               record(
+                 %{s | gone: MapSet.delete(s.gone, ws)},
+                 agent_item(s, "DEVICE_ADDED"),
+                 d.uuid,
+                 now
+               )},
+            else: {d, s}
 
         _ ->
           d = Model.device(ws)
-          {d, %{s | devices: Map.put(s.devices, ws, d), model_change_time: XML.timestamp(now)}}
+
+          s = %{
+            s
+            | devices: Map.put(s.devices, ws, d),
+              order: s.order ++ [ws],
+              model_change_time: XML.timestamp(now)
+          }
+
+          {d, record(s, agent_item(s, "DEVICE_ADDED"), d.uuid, now)}
       end
 
     {facts, program} = read(ws, Map.get(s.programs, ws))
@@ -239,15 +270,11 @@ defmodule Vws.MTConnect.Agent do
   defp remove(s, ws, now) do
     device = Map.fetch!(s.devices, ws)
     s = Enum.reduce(Model.items(device), s, &record(&2, &1, "UNAVAILABLE", now))
-
-    %{
-      s
-      | devices: Map.delete(s.devices, ws),
-        programs: Map.delete(s.programs, ws),
-        current: Map.drop(s.current, Enum.map(Model.items(device), & &1.id)),
-        model_change_time: XML.timestamp(now)
-    }
+    s = record(s, agent_item(s, "DEVICE_REMOVED"), device.uuid, now)
+    %{s | gone: MapSet.put(s.gone, ws)}
   end
+
+  defp agent_item(s, type), do: Enum.find(Model.items(s.agent_device), &(&1.type == type))
 
   defp read(ws, program) do
     devices =

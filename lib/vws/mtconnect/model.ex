@@ -198,6 +198,32 @@ defmodule Vws.MTConnect.Model do
     }
   end
 
+  @doc """
+  The agent's own device (`<Agent>`, which MTConnect 2.x agents publish beside the devices they
+  serve): its availability, and the uuid of the last device added and removed.
+  """
+  @spec agent_device(String.t()) :: device
+  def agent_device(sender) do
+    clean = String.replace(sender, ~r/[^A-Za-z0-9_.\-]/u, "_")
+    ctx = %{device: "Agent", device_uuid: "vws-agent-" <> clean, prefix: "agent"}
+
+    %{
+      kind: "Agent",
+      id: "agent",
+      name: "Agent",
+      uuid: ctx.device_uuid,
+      items:
+        for spec <- [
+              {"avail", "AVAILABILITY", "Availability", :event, nil},
+              {"device_added", "DEVICE_ADDED", "DeviceAdded", :event, nil},
+              {"device_removed", "DEVICE_REMOVED", "DeviceRemoved", :event, nil}
+            ] do
+          item(ctx, "Agent", "agent", "Agent", spec, "")
+        end,
+      components: []
+    }
+  end
+
   @doc "Every data item of a device, depth first."
   @spec items(device | component) :: [item]
   def items(%{items: items, components: components}),

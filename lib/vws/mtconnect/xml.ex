@@ -51,10 +51,22 @@ defmodule Vws.MTConnect.XML do
   end
 
   defp device(d) do
-    element("Device", [{"id", d.id}, {"name", d.name}, {"uuid", d.uuid}], [
-      element("Description", [{"manufacturer", "NBS AMRF"}, {"model", "Vertical Workstation"}], [
-        escape("Vertical Workstation #{d.name}: VMC, robot, gripper, vise, trays, pallet")
-      ]),
+    kind = Map.get(d, :kind, "Device")
+
+    description =
+      if kind == "Agent",
+        do: element("Description", [{"manufacturer", "VWS"}], ["MTConnect agent of the VWS CEC"]),
+        else:
+          element(
+            "Description",
+            [{"manufacturer", "NBS AMRF"}, {"model", "Vertical Workstation"}],
+            [
+              escape("Vertical Workstation #{d.name}: VMC, robot, gripper, vise, trays, pallet")
+            ]
+          )
+
+    element(kind, [{"id", d.id}, {"name", d.name}, {"uuid", d.uuid}], [
+      description,
       data_items(d.items),
       components(d.components)
     ])
