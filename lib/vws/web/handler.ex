@@ -20,6 +20,8 @@ defmodule Vws.Web.Handler do
     query = decode_query(uri.query)
     segments = String.split(uri.path || "/", "/", trim: true)
 
+    started = System.monotonic_time()
+
     {status, type, body} =
       try do
         route(method, segments, query, request, settings)
@@ -38,6 +40,12 @@ defmodule Vws.Web.Handler do
       content_length: String.to_charlist(Integer.to_string(byte_size(body))),
       cache_control: ~c"no-store"
     ]
+
+    Vws.Telemetry.execute(
+      [:vws, :web, :request],
+      %{duration: System.monotonic_time() - started, bytes: byte_size(body)},
+      %{method: method, path: uri.path, status: status}
+    )
 
     {:proceed, [{:response, {:response, head, body}}]}
   end

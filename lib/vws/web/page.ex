@@ -64,6 +64,23 @@ defmodule Vws.Web.Page do
   "use strict";
   const POLL_MS = #{@poll_ms};
   let updates = 0;
+  const seen = {};     // "ws/partition" -> "0007 EXECUTING", as last drawn
+  const changes = {};  // ws -> the command status changes seen by this page, newest first
+
+  function noteChanges(state) {
+    const now = state.time.substring(11, 23);
+    state.workstations.forEach(ws => {
+      ws.partitions.forEach(p => {
+        const key = ws.id + "/" + p.name;
+        const shown = (p.number || "----") + " " + p.status;
+        if (seen[key] !== undefined && seen[key] !== shown) {
+          (changes[ws.id] = changes[ws.id] || []).unshift(now + "  " + p.name + ": " + seen[key] + " → " + shown);
+          changes[ws.id].length = Math.min(changes[ws.id].length, 20);
+        }
+        seen[key] = shown;
+      });
+    });
+  }
 
   function el(tag, text, cls) {
     const e = document.createElement(tag);
@@ -127,6 +144,10 @@ defmodule Vws.Web.Page do
     if (wc.dialogue.length === 0) dlg.appendChild(el("div", "no WC traffic yet", "muted"));
     wc.dialogue.forEach(l => dlg.appendChild(el("div", l.time + "  " + (l.dir === "in" ? "WC → CEC  " : "CEC → WC  ") + l.line)));
     g.appendChild(box("WC dialogue (recent)", dlg));
+    const log = changes[ws.id] || [];
+    locks.appendChild(box("Command status changes (seen by this page)", log.length === 0 ?
+      el("p", "none yet", "muted") : (() => { const d = el("div", null, "dialogue");
+        d.classList.add("changes"); log.forEach(l => d.appendChild(el("div", l))); return d; })()));
     g.appendChild(devices);
     g.appendChild(locks);
     s.appendChild(g);
@@ -134,15 +155,16 @@ defmodule Vws.Web.Page do
   }
 
   function render(state) {
+    noteChanges(state);
     const root = document.getElementById("workstations");
     const scrolls = {};
-    root.querySelectorAll(".dialogue").forEach(d => {
+    root.querySelectorAll(".dialogue:not(.changes)").forEach(d => {
       scrolls[d.id] = d.scrollTop + d.clientHeight >= d.scrollHeight - 4 ? null : d.scrollTop;
     });
     root.replaceChildren();
     if (state.workstations.length === 0) root.appendChild(el("p", "no workstation is running on " + state.node, "muted"));
     state.workstations.forEach(ws => root.appendChild(workstation(ws)));
-    root.querySelectorAll(".dialogue").forEach(d => {
+    root.querySelectorAll(".dialogue:not(.changes)").forEach(d => {
       d.scrollTop = (scrolls[d.id] === undefined || scrolls[d.id] === null) ? d.scrollHeight : scrolls[d.id];
     });
     const control = document.getElementById("control");
