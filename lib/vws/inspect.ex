@@ -284,7 +284,7 @@ defmodule Vws.Inspect do
     rows =
       for r <- interlock_rows(ws) do
         [label(r.what), holder(r.holder)] ++
-          if r.extra == [], do: [""], else: [inspect(r.extra, limit: 8)]
+          if r.extra == [], do: [""], else: [inspect(r.extra, limit: 8, charlists: :as_lists)]
       end
 
     if rows == [],
@@ -448,6 +448,7 @@ defmodule Vws.Inspect do
 
     case Task.yield(task, @call_timeout) || Task.shutdown(task, :brutal_kill) do
       {:ok, {:ok, result}} -> result
+      {:ok, :down} -> :down
       _ -> :not_answering
     end
   end

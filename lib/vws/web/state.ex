@@ -48,7 +48,8 @@ defmodule Vws.Web.State do
           %{
             what: Inspect.label(i.what),
             holder: if(i.holder == nil, do: "-", else: Inspect.label(i.holder)),
-            extra: if(i.extra == [], do: nil, else: inspect(i.extra, limit: 8))
+            extra:
+              if(i.extra == [], do: nil, else: inspect(i.extra, limit: 8, charlists: :as_lists))
           }
         end,
       links: Enum.map(snapshot.links, &link/1),
