@@ -2,8 +2,6 @@ defmodule Vws.Application do
   @moduledoc false
   use Application
 
-  require Logger
-
   @impl true
   def start(_type, _args) do
     children =
@@ -12,28 +10,36 @@ defmodule Vws.Application do
         {Registry, keys: :duplicate, name: Vws.Events, partitions: System.schedulers_online()},
         {DynamicSupervisor, name: Vws.WorkstationSupervisor, strategy: :one_for_one},
         {DynamicSupervisor, name: Vws.WebSupervisor, strategy: :one_for_one}
-      ] ++ configured()
+      ] ++ configured_workstation() ++ configured_http()
 
     Supervisor.start_link(children, strategy: :one_for_one, name: Vws.Supervisor)
   end
 
-  # A deployment (the release, with config/runtime.exs) says what to run:
-  #   config :vws, :workstation, [id: …, wc: …, partitions: …]   a workstation, started at boot
-  #   config :vws, :http, [port: …, bind: …, token: …]            the dashboard and MTConnect agent
+  # The workstation of config/runtime.exs (a deployment), started under the workstation supervisor.
+  defp configured_workstation do
+    case Application.get_env(:vws, :workstation) do
+      nil ->
+        []
+
+      opts ->
+        opts = Enum.reject(opts, fn {_k, v} -> v == nil end)
+
+        [
+          Supervisor.child_spec(
+            {Task, fn -> {:ok, _} = Vws.Workstation.start(opts) end},
+            id: :configured_workstation,
+            restart: :temporary
+          )
+        ]
+    end
+  end
+
+  # The dashboard and MTConnect agent of config/runtime.exs (`config :vws, :http, port: …`).
   # Nothing is configured in dev and test: there the mix tasks and the tests start what they need.
-  defp configured do
-    workstation =
-      case Application.get_env(:vws, :workstation) do
-        nil -> []
-        opts -> [%{Vws.Workstation.child_spec(opts) | id: :configured_workstation}]
-      end
-
-    http =
-      case Application.get_env(:vws, :http) do
-        nil -> []
-        opts -> [Supervisor.child_spec({Vws.Web, opts}, id: :configured_http)]
-      end
-
-    workstation ++ http
+  defp configured_http do
+    case Application.get_env(:vws, :http) do
+      nil -> []
+      opts -> [Supervisor.child_spec({Vws.Web, opts}, id: :configured_http)]
+    end
   end
 end

@@ -27,6 +27,21 @@ defmodule Vws.Telemetry do
   | `[:vws, :partition, :command, :start / :stop / :exception]` | span | `workstation, partition, command, text` (+ `result` on stop) |
   | `[:vws, :partition, :command_finished]` | `duration` (native) | `workstation, partition, command, status` |
   | `[:vws, :events, :caused]` | `count` | `workstation, event` |
+  | `[:vws, :val, :message]` | `bytes` | `name, direction, lun, function, qualifier` |
+  | `[:vws, :val, :request_finished]` | `duration` (native) | `name, text, result` |
+  | `[:vws, :val, :async]` | `count` | `name, code, text` (every LUN 3 message) |
+  | `[:vws, :ddcmp, :frame_sent]` / `:frame_received` | `count` | `link` + the frame's fields |
+  | `[:vws, :ddcmp, :nak]` | `count` | `link, direction, reason, resp` |
+  | `[:vws, :ddcmp, :rep]` | `count` | `link, direction, num` |
+  | `[:vws, :ddcmp, :retransmission]` | `count, bytes` | `link, num` |
+  | `[:vws, :ddcmp, :receive_error]` | `count` | `link, reason, num` |
+  | `[:vws, :ddcmp, :state_change]` | `count` | `link, from, to` |
+  | `[:vws, :ddcmp, :link_down]` | `count` | `link, reason` |
+  | `[:vws, :dnc, :connected]` / `:disconnected` | `count` | `link, role, peer` (+ `reason`) |
+  | `[:vws, :dnc, :block_sent]` | `bytes` | `link, role, block, retransmission` |
+  | `[:vws, :dnc, :block_received]` | `bytes` | `link, role, block` |
+  | `[:vws, :dnc, :retry]` | `count` | `link, role, kind, block` |
+  | `[:vws, :dnc, :transmission]` | `duration, blocks, bytes` | `link, role, direction, result` |
 
   `attach_default_handler/0` logs all of them with `Logger`.
   """
@@ -50,14 +65,42 @@ defmodule Vws.Telemetry do
     [:vws, :partition, :command, :stop],
     [:vws, :partition, :command, :exception],
     [:vws, :partition, :command_finished],
-    [:vws, :events, :caused]
+    [:vws, :events, :caused],
+    [:vws, :val, :message],
+    [:vws, :val, :request_finished],
+    [:vws, :val, :async],
+    [:vws, :ddcmp, :frame_sent],
+    [:vws, :ddcmp, :frame_received],
+    [:vws, :ddcmp, :nak],
+    [:vws, :ddcmp, :rep],
+    [:vws, :ddcmp, :retransmission],
+    [:vws, :ddcmp, :receive_error],
+    [:vws, :ddcmp, :state_change],
+    [:vws, :ddcmp, :link_down],
+    [:vws, :dnc, :connected],
+    [:vws, :dnc, :disconnected],
+    [:vws, :dnc, :block_sent],
+    [:vws, :dnc, :block_received],
+    [:vws, :dnc, :retry],
+    [:vws, :dnc, :transmission]
   ]
 
   @doc "Every event name listed in the moduledoc."
   @spec events() :: [event_name]
   def events, do: @events
 
-  defp telemetry?, do: Code.ensure_loaded?(:telemetry)
+  # Asked once per node: looking for a module that is not there costs a code-path search (~0.6 ms).
+  defp telemetry? do
+    case :persistent_term.get({__MODULE__, :telemetry_loaded?}, nil) do
+      nil ->
+        loaded? = Code.ensure_loaded?(:telemetry)
+        :persistent_term.put({__MODULE__, :telemetry_loaded?}, loaded?)
+        loaded?
+
+      loaded? ->
+        loaded?
+    end
+  end
 
   @doc "Emits an event (`:telemetry.execute/3`)."
   @spec execute(event_name, map, map) :: :ok

@@ -23,6 +23,9 @@ defmodule Vws.Workstation do
     * `:journal` — a directory for the command journal (`Vws.Journal`), or its options; none by default
     * `:sun_comm` — further SUN_COMM options (`bcc:`, timeouts; see `Vws.SunComm`)
     * `:links` — child specs of device links, started under the links supervisor
+    * `:devices` — device endpoints turned into links (see `device_links/3`):
+      `[ge2000: "tcp://host:port"]` adds the DNC link to the GE-2000 and gives it to MONARCH;
+      `[robot: "tcp://host:port"]` adds a `Vws.VAL` (with its `Vws.DDCMP` link) and gives it to ROBOT
     * `:partitions` — per partition, keyword options: `[robot: [link: …, module: …, options: …]]`
   """
   use Supervisor
@@ -60,7 +63,9 @@ defmodule Vws.Workstation do
   @impl true
   def init(opts) do
     ws = Keyword.fetch!(opts, :id)
-    partition_opts = Keyword.get(opts, :partitions, [])
+
+    {device_links, partition_opts} =
+      device_links(ws, Keyword.get(opts, :devices, []), Keyword.get(opts, :partitions, []))
 
     partitions =
       [
@@ -95,7 +100,7 @@ defmodule Vws.Workstation do
             start:
               {Supervisor, :start_link,
                [
-                 Keyword.get(opts, :links, []),
+                 Keyword.get(opts, :links, []) ++ device_links,
                  [strategy: :one_for_one, max_restarts: 50, max_seconds: 5, name: via(ws, :links)]
                ]}
           },
@@ -124,6 +129,52 @@ defmodule Vws.Workstation do
         ]
 
     Supervisor.init(children, strategy: :rest_for_one, max_restarts: 10, max_seconds: 5)
+  end
+
+  @doc """
+  The link children for the `devices:` option, and the partition options updated to use them.
+
+  `ge2000: endpoint` (or `ge2000: [endpoint: …, …more Vws.DNC options]`) adds a `Vws.DNC` link
+  registered as `{ws, :ge2000}` (`whereis(ws, :ge2000)`) and the `Vws.Partitions.Monarch.Monitor`
+  that keeps the MONARCH status current through it (`status_interval:` ms, default 1 000;
+  `nil` for none), and makes the link MONARCH's `link:` unless the partition options name one.
+
+  `robot: endpoint` (or `robot: [endpoint: …, ddcmp: […more Vws.DDCMP options]]`) adds a
+  `Vws.VAL` registered as `{ws, :val}`, which starts its own `Vws.DDCMP` link to the VAL II, and
+  makes it ROBOT's `link:` unless the partition options name one.
+  """
+  @spec device_links(term, keyword, keyword) ::
+          {[Supervisor.child_spec() | {module, term}], keyword}
+  def device_links(ws, devices, partition_opts) do
+    Enum.reduce(devices, {[], partition_opts}, fn
+      {:ge2000, spec}, {links, popts} ->
+        link_opts = if is_binary(spec), do: [endpoint: spec], else: spec
+        {interval, link_opts} = Keyword.pop(link_opts, :status_interval, 1_000)
+        name = via(ws, :ge2000)
+        link = {Vws.DNC, [id: :ge2000, name: name] ++ link_opts}
+
+        monitor =
+          for i <- [interval],
+              i != nil,
+              do: {Vws.Partitions.Monarch.Monitor, workstation: ws, link: name, interval: i}
+
+        monarch = Keyword.put_new(Keyword.get(popts, :monarch, []), :link, name)
+        {links ++ [link | monitor], Keyword.put(popts, :monarch, monarch)}
+
+      {:robot, spec}, {links, popts} ->
+        spec = if is_binary(spec), do: [endpoint: spec], else: spec
+        ddcmp = Keyword.merge(Keyword.get(spec, :ddcmp, []), endpoint: spec[:endpoint])
+        name = via(ws, :val)
+
+        val =
+          {Vws.VAL, [id: :val, name: name, ddcmp: ddcmp] ++ Keyword.take(spec, [:link_module])}
+
+        robot = Keyword.put_new(Keyword.get(popts, :robot, []), :link, name)
+        {links ++ [val], Keyword.put(popts, :robot, robot)}
+
+      {device, _spec}, _acc ->
+        raise ArgumentError, "unknown device #{inspect(device)} (known: :ge2000, :robot)"
+    end)
   end
 
   @doc "Starts a workstation under the node's workstation supervisor."

@@ -7,6 +7,7 @@ defmodule Mix.Tasks.Vws.Serve do
       mix vws.serve                       # WC on tcp://127.0.0.1:7070
       mix vws.serve --wc-port 7071 --bind 0.0.0.0
       mix vws.serve --wc tty:/dev/ttyUSB0?baud=9600
+      mix vws.serve --ge2000 tty:/dev/ttyS1?baud=4800   # the real VMC instead of the simulator
       iex -S mix vws.serve                # the same, with a shell to inspect it live
       mix vws.serve --http-port 8080      # the dashboard and MTConnect agent on another port
 
@@ -22,6 +23,14 @@ defmodule Mix.Tasks.Vws.Serve do
     * `--http-bind ADDR` — the address they listen on (default 127.0.0.1)
     * `--http-token TOKEN` — enables the dashboard's control actions for requests carrying this
       token (default: `$VWS_HTTP_TOKEN`, else none: read-only)
+    * `--robot ENDPOINT` — the VAL II's supervisory port (`tty:/dev/ttyS1?baud=9600`, a terminal
+      server's `tcp://host:port`); without it a simulated VAL II (`Vws.Sim.VAL2`) is started on a
+      free local port and ROBOT is connected to it
+    * `--robot-time-scale F` — the simulated robot's motion time factor (default 1.0)
+    * `--ge2000 ENDPOINT` — the real GE-2000's DNC port (`tty:/dev/ttyS1?baud=4800`, a terminal
+      server's `tcp://host:port`). Without it a simulated GE-2000 (`Vws.Sim.GE2000`) is started on
+      a free local port and connected; its cycle-start button stands in for the DAQ #1 relay.
+    * `--ge2000-baud N` — pace the simulated GE-2000's line at N Bd (default: unpaced)
   """
   use Mix.Task
 
@@ -31,6 +40,10 @@ defmodule Mix.Tasks.Vws.Serve do
     wc: :string,
     id: :string,
     bcc: :string,
+    robot: :string,
+    robot_time_scale: :float,
+    ge2000: :string,
+    ge2000_baud: :integer,
     http_port: :integer,
     http_bind: :string,
     http_token: :string
@@ -54,13 +67,54 @@ defmodule Mix.Tasks.Vws.Serve do
         other -> Mix.raise("--bcc must be sum or xor, not #{other}")
       end
 
-    {:ok, _} = Vws.Workstation.start(id: id, wc: wc, sun_comm: [bcc: bcc])
+    robot = robot(opts)
+    {ge2000, monarch} = ge2000(opts)
+
+    {:ok, _} =
+      Vws.Workstation.start(
+        id: id,
+        wc: wc,
+        sun_comm: [bcc: bcc],
+        devices: [ge2000: ge2000, robot: robot],
+        partitions: [monarch: [options: monarch]]
+      )
+
     listening = wait_listening(id, 50)
     Mix.shell().info("VWS workstation #{id}: SUN_COMM waits for the WC on #{listening || wc}")
+    Mix.shell().info("GE-2000 DNC link: #{ge2000}")
     Mix.shell().info("Dashboard and MTConnect agent: #{start_web(opts)}")
     Mix.shell().info("Inspect it: Vws.Inspect.overview(#{inspect(id)})   Stop: Ctrl-C twice")
 
     unless iex_running?(), do: Process.sleep(:infinity)
+  end
+
+  # the real VAL II, or a simulated one started here (outside the workstation: it is equipment)
+  defp robot(opts) do
+    case opts[:robot] do
+      nil ->
+        {:ok, sim} = Vws.Sim.VAL2.start_link(time_scale: opts[:robot_time_scale] || 1.0)
+        Process.unlink(sim)
+        endpoint = Vws.Sim.VAL2.endpoint(sim)
+        Mix.shell().info("Simulated VAL II robot controller on #{endpoint}")
+        endpoint
+
+      endpoint ->
+        Mix.shell().info("ROBOT connects to the VAL II at #{endpoint}")
+        endpoint
+    end
+  end
+
+  # The real machine's endpoint, or a simulator started here (its button stands in for the relay).
+  defp ge2000(opts) do
+    case opts[:ge2000] do
+      nil ->
+        {:ok, sim} = Vws.Sim.GE2000.start_link(pace: opts[:ge2000_baud] || false)
+        Mix.shell().info("Simulated GE-2000 on #{Vws.Sim.GE2000.endpoint(sim)}")
+        {Vws.Sim.GE2000.endpoint(sim), [cycle_start: fn -> Vws.Sim.GE2000.cycle_start(sim) end]}
+
+      endpoint ->
+        {endpoint, []}
+    end
   end
 
   defp wait_listening(_id, 0), do: nil

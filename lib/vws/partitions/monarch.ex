@@ -1,10 +1,59 @@
 defmodule Vws.Partitions.Monarch do
   @moduledoc """
-  MONARCH: the partition that runs the monarch command set (seed App. I) on the GE-2000.
+  MONARCH (seed §3, Fig. 7, App. I A): runs the Monarch command set on the GE-2000 through the
+  DNC Level 2 link given as the partition's `link` (a `Vws.DNC` process or its name).
 
-  Until its device link is configured every valid command ends `ERROR NO LINK TO GE-2000`.
+  | command | on the link | result |
+  |---------|-------------|--------|
+  | `DOWNLOAD_GE` | `SNS` + the NC file | the GE-2000 files it as `nnnnnn.PRO` (first `O`/`:` word) |
+  | `UPLOAD_GE(nnnnnn.PRO\\|.GSU)` | `RNS` + file name | the program replaces NC_UP, whole or not at all |
+  | `PROGRAM_SELECT(nnnnnn)` | `SNK` + `nnnnnn.PRO` | selected for the next cycle start |
+  | `PROGRAM_DELETE(nnnnnn.PRO\\|.GSU)` | `SND` + file name | deleted |
+  | `TABLE(L1/…/Ln)` | `RNO` + `TOFFSET` | the offsets of lines L1…Ln → `TLI_TABLE` status `n/M1/…/Mn` |
+  | `STATUS` | `RNL` | `MONARCH` status `ACTIVE` or `IDLE` |
+  | `CYCLE_START` | (DAQ #1 relay) then `RNL` | DONE once the machine reports ACTIVE |
+  | `RELEASE_TABLE` | `RNL` | clears the table interlock; refused `ERROR MACHINE ACTIVE` |
+
+  `DOWNLOAD_HP` and `UPLOAD_SUN` are transfers on the WC link, carried out by SUN_COMM; they
+  never reach this partition.
+
+  **Hardware handshaking.** After each `S` command (`SNS`, `SNK`, `SND`) MONARCH reads the status
+  report (`RNL`) and ends the command `ERROR GE-2000 ALARM n` unless the alarm is 0 (and, for a
+  select, the report names the program). Every status report read also refreshes the `MONARCH`
+  device status (location 8). Option `verify: false` skips the extra report.
+
+  **Table interlock.** CYCLE_START first sets the table interlock flag — the mailbox key
+  `{:table_interlock, :monarch}` (record `{{:table_interlock, :monarch}, monotonic_ms}`) — so the
+  vise may not open nor the robot approach the table (`table_interlocked?/1`), then closes the
+  cycle-start relay of DAQ #1 through the `:cycle_start` option, a function
+  `(-> :ok | {:error, reason})` (the DAQ issue provides it; without it CYCLE_START ends
+  `ERROR NO LINK TO DAQ #1` and sets nothing). RELEASE_TABLE clears the flag once the machine
+  reports IDLE.
+
+  **Following the machine.** The `MONARCH` status is kept current without the WC asking:
+  `Vws.Partitions.Monarch.Monitor`, started with the DNC link by the workstation's `devices:`
+  option, reads the status report every second (as VWS_STATUS reads DAQ #1), so the WC follows a
+  cycle — and finds the machine IDLE before its first Monarch command — with `S MONARCH` alone.
+
+  ## Options (`partitions: [monarch: [options: …]]`)
+
+    * `:cycle_start` — the relay function above
+    * `:check` — `:lrc` (default, commands `SN…`/`RN…`) or `:crc` (`SC…`/`RC…`)
+    * `:verify` — read the status report after S commands (default true)
+    * `:start_timeout` — ms for the machine to report ACTIVE after the relay (10 000)
+    * `:poll_interval` — ms between status reports while waiting for it (100)
+    * `:request_timeout` — bound on one DNC request (`:infinity`: the link's limits end it)
   """
   @behaviour Vws.Partition
+
+  alias Vws.DNC
+  alias Vws.DNC.{Frame, LinkError, Program, Report}
+  alias Vws.DNC.Frame.Command
+  alias Vws.Mailbox
+
+  @monarch_location 8
+  @tli_location 6
+  @interlock {:table_interlock, :monarch}
 
   @impl true
   def device, do: "GE-2000"
@@ -12,6 +61,226 @@ defmodule Vws.Partitions.Monarch do
   @impl true
   def parse(text), do: Vws.Commands.parse(:monarch, text)
 
+  @doc "True while MONARCH's table interlock flag is set (a cycle was started, not yet released)."
+  @spec table_interlocked?(Mailbox.workstation()) :: boolean
+  def table_interlocked?(ws), do: :ets.member(Mailbox.table(ws), @interlock)
+
   @impl true
-  def execute(_command, _ctx), do: {:error, "NO LINK TO GE-2000"}
+  def execute(command, ctx)
+
+  def execute(command, _ctx) when command in [:download_hp, :upload_sun],
+    do: {:error, "#{command |> to_string() |> String.upcase()} IS CARRIED OUT BY SUN_COMM"}
+
+  def execute(:download_ge, ctx) do
+    lines = Mailbox.nc_file(ctx.workstation)
+
+    with :ok <- if(lines == [], do: {:error, "NO NC FILE"}, else: :ok),
+         {:ok, file} <- program_file(lines),
+         :ok <- sendable(lines),
+         {:ok, max_text} <- max_text(ctx),
+         blocks = Frame.split_text(Program.to_text(lines), max_text),
+         {:ok, _} <- request(ctx, :send, :part_program, "", blocks),
+         {:ok, _report} <- verify(ctx, "DOWNLOAD OF #{file} FAILED", fn _ -> true end) do
+      :done
+    end
+  end
+
+  def execute({:upload_ge, file}, ctx) do
+    with {:ok, blocks} <- request(ctx, :receive, :part_program, file, []),
+         text = IO.iodata_to_binary(blocks),
+         :ok <- if(text == "", do: {:error, "GE-2000 SENT NO PROGRAM #{file}"}, else: :ok),
+         lines = Program.from_text(text),
+         :ok <- uploadable(lines, file) do
+      Mailbox.put_nc_up(ctx.workstation, lines)
+      :done
+    end
+  end
+
+  def execute({:program_select, number}, ctx) do
+    with {:ok, _} <- request(ctx, :send, :remote_control, number <> ".PRO", []),
+         {:ok, _} <-
+           verify(ctx, "PROGRAM #{number} NOT SELECTED", &(&1.program == number)) do
+      :done
+    end
+  end
+
+  def execute({:program_delete, file}, ctx) do
+    with {:ok, _} <- request(ctx, :send, :delete, file, []),
+         {:ok, _} <- verify(ctx, "#{file} NOT DELETED", fn _ -> true end) do
+      :done
+    end
+  end
+
+  def execute({:table, wanted}, ctx) do
+    with {:ok, blocks} <- request(ctx, :receive, :table, "TOFFSET", []),
+         {:ok, table} <- offsets(blocks),
+         {:ok, values} <- select_offsets(table, wanted) do
+      text = Enum.join([Integer.to_string(length(values)) | values], "/")
+      Mailbox.put_device(ctx.workstation, @tli_location, text)
+      :done
+    end
+  end
+
+  def execute(:status, ctx) do
+    with {:ok, _report} <- status_report(ctx), do: :done
+  end
+
+  def execute(:cycle_start, ctx) do
+    case ctx.options[:cycle_start] do
+      nil ->
+        {:error, "NO LINK TO DAQ #1"}
+
+      relay when is_function(relay, 0) ->
+        set_interlock(ctx.workstation)
+
+        case relay.() do
+          :ok ->
+            deadline = now() + Keyword.get(ctx.options, :start_timeout, 10_000)
+            await_active(ctx, deadline)
+
+          {:error, reason} ->
+            {:error, "CYCLE START RELAY FAILED #{reason_text(reason)}"}
+        end
+    end
+  end
+
+  def execute(:release_table, ctx) do
+    case status_report(ctx) do
+      {:ok, %{state: :active}} ->
+        {:error, "MACHINE ACTIVE"}
+
+      {:ok, %{state: :idle}} ->
+        :ets.delete(Mailbox.table(ctx.workstation), @interlock)
+        :done
+
+      error ->
+        error
+    end
+  end
+
+  ## Steps
+
+  defp await_active(ctx, deadline) do
+    case status_report(ctx) do
+      {:ok, %{state: :active}} ->
+        :done
+
+      {:ok, report} ->
+        if now() >= deadline do
+          {:error, "MACHINE DID NOT START (ALARM #{report.alarm})"}
+        else
+          Process.sleep(Keyword.get(ctx.options, :poll_interval, 100))
+          await_active(ctx, deadline)
+        end
+
+      error ->
+        error
+    end
+  end
+
+  # Hardware handshaking after an S command: the machine's own report must agree.
+  defp verify(ctx, what, ok?) do
+    if Keyword.get(ctx.options, :verify, true) do
+      with {:ok, report} <- status_report(ctx) do
+        cond do
+          report.alarm != 0 -> {:error, "#{what} GE-2000 ALARM #{report.alarm}"}
+          not ok?.(report) -> {:error, what}
+          true -> {:ok, report}
+        end
+      end
+    else
+      {:ok, nil}
+    end
+  end
+
+  @doc """
+  Reads the GE-2000's status report (`RNL`) through `link` and writes the `MONARCH` device status
+  (location 8) of workstation `ws`: `{:ok, %{state, program, alarm}}`, or `{:error, reason}` in
+  the words of an `ERROR` status. Options: `:check`, `:request_timeout` (as the partition's).
+  """
+  @spec refresh_status(Mailbox.workstation(), DNC.link(), keyword) ::
+          {:ok, Report.status()} | {:error, String.t()}
+  def refresh_status(ws, link, options \\ []) do
+    status_report(%{workstation: ws, link: link, options: options})
+  end
+
+  # RNL → the report; every report read refreshes the MONARCH device status.
+  defp status_report(ctx) do
+    with {:ok, blocks} <- request(ctx, :receive, :status, "", []) do
+      case Report.parse_status(IO.iodata_to_binary(blocks)) do
+        {:ok, report} ->
+          word = if report.state == :active, do: "ACTIVE", else: "IDLE"
+          Mailbox.put_device(ctx.workstation, @monarch_location, word)
+          {:ok, report}
+
+        {:error, _} ->
+          {:error, "BAD STATUS REPORT FROM GE-2000"}
+      end
+    end
+  end
+
+  defp request(ctx, direction, operation, text, blocks) do
+    command = %Command{
+      direction: direction,
+      check: Keyword.get(ctx.options, :check, :lrc),
+      operation: operation,
+      text: text
+    }
+
+    timeout = Keyword.get(ctx.options, :request_timeout, :infinity)
+
+    case DNC.request(ctx.link, command, blocks, timeout) do
+      {:ok, blocks} -> {:ok, blocks}
+      {:error, %LinkError{} = e} -> {:error, LinkError.status_text(e)}
+    end
+  end
+
+  defp max_text(ctx) do
+    {:ok, DNC.max_text(ctx.link)}
+  catch
+    :exit, _ -> {:error, LinkError.status_text(%LinkError{reason: :link_down})}
+  end
+
+  defp program_file(lines) do
+    case Program.file_name(lines) do
+      {:ok, file} -> {:ok, file}
+      {:error, :no_program_number} -> {:error, "NC FILE HAS NO PROGRAM NUMBER"}
+      {:error, :bad_program_number} -> {:error, "NC FILE PROGRAM NUMBER OVER 6 DIGITS"}
+    end
+  end
+
+  defp sendable(lines) do
+    case Program.check_lines(lines) do
+      :ok -> :ok
+      {:error, n} -> {:error, "NC FILE LINE #{n} HOLDS A CONTROL CHARACTER"}
+    end
+  end
+
+  defp uploadable(lines, file) do
+    case Program.check_lines(lines) do
+      :ok -> :ok
+      {:error, n} -> {:error, "#{file} LINE #{n} HOLDS A CONTROL CHARACTER"}
+    end
+  end
+
+  defp offsets(blocks) do
+    case Report.parse_offsets(IO.iodata_to_binary(blocks)) do
+      {:ok, table} -> {:ok, table}
+      {:error, _} -> {:error, "BAD TOOL-OFFSET TABLE FROM GE-2000"}
+    end
+  end
+
+  defp select_offsets(table, wanted) do
+    case Enum.reject(wanted, &Map.has_key?(table, &1)) do
+      [] -> {:ok, Enum.map(wanted, &Map.fetch!(table, &1))}
+      [missing | _] -> {:error, "TOOL-OFFSET LINE #{missing} NOT IN TABLE"}
+    end
+  end
+
+  defp set_interlock(ws), do: :ets.insert(Mailbox.table(ws), {@interlock, now()})
+
+  defp reason_text(reason) when is_binary(reason), do: String.upcase(reason)
+  defp reason_text(reason), do: reason |> inspect() |> String.upcase()
+
+  defp now, do: System.monotonic_time(:millisecond)
 end

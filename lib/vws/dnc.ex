@@ -1,0 +1,194 @@
+defmodule Vws.DNC do
+  @moduledoc """
+  The GE-2000 DNC Level 2 link (PROTOCOLS.md §2, seed §3.1–3.2.7): one process per line, used by
+  both ends — MONARCH on the CEC (`role: :cec`, master by default) and the simulated VMC,
+  `Vws.Sim.GE2000` (`role: :ge`). Frames are `Vws.DNC.Frame`'s; this module is the protocol.
+
+  ## The protocol as this link speaks it
+
+      CEC (request SNS)                  GE-2000
+      ENQ                        →
+                                 ←       DLE 0
+      SOH S N S STX ETX BCC      →
+                                 ←       DLE 1
+      STX program… ETX BCC       →                       (every text block, ≤ max_text bytes)
+                                 ←       DLE 0 / DLE 1 …  (alternating)
+      EOT                        →
+
+  A request whose command is `R…` (RNS, RNO, RNL) continues: after our EOT the GE-2000 bids with
+  `ENQ DEL`, we answer `DLE 0` and acknowledge its text blocks `DLE 1`, `DLE 0`, … until its
+  `EOT DEL`; `request/4` then returns those blocks.
+
+    * **Contention**: when our bid meets the peer's ENQ, the `:cec` role yields (answers ACK0,
+      receives the peer's transmission, then bids again); the `:ge` role keeps the line.
+    * **NAK** → the block is sent again, at most `max_naks` times.
+    * **No reply** within `reply_timeout` → ENQ ("repeat your reply"), at most `max_enqs` times.
+      If the repeated reply is the previous acknowledgement, the block was lost: it is sent again
+      (counted like a NAK). An acknowledgement of the wrong parity out of the blue is a lost reply.
+    * **WACK** → wait `wack_delay`, then ENQ; at most `max_wacks` WACKs running.
+    * When a limit is reached the link sends EOT and the request ends `{:error, %Vws.DNC.LinkError{}}`.
+      A transmission either completes with every block acknowledged or ends with an error; a
+      receiver never hands on a partial transmission.
+    * A bad block received (bad BCC, malformed) is answered NAK; ENQ is answered by repeating the
+      last reply. An EOT right after our NAK or WACK means the sender gave up: what arrived is not
+      handed on as a transmission (a request waiting for it ends `:aborted`).
+    * Limit of the line discipline (no ETB in this link): when a sender gives up after its
+      acknowledgements were lost, the receiver cannot tell that EOT from a normal end.
+
+  ## Options (`start_link/1`)
+
+    * `:name` — a registered name (`{:via, Registry, …}` welcome)
+    * `:endpoint` — connect to this endpoint (`tcp://h:p`, `tty:/dev/x?baud=4800`, `loopback:n`)
+      and reconnect with backoff (`backoff_min` 100 ms doubling to `backoff_max` 5 000 ms,
+      `connect_timeout` 2 000 ms) whenever the peer goes away. Without it the link waits to be
+      given a connection with `attach/2` (a listener's accepted connections, say).
+    * `:conn` — an open `Vws.Transport` connection of the caller's, handed to the link at start
+    * `:role` — `:cec` (default) or `:ge` (pads ENQ and EOT with DEL and wins contention; both can
+      be set alone with `pad:` and `win_contention:`)
+    * `:owner` — a pid told what happens on the link (below)
+    * limits and timers, with their defaults (PROTOCOLS.md §2 where it says):
+      `reply_timeout` 3 000 ms, `max_naks` 3, `max_enqs` 3 (also the bid's re-tries), `wack_delay`
+      2 000 ms, `max_wacks` 3, `max_contention` 3 (yields running), `response_timeout` 10 000 ms
+      (after our `R` command's EOT, for the peer's bid), `receive_timeout` 10 000 ms (between
+      received blocks), `answer_timeout` 5 000 ms (for the owner's `answer/3`), `max_text` 256
+      bytes per block, `max_receive` 4 MiB per received transmission.
+    * `:pace` — a baud rate: the link then models the serial line between it and its peer, so
+      received bytes are taken, and sent bytes leave, no faster than `baud / char_bits` (default
+      `char_bits` 10, 8N1) characters per second. Turn it on at one end only — the simulator's —
+      to make a TCP or pty connection behave like the 4800 Bd line.
+
+  ## Messages to the owner
+
+  `{:dnc, link_pid, event}` with event one of:
+
+    * `:connected`, `:disconnected`
+    * `{:received, %Vws.DNC.Frame.Command{direction: :send}, text_blocks}` — the peer sent an `S`
+      command and its text, all acknowledged (the peer has already given EOT)
+    * `{:request, ref, %Vws.DNC.Frame.Command{direction: :receive}, text_blocks}` — the peer sent an
+      `R` command: answer with `answer(link, ref, text_blocks)` within `answer_timeout`; the link
+      bids and sends them
+    * `{:unsolicited, text_blocks}` — the peer bid and sent text without a command
+    * `{:aborted, command | nil, text_blocks}` — the peer gave its transmission up (EOT right
+      after our NAK or WACK): not a whole transmission, only for the record
+    * `{:answer_failed, %Vws.DNC.LinkError{}}` — an answer could not be delivered
+
+  ## Telemetry
+
+  | event | measurements | metadata |
+  |-------|--------------|----------|
+  | `[:vws, :dnc, :connected]` / `:disconnected` | `count` | `link, role, peer` (+ `reason`) |
+  | `[:vws, :dnc, :block_sent]` | `bytes` | `link, role, block, retransmission` |
+  | `[:vws, :dnc, :block_received]` | `bytes` | `link, role, block` |
+  | `[:vws, :dnc, :retry]` | `count` | `link, role, kind` (`:nak_received`, `:nak_sent`, `:wack_received`, `:no_reply`, `:lost_reply`), `block` |
+  | `[:vws, :dnc, :transmission]` | `duration` (native), `blocks`, `bytes` | `link, role, direction, result` (+ `kind`) |
+
+  ## Example
+
+      iex> {:ok, listener} = Vws.Transport.listen("loopback:dnc-doc")
+      iex> {:ok, ge} = Vws.DNC.start_link(role: :ge, owner: self())
+      iex> {:ok, cec} = Vws.DNC.start_link(endpoint: "loopback:dnc-doc")
+      iex> {:ok, conn} = Vws.Transport.accept(listener, 1_000)
+      iex> :ok = Vws.DNC.attach(ge, conn)
+      iex> status = %Vws.DNC.Frame.Command{direction: :receive, operation: :status}
+      iex> task = Task.async(fn -> Vws.DNC.request(cec, status, [], 5_000) end)
+      iex> receive do {:dnc, ^ge, {:request, ref, ^status, []}} -> Vws.DNC.answer(ge, ref, ["STATE=IDLE;PROG=000000;ALARM=0"]) end
+      :ok
+      iex> Task.await(task)
+      {:ok, ["STATE=IDLE;PROG=000000;ALARM=0"]}
+  """
+
+  alias Vws.DNC.{Frame, LinkError}
+
+  @type link :: :gen_statem.server_ref()
+  @type fault ::
+          :none
+          | :nak_once_per_block
+          | :drop_replies
+          | {:wack, non_neg_integer}
+          | :corrupt
+          | :silent
+          | {:bid_contention, [binary]}
+
+  @doc false
+  def child_spec(opts) do
+    %{
+      id: Keyword.get(opts, :id, {__MODULE__, Keyword.get(opts, :name, make_ref())}),
+      start: {__MODULE__, :start_link, [Keyword.delete(opts, :id)]},
+      shutdown: 5_000
+    }
+  end
+
+  @doc "Starts a link process (see the options above)."
+  @spec start_link(keyword) :: :gen_statem.start_ret()
+  def start_link(opts) do
+    {conn, opts} = Keyword.pop(opts, :conn)
+
+    with {:ok, pid} <- Vws.DNC.Link.start_link(opts) do
+      if conn, do: :ok = attach(pid, conn)
+      {:ok, pid}
+    end
+  end
+
+  @doc """
+  Sends `command` and its `text_blocks` (each at most `max_text` bytes, no transmission control
+  characters) as master, and returns when the transmission is over: `{:ok, []}` for an `S`
+  command; for an `R` command `{:ok, blocks}`, the text blocks the peer sent back.
+
+  Waits while the link is busy (the request is postponed until it is idle); answers
+  `{:error, %LinkError{reason: :link_down}}` at once while there is no connection. `timeout`
+  (ms or `:infinity`) bounds the whole request; the protocol's own limits always end it anyway.
+  """
+  @spec request(link, Frame.Command.t(), [binary], timeout) ::
+          {:ok, [binary]} | {:error, LinkError.t()}
+  def request(link, %Frame.Command{} = command, text_blocks, timeout \\ :infinity)
+      when is_list(text_blocks) do
+    :gen_statem.call(link, {:request, command, text_blocks, timeout})
+  catch
+    :exit, _reason -> {:error, %LinkError{reason: :link_down}}
+  end
+
+  @doc "Answers the peer's `R` command announced to the owner as `{:request, ref, command, blocks}`."
+  @spec answer(link, reference, [binary]) :: :ok | {:error, :not_asked | LinkError.t()}
+  def answer(link, ref, text_blocks) when is_list(text_blocks) do
+    :gen_statem.call(link, {:answer, ref, text_blocks})
+  end
+
+  @doc """
+  Hands an open `Vws.Transport` connection, owned by the caller, to the link. A connection the
+  link already had is closed, and whatever was in progress on it ends `:link_down`.
+  """
+  @spec attach(link, Vws.Transport.Conn.t()) :: :ok | {:error, term}
+  def attach(link, conn) do
+    pid = GenServer.whereis(link)
+
+    with :ok <- Vws.Transport.controlling_process(conn, pid) do
+      :gen_statem.call(pid, {:attach, conn})
+    end
+  end
+
+  @doc """
+  The link's state (`:disconnected`, `:idle`, `:bidding`, `:sending`, `:turnaround` — waiting for
+  the peer's bid after our `R` command —, `:receiving`, `:answering` — the owner preparing the
+  answer to the peer's `R` command), role, endpoint, peer, fault, block size, pacing and counters.
+  """
+  @spec info(link) :: map
+  def info(link), do: :gen_statem.call(link, :info)
+
+  @doc "The largest text block the link sends or accepts."
+  @spec max_text(link) :: pos_integer
+  def max_text(link), do: info(link).max_text
+
+  @doc """
+  Makes this end misbehave, for simulators and tests (`:none` to stop):
+
+    * `:nak_once_per_block` — every block received is answered NAK the first time
+    * `:drop_replies` — the first reply to every block received is lost (the peer's ENQ gets it)
+    * `{:wack, n}` — the next `n` replies are WACK (busy) instead of the acknowledgement
+    * `:corrupt` — the first copy of every block sent has its block check damaged
+    * `:silent` — nothing is sent, and what arrives is ignored (a dead peer)
+    * `{:bid_contention, blocks}` — at the peer's next bid, bid at the same moment (and send
+      `blocks` unsolicited when this end wins)
+  """
+  @spec set_fault(link, fault) :: :ok
+  def set_fault(link, fault), do: :gen_statem.call(link, {:set_fault, fault})
+end

@@ -1,0 +1,87 @@
+defmodule Vws.DNC.Report do
+  @moduledoc """
+  The fixed formats the GE-2000 sends after an `R` command (PROTOCOLS.md §2, decisions): the
+  status report answering `RNL` and the tool-offset table answering `RNO` `TOFFSET`. Pure
+  functions shared by MONARCH (which reads them) and `Vws.Sim.GE2000` (which writes them).
+
+    * Status report: `STATE=ACTIVE|IDLE;PROG=nnnnnn;ALARM=n` — the machine state, the selected
+      program (`000000` when none) and the alarm number (`0` when none).
+    * Tool-offset table: one line per offset, `nn ±ddd.dddd`, LF after each line; `nn` is the line
+      number the WC names in `TABLE(L1/…/Ln)`.
+
+      iex> Vws.DNC.Report.status(%{state: :active, program: "001234", alarm: 0})
+      "STATE=ACTIVE;PROG=001234;ALARM=0"
+      iex> Vws.DNC.Report.parse_status("STATE=IDLE;PROG=000000;ALARM=4\\n")
+      {:ok, %{state: :idle, program: "000000", alarm: 4}}
+      iex> Vws.DNC.Report.offsets([{1, 12.5}, {2, -0.25}])
+      "01 +012.5000\\n02 -000.2500\\n"
+      iex> Vws.DNC.Report.parse_offsets("01 +012.5000\\n02 -000.2500\\n")
+      {:ok, %{1 => "+012.5000", 2 => "-000.2500"}}
+  """
+
+  @type status :: %{state: :active | :idle, program: binary, alarm: non_neg_integer}
+
+  @doc "The status report text."
+  @spec status(status) :: binary
+  def status(%{state: state, program: program, alarm: alarm}) do
+    "STATE=#{state |> to_string() |> String.upcase()};PROG=#{program};ALARM=#{alarm}"
+  end
+
+  @doc "Reads a status report; surrounding blanks and line ends are ignored."
+  @spec parse_status(binary) :: {:ok, status} | {:error, :bad_status_report}
+  def parse_status(text) do
+    case Regex.run(~r/^STATE=(ACTIVE|IDLE);PROG=(\d{6});ALARM=(\d{1,3})$/, String.trim(text)) do
+      [_, state, program, alarm] ->
+        {:ok,
+         %{
+           state: if(state == "ACTIVE", do: :active, else: :idle),
+           program: program,
+           alarm: String.to_integer(alarm)
+         }}
+
+      nil ->
+        {:error, :bad_status_report}
+    end
+  end
+
+  @doc "The tool-offset table text for `[{line, value}]` (|value| < 1000)."
+  @spec offsets([{0..99, number}]) :: binary
+  def offsets(table) do
+    IO.iodata_to_binary(
+      for {n, value} <- table do
+        [String.pad_leading(Integer.to_string(n), 2, "0"), ?\s, offset(value), ?\n]
+      end
+    )
+  end
+
+  @doc """
+  One offset value as `±ddd.dddd`.
+
+      iex> Vws.DNC.Report.offset(-3.14159)
+      "-003.1416"
+  """
+  @spec offset(number) :: binary
+  def offset(value) do
+    sign = if value < 0, do: "-", else: "+"
+    digits = :erlang.float_to_binary(abs(value) * 1.0, decimals: 4)
+    sign <> String.pad_leading(digits, 8, "0")
+  end
+
+  @doc """
+  Reads a tool-offset table into `%{line => "±ddd.dddd"}` (the values kept as the GE-2000 wrote
+  them); blank lines are skipped, any other line that is not `nn ±ddd.dddd` is an error.
+  """
+  @spec parse_offsets(binary) ::
+          {:ok, %{non_neg_integer => binary}} | {:error, {:bad_line, binary}}
+  def parse_offsets(text) do
+    text
+    |> String.split(["\r\n", "\n"])
+    |> Enum.reject(&(String.trim(&1) == ""))
+    |> Enum.reduce_while({:ok, %{}}, fn line, {:ok, acc} ->
+      case Regex.run(~r/^\s*(\d{1,3})\s+([+-]\d{3}\.\d{4})\s*$/, line) do
+        [_, n, value] -> {:cont, {:ok, Map.put(acc, String.to_integer(n), value)}}
+        nil -> {:halt, {:error, {:bad_line, line}}}
+      end
+    end)
+  end
+end

@@ -1,0 +1,66 @@
+defmodule Vws.Partitions.Monarch.Monitor do
+  @moduledoc """
+  Keeps MONARCH's `MONARCH` device status (location 8, `ACTIVE`/`IDLE`) current: every
+  `interval` ms it reads the GE-2000's status report over the DNC link
+  (`Vws.Partitions.Monarch.refresh_status/3`).
+
+  The seed's MONARCH reads the machine only for a STATUS command; the workstation controller
+  follows a machining cycle by reading `S MONARCH` (its scripts' `WAIT MONARCH IDLE`), so the
+  CEC reads the machine by itself, as VWS_STATUS reads DAQ #1 (decision). The reads share the
+  half-duplex line with MONARCH's commands: the link serves one request at a time, so a read
+  waits for a download in progress and never cuts into it. When the link is down nothing is
+  written, and the location's age tells a reader the reading is stale.
+
+  Started by `Vws.Workstation.device_links/3` with the GE-2000's link. Options: `:workstation`,
+  `:link`, `:interval` (1 000 ms), `:check` (`:lrc`).
+
+      iex> {:ok, pid} = Vws.Partitions.Monarch.Monitor.start_link(workstation: "none", link: :nowhere, interval: 60_000)
+      iex> is_pid(pid)
+      true
+  """
+  use GenServer
+  require Logger
+
+  @doc false
+  def child_spec(opts) do
+    %{id: Keyword.get(opts, :id, __MODULE__), start: {__MODULE__, :start_link, [opts]}}
+  end
+
+  @doc "Starts the monitor; its first reading is taken at once."
+  @spec start_link(keyword) :: GenServer.on_start()
+  def start_link(opts), do: GenServer.start_link(__MODULE__, opts)
+
+  @impl true
+  def init(opts) do
+    s = %{
+      workstation: Keyword.fetch!(opts, :workstation),
+      link: Keyword.fetch!(opts, :link),
+      interval: Keyword.get(opts, :interval, 1_000),
+      options: Keyword.take(opts, [:check]),
+      failing: false
+    }
+
+    send(self(), :read)
+    {:ok, s}
+  end
+
+  @impl true
+  def handle_info(:read, s) do
+    result =
+      if Vws.Mailbox.exists?(s.workstation),
+        do: Vws.Partitions.Monarch.refresh_status(s.workstation, s.link, s.options),
+        else: {:error, "NO MAILBOXES"}
+
+    Process.send_after(self(), :read, s.interval)
+
+    case result do
+      {:ok, _report} ->
+        {:noreply, %{s | failing: false}}
+
+      {:error, reason} ->
+        # said once per outage, not once a second
+        unless s.failing, do: Logger.info("MONARCH cannot read the GE-2000's status: #{reason}")
+        {:noreply, %{s | failing: true}}
+    end
+  end
+end

@@ -1,0 +1,532 @@
+defmodule Vws.VAL.Connection do
+  @moduledoc false
+  # The gen_statem behind `Vws.VAL`. Its state is a pair {lun2, activity}:
+  #
+  #   lun2      :down   the DDCMP link is not running
+  #             :idle   link up, no prompt outstanding (waiting for LUN 2 READ)
+  #             :ready  a prompt is outstanding: one command may be sent
+  #             :busy   a command was sent; its numbered response is awaited
+  #   activity  :still  nothing in flight on the arm
+  #             :moving a DO (or EXECUTE) was accepted and its MOTION (PROGRAM) COMPLETE is awaited
+  #
+  # The two halves change independently (LUN 2 and LUN 3 are independent logical units), hence
+  # handle_event_function over a pair rather than one state function per combination.
+  #
+  # Requests are queued by hand rather than postponed: each has a deadline, and a robot move
+  # whose caller has given up must never be sent late, so a queued request needs its own timer
+  # and can be withdrawn; a postponed event cannot.
+  @behaviour :gen_statem
+
+  require Logger
+
+  alias Vws.VAL.Message
+
+  @lun_short_status 1
+  @lun_monitor 2
+  @lun_async 3
+  @max_async 10
+
+  @impl true
+  def callback_mode, do: :handle_event_function
+
+  @impl true
+  def init(opts) do
+    Process.flag(:trap_exit, true)
+    name = Keyword.get(opts, :name, self())
+    Logger.metadata(val: inspect(name))
+
+    data = %{
+      name: name,
+      link_module: Keyword.get(opts, :link_module, Vws.DDCMP),
+      link_opts: Keyword.get(opts, :ddcmp, []),
+      link: nil,
+      queue: [],
+      lun2_request: nil,
+      activity_request: nil,
+      requests: %{},
+      prompt: nil,
+      short_status: nil,
+      last_async: [],
+      counts: %{in: 0, out: 0, bad: 0, stale: 0, unexpected: 0, requests: 0, errors: 0}
+    }
+
+    # the link is started after init returns: never block in init
+    {:ok, {:down, :still}, data, [{:next_event, :internal, :start_link}]}
+  end
+
+  @impl true
+  def handle_event(:internal, :start_link, _state, data) do
+    opts = Keyword.merge(data.link_opts, owner: self(), role: :active)
+
+    case data.link_module.start_link(opts) do
+      {:ok, link} ->
+        {:keep_state, %{data | link: link}}
+
+      {:error, reason} ->
+        {:stop, {:link_start_failed, reason}}
+    end
+  end
+
+  # Requests -----------------------------------------------------------------------------------
+
+  def handle_event({:call, from}, {:request, text, wait, deadline}, state, data) do
+    case Message.new(@lun_monitor, :write, 0, text) do
+      {:ok, _} ->
+        ref = make_ref()
+
+        request = %{
+          ref: ref,
+          from: from,
+          text: text,
+          wait: wait,
+          response: nil,
+          complete: false,
+          started: System.monotonic_time(),
+          deadline: deadline
+        }
+
+        data = %{
+          data
+          | requests: Map.put(data.requests, ref, request),
+            queue: data.queue ++ [ref]
+        }
+
+        timer =
+          if deadline == :infinity,
+            do: [],
+            else: [{{:timeout, {:request, ref}}, max(deadline - now(), 0), nil}]
+
+        dispatch(state, data, timer)
+
+      {:error, error} ->
+        {:keep_state_and_data, [{:reply, from, {:error, {:bad_command, error}}}]}
+    end
+  end
+
+  def handle_event({:call, from}, :info, state, data) do
+    info = %{
+      state: state,
+      link: data.link,
+      prompt: data.prompt,
+      short_status: data.short_status,
+      last_async: Enum.reverse(data.last_async),
+      queued: length(data.queue),
+      in_flight:
+        for(
+          ref <- Enum.uniq(Enum.reject([data.lun2_request, data.activity_request], &is_nil/1)),
+          do: data.requests[ref].text
+        ),
+      counts: data.counts
+    }
+
+    {:keep_state_and_data, [{:reply, from, info}]}
+  end
+
+  def handle_event({:call, from}, :reinitialise, {lun2, activity}, data) do
+    if lun2 == :busy or activity == :moving do
+      {:keep_state_and_data, [{:reply, from, {:error, :busy}}]}
+    else
+      :ok = data.link_module.restart(data.link)
+      # data already on its way from the old session (a prompt) must not count: while :down,
+      # data is ignored until the link is up again
+      {:next_state, {:down, :still}, %{data | prompt: nil}, [{:reply, from, :ok}]}
+    end
+  end
+
+  def handle_event({:timeout, {:request, ref}}, nil, state, data) do
+    case data.requests[ref] do
+      nil ->
+        :keep_state_and_data
+
+      request ->
+        if ref in data.queue do
+          # never sent: withdraw it
+          data = %{data | queue: List.delete(data.queue, ref)}
+          {data, actions} = finish(data, request, {:error, :timeout})
+          {:next_state, state, data, actions}
+        else
+          # sent: the caller is told, the protocol state stays until the controller answers
+          Logger.warning("#{inspect(request.text)} timed out waiting for the VAL II")
+          reply = if request.from, do: [{:reply, request.from, {:error, :timeout}}], else: []
+          data = put_in(data.requests[ref].from, nil)
+          {:keep_state, count(data, :errors), reply}
+        end
+    end
+  end
+
+  # The link -----------------------------------------------------------------------------------
+
+  def handle_event(:info, {:ddcmp, link, :up}, {lun2, activity}, %{link: link} = data) do
+    Logger.info("VAL II link up")
+    lun2 = if lun2 == :down, do: :idle, else: lun2
+    {:next_state, {lun2, activity}, data}
+  end
+
+  def handle_event(:info, {:ddcmp, link, {:down, reason}}, _state, %{link: link} = data) do
+    Logger.warning("VAL II link down: #{inspect(reason)}")
+    {data, actions} = fail_in_flight(data, {:link_down, reason})
+    dispatch({:down, :still}, %{data | prompt: nil}, actions)
+  end
+
+  def handle_event(:info, {:ddcmp, link, :peer_restarted}, _state, %{link: link} = data) do
+    Logger.warning("the VAL II controller restarted its link")
+    {data, actions} = fail_in_flight(data, :peer_restarted)
+    # the link starts up again and says :up; the units start afresh then
+    dispatch({:down, :still}, %{data | prompt: nil}, actions)
+  end
+
+  # The link delivers data only while running, so data met while :down is from a session that
+  # has ended (it was in the mailbox before the :down): a stale prompt must not let a command go.
+  def handle_event(:info, {:ddcmp, link, {:data, _}}, {:down, _}, %{link: link} = data) do
+    {:keep_state, count(data, :stale)}
+  end
+
+  def handle_event(:info, {:ddcmp, link, {:data, bytes}} = event, state, %{link: link} = data) do
+    case link_trouble(link) do
+      nil ->
+        receive_data(bytes, state, data)
+
+      # the session this data belongs to has already ended: take the end first, so the data
+      # is met while :down (stale), and nothing is answered into the next session
+      trouble ->
+        {:keep_state_and_data, [{:next_event, :info, trouble}, {:next_event, :info, event}]}
+    end
+  end
+
+  def handle_event(:info, {:EXIT, link, reason}, _state, %{link: link} = data) do
+    {data, actions} = fail_in_flight(data, {:link_down, reason})
+    {_data, more} = fail_queued(data, {:link_down, reason})
+    # the link process is gone: stop, and let the supervisor start both again
+    replies = for {:reply, _, _} = a <- actions ++ more, do: a
+    {:stop_and_reply, {:shutdown, {:link_exit, reason}}, replies}
+  end
+
+  def handle_event(:info, {:EXIT, _pid, reason}, _state, _data) when reason != :normal do
+    {:stop, reason}
+  end
+
+  def handle_event(type, content, state, data) do
+    Logger.warning(
+      "unexpected #{inspect(type)} #{inspect(content, limit: 10)} in #{inspect(state)}"
+    )
+
+    {:keep_state, count(data, :unexpected)}
+  end
+
+  @impl true
+  def terminate(_reason, _state, _data), do: :ok
+
+  # Messages from the logical units ------------------------------------------------------------
+
+  defp receive_data(bytes, state, data) do
+    case Message.decode(bytes) do
+      {:ok, message} ->
+        telemetry_message(data, :in, message, byte_size(bytes))
+        receive_message(message, state, count(data, :in))
+
+      {:error, error} ->
+        Logger.warning("undecodable VAL message: #{Exception.message(error)}")
+        {:keep_state, count(data, :bad)}
+    end
+  end
+
+  # LUN 2 READ: the monitor prompts for the next command
+  defp receive_message(%Message{lun: @lun_monitor, function: :read} = m, {lun2, activity}, data) do
+    {data, actions} =
+      if lun2 == :busy do
+        # a prompt without a response: the command's outcome is unknown
+        end_lun2_request(data, {:error, :no_response})
+      else
+        {data, []}
+      end
+
+    dispatch({:ready, activity}, %{data | prompt: {m.qualifier, m.text}}, actions)
+  end
+
+  # LUN 2 WRITE: the numbered response to the command (or unsolicited monitor output)
+  defp receive_message(%Message{lun: @lun_monitor, function: :write} = m, {lun2, activity}, data) do
+    data = reply(data, m)
+
+    if lun2 == :busy do
+      result = Vws.VAL.parse_response(m.text)
+      {data, activity, actions} = response(data, activity, result)
+      dispatch({:idle, activity}, data, actions)
+    else
+      Logger.info("VAL II monitor output: #{inspect(m.text)}")
+      {:keep_state, data}
+    end
+  end
+
+  # LUN 3: asynchronous monitor output
+  defp receive_message(%Message{lun: @lun_async, function: :write} = m, {lun2, activity}, data) do
+    data = reply(data, m)
+
+    Vws.Telemetry.execute([:vws, :val, :async], %{count: 1}, %{
+      name: data.name,
+      code: m.qualifier,
+      text: m.text
+    })
+
+    data = %{data | last_async: Enum.take([{m.qualifier, m.text} | data.last_async], @max_async)}
+    {data, activity, actions} = async(data, activity, m.qualifier, m.text)
+    dispatch({lun2, activity}, data, actions)
+  end
+
+  # LUN 1: short status
+  defp receive_message(%Message{lun: @lun_short_status, function: :write} = m, _state, data) do
+    {:keep_state, reply(%{data | short_status: m.text}, m)}
+  end
+
+  # any other LUN asking for input gets an empty line, so it is never left blocked
+  defp receive_message(%Message{function: :read} = m, _state, data) do
+    Logger.warning("VAL II LUN #{m.lun} asks for input: answering an empty line")
+
+    {:keep_state,
+     data |> send_message(%Message{lun: m.lun, function: :write}) |> count(:unexpected)}
+  end
+
+  defp receive_message(%Message{function: :write} = m, _state, data) do
+    Logger.warning("VAL II LUN #{m.lun} output ignored: #{inspect(m.text)}")
+    {:keep_state, data |> reply(m) |> count(:unexpected)}
+  end
+
+  defp receive_message(%Message{function: :reply} = m, _state, data) do
+    # VAL II initiates everything: it never replies to the CEC
+    Logger.warning("unexpected REPLY on LUN #{m.lun}")
+    {:keep_state, count(data, :unexpected)}
+  end
+
+  defp reply(data, %Message{lun: lun, qualifier: q}),
+    do: send_message(data, %Message{lun: lun, function: :reply, qualifier: q})
+
+  # The numbered response to the command in flight on LUN 2.
+  defp response(data, activity, result) do
+    ref = data.lun2_request
+    data = %{data | lun2_request: nil}
+    request = data.requests[ref]
+
+    case result do
+      {:ok, text} when request.wait == :response or request.complete != false ->
+        {data, actions} = finish(data, request, {:ok, text})
+        {data, activity, actions}
+
+      {:ok, text} ->
+        # accepted; the arm is moving (or the program running) until LUN 3 says it is complete
+        {put_in(data.requests[ref].response, {:ok, text}), activity, []}
+
+      {:error, _} = error ->
+        # refused: nothing moves
+        {data, activity} =
+          if data.activity_request == ref,
+            do: {%{data | activity_request: nil}, :still},
+            else: {data, activity}
+
+        {data, actions} = finish(data, request, error)
+        {data, activity, actions}
+    end
+  end
+
+  defp async(data, activity, code, text) do
+    ref = data.activity_request
+    request = ref && data.requests[ref]
+
+    case {code, request} do
+      {complete, %{wait: complete}} ->
+        data = %{data | activity_request: nil}
+
+        case request.response do
+          {:ok, response} ->
+            {data, actions} = finish(data, request, {:ok, response})
+            {data, :still, actions}
+
+          nil ->
+            # MOTION COMPLETE before the response: the response ends the request
+            {put_in(data.requests[ref].complete, true), :still, []}
+        end
+
+      {:error, %{}} ->
+        error =
+          case Vws.VAL.parse_response(text) do
+            {:error, {code, _} = e} when is_integer(code) -> e
+            _ -> {:async_error, text}
+          end
+
+        Logger.warning("VAL II error during #{inspect(request.text)}: #{inspect(text)}")
+        data = %{data | activity_request: nil}
+
+        if data.lun2_request == ref do
+          # the response is still to come: it is awaited, but the caller learns now
+          {data, actions} = reply_early(data, request, {:error, error})
+          {data, :still, actions}
+        else
+          {data, actions} = finish(data, request, {:error, error})
+          {data, :still, actions}
+        end
+
+      {:error, nil} ->
+        Logger.warning("VAL II error: #{inspect(text)}")
+        {data, activity, []}
+
+      _ ->
+        {data, activity, []}
+    end
+  end
+
+  # Sending ------------------------------------------------------------------------------------
+
+  # Sends the first queued request that may go now, if any; ends requests whose caller is gone.
+  defp dispatch({:ready, activity} = state, data, actions) do
+    case next_request(data, activity) do
+      nil ->
+        {:next_state, state, data, actions}
+
+      {:dead, request} ->
+        data = %{data | queue: List.delete(data.queue, request.ref)}
+        {data, more} = finish(data, request, {:error, :caller_gone})
+        dispatch(state, data, actions ++ more)
+
+      {:go, request} ->
+        case link_trouble(data.link) do
+          nil -> send_request(state, data, actions, request)
+          # the link went down while we were busy: handle that first, send nothing
+          trouble -> {:next_state, state, data, actions ++ [{:next_event, :info, trouble}]}
+        end
+    end
+  end
+
+  defp dispatch(state, data, actions), do: {:next_state, state, data, actions}
+
+  # A :down or :peer_restarted already waiting in the mailbox, taken out of it.
+  defp link_trouble(link) do
+    receive do
+      {:ddcmp, ^link, {:down, _}} = trouble -> trouble
+      {:ddcmp, ^link, :peer_restarted} = trouble -> trouble
+    after
+      0 -> nil
+    end
+  end
+
+  defp send_request({:ready, activity}, data, actions, request) do
+    # the command answers this prompt: it carries the prompt's number (see Vws.VAL, "Numbers")
+    {number, _text} = data.prompt
+    data = %{data | queue: List.delete(data.queue, request.ref), prompt: nil}
+
+    data =
+      send_message(data, %Message{
+        lun: @lun_monitor,
+        function: :write,
+        qualifier: number,
+        text: request.text
+      })
+
+    data = %{data | lun2_request: request.ref}
+
+    if request.wait == :response do
+      {:next_state, {:busy, activity}, data, actions}
+    else
+      {:next_state, {:busy, :moving}, %{data | activity_request: request.ref}, actions}
+    end
+  end
+
+  defp next_request(data, activity) do
+    Enum.find_value(data.queue, fn ref ->
+      request = data.requests[ref]
+      {pid, _} = request.from
+
+      cond do
+        not Process.alive?(pid) -> {:dead, request}
+        request.wait != :response and activity == :moving -> nil
+        true -> {:go, request}
+      end
+    end)
+  end
+
+  defp send_message(data, message) do
+    bytes = Message.encode(message)
+    telemetry_message(data, :out, message, IO.iodata_length(bytes))
+
+    # hold: false — never let the link keep a message for a later session
+    case data.link_module.send_data(data.link, bytes, hold: false) do
+      :ok -> :ok
+      other -> Logger.warning("VAL message not sent: #{inspect(other)}")
+    end
+
+    count(data, :out)
+  end
+
+  # Ending requests ----------------------------------------------------------------------------
+
+  defp end_lun2_request(data, result) do
+    ref = data.lun2_request
+    data = %{data | lun2_request: nil}
+    data = if data.activity_request == ref, do: %{data | activity_request: nil}, else: data
+    finish(data, data.requests[ref], result)
+  end
+
+  defp fail_in_flight(data, reason) do
+    refs = Enum.uniq(Enum.reject([data.lun2_request, data.activity_request], &is_nil/1))
+    data = %{data | lun2_request: nil, activity_request: nil}
+
+    Enum.reduce(refs, {data, []}, fn ref, {data, actions} ->
+      {data, more} = finish(data, data.requests[ref], {:error, reason})
+      {data, actions ++ more}
+    end)
+  end
+
+  defp fail_queued(data, reason) do
+    Enum.reduce(data.queue, {%{data | queue: []}, []}, fn ref, {data, actions} ->
+      {data, more} = finish(data, data.requests[ref], {:error, reason})
+      {data, actions ++ more}
+    end)
+  end
+
+  # the caller learns the outcome, but the request stays tracked until its response comes
+  defp reply_early(data, request, result) do
+    data = put_in(data.requests[request.ref].from, nil)
+    data = put_in(data.requests[request.ref].complete, :failed)
+    telemetry_finished(data, request, result)
+
+    actions =
+      [{{:timeout, {:request, request.ref}}, :cancel}] ++
+        if request.from, do: [{:reply, request.from, result}], else: []
+
+    {count(data, :errors), actions}
+  end
+
+  defp finish(data, request, result) do
+    data = %{data | requests: Map.delete(data.requests, request.ref)}
+
+    if request.complete != :failed, do: telemetry_finished(data, request, result)
+
+    actions =
+      [{{:timeout, {:request, request.ref}}, :cancel}] ++
+        if request.from && request.complete != :failed,
+          do: [{:reply, request.from, result}],
+          else: []
+
+    data = count(data, :requests)
+    data = if match?({:error, _}, result), do: count(data, :errors), else: data
+    {data, actions}
+  end
+
+  defp telemetry_finished(data, request, result) do
+    Vws.Telemetry.execute(
+      [:vws, :val, :request_finished],
+      %{duration: System.monotonic_time() - request.started},
+      %{name: data.name, text: request.text, result: result}
+    )
+  end
+
+  defp telemetry_message(data, direction, m, bytes) do
+    Vws.Telemetry.execute([:vws, :val, :message], %{bytes: bytes}, %{
+      name: data.name,
+      direction: direction,
+      lun: m.lun,
+      function: m.function,
+      qualifier: m.qualifier
+    })
+  end
+
+  defp count(data, key), do: update_in(data.counts[key], &(&1 + 1))
+  defp now, do: System.monotonic_time(:millisecond)
+end

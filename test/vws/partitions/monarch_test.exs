@@ -1,0 +1,290 @@
+defmodule Vws.Partitions.MonarchTest do
+  # MONARCH end to end: the WC (a raw WC peer) → SUN_COMM → MONARCH → DNC link → simulated
+  # GE-2000, and back.
+  use ExUnit.Case, async: true
+
+  alias Vws.{DNC, Mailbox, Workstation}
+  alias Vws.DNC.Program
+  alias Vws.Partitions.Monarch
+  alias Vws.Sim.GE2000
+  alias Vws.Test.WCPeer
+  import Vws.Test.Eventually
+
+  @link_opts [reply_timeout: 300, wack_delay: 50, backoff_min: 10, backoff_max: 50]
+
+  setup context do
+    if context[:pty], do: pty_setup(context), else: tcp_setup(context)
+  end
+
+  defp tcp_setup(context) do
+    test = self()
+
+    sim_opts = [
+      cycle_time: 60_000,
+      plant: fn event -> send(test, {:plant, event}) end,
+      link: @link_opts,
+      programs: %{"000100.PRO" => "%\nO100\nN10 M30\n%\n"}
+    ]
+
+    sim = start_supervised!({GE2000, sim_opts})
+
+    monarch_options =
+      if context[:no_relay],
+        do: [],
+        else: [
+          cycle_start: fn -> GE2000.cycle_start(sim) end,
+          start_timeout: 1_000,
+          poll_interval: 20
+        ]
+
+    workstation(GE2000.endpoint(sim), sim, monarch_options)
+  end
+
+  # A socat pty pair: the simulator on one end, the workstation's DNC link on the other.
+  defp pty_setup(_context) do
+    pair = Vws.Test.PtyPair.start!()
+    sim = start_supervised!({GE2000, endpoint: "tty:#{pair.a}?baud=38400", link: @link_opts})
+    workstation("tty:#{pair.b}?baud=38400", sim, [])
+  end
+
+  defp workstation(endpoint, sim, monarch_options) do
+    %{ws: ws, wc: wc} =
+      Vws.Test.Workstation.start(
+        devices: [ge2000: [endpoint: endpoint] ++ @link_opts],
+        partitions: [monarch: [options: monarch_options]]
+      )
+
+    link = Workstation.whereis(ws, :ge2000)
+    assert eventually(fn -> DNC.info(link).state == :idle end)
+    {:ok, peer} = WCPeer.connect(wc)
+    %{ws: ws, peer: peer, sim: sim, link: link}
+  end
+
+  ## WC helpers
+
+  defp seq, do: rem(System.unique_integer([:positive]), 10_000)
+
+  defp send_monarch(peer, number, text) do
+    s = seq()
+    WCPeer.send_string(peer, s, [{"M", number, text}])
+    assert Vws.WC.Reply.decode(WCPeer.recv_line(peer)) == {:ok, {:ack, s}}
+  end
+
+  defp finished(peer, timeout \\ 30_000),
+    do: WCPeer.await_status(peer, seq(), "MONARCH_CMD", &(not (&1 =~ "EXECUTING")), timeout)
+
+  defp monarch(peer, number, text, timeout \\ 30_000) do
+    send_monarch(peer, number, text)
+    finished(peer, timeout)
+  end
+
+  defp download_hp(peer, number, lines) do
+    send_monarch(peer, number, "DOWNLOAD_HP")
+
+    for line <- lines do
+      WCPeer.send_raw(peer, Vws.WC.Reply.encode({:line, line}))
+      assert WCPeer.recv_line(peer) == "A"
+    end
+
+    finished(peer)
+  end
+
+  defp upload_sun(peer, number) do
+    send_monarch(peer, number, "UPLOAD_SUN")
+    lines = receive_lines(peer, [])
+    {lines, finished(peer)}
+  end
+
+  defp receive_lines(peer, acc) do
+    {:ok, {:line, line}} = Vws.WC.Reply.decode_line(WCPeer.recv_line(peer))
+    WCPeer.send_line(peer, "A")
+    acc = [line | acc]
+    if line == "%" and length(acc) > 1, do: Enum.reverse(acc), else: receive_lines(peer, acc)
+  end
+
+  defp status(peer, name), do: WCPeer.status(peer, seq(), 1, name)
+
+  # An NC program of at least `bytes` bytes, numbered O4711, between tape rewind stops.
+  defp program(bytes) do
+    body =
+      Stream.iterate(1, &(&1 + 1))
+      |> Stream.map(fn i ->
+        "N#{i * 5} G01 X#{rem(i * 37, 1000)}.#{rem(i, 10)} Y-#{rem(i * 11, 500)}.25 F300"
+      end)
+      |> Enum.reduce_while({[], 0}, fn line, {acc, size} ->
+        if size >= bytes,
+          do: {:halt, {acc, size}},
+          else: {:cont, {[line | acc], size + byte_size(line) + 1}}
+      end)
+      |> elem(0)
+      |> Enum.reverse()
+
+    ["%", "O4711 (ROUND TRIP)"] ++ body ++ ["M30", "%"]
+  end
+
+  defp round_trip(peer, sim, ws, program) do
+    assert download_hp(peer, 1, program) == "0001DONE"
+    assert monarch(peer, 2, "DOWNLOAD_GE") == "0002DONE"
+    assert GE2000.program(sim, "004711.PRO") == Program.to_text(program)
+    assert monarch(peer, 3, "UPLOAD_GE(004711.PRO)") == "0003DONE"
+    assert Mailbox.nc_up(ws) == program
+    assert upload_sun(peer, 4) == {program, "0004DONE"}
+  end
+
+  ## The round trip
+
+  test "a 20 KB program goes WC → CEC → GE-2000 → CEC → WC byte-exact over TCP", ctx do
+    program = program(20_000)
+    assert byte_size(Program.to_text(program)) >= 20_000
+    round_trip(ctx.peer, ctx.sim, ctx.ws, program)
+    assert DNC.info(ctx.link).counters.blocks_sent > 80
+  end
+
+  describe "over a socat pty pair" do
+    @describetag :pty
+    test "the same round trip, byte-exact", ctx do
+      round_trip(ctx.peer, ctx.sim, ctx.ws, program(20_000))
+      assert DNC.info(ctx.link).endpoint =~ "tty:"
+    end
+  end
+
+  ## Monarch commands
+
+  test "STATUS writes the MONARCH status; PROGRAM_SELECT, CYCLE_START and RELEASE_TABLE", ctx do
+    %{peer: peer, sim: sim, ws: ws} = ctx
+    assert monarch(peer, 1, "STATUS") == "0001DONE"
+    assert status(peer, "MONARCH") == "IDLE"
+
+    assert monarch(peer, 2, "PROGRAM_SELECT(000100)") == "0002DONE"
+    assert GE2000.state(sim).selected == "000100"
+    refute Monarch.table_interlocked?(ws)
+
+    assert monarch(peer, 3, "CYCLE_START") == "0003DONE"
+    assert Monarch.table_interlocked?(ws)
+    assert status(peer, "MONARCH") == "ACTIVE"
+    assert_receive {:plant, :table_out_of_park}, 5_000
+
+    assert monarch(peer, 4, "RELEASE_TABLE") == "0004ERROR MACHINE ACTIVE"
+    assert Monarch.table_interlocked?(ws)
+
+    GE2000.end_cycle(sim)
+    assert_receive {:plant, :table_in_park}, 5_000
+    assert monarch(peer, 5, "STATUS") == "0005DONE"
+    assert status(peer, "MONARCH") == "IDLE"
+    assert monarch(peer, 6, "RELEASE_TABLE") == "0006DONE"
+    refute Monarch.table_interlocked?(ws)
+  end
+
+  test "selecting a program the GE-2000 does not have, and starting without one", ctx do
+    assert monarch(ctx.peer, 1, "PROGRAM_SELECT(000999)") ==
+             "0001ERROR PROGRAM 000999 NOT SELECTED GE-2000 ALARM 1"
+
+    assert monarch(ctx.peer, 2, "CYCLE_START") == "0002ERROR MACHINE DID NOT START (ALARM 4)"
+  end
+
+  @tag :no_relay
+  test "CYCLE_START without the DAQ #1 relay says so and sets nothing", ctx do
+    assert monarch(ctx.peer, 1, "CYCLE_START") == "0001ERROR NO LINK TO DAQ #1"
+    refute Monarch.table_interlocked?(ctx.ws)
+  end
+
+  test "TABLE picks the asked lines of the tool-offset table for TLI_TABLE", ctx do
+    assert monarch(ctx.peer, 1, "TABLE(1/3/20)") == "0001DONE"
+    assert status(ctx.peer, "TLI_TABLE") == "3/-012.3456/-037.0368/+246.9120"
+    assert monarch(ctx.peer, 2, "TABLE(2/21)") == "0002ERROR TOOL-OFFSET LINE 21 NOT IN TABLE"
+  end
+
+  test "PROGRAM_DELETE and UPLOAD_GE of a file that is not there", ctx do
+    %{peer: peer, sim: sim, ws: ws} = ctx
+    Mailbox.put_nc_up(ws, ["KEEP"])
+    assert monarch(peer, 1, "PROGRAM_DELETE(000100.PRO)") == "0001DONE"
+    assert GE2000.directory(sim) == []
+
+    assert monarch(peer, 2, "PROGRAM_DELETE(000100.PRO)") ==
+             "0002ERROR 000100.PRO NOT DELETED GE-2000 ALARM 1"
+
+    assert monarch(peer, 3, "UPLOAD_GE(000100.PRO)") ==
+             "0003ERROR GE-2000 SENT NO PROGRAM 000100.PRO"
+
+    assert Mailbox.nc_up(ws) == ["KEEP"]
+  end
+
+  test "DOWNLOAD_GE refuses an empty NC file and one without a program number", ctx do
+    assert monarch(ctx.peer, 1, "DOWNLOAD_GE") == "0001ERROR NO NC FILE"
+    assert download_hp(ctx.peer, 2, ["%", "N10 G00", "%"]) == "0002DONE"
+    assert monarch(ctx.peer, 3, "DOWNLOAD_GE") == "0003ERROR NC FILE HAS NO PROGRAM NUMBER"
+  end
+
+  ## Faults: each recovers or ends ERROR with its reason; the WC can always read the status
+
+  defp with_program(ctx, bytes) do
+    program = program(bytes)
+    assert download_hp(ctx.peer, 1, program) == "0001DONE"
+    program
+  end
+
+  test "a NAK on every block once: the download completes byte-exact", ctx do
+    program = with_program(ctx, 2_000)
+    GE2000.set_fault(ctx.sim, :nak_once_per_block)
+    assert monarch(ctx.peer, 2, "DOWNLOAD_GE") == "0002DONE"
+    assert GE2000.program(ctx.sim, "004711.PRO") == Program.to_text(program)
+    # every block of the download (command and text) and of the RNL that verifies it, NAKed once
+    text_blocks = length(Vws.DNC.Frame.split_text(Program.to_text(program)))
+    counters = DNC.info(ctx.link).counters
+    assert counters.naks_received >= text_blocks + 2
+    assert counters.retransmissions >= counters.naks_received
+  end
+
+  test "lost ACKs: the CEC asks again with ENQ and the download completes", ctx do
+    program = with_program(ctx, 1_000)
+    GE2000.set_fault(ctx.sim, :drop_replies)
+    assert monarch(ctx.peer, 2, "DOWNLOAD_GE") == "0002DONE"
+    assert GE2000.program(ctx.sim, "004711.PRO") == Program.to_text(program)
+    assert DNC.info(ctx.link).counters.enqs_sent > 5
+  end
+
+  test "WACKs: the CEC waits and asks again; too many end ERROR", ctx do
+    program = with_program(ctx, 500)
+    GE2000.set_fault(ctx.sim, {:wack, 2})
+    assert monarch(ctx.peer, 2, "DOWNLOAD_GE") == "0002DONE"
+    assert GE2000.program(ctx.sim, "004711.PRO") == Program.to_text(program)
+
+    GE2000.set_fault(ctx.sim, {:wack, 100})
+    assert monarch(ctx.peer, 3, "STATUS") == "0003ERROR DNC PEER BUSY (WACK) 4 TIMES"
+  end
+
+  test "corrupted blocks from the GE-2000 are refused and sent again: the upload is exact", ctx do
+    program = with_program(ctx, 2_000)
+    assert monarch(ctx.peer, 2, "DOWNLOAD_GE") == "0002DONE"
+    GE2000.set_fault(ctx.sim, :corrupt)
+    assert monarch(ctx.peer, 3, "UPLOAD_GE(004711.PRO)") == "0003DONE"
+    assert Mailbox.nc_up(ctx.ws) == program
+    assert DNC.info(ctx.link).counters.naks_sent > 5
+  end
+
+  test "a GE-2000 that never answers: ERROR, and the WC's status queries answer meanwhile", ctx do
+    GE2000.set_fault(ctx.sim, :silent)
+    send_monarch(ctx.peer, 1, "STATUS")
+    assert status(ctx.peer, "MONARCH_CMD") == "0001EXECUTING"
+    assert status(ctx.peer, "ROBOT_CMD") == "0000NONE"
+    assert finished(ctx.peer) == "0001ERROR DNC NO ANSWER TO BID AFTER 4 ENQ"
+  end
+
+  test "contention with a GE bid: the CEC yields, then gets its answer", ctx do
+    GE2000.set_fault(ctx.sim, :bid_contention)
+    assert monarch(ctx.peer, 1, "STATUS") == "0001DONE"
+    assert DNC.info(ctx.link).counters.contentions == 1
+    assert status(ctx.peer, "MONARCH") == "IDLE"
+  end
+
+  test "the GE-2000 gone: ERROR DNC LINK DOWN; it comes back by itself", ctx do
+    endpoint = GE2000.endpoint(ctx.sim)
+    stop_supervised!(GE2000)
+    assert eventually(fn -> DNC.info(ctx.link).state == :disconnected end)
+    assert monarch(ctx.peer, 1, "STATUS") == "0001ERROR DNC LINK DOWN"
+
+    start_supervised!({GE2000, endpoint: endpoint, link: @link_opts})
+    assert eventually(fn -> DNC.info(ctx.link).state == :idle end)
+    assert monarch(ctx.peer, 2, "STATUS") == "0002DONE"
+  end
+end

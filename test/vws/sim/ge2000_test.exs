@@ -1,0 +1,94 @@
+defmodule Vws.Sim.GE2000Test do
+  # The simulated GE-2000 seen from a bare CEC link: what it files, selects, deletes and reports.
+  use ExUnit.Case, async: true
+
+  alias Vws.DNC
+  alias Vws.DNC.Frame.Command
+  alias Vws.DNC.Report
+  alias Vws.Sim.GE2000
+  import Vws.Test.Eventually
+
+  doctest GE2000
+
+  setup do
+    test = self()
+
+    sim =
+      start_supervised!(
+        {GE2000,
+         programs: %{"000100.PRO" => "O100\nM30\n"},
+         cycle_time: 60_000,
+         plant: &send(test, {:plant, &1})}
+      )
+
+    cec = start_supervised!({DNC, endpoint: GE2000.endpoint(sim)})
+    assert eventually(fn -> DNC.info(cec).state == :idle end)
+    %{sim: sim, cec: cec}
+  end
+
+  defp s(op, text \\ ""), do: %Command{direction: :send, operation: op, text: text}
+  defp r(op, text \\ ""), do: %Command{direction: :receive, operation: op, text: text}
+
+  defp report(cec) do
+    {:ok, blocks} = DNC.request(cec, r(:status), [])
+    {:ok, report} = Report.parse_status(IO.iodata_to_binary(blocks))
+    report
+  end
+
+  test "a program is filed under its O word, or under the name the command gives", ctx do
+    # (the simulator files a program once the link hands it over: the next request comes after)
+    assert DNC.request(ctx.cec, s(:part_program), ["%\nO77\n", "M30\n%\n"]) == {:ok, []}
+    assert report(ctx.cec).alarm == 0
+    assert GE2000.program(ctx.sim, "000077.PRO") == "%\nO77\nM30\n%\n"
+    assert DNC.request(ctx.cec, s(:part_program, "000005.GSU"), ["M99\n"]) == {:ok, []}
+    assert report(ctx.cec).alarm == 0
+    assert GE2000.program(ctx.sim, "000005.GSU") == "M99\n"
+
+    assert DNC.request(ctx.cec, s(:part_program), ["N10 G00\n"]) == {:ok, []}
+    assert report(ctx.cec).alarm == 2
+
+    assert {:ok, blocks} = DNC.request(ctx.cec, r(:directory), [])
+    assert IO.iodata_to_binary(blocks) == "000005.GSU\n000077.PRO\n000100.PRO\n"
+  end
+
+  test "select, cycle start, the plant told, delete refused while it runs", ctx do
+    assert report(ctx.cec) == %{state: :idle, program: "000000", alarm: 0}
+    GE2000.cycle_start(ctx.sim)
+    assert report(ctx.cec).alarm == 4
+
+    assert DNC.request(ctx.cec, s(:remote_control, "000100"), []) == {:ok, []}
+    assert report(ctx.cec) == %{state: :idle, program: "000100", alarm: 0}
+    GE2000.cycle_start(ctx.sim)
+    assert_receive {:plant, :table_out_of_park}, 5_000
+    assert report(ctx.cec) == %{state: :active, program: "000100", alarm: 0}
+
+    assert DNC.request(ctx.cec, s(:delete, "000100.PRO"), []) == {:ok, []}
+    assert report(ctx.cec).alarm == 3
+    GE2000.end_cycle(ctx.sim)
+    assert_receive {:plant, :table_in_park}, 5_000
+
+    assert DNC.request(ctx.cec, s(:delete, "000100.PRO"), []) == {:ok, []}
+    assert report(ctx.cec) == %{state: :idle, program: "000000", alarm: 0}
+    assert GE2000.directory(ctx.sim) == []
+  end
+
+  test "uploads: a named file, the selected program, a missing one", ctx do
+    assert DNC.request(ctx.cec, r(:part_program, "000100.PRO"), []) == {:ok, ["O100\nM30\n"]}
+    assert DNC.request(ctx.cec, r(:part_program), []) == {:ok, []}
+    assert report(ctx.cec).alarm == 1
+    DNC.request(ctx.cec, s(:remote_control, "000100.PRO"), [])
+    assert DNC.request(ctx.cec, r(:part_program), []) == {:ok, ["O100\nM30\n"]}
+  end
+
+  test "the tool-offset table: 20 lines nn ±ddd.dddd", ctx do
+    {:ok, blocks} = DNC.request(ctx.cec, r(:table, "TOFFSET"), [])
+    {:ok, table} = Report.parse_offsets(IO.iodata_to_binary(blocks))
+    assert map_size(table) == 20
+    assert table[2] == "+024.6912"
+  end
+
+  test "pace: true runs the line at 4800 Bd" do
+    sim = start_supervised!({GE2000, pace: true}, id: :paced)
+    assert DNC.info(GE2000.link(sim)).pace == 4800
+  end
+end
