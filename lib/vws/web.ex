@@ -14,6 +14,9 @@ defmodule Vws.Web do
   It binds 127.0.0.1 unless told otherwise. It is read-only unless a `:token` is configured:
   a control request without the token, or with a wrong one, is answered 403.
 
+  Every request emits the telemetry event `[:vws, :web, :request]` (measurements `duration`,
+  `bytes`; metadata `method, path, status, port`).
+
       {:ok, web} = Vws.Web.start_link(port: 4000)
       Vws.Web.url(web)   #=> "http://127.0.0.1:4000/"
 

@@ -15,6 +15,7 @@ defmodule Vws.Web.Handler do
   # httpd's module callback (the name is a reserved word in Elixir)
   def unquote(:do)(request) do
     settings = :httpd_util.lookup(mod(request, :config_db), :vws_web)
+    port = :httpd_util.lookup(mod(request, :config_db), :port)
     method = to_string(mod(request, :method))
     uri = URI.parse(to_string(mod(request, :request_uri)))
     query = decode_query(uri.query)
@@ -44,7 +45,7 @@ defmodule Vws.Web.Handler do
     Vws.Telemetry.execute(
       [:vws, :web, :request],
       %{duration: System.monotonic_time() - started, bytes: byte_size(body)},
-      %{method: method, path: uri.path, status: status}
+      %{method: method, path: uri.path, status: status, port: port}
     )
 
     {:proceed, [{:response, {:response, head, body}}]}

@@ -51,11 +51,11 @@ defmodule Vws.Web.BrowserTest do
   setup do
     %{ws: ws, wc: wc} = Vws.Test.Workstation.start(partitions: Vws.Test.Workstation.held_robot())
     web = start_supervised!({Vws.Web, port: 0}, id: make_ref())
-    %{ws: ws, wc: wc, url: Vws.Web.url(web)}
+    %{ws: ws, wc: wc, url: Vws.Web.url(web), port: Vws.Web.port(web)}
   end
 
   test "shows the partitions, a command the WC sent, device statuses and the WC dialogue, updating live",
-       %{ws: ws, wc: wc, url: url} do
+       %{ws: ws, wc: wc, url: url, port: port} do
     {:ok, peer} = WCPeer.connect(wc)
     WCPeer.send_string(peer, 1, [{"R", 7, "HOLD AT TRAY 1"}, {"G", 8, "OPEN"}])
     assert "05A0001" <> _ = WCPeer.recv_line(peer)
@@ -63,7 +63,7 @@ defmodule Vws.Web.BrowserTest do
     :ets.insert(Vws.Mailbox.table(ws), {{:interlock, :table}, :robot})
 
     # While Chromium runs, the robot's command finishes as soon as the page has fetched the state
-    # showing it EXECUTING (released from the server's request event, so no timing luck is
+    # showing it EXECUTING (released from this server's request event, so no timing luck is
     # involved); the page must then show DONE without being reloaded.
     test_pid = self()
     handler = {__MODULE__, make_ref()}
@@ -72,7 +72,7 @@ defmodule Vws.Web.BrowserTest do
       handler,
       [:vws, :web, :request],
       fn
-        _, _, %{path: "/api/state", status: 200}, {pid, command} ->
+        _, _, %{path: "/api/state", status: 200, port: ^port}, {pid, command} ->
           send(command, {:result, :done})
           send(pid, :page_polled)
 
