@@ -324,8 +324,8 @@ defmodule Vws.Inspect do
   reports), for `:wc` every line of the WC dialogue and SUN_COMM's events, for `:all` both.
 
   It prints until Enter is pressed (in iex) or for `:timeout` ms (when given, or 30 s outside
-  iex), then returns the number of lines printed. Options: `:timeout`, `:device` (default the
-  group leader).
+  iex; a message `:stop_watch` to the watching process ends it sooner), then returns the number
+  of lines printed. Options: `:timeout`, `:device` (default the group leader).
   """
   @spec watch(workstation, atom, keyword) :: non_neg_integer
   def watch(ws, target, opts \\ []) do
@@ -365,7 +365,14 @@ defmodule Vws.Inspect do
       IO.puts(device, "watching #{inspect(ws)} #{target}: press Enter to stop")
       IO.gets("")
     else
-      Process.sleep(Keyword.get(opts, :timeout, 30_000))
+      timeout = Keyword.get(opts, :timeout, 30_000)
+      IO.puts(device, "watching #{inspect(ws)} #{target} for #{timeout} ms")
+
+      receive do
+        :stop_watch -> :ok
+      after
+        timeout -> :ok
+      end
     end
 
     wref = Process.monitor(watcher)

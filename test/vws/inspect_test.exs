@@ -122,18 +122,23 @@ defmodule Vws.InspectTest do
   test "watch a partition: its commands as they happen", %{ws: ws, wc: wc} do
     {:ok, peer} = WCPeer.connect(wc)
     {:ok, device} = StringIO.open("")
-    watcher = Task.async(fn -> Inspect.watch(ws, :robot, timeout: 1_500, device: device) end)
+    watcher = Task.async(fn -> Inspect.watch(ws, :robot, timeout: 30_000, device: device) end)
     # the watcher subscribes before it waits; give it that moment through the telemetry table
+    # it says so once it is subscribed
     assert Vws.Test.Eventually.eventually(fn ->
-             Enum.any?(
-               :persistent_term.get({Vws.Telemetry, :ids}, []),
-               &match?({Vws.Inspect, :watch, _}, &1)
-             )
+             StringIO.contents(device) |> elem(1) =~ "watching"
            end)
 
     WCPeer.send_string(peer, 1, [{"R", 7, "HOLD Y"}, {"G", 8, "OPEN"}])
     assert_receive {:executing, cmd, 7, _}, 5_000
     send(cmd, {:result, :done})
+
+    assert Vws.Test.Eventually.eventually(
+             fn -> StringIO.contents(device) |> elem(1) =~ "command_finished" end,
+             10_000
+           )
+
+    send(watcher.pid, :stop_watch)
     printed = Task.await(watcher, 5_000)
     {_, out} = StringIO.contents(device)
 
@@ -150,17 +155,22 @@ defmodule Vws.InspectTest do
   test "watch the WC: the dialogue both ways", %{ws: ws, wc: wc} do
     {:ok, peer} = WCPeer.connect(wc)
     {:ok, device} = StringIO.open("")
-    watcher = Task.async(fn -> Inspect.watch(ws, :wc, timeout: 1_000, device: device) end)
+    watcher = Task.async(fn -> Inspect.watch(ws, :wc, timeout: 30_000, device: device) end)
 
+    # it says so once it is subscribed
     assert Vws.Test.Eventually.eventually(fn ->
-             Enum.any?(
-               :persistent_term.get({Vws.Telemetry, :ids}, []),
-               &match?({Vws.Inspect, :watch, _}, &1)
-             )
+             StringIO.contents(device) |> elem(1) =~ "watching"
            end)
 
     WCPeer.send_string(peer, 3, [{"S", 9, "ROBOT_CMD"}])
     WCPeer.recv_line(peer)
+
+    assert Vws.Test.Eventually.eventually(
+             fn -> StringIO.contents(device) |> elem(1) =~ "NONE" end,
+             10_000
+           )
+
+    send(watcher.pid, :stop_watch)
     Task.await(watcher, 5_000)
     {_, out} = StringIO.contents(device)
     assert out =~ ~r/\d\d:\d\d:\d\d\.\d{3} WC → \*0003\*S0009ROBOT_CMD\*\d{3}/
