@@ -5,7 +5,7 @@ defmodule Vws.WebTest do
 
   defp get(url, headers \\ []) do
     {:ok, {{_, status, _}, resp_headers, body}} =
-      :httpc.request(:get, {String.to_charlist(url), headers}, [timeout: 5_000],
+      :httpc.request(:get, {String.to_charlist(url), headers}, [timeout: 30_000],
         body_format: :binary
       )
 
@@ -17,7 +17,7 @@ defmodule Vws.WebTest do
       :httpc.request(
         :post,
         {String.to_charlist(url), headers, ~c"text/plain", ""},
-        [timeout: 5_000],
+        [timeout: 30_000],
         body_format: :binary
       )
 

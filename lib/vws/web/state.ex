@@ -17,7 +17,13 @@ defmodule Vws.Web.State do
       time: DateTime.utc_now() |> DateTime.truncate(:millisecond) |> DateTime.to_iso8601(),
       node: to_string(node()),
       control: Keyword.get(opts, :control, false),
-      workstations: Enum.flat_map(Vws.Workstation.list(), &workstation/1)
+      workstations:
+        Vws.Workstation.list()
+        |> Task.async_stream(&workstation/1, timeout: 10_000, on_timeout: :kill_task)
+        |> Enum.flat_map(fn
+          {:ok, shown} -> shown
+          {:exit, _} -> []
+        end)
     }
   end
 

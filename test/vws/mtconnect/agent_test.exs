@@ -188,6 +188,11 @@ defmodule Vws.MTConnect.AgentTest do
     assert id != "ws_" <> ws
 
     :ok = Workstation.stop(ws)
+    # the registry forgets a stopped workstation's names a moment after it stopped
+    assert Vws.Test.Eventually.eventually(fn ->
+             not Mailbox.exists?(ws) and Workstation.whereis(ws) == nil
+           end)
+
     {:ok, xml} = Agent.sample(a, next, 100)
 
     values =
