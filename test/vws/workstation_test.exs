@@ -58,7 +58,8 @@ defmodule Vws.WorkstationTest do
 
       assert Eventually.eventually(fn -> Partition.whereis(ws, :robot) not in [nil, old] end)
 
-      assert WCPeer.status(peer, 2, 39, "ROBOT_CMD") ==
+      # the name is registered before init/1 has run: wait for the restarted partition's verdict
+      assert WCPeer.await_status(peer, 39, "ROBOT_CMD", &(&1 =~ "ERROR")) ==
                "0009ERROR INTERRUPTED BY PARTITION RESTART"
 
       refute_receive {:executing, _, 9, _}, 200

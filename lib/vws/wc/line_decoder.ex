@@ -9,6 +9,10 @@ defmodule Vws.WC.LineDecoder do
   expects. The decoder holds at most `max_line + 1` bytes (a full-length line and the CR that
   may end it); while discarding it holds none.
 
+  Lines and the unfinished tail are copied out of the bytes fed, so neither pins a large received
+  chunk: a peer sending megabytes with a short line at the end cannot make whoever keeps the
+  line (a dialogue log, say) keep the megabytes too.
+
       iex> dec = Vws.WC.LineDecoder.new()
       iex> {[], dec} = Vws.WC.LineDecoder.feed(dec, "*0055*S0039ROB")
       iex> {lines, dec} = Vws.WC.LineDecoder.feed(dec, "OT_CMD*032\\r\\nE\\r\\n")
@@ -76,7 +80,7 @@ defmodule Vws.WC.LineDecoder do
         item =
           if byte_size(line) > dec.max_line,
             do: too_long(byte_size(line), dec.max_line),
-            else: line
+            else: :binary.copy(line)
 
         lines(dec, rest, [item | acc])
 
@@ -85,7 +89,7 @@ defmodule Vws.WC.LineDecoder do
           cr? = :binary.last(partial) == ?\r
           {Enum.reverse(acc), %{dec | buffer: "", discarding: {byte_size(partial), cr?}}}
         else
-          {Enum.reverse(acc), %{dec | buffer: partial}}
+          {Enum.reverse(acc), %{dec | buffer: :binary.copy(partial)}}
         end
     end
   end
