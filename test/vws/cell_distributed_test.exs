@@ -21,6 +21,8 @@ defmodule Vws.CellDistributedTest do
       |> Enum.map(fn i -> Task.async(fn -> start_peer(i, tag) end) end)
       |> Task.await_many(30_000)
 
+    mesh!(Enum.map(peers, & &1.node))
+
     on_exit(fn ->
       for %{peer: peer} <- peers do
         try do
@@ -54,6 +56,26 @@ defmodule Vws.CellDistributedTest do
       {:ok, _} = :net_kernel.start([name, :longnames])
       true
     end
+  end
+
+  # Every node connected to every other before the test, as in a deployment: connections that
+  # form while the test runs make `global` drop some of them ("to prevent overlapping
+  # partitions"), and :pg with them.
+  defp mesh!(nodes) do
+    for a <- nodes, b <- nodes, a < b, do: true = :erpc.call(a, Node, :connect, [b])
+
+    all = [node() | nodes]
+
+    true =
+      eventually(
+        fn ->
+          Enum.all?(nodes, &(Enum.sort([&1 | :erpc.call(&1, Node, :list, [])]) == Enum.sort(all)))
+        end,
+        10_000
+      )
+
+    for n <- nodes, do: :ok = :erpc.call(n, :global, :sync, [], 10_000)
+    :ok = :global.sync()
   end
 
   defp start_peer(i, tag) do
