@@ -164,6 +164,12 @@ defmodule Vws.CellDistributedTest do
     from_peer = :erpc.call(other, Cell, :workstations, [])
     assert Enum.map(Enum.filter(from_peer, &(&1.id in ids)), & &1.id) == ids
 
+    # the dashboard's state carries the cell view too
+    dashboard = Enum.filter(Vws.Web.State.build().cell, &(&1.id in ids))
+
+    assert Enum.map(dashboard, &{&1.id, &1.node, &1.state, &1.wc_connected}) ==
+             Enum.map(peers, &{&1.id, to_string(&1.node), "idle", true})
+
     text = Cell.format(view)
     for %{id: id, node: node} <- peers, do: assert(text =~ ~r/#{id}\s+#{node}\s+idle/)
 
