@@ -15,6 +15,9 @@ defmodule Vws.Transport.Cell do
       dialled at that node's host);
     * a tty: `{:error, :not_reachable}` — the WC of that workstation is on its serial line.
 
+  If the caller's node goes away instead, SUN_COMM's side learns nothing until the next WC
+  connects and takes over — as when the far end of a serial line is unplugged.
+
   Every later call is passed to the transport of the connection made; the handle is this
   module's struct. The bytes are those of a direct connection: nothing is added or framed.
 
