@@ -85,6 +85,15 @@ defmodule Vws.Bench do
     |> Enum.max_by(fn {calls, us} -> calls / us end)
   end
 
+  @doc """
+  The mean utilisation (0..1) of the normal schedulers since `sample` (`:scheduler.sample/0`);
+  `:scheduler.utilization/1`'s `total` also averages in the idle dirty schedulers.
+  """
+  def normal_utilization(sample) do
+    normal = for {:normal, _id, u, _} <- :scheduler.utilization(sample), do: u
+    Enum.sum(normal) / max(length(normal), 1)
+  end
+
   @doc "A number with thousands separators."
   def thousands(n) when is_float(n), do: thousands(round(n))
 

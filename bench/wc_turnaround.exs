@@ -226,8 +226,7 @@ results =
   end
 
 {cpu1, _} = :erlang.statistics(:runtime)
-util = :scheduler.utilization(util0)
-{:total, total_util, _} = List.keyfind(util, :total, 0)
+total_util = Bench.normal_utilization(util0)
 
 {tcp_many, lo_many} =
   Enum.reduce(results, {[], []}, fn
