@@ -156,7 +156,8 @@ cec_memory = fn ws ->
             other <- links,
             is_pid(other),
             not MapSet.member?(tree, other),
-            other != Process.whereis(Vws.WorkstationSupervisor),
+            # not the node's shared processes (registry partitions, supervisors): named ones
+            Process.info(other, :registered_name) == {:registered_name, []},
             into: MapSet.new(),
             do: other
 
