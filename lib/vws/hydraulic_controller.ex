@@ -12,6 +12,7 @@ defmodule Vws.HydraulicController do
 
   ```
   Vws.HydraulicController (rest_for_one)
+  ├── CecPort    holds the CEC's endpoint (`:listen`), the same across program restarts
   ├── Vws.HPIB   DAQ #2 at address 9 on the controller's own bus {:hydraulic_controller, name}
   └── Program    the 3 initialisation routines, the command status, the sequences (workers)
       ├── acceptor                     CEC connections, from the end of initialisation on
@@ -59,7 +60,7 @@ defmodule Vws.HydraulicController do
   """
   use Supervisor
 
-  alias Vws.HydraulicController.{Pallet, Program}
+  alias Vws.HydraulicController.{CecPort, Pallet, Program}
 
   @daq2_address 9
 
@@ -146,15 +147,21 @@ defmodule Vws.HydraulicController do
         ])
       )
 
+    cec_port = [
+      registered_as: via(name, :cec_port),
+      listen: Keyword.get(opts, :listen, "tcp://127.0.0.1:0")
+    ]
+
     program = [
       name: name,
       registered_as: via(name, :program),
-      listen: Keyword.get(opts, :listen, "tcp://127.0.0.1:0"),
+      cec_port: via(name, :cec_port),
       pallet: pallet,
       connect_timeout_ms: Keyword.get(opts, :connect_timeout_ms, 2_000)
     ]
 
     children = [
+      %{id: CecPort, start: {CecPort, :start_link, [cec_port]}},
       {Vws.HPIB, hpib},
       %{id: Program, start: {Program, :start_link, [program]}}
     ]

@@ -4,7 +4,7 @@ defmodule Vws.HydraulicController.Program do
   # initialisation routines, in order, then the task manager `Options` for each CEC connection.
   #
   #   init_cec_link ─▶ init_daq2_link ─▶ depressurise ─▶ options (accepting, :ready)
-  #      (bound here)    └──── in a worker process ────┘
+  #                      └──── in a worker process ────┘
   #
   # The program keeps the command status (`STATUS?`), runs each CLAMP_PALLET / RELEASE_PALLET
   # in a linked worker process (so the status is answered while a sequence runs), and owns the
@@ -13,7 +13,7 @@ defmodule Vws.HydraulicController.Program do
   use GenServer
   require Logger
 
-  alias Vws.HydraulicController.{Options, Pallet}
+  alias Vws.HydraulicController.{CecPort, Options, Pallet}
   alias Vws.Transport
 
   def start_link(opts) do
@@ -30,7 +30,7 @@ defmodule Vws.HydraulicController.Program do
 
     s = %{
       name: name,
-      listen: Keyword.fetch!(opts, :listen),
+      cec_port: Keyword.fetch!(opts, :cec_port),
       pallet: Keyword.fetch!(opts, :pallet),
       connect_timeout_ms: Keyword.fetch!(opts, :connect_timeout_ms),
       listener: nil,
@@ -67,7 +67,7 @@ defmodule Vws.HydraulicController.Program do
         {:noreply, %{s | worker: {worker, :init}}}
 
       {:error, reason} ->
-        {:stop, {:cannot_listen, reason}, s}
+        {:stop, {:no_cec_link, reason}, s}
     end
   end
 
@@ -122,6 +122,9 @@ defmodule Vws.HydraulicController.Program do
      |> then(&update_in(&1.counts.connections, fn n -> n + 1 end))}
   end
 
+  def handle_info({:depressurised, pid}, %{worker: {pid, _}} = s),
+    do: {:noreply, %{s | depressurised: true}}
+
   def handle_info({:EXIT, pid, reason}, %{worker: {pid, what}} = s) do
     result =
       case reason do
@@ -155,27 +158,21 @@ defmodule Vws.HydraulicController.Program do
     {:noreply, s}
   end
 
-  @impl true
-  def terminate(_reason, s) do
-    if s.listener, do: Transport.close_listener(s.listener)
-  end
-
   ## The three initialisation routines (seed §5.1), in order
 
   # 1. The HPIB link with the CEC: the controller is a device on the CEC's bus, reached at its
-  #    own endpoint. Bound here; connections are accepted once the program is ready (`options`).
+  #    own endpoint, bound by the CEC port process (so it stays the same when the program
+  #    restarts). Connections wait there until the program is ready (`options`).
   defp init_cec_link(s) do
-    case Transport.listen(s.listen) do
-      {:ok, listener} ->
-        Logger.info(
-          "hydraulic controller: HPIB link to the CEC on #{Transport.listener_endpoint(listener)}"
-        )
+    listener = CecPort.listener(s.cec_port)
 
-        {:ok, %{s | listener: listener}}
+    Logger.info(
+      "hydraulic controller: HPIB link to the CEC on #{Transport.listener_endpoint(listener)}"
+    )
 
-      {:error, reason} ->
-        {:error, reason}
-    end
+    {:ok, %{s | listener: listener}}
+  catch
+    :exit, reason -> {:error, reason}
   end
 
   # 2. The HPIB link with DAQ #2: the controller is the controller-in-charge of its own bus; its
@@ -219,13 +216,19 @@ defmodule Vws.HydraulicController.Program do
     # done now, before the clamps are asked to act
     first = if command == :clamp_pallet and not s.depressurised, do: [:depressurise], else: []
 
+    program = self()
+
     worker =
       spawn_link(fn ->
         result =
           Enum.reduce_while(first ++ [command], :done, fn step, :done ->
             case apply(Pallet, step, [pallet]) do
-              :done -> {:cont, :done}
-              error -> {:halt, error}
+              :done ->
+                if step == :depressurise, do: send(program, {:depressurised, self()})
+                {:cont, :done}
+
+              error ->
+                {:halt, error}
             end
           end)
 
@@ -269,12 +272,8 @@ defmodule Vws.HydraulicController.Program do
   defp sequence_done(command, result, s) do
     Logger.info("hydraulic controller: #{command_text(command)} #{inspect(result)}")
 
-    depressurised =
-      case {command, result} do
-        {:release_pallet, :done} -> true
-        {:clamp_pallet, :done} -> true
-        _ -> s.depressurised
-      end
+    # a completed release leaves the clamps confirmed released, as depressurising does
+    depressurised = s.depressurised or {command, result} == {:release_pallet, :done}
 
     %{
       s
