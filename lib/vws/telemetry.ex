@@ -94,7 +94,8 @@ defmodule Vws.Telemetry do
     [:vws, :hpib, :timeout],
     [:vws, :vws_status, :poll],
     [:vws, :vws_status, :missed],
-    [:vws, :vws_status, :stale]
+    [:vws, :vws_status, :stale],
+    [:vws, :web, :request]
   ]
 
   @doc "Every event name listed in the moduledoc."
