@@ -74,7 +74,8 @@ defmodule Vws.Workstation do
     partitions =
       [
         {Vws.Partitions.VwsStatus,
-         [workstation: ws] ++ Keyword.get(partition_opts, :vws_status, [])}
+         [workstation: ws, devices: Keyword.keys(Keyword.get(opts, :devices, []))] ++
+           Keyword.get(partition_opts, :vws_status, [])}
       ] ++
         for {p, default_module} <- @partition_modules do
           popts = Keyword.get(partition_opts, p, [])

@@ -14,6 +14,7 @@ defmodule Mix.Tasks.Vws.Serve do
       mix vws.serve --ge2000 tty:/dev/ttyS1?baud=4800   # the real VMC instead of the simulator
       mix vws.serve --hydraulic tcp://10.0.0.12:5026    # a hydraulic controller of its own (mix vws.hydraulic)
       iex -S mix vws.serve                # the same, with a shell to inspect it live
+      mix vws.serve --http-port 8080      # the dashboard and MTConnect agent on another port
 
   Options:
 
@@ -25,6 +26,11 @@ defmodule Mix.Tasks.Vws.Serve do
     * `--time-scale N` — the simulated plant runs N times faster than real time (default 1)
     * `--daq1 ENDPOINT` — DAQ #1 is real equipment there; the plant and DAQ #1 are not simulated
     * `--daq1-port N` — the TCP port the simulated DAQ #1 listens on (default: a free port)
+    * `--http-port N` — the dashboard and MTConnect agent (`Vws.Web`) on port N (default 4000;
+      0 picks a free port)
+    * `--http-bind ADDR` — the address they listen on (default 127.0.0.1)
+    * `--http-token TOKEN` — enables the dashboard's control actions for requests carrying this
+      token (default: `$VWS_HTTP_TOKEN`, else none: read-only)
     * `--robot ENDPOINT` — the VAL II's supervisory port (`tty:/dev/ttyS1?baud=9600`, a terminal
       server's `tcp://host:port`); without it a simulated VAL II (`Vws.Sim.VAL2`) is started on a
       free local port and ROBOT is connected to it
@@ -52,7 +58,10 @@ defmodule Mix.Tasks.Vws.Serve do
     robot_time_scale: :float,
     ge2000: :string,
     ge2000_baud: :integer,
-    hydraulic: :string
+    hydraulic: :string,
+    http_port: :integer,
+    http_bind: :string,
+    http_token: :string
   ]
 
   @impl true
@@ -90,7 +99,8 @@ defmodule Mix.Tasks.Vws.Serve do
     listening = wait_listening(id, 50)
     Mix.shell().info("VWS workstation #{id}: SUN_COMM waits for the WC on #{listening || wc}")
     Mix.shell().info("GE-2000 DNC link: #{ge2000}")
-    Mix.shell().info("Inspect it: Vws.Mailbox.print(#{inspect(id)})   Stop: Ctrl-C twice")
+    Mix.shell().info("Dashboard and MTConnect agent: #{start_web(opts)}")
+    Mix.shell().info("Inspect it: Vws.Inspect.overview(#{inspect(id)})   Stop: Ctrl-C twice")
 
     unless iex_running?(), do: Process.sleep(:infinity)
   end
@@ -185,4 +195,11 @@ defmodule Mix.Tasks.Vws.Serve do
   end
 
   defp iex_running?, do: Code.ensure_loaded?(IEx) and IEx.started?()
+
+  defp start_web(opts) do
+    case Vws.Web.start_from_cli(opts) do
+      {:ok, url} -> url
+      {:error, message} -> Mix.raise(message)
+    end
+  end
 end
