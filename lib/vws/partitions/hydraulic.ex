@@ -153,7 +153,7 @@ defmodule Vws.Partitions.Hydraulic do
 
         {:error, error} ->
           why = hpib_reason(error)
-          {"NO DATA (#{why})", {:error, why}}
+          {"NO DATA (#{no_data_reason(error, why)})", {:error, why}}
       end
 
     Mailbox.put_device(ws, @pallet_location, text)
@@ -184,6 +184,14 @@ defmodule Vws.Partitions.Hydraulic do
   defp bit(false), do: "0"
   defp force(n) when n >= @overload_at, do: "OVERLOAD"
   defp force(n), do: Vws.DAQ.DeviceStatus.newtons(n) <> " N"
+
+  # the status text says what is wrong, the command error also how long it was waited for
+  defp no_data_reason(%HPIB.Error{reason: :timeout}, _why), do: "#{@device} NOT ANSWERING"
+
+  defp no_data_reason(%HPIB.Error{reason: :not_connected, detail: :timeout}, _why),
+    do: "#{@device} NOT ANSWERING"
+
+  defp no_data_reason(_error, why), do: why
 
   @doc "An HPIB error on the link to the controller, as a status reason."
   @spec hpib_reason(HPIB.Error.t() | nil) :: String.t()
