@@ -167,7 +167,7 @@ defmodule Vws.Sim.VAL2 do
       {:ok, listener} ->
         bound = to_string(Transport.listener_endpoint(listener))
         owner = self()
-        acceptor = spawn_link(fn -> accept_loop(listener, owner) end)
+        acceptor = Transport.start_acceptor(listener, owner, :accepted)
         Logger.info("VAL II simulator listening on #{bound}")
         {:noreply, %{s | listener: listener, bound: bound, acceptor: acceptor}}
 
@@ -177,18 +177,6 @@ defmodule Vws.Sim.VAL2 do
 
       {:error, reason} ->
         {:stop, {:listen_failed, reason}, s}
-    end
-  end
-
-  defp accept_loop(listener, owner) do
-    case Transport.accept(listener, :infinity) do
-      {:ok, conn} ->
-        :ok = Transport.controlling_process(conn, owner)
-        send(owner, {:accepted, conn})
-        accept_loop(listener, owner)
-
-      {:error, reason} ->
-        exit({:shutdown, {:accept, reason}})
     end
   end
 
