@@ -190,22 +190,8 @@ defmodule Vws.HydraulicController.Program do
 
   # The task manager: accept the CEC's connections; each gets an `Options` loop.
   defp options(s) do
-    me = self()
-    listener = s.listener
-    acceptor = spawn_link(fn -> accept_loop(listener, me) end)
+    acceptor = Transport.start_acceptor(s.listener, self(), :accepted)
     %{s | acceptor: acceptor, phase: :ready}
-  end
-
-  defp accept_loop(listener, program) do
-    case Transport.accept(listener, :infinity) do
-      {:ok, conn} ->
-        :ok = Transport.controlling_process(conn, program)
-        send(program, {:accepted, conn})
-        accept_loop(listener, program)
-
-      {:error, reason} ->
-        exit({:accept_failed, reason})
-    end
   end
 
   ## Sequences
