@@ -17,7 +17,9 @@ defmodule Vws.SunComm do
     2. a string with an S command contains nothing else;
     3. a command for a set whose previous command is in flight is not run: `ERROR BUSY <previous>`;
     4. a string that repeats the last accepted sequence number with the same bytes is a
-       retransmission: acknowledged again, nothing executed;
+       retransmission: acknowledged again, nothing executed; with other bytes it can only be a
+       resend damaged past the BCC (the sequence number advances with every new string), so it
+       is answered `E` and nothing runs (decision);
     5. an intact string that breaks a rule is acknowledged, nothing in it runs, and each of its
        commands answers `ERROR <rule>` on its next status query.
 
@@ -135,8 +137,7 @@ defmodule Vws.SunComm do
     else
       case Transport.listen(endpoint) do
         {:ok, listener} ->
-          me = self()
-          acceptor = spawn_link(fn -> accept_loop(listener, me) end)
+          acceptor = Transport.start_acceptor(listener, self(), :wc_accepted)
           bound = Transport.listener_endpoint(listener)
           Logger.info("SUN_COMM listening for the WC on #{bound}")
           {:noreply, %{s | listener: listener, listening: bound, acceptor: acceptor}}
@@ -144,18 +145,6 @@ defmodule Vws.SunComm do
         {:error, reason} ->
           {:stop, {:cannot_listen, s.endpoint, reason}, s}
       end
-    end
-  end
-
-  defp accept_loop(listener, owner) do
-    case Transport.accept(listener, :infinity) do
-      {:ok, conn} ->
-        :ok = Transport.controlling_process(conn, owner)
-        send(owner, {:wc_accepted, conn})
-        accept_loop(listener, owner)
-
-      {:error, reason} ->
-        exit({:accept_failed, reason})
     end
   end
 
@@ -353,6 +342,16 @@ defmodule Vws.SunComm do
         telemetry(s, :retransmission, %{count: 1}, %{sequence: cs.sequence})
         s = %{s | counters: bump(s.counters, :retransmissions)}
         reply(s, {:ack, cs.sequence})
+
+      match?({seq, _other_bytes} when seq == cs.sequence, Mailbox.last_string(ws)) ->
+        # The last accepted sequence number with other bytes: a resend damaged in a way the
+        # 8-bit sum cannot see (two errors that cancel). Running it could run a command twice,
+        # so it is refused; the WC sends it again and the intact copy is a retransmission.
+        Logger.warning(
+          "string #{cs.sequence} repeats the last sequence number with other bytes: answered E"
+        )
+
+        reject(s, :sequence_reused)
 
       journal_string(ws, cs, line) != :ok ->
         # not durable, so not acknowledged: the WC sends it again

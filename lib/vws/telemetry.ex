@@ -42,6 +42,12 @@ defmodule Vws.Telemetry do
   | `[:vws, :dnc, :block_received]` | `bytes` | `link, role, block` |
   | `[:vws, :dnc, :retry]` | `count` | `link, role, kind, block` |
   | `[:vws, :dnc, :transmission]` | `duration, blocks, bytes` | `link, role, direction, result` |
+  | `[:vws, :web, :request]` | `duration, bytes` | `method, path, status, port` |
+  | `[:vws, :hpib, :connected]` / `:disconnected` | `count` | `bus, address, endpoint` (+ `reason`) |
+  | `[:vws, :hpib, :timeout]` | `count` | `bus, address, endpoint, commands` |
+  | `[:vws, :vws_status, :poll]` | `started_at, lateness, duration, handling` (µs) | `workstation, seq, result` |
+  | `[:vws, :vws_status, :missed]` | `count` | `workstation, reason` |
+  | `[:vws, :vws_status, :stale]` | `count` | `workstation, reason` |
 
   `attach_default_handler/0` logs all of them with `Logger`.
   """
@@ -82,7 +88,14 @@ defmodule Vws.Telemetry do
     [:vws, :dnc, :block_sent],
     [:vws, :dnc, :block_received],
     [:vws, :dnc, :retry],
-    [:vws, :dnc, :transmission]
+    [:vws, :dnc, :transmission],
+    [:vws, :hpib, :connected],
+    [:vws, :hpib, :disconnected],
+    [:vws, :hpib, :timeout],
+    [:vws, :vws_status, :poll],
+    [:vws, :vws_status, :missed],
+    [:vws, :vws_status, :stale],
+    [:vws, :web, :request]
   ]
 
   @doc "Every event name listed in the moduledoc."

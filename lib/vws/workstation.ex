@@ -25,7 +25,11 @@ defmodule Vws.Workstation do
     * `:links` — child specs of device links, started under the links supervisor
     * `:devices` — device endpoints turned into links (see `device_links/3`):
       `[ge2000: "tcp://host:port"]` adds the DNC link to the GE-2000 and gives it to MONARCH;
-      `[robot: "tcp://host:port"]` adds a `Vws.VAL` (with its `Vws.DDCMP` link) and gives it to ROBOT
+      `[robot: "tcp://host:port"]` adds a `Vws.VAL` (with its `Vws.DDCMP` link) and gives it to ROBOT;
+      `[daq1: "tcp://host:5025"]` puts DAQ #1 on the HPIB, links VWS_STATUS, GRIPPER, FIXTURE and
+      VACUUM to it, and gives MONARCH its cycle-start relay and ROBOT its tray locks;
+      `[hydraulic: "tcp://host:port"]` puts the hydraulic controller on the HPIB and links HYDRAULIC
+      and the PALLET status to it
     * `:partitions` — per partition, keyword options: `[robot: [link: …, module: …, options: …]]`
   """
   use Supervisor
@@ -70,7 +74,8 @@ defmodule Vws.Workstation do
     partitions =
       [
         {Vws.Partitions.VwsStatus,
-         [workstation: ws] ++ Keyword.get(partition_opts, :vws_status, [])}
+         [workstation: ws, devices: Keyword.keys(Keyword.get(opts, :devices, []))] ++
+           Keyword.get(partition_opts, :vws_status, [])}
       ] ++
         for {p, default_module} <- @partition_modules do
           popts = Keyword.get(partition_opts, p, [])
@@ -142,6 +147,12 @@ defmodule Vws.Workstation do
   `robot: endpoint` (or `robot: [endpoint: …, ddcmp: […more Vws.DDCMP options]]`) adds a
   `Vws.VAL` registered as `{ws, :val}`, which starts its own `Vws.DDCMP` link to the VAL II, and
   makes it ROBOT's `link:` unless the partition options name one.
+
+  `daq1: endpoint` (or `daq1: [endpoint: …, …]`) puts DAQ #1 on the HPIB and merges in the
+  partition options of `Vws.Partitions.VwsStatus.wiring/3` (explicit ones win).
+
+  `hydraulic: endpoint` (or `hydraulic: [endpoint: …, …]`) puts the hydraulic controller on the
+  HPIB with the PALLET monitor and merges in the options of `Vws.Partitions.Hydraulic.wiring/3`.
   """
   @spec device_links(term, keyword, keyword) ::
           {[Supervisor.child_spec() | {module, term}], keyword}
@@ -172,8 +183,41 @@ defmodule Vws.Workstation do
         robot = Keyword.put_new(Keyword.get(popts, :robot, []), :link, name)
         {links ++ [val], Keyword.put(popts, :robot, robot)}
 
+      {:daq1, spec}, {links, popts} ->
+        %{links: more, partitions: wired} = daq1(ws, spec)
+        {links ++ more, merge_partitions(wired, popts)}
+
+      {:hydraulic, spec}, {links, popts} ->
+        %{links: more, partitions: wired} = hydraulic(ws, spec)
+        {links ++ more, merge_partitions(wired, popts)}
+
       {device, _spec}, _acc ->
-        raise ArgumentError, "unknown device #{inspect(device)} (known: :ge2000, :robot)"
+        raise ArgumentError,
+              "unknown device #{inspect(device)} (known: :ge2000, :robot, :daq1, :hydraulic)"
+    end)
+  end
+
+  # DAQ #1 on the HPIB: its link and the partition options that reach it.
+  defp daq1(ws, endpoint) when is_binary(endpoint),
+    do: Vws.Partitions.VwsStatus.wiring(ws, endpoint)
+
+  defp daq1(ws, opts) when is_list(opts),
+    do: Vws.Partitions.VwsStatus.wiring(ws, Keyword.fetch!(opts, :endpoint), opts)
+
+  # The hydraulic controller on the HPIB: its link, the PALLET monitor, HYDRAULIC's link.
+  defp hydraulic(ws, endpoint) when is_binary(endpoint),
+    do: Vws.Partitions.Hydraulic.wiring(ws, endpoint)
+
+  defp hydraulic(ws, opts) when is_list(opts),
+    do: Vws.Partitions.Hydraulic.wiring(ws, Keyword.fetch!(opts, :endpoint), opts)
+
+  # Partition options merged per partition, and their `options:` merged too; `right` wins.
+  defp merge_partitions(left, right) do
+    Keyword.merge(left, right, fn _partition, l, r ->
+      Keyword.merge(l, r, fn
+        :options, lo, ro -> Keyword.merge(lo, ro)
+        _key, _lv, rv -> rv
+      end)
     end)
   end
 

@@ -132,6 +132,22 @@ defmodule Vws.SunCommTest do
     assert WCPeer.status(peer, 31, 39, "ROBOT_CMD") == "0012DONE"
   end
 
+  @tag :held
+  test "rule 4: the last sequence number with other bytes is refused E and runs nothing", %{
+    peer: peer
+  } do
+    WCPeer.send_string(peer, 32, [{"R", 13, "HOLD"}])
+    assert ack?(WCPeer.recv_line(peer), 32)
+    assert_receive {:executing, runner, 13, _}, 5_000
+    send(runner, {:result, :done})
+    assert WCPeer.await_status(peer, 39, "ROBOT_CMD", &(&1 == "0013DONE")) == "0013DONE"
+
+    # "O"->"N" and "*"->"+" in one resend: the 8-bit sum cannot see it
+    WCPeer.send_string(peer, 32, [{"R", 13, "HOLD"}, {"G", 1, "OPEN"}])
+    assert WCPeer.recv_line(peer) == "E"
+    refute_receive {:executing, _, _, _}, 200
+  end
+
   test "device status answers say truthfully that no data has come in", %{peer: peer} do
     assert WCPeer.status(peer, 40, 1, "VISE") == "NO DATA (NO LINK TO DAQ #1)"
     assert WCPeer.status(peer, 41, 2, "WHERE_ROBOT") == "NO DATA (NO LINK TO VAL II)"

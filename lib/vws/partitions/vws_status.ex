@@ -1,40 +1,632 @@
 defmodule Vws.Partitions.VwsStatus do
   @moduledoc """
-  VWS_STATUS (seed §2.3.6): the partition that keeps the device-status mailbox locations 1–14.
+  VWS_STATUS (seed §2.3.6, Fig. 6): the partition that polls DAQ #1, keeps the device-status
+  mailbox locations, and runs the actuator requests of the other partitions.
 
-  With no data-acquisition unit configured it says so truthfully in every location it is
-  responsible for — `NO DATA (NO LINK TO DAQ #1)` — instead of leaving old or invented values; the
-  locations that belong to other devices (MONARCH and TLI_TABLE to the GE-2000, WHERE_ROBOT to the
+  ## Polling
+
+  Every `:poll_ms` (default 20, the seed's period) it reads every sensor channel of DAQ #1 over
+  the HPIB (`Vws.DAQ.poll_commands/1`: the seed's SENSORS/Hp3497 subroutines and their array B),
+  converts the readings to millimetres, newtons and switch states (`Vws.DAQ.readings/3`) and
+  writes:
+
+    * locations 1–5 and 7 (`GRIPPER`, `TABLE`, `VISE`, `TRAYS`, `VACUUM`, `CHANGER_1`): the texts
+      of `Vws.DAQ.DeviceStatus`;
+    * location 11 (`SENSORS`): the `Vws.DAQ.Readings` themselves, which the GRIPPER, FIXTURE and
+      VACUUM partitions watch to confirm what their commands did (`readings/1`, `await/4`).
+
+  Polls are scheduled on absolute times (`t0 + k · poll_ms`), so a late one does not shift
+  the ones after it, and the process runs at high priority, so other work on the node does not
+  delay them. A poll that starts more than `:late_after_us` (default 1000 µs) after its
+  time counts as **late**; a time that passes while the previous poll is still unanswered (or
+  while the process was held up) is **missed** and skipped. `stats/1` shows the counts.
+
+  ## Stale readings
+
+  Old values are never presented as fresh. When no poll has succeeded for `:stale_after_ms`
+  (default 200: ten periods), every location it keeps is overwritten with `NO DATA (<why>)` — `DAQ #1 NOT
+  ANSWERING` (a poll timed out or is still unanswered), `DAQ #1 NOT CONNECTED`, `DAQ #1 BAD
+  ANSWER` — and location 11 with `{:no_data, why}`, until a poll succeeds again. Before the
+  first answer they read `NO DATA (DAQ #1 NOT READ YET)`. Started without a link
+  (`link: nil`) it writes `NO DATA (NO LINK TO DAQ #1)` and polls nothing.
+
+  Locations that belong to other devices (MONARCH and TLI_TABLE to the GE-2000, WHERE_ROBOT to the
   VAL II, PALLET to the hydraulic controller) say which link they are waiting for until the
   partition of that device writes them.
+
+  ## Actuators
+
+  `actuate/3` is the seed's ACTUATOR/Hp_act: relay channels (or their signal names from the
+  channel map) to open or close. VWS_STATUS sends them on the same HPIB device as its polls,
+  opens before it closes, and confirms the relays with `ROUT:CLOS?` before it answers `:ok`. A
+  reading taken after that has `requested_at` later than the moment `actuate/3` returned, which
+  is what `await/4` waits for. `push_button/3` closes a relay briefly (the cycle-start button);
+  `cycle_start_fun/2` and `tray_lock_fun/2` build the functions MONARCH and ROBOT are given.
+
+  ## Options
+
+  `:workstation`; `:link` — the HPIB device `{bus, address}` of DAQ #1, or nil; `:poll_ms`;
+  `:timeout_ms` — how long one poll or actuation may take on the HPIB (default 500);
+  `:stale_after_ms`; `:late_after_us`; `:min_force_n` (VISE "LOCKED" threshold, default 800);
+  `:daq` — `Vws.DAQ.new/1` options (`:channel_map`, `:switches`).
+
+  ## Telemetry
+
+  | event | measurements | metadata |
+  |-------|--------------|----------|
+  | `[:vws, :vws_status, :poll]` | `started_at` (µs, monotonic), `lateness` (µs after its time), `duration` (µs until answered), `handling` (µs spent in VWS_STATUS) | `workstation, seq, result` |
+  | `[:vws, :vws_status, :missed]` | `count` | `workstation, reason` (`:busy` or `:held_up`) |
+  | `[:vws, :vws_status, :stale]` | `count` | `workstation, reason` |
   """
   use GenServer
+  require Logger
 
-  alias Vws.Mailbox
+  alias Vws.{DAQ, HPIB, Mailbox}
+  alias Vws.DAQ.{DeviceStatus, Readings}
 
+  @device "DAQ #1"
   @daq_locations [1, 2, 3, 4, 5, 7, 11]
-  @other_locations [{6, "GE-2000"}, {8, "GE-2000"}, {9, "VAL II"}, {10, "HYDRAULIC CONTROLLER"}]
+  @text_locations [1, 2, 3, 4, 5, 7]
+  @sensors_location 11
+  # Locations written by another partition: {location, its device, the `devices:` key of its link}
+  @other_locations [
+    {6, "GE-2000", :ge2000},
+    {8, "GE-2000", :ge2000},
+    {9, "VAL II", :robot},
+    {10, "HYDRAULIC CONTROLLER", :hydraulic}
+  ]
+
+  @defaults [
+    poll_ms: 20,
+    timeout_ms: 500,
+    stale_after_ms: 200,
+    late_after_us: 1_000,
+    min_force_n: 800
+  ]
+
+  @type workstation :: term
+  @type action :: {DAQ.signal() | pos_integer, :open | :close}
 
   @doc false
   def child_spec(opts), do: %{id: :vws_status, start: {__MODULE__, :start_link, [opts]}}
 
+  @doc "Starts VWS_STATUS for a workstation; see the options above."
+  @spec start_link(keyword) :: GenServer.on_start()
   def start_link(opts) do
     ws = Keyword.fetch!(opts, :workstation)
     GenServer.start_link(__MODULE__, opts, name: Vws.Partition.via(ws, :vws_status))
   end
 
+  ## Client API
+
+  @doc """
+  The latest readings of DAQ #1 from mailbox location 11: `{:ok, readings}`, or
+  `{:no_data, why}` when there are none or they went stale.
+  """
+  @spec readings(workstation) :: {:ok, Readings.t()} | {:no_data, String.t()}
+  def readings(ws) do
+    case Mailbox.get_device(ws, @sensors_location) do
+      {%Readings{} = r, _age} -> {:ok, r}
+      {{:no_data, why}, _age} -> {:no_data, why}
+      {_other, _age} -> {:no_data, "#{@device} NOT READ YET"}
+    end
+  end
+
+  @doc """
+  Sets relays of DAQ #1 — `[{signal_or_channel, :open | :close}]` — and confirms them with
+  `ROUT:CLOS?`. Returns `:ok` or `{:error, reason}` with the reason as a command status shows it
+  (`DAQ #1 NOT ANSWERING (NO ANSWER IN 500 MS)`, `DAQ #1 RELAY 206 DID NOT CLOSE`, …).
+  """
+  @spec actuate(workstation, [action], timeout) :: :ok | {:error, String.t()}
+  def actuate(ws, actions, timeout \\ 5_000) do
+    GenServer.call(Vws.Partition.via(ws, :vws_status), {:actuate, actions}, timeout)
+  catch
+    :exit, {:timeout, _} -> {:error, "#{@device} NOT ANSWERING (NO ANSWER IN #{timeout} MS)"}
+    :exit, _ -> {:error, "VWS_STATUS NOT RUNNING"}
+  end
+
+  @doc """
+  Waits until a reading requested after `since` (monotonic µs, taken right after `actuate/3`)
+  satisfies `check`. `check` gets each fresh reading once — with the fresh reading before it
+  (or nil) if it takes two arguments, to see whether something still moves — and returns `:ok`,
+  `{:wait, what_was_read}` (not yet), or `{:fail, what_was_read}` (it never will: stop now).
+
+  Returns `:ok`, or `{:error, what_was_read}`: at a `:fail`, or after `timeout_ms` with the last
+  fresh reading's `what` — or, when no fresh reading came at all, the stale reason or
+  `DAQ #1 NOT ANSWERING (NO FRESH READING IN n MS)`.
+  """
+  @spec await(workstation, integer, non_neg_integer, check) :: :ok | {:error, String.t()}
+        when check: (Readings.t() -> verdict) | (Readings.t(), Readings.t() | nil -> verdict),
+             verdict: :ok | {:wait, String.t()} | {:fail, String.t()}
+  def await(ws, since, timeout_ms, check) do
+    check = if is_function(check, 1), do: fn r, _prev -> check.(r) end, else: check
+    deadline = System.monotonic_time(:millisecond) + timeout_ms
+    do_await(ws, since, deadline, timeout_ms, check, %{prev: nil, read: nil, no_data: nil})
+  end
+
+  defp do_await(ws, since, deadline, timeout_ms, check, acc) do
+    {verdict, acc} =
+      case readings(ws) do
+        {:ok, %Readings{requested_at: at} = r} when at > since ->
+          if acc.prev != nil and acc.prev.seq == r.seq do
+            {:wait, acc}
+          else
+            case check.(r, acc.prev) do
+              :ok -> {:ok, acc}
+              {:wait, what} -> {:wait, %{acc | prev: r, read: what}}
+              {:fail, what} -> {{:fail, what}, acc}
+            end
+          end
+
+        {:ok, _older} ->
+          {:wait, acc}
+
+        {:no_data, why} ->
+          {:wait, %{acc | no_data: why}}
+      end
+
+    cond do
+      verdict == :ok ->
+        :ok
+
+      match?({:fail, _}, verdict) ->
+        {:error, elem(verdict, 1)}
+
+      System.monotonic_time(:millisecond) > deadline ->
+        # what was read says most; failing that, why nothing could be read
+        {:error,
+         acc.read || acc.no_data ||
+           "#{@device} NOT ANSWERING (NO FRESH READING IN #{timeout_ms} MS)"}
+
+      true ->
+        Process.sleep(2)
+        do_await(ws, since, deadline, timeout_ms, check, acc)
+    end
+  end
+
+  @doc """
+  Runs one device command the way GRIPPER, FIXTURE and VACUUM do: `actuate/3`, then `await/4`
+  until the sensors confirm. Returns a partition result: `:done` or `{:error, reason}`.
+  """
+  @spec operate(workstation, [action], non_neg_integer, function) :: :done | {:error, String.t()}
+  def operate(ws, actions, timeout_ms, check) do
+    with :ok <- actuate(ws, actions),
+         :ok <- await(ws, System.monotonic_time(:microsecond), timeout_ms, check) do
+      :done
+    end
+  end
+
+  @doc """
+  The values of `signals` in one reading, for a `check` of `await/4`: `{:ok, values}`, or the
+  verdict when one cannot be read — `{:wait, "<DEVICE> SENSOR CH nnn OPEN CIRCUIT"}` (it may
+  come back), `{:fail, "<DEVICE> SENSOR <SIGNAL> NOT WIRED"}` (it never will).
+  """
+  @spec values(Readings.t(), [atom], String.t()) ::
+          {:ok, [Readings.value()]} | {:wait, String.t()} | {:fail, String.t()}
+  def values(r, signals, device) do
+    Enum.reduce_while(signals, {:ok, []}, fn signal, {:ok, acc} ->
+      case Readings.get(r, signal) do
+        :open_circuit ->
+          {:halt, {:wait, "#{device} SENSOR CH #{Readings.channel(r, signal)} OPEN CIRCUIT"}}
+
+        nil ->
+          {:halt,
+           {:fail, "#{device} SENSOR #{signal |> to_string() |> String.upcase()} NOT WIRED"}}
+
+        value ->
+          {:cont, {:ok, [value | acc]}}
+      end
+    end)
+    |> case do
+      {:ok, values} -> {:ok, Enum.reverse(values)}
+      verdict -> verdict
+    end
+  end
+
+  @doc """
+  Presses a button wired to a relay: closes it, holds it `pulse_ms`, opens it. `:ok` only if both
+  were confirmed.
+  """
+  @spec push_button(workstation, DAQ.signal() | pos_integer, non_neg_integer) ::
+          :ok | {:error, String.t()}
+  def push_button(ws, relay, pulse_ms) do
+    pressed = actuate(ws, [{relay, :close}])
+    if pressed == :ok, do: Process.sleep(pulse_ms)
+    # release it whatever happened: a button must never stay pressed
+    released = actuate(ws, [{relay, :open}])
+
+    case {pressed, released} do
+      {:ok, :ok} -> :ok
+      {{:error, _} = error, _} -> error
+      {:ok, {:error, why}} -> {:error, "RELAY #{relay_name(relay)} NOT RELEASED: " <> why}
+    end
+  end
+
+  defp relay_name(relay) when is_atom(relay), do: relay |> to_string() |> String.upcase()
+  defp relay_name(relay), do: to_string(relay)
+
+  @doc """
+  The function MONARCH's CYCLE_START calls (`ctx.options[:cycle_start]`): presses the
+  cycle-start relay (`:cycle_start_relay`) for `:pulse_ms` (default 200).
+  """
+  @spec cycle_start_fun(workstation, keyword) :: (() -> :ok | {:error, String.t()})
+  def cycle_start_fun(ws, opts \\ []) do
+    pulse = Keyword.get(opts, :pulse_ms, 200)
+    fn -> push_button(ws, :cycle_start_relay, pulse) end
+  end
+
+  @doc """
+  The function ROBOT's DISABLE_TRAYn / RELEASE_TRAYn call (`ctx.options[:tray_lock]`, with
+  `:lock` and `:release` — `:unlock` is the same): sets the tray's lock relay and waits
+  (`:timeout_ms`, default 2000) until its lock-pin switch confirms.
+  """
+  @spec tray_lock_fun(workstation, keyword) ::
+          (1 | 2, :lock | :release | :unlock -> :ok | {:error, String.t()})
+  def tray_lock_fun(ws, opts \\ []) do
+    timeout = Keyword.get(opts, :timeout_ms, 2_000)
+    fn tray, how -> tray_lock(ws, tray, how, timeout) end
+  end
+
+  @doc "Locks or unlocks tray 1 or 2 and confirms it on its lock-pin switch."
+  @spec tray_lock(workstation, 1 | 2, :lock | :release | :unlock, non_neg_integer) ::
+          :ok | {:error, String.t()}
+  def tray_lock(ws, tray, how, timeout_ms)
+      when tray in [1, 2] and how in [:lock, :release, :unlock] do
+    relay = if tray == 1, do: :tray1_lock, else: :tray2_lock
+    switch = if tray == 1, do: :tray1_locked, else: :tray2_locked
+    locked? = how == :lock
+
+    with :ok <- actuate(ws, [{relay, if(locked?, do: :close, else: :open)}]) do
+      since = System.monotonic_time(:microsecond)
+
+      await(ws, since, timeout_ms, fn r ->
+        case Readings.get(r, switch) do
+          ^locked? -> :ok
+          :open_circuit -> {:wait, "TRAY #{tray} LOCK SWITCH OPEN CIRCUIT"}
+          _ when locked? -> {:wait, "TRAY #{tray} LOCK PIN NOT ENGAGED"}
+          _ -> {:wait, "TRAY #{tray} LOCK PIN NOT RELEASED"}
+        end
+      end)
+    end
+  end
+
+  @doc """
+  Poll statistics: `%{polls, ok, failed, missed, late, stale, last_error, poll_ms,
+  consecutive_failures, max_lateness_us, actuations}`; `stale` is nil or the reason shown.
+  """
+  @spec stats(workstation) :: map
+  def stats(ws), do: GenServer.call(Vws.Partition.via(ws, :vws_status), :stats)
+
+  @doc """
+  What a workstation needs to reach DAQ #1 at `endpoint`: the HPIB device child spec for its
+  links supervisor, and the partition options — the link of VWS_STATUS, GRIPPER, FIXTURE and
+  VACUUM, MONARCH's `cycle_start` and ROBOT's `tray_lock`. Options: `:address` (default 9, the
+  HP 3497A's factory address), `:hpib` (`Vws.HPIB.start_link/1` options), `:vws_status`
+  (options of this partition), `:pulse_ms`.
+  """
+  @spec wiring(workstation, String.t() | Vws.Endpoint.t(), keyword) ::
+          %{links: [Supervisor.child_spec()], partitions: keyword}
+  def wiring(ws, endpoint, opts \\ []) do
+    address = Keyword.get(opts, :address, 9)
+    link = {ws, address}
+
+    hpib =
+      HPIB.child_spec(
+        [bus: ws, address: address, endpoint: endpoint] ++ Keyword.get(opts, :hpib, [])
+      )
+
+    %{
+      links: [hpib],
+      partitions: [
+        vws_status: [link: link] ++ Keyword.get(opts, :vws_status, []),
+        gripper: [link: link],
+        fixture: [link: link],
+        vacuum: [link: link],
+        monarch: [options: [cycle_start: cycle_start_fun(ws, Keyword.take(opts, [:pulse_ms]))]],
+        robot: [options: [tray_lock: tray_lock_fun(ws)]]
+      ]
+    }
+  end
+
+  ## Server
+
   @impl true
   def init(opts) do
     ws = Keyword.fetch!(opts, :workstation)
+    opts = Keyword.merge(@defaults, opts)
+    link = Keyword.get(opts, :link)
 
-    for loc <- @daq_locations, Mailbox.get_device(ws, loc) |> elem(0) == nil do
-      Mailbox.put_device(ws, loc, "NO DATA (NO LINK TO DAQ #1)")
+    configured = Keyword.get(opts, :devices, [])
+
+    for {loc, device, key} <- @other_locations, Mailbox.get_device(ws, loc) |> elem(0) == nil do
+      # a configured device has not been read yet; an unconfigured one has no link at all
+      why = if key in configured, do: "#{device} NOT READ YET", else: "NO LINK TO #{device}"
+      Mailbox.put_device(ws, loc, "NO DATA (#{why})")
     end
 
-    for {loc, device} <- @other_locations, Mailbox.get_device(ws, loc) |> elem(0) == nil do
-      Mailbox.put_device(ws, loc, "NO DATA (NO LINK TO #{device})")
-    end
+    if link == nil do
+      write_no_data(ws, "NO LINK TO #{@device}")
+      {:ok, %{workstation: ws, link: nil}}
+    else
+      write_no_data(ws, "#{@device} NOT READ YET")
+      # The poll's timing is the product (seed: every 20 ms): the scheduler runs this process
+      # ahead of the normal ones. It does a few hundred microseconds of work per poll.
+      Process.flag(:priority, :high)
+      now = System.monotonic_time(:millisecond)
+      poll_ms = Keyword.fetch!(opts, :poll_ms)
 
-    {:ok, %{workstation: ws, daq: Keyword.get(opts, :daq)}}
+      s = %{
+        workstation: ws,
+        link: link,
+        daq: DAQ.new(Keyword.get(opts, :daq, [])),
+        poll_ms: poll_ms,
+        timeout_ms: Keyword.fetch!(opts, :timeout_ms),
+        stale_after_ms: Keyword.fetch!(opts, :stale_after_ms),
+        late_after_us: Keyword.fetch!(opts, :late_after_us),
+        min_force_n: Keyword.fetch!(opts, :min_force_n),
+        next_slot: now + poll_ms,
+        poll: nil,
+        actuations: [],
+        seq: 0,
+        last_good_at: now,
+        stale: "#{@device} NOT READ YET",
+        stats: %{
+          polls: 0,
+          ok: 0,
+          failed: 0,
+          missed: 0,
+          late: 0,
+          max_lateness_us: 0,
+          consecutive_failures: 0,
+          last_error: nil,
+          actuations: 0
+        }
+      }
+
+      {:ok, schedule(s)}
+    end
   end
+
+  @impl true
+  def handle_call({:actuate, _actions}, _from, %{link: nil} = s),
+    do: {:reply, {:error, "NO LINK TO #{@device}"}, s}
+
+  def handle_call({:actuate, actions}, from, s) do
+    case DAQ.actuation(s.daq, actions) do
+      {:error, {:unknown_actuator, who}} ->
+        {:reply, {:error, "UNKNOWN ACTUATOR #{inspect(who)}"}, s}
+
+      {:ok, [], []} ->
+        {:reply, :ok, s}
+
+      {:ok, commands, expected} ->
+        req = HPIB.send_request(s.link, commands, s.timeout_ms)
+        s = update_in(s.stats.actuations, &(&1 + 1))
+        {:noreply, %{s | actuations: [{req, from, expected} | s.actuations]}}
+    end
+  end
+
+  def handle_call(:stats, _from, %{link: nil} = s),
+    do: {:reply, %{link: nil, stale: "NO LINK TO #{@device}"}, s}
+
+  def handle_call(:stats, _from, s) do
+    {:reply, Map.merge(s.stats, %{stale: s.stale, poll_ms: s.poll_ms, link: s.link}), s}
+  end
+
+  @impl true
+  def handle_info({:timeout, _ref, :tick}, s), do: {:noreply, tick(s)}
+
+  def handle_info(msg, %{link: link} = s) when link != nil do
+    case s.poll && HPIB.check_response(msg, s.poll.req) do
+      result when result in [nil, :no_reply] -> {:noreply, actuation_reply(msg, s)}
+      result -> {:noreply, poll_answered(result, s)}
+    end
+  end
+
+  def handle_info(msg, s) do
+    Logger.debug("VWS_STATUS: unexpected message #{inspect(msg, limit: 10)}")
+    {:noreply, s}
+  end
+
+  ## Polling
+
+  defp schedule(s) do
+    :erlang.start_timer(s.next_slot, self(), :tick, abs: true)
+    s
+  end
+
+  defp tick(s) do
+    started = System.monotonic_time(:microsecond)
+    lateness = started - s.next_slot * 1000
+
+    s =
+      if s.poll do
+        missed(s, :busy, 1)
+      else
+        req = HPIB.send_request(s.link, DAQ.poll_commands(s.daq), s.timeout_ms)
+        seq = s.seq + 1
+        late = if lateness > s.late_after_us, do: 1, else: 0
+
+        s
+        |> Map.merge(%{
+          poll: %{req: req, seq: seq, started: started, lateness: lateness, handling: 0},
+          seq: seq
+        })
+        |> update_stats(polls: 1, late: late)
+        |> max_lateness(lateness)
+      end
+
+    s = check_stale(s, div(started, 1000))
+
+    # the next slot still ahead of us; the ones already gone are missed
+    now = System.monotonic_time(:millisecond)
+    next = s.next_slot + s.poll_ms
+    skipped = if next <= now, do: div(now - next, s.poll_ms) + 1, else: 0
+    s = if skipped > 0, do: missed(s, :held_up, skipped), else: s
+    s = %{s | next_slot: next + skipped * s.poll_ms}
+
+    s =
+      if s.poll,
+        do: put_in(s.poll.handling, System.monotonic_time(:microsecond) - started),
+        else: s
+
+    schedule(s)
+  end
+
+  defp poll_answered(result, s) do
+    t0 = System.monotonic_time(:microsecond)
+    poll = s.poll
+    s = %{s | poll: nil}
+
+    s =
+      case result do
+        {:ok, answers} ->
+          readings =
+            DAQ.readings(s.daq, answers,
+              seq: poll.seq,
+              requested_at: poll.started,
+              received_at: t0
+            )
+
+          texts = DeviceStatus.texts(readings, min_force_n: s.min_force_n)
+          Enum.each(texts, fn {loc, text} -> Mailbox.put_device(s.workstation, loc, text) end)
+          Mailbox.put_device(s.workstation, @sensors_location, readings)
+
+          if s.stale && s.stats.ok > 0, do: Logger.info("VWS_STATUS: #{@device} answers again")
+
+          %{s | last_good_at: div(t0, 1000), stale: nil}
+          |> update_stats(ok: 1)
+          |> put_in([:stats, :consecutive_failures], 0)
+
+        {:error, error} ->
+          s
+          |> update_stats(failed: 1, consecutive_failures: 1)
+          |> put_in([:stats, :last_error], error)
+          |> check_stale(div(t0, 1000))
+      end
+
+    handling = poll.handling + System.monotonic_time(:microsecond) - t0
+
+    Vws.Telemetry.execute(
+      [:vws, :vws_status, :poll],
+      %{
+        started_at: poll.started,
+        lateness: poll.lateness,
+        duration: t0 - poll.started,
+        handling: handling
+      },
+      %{workstation: s.workstation, seq: poll.seq, result: poll_result(result)}
+    )
+
+    s
+  end
+
+  defp poll_result({:ok, _}), do: :ok
+  defp poll_result({:error, %{reason: reason}}), do: {:error, reason}
+
+  defp missed(s, reason, n) do
+    Vws.Telemetry.execute([:vws, :vws_status, :missed], %{count: n}, %{
+      workstation: s.workstation,
+      reason: reason
+    })
+
+    update_stats(s, missed: n)
+  end
+
+  defp update_stats(s, increments) do
+    stats = Enum.reduce(increments, s.stats, fn {k, n}, acc -> Map.update!(acc, k, &(&1 + n)) end)
+    %{s | stats: stats}
+  end
+
+  defp max_lateness(s, lateness),
+    do: put_in(s.stats.max_lateness_us, max(s.stats.max_lateness_us, lateness))
+
+  # No good poll for stale_after_ms: the texts must not go on showing the old values.
+  defp check_stale(s, now_ms) do
+    if now_ms - s.last_good_at > s.stale_after_ms do
+      why = stale_reason(s)
+
+      if why != s.stale do
+        Logger.warning("VWS_STATUS: readings are stale: #{why}")
+
+        Vws.Telemetry.execute([:vws, :vws_status, :stale], %{count: 1}, %{
+          workstation: s.workstation,
+          reason: why
+        })
+
+        write_no_data(s.workstation, why)
+        %{s | stale: why}
+      else
+        s
+      end
+    else
+      s
+    end
+  end
+
+  defp stale_reason(s) do
+    case s.stats.last_error do
+      _ when s.poll != nil -> "#{@device} NOT ANSWERING"
+      %HPIB.Error{reason: :timeout} -> "#{@device} NOT ANSWERING"
+      %HPIB.Error{reason: :not_connected, detail: :timeout} -> "#{@device} NOT ANSWERING"
+      %HPIB.Error{reason: :bad_response} -> "#{@device} BAD ANSWER"
+      %HPIB.Error{} -> "#{@device} NOT CONNECTED"
+      nil -> s.stale || "#{@device} NOT ANSWERING"
+    end
+  end
+
+  defp write_no_data(ws, why) do
+    for loc <- @text_locations, do: Mailbox.put_device(ws, loc, DeviceStatus.no_data(why))
+    Mailbox.put_device(ws, @sensors_location, {:no_data, why})
+  end
+
+  ## Actuations
+
+  defp actuation_reply(msg, s) do
+    Enum.reduce_while(s.actuations, :no_reply, fn {req, from, expected} = a, _ ->
+      case HPIB.check_response(msg, req) do
+        :no_reply -> {:cont, :no_reply}
+        result -> {:halt, {a, from, actuation_result(result, expected)}}
+      end
+    end)
+    |> case do
+      :no_reply ->
+        Logger.debug("VWS_STATUS: unexpected message #{inspect(msg, limit: 10)}")
+        s
+
+      {a, from, reply} ->
+        GenServer.reply(from, reply)
+        %{s | actuations: List.delete(s.actuations, a)}
+    end
+  end
+
+  defp actuation_result({:ok, results}, expected) do
+    case DAQ.check_relays(expected, List.last(results)) do
+      :ok ->
+        :ok
+
+      {:error, [ch | _]} ->
+        {_, want} = List.keyfind(expected, ch, 0)
+        {:error, "#{@device} RELAY #{ch} DID NOT #{if want, do: "CLOSE", else: "OPEN"}"}
+    end
+  end
+
+  defp actuation_result({:error, error}, _expected), do: {:error, hpib_reason(error)}
+
+  @doc false
+  # An HPIB error as a command status shows it.
+  def hpib_reason(%HPIB.Error{reason: :timeout, detail: ms}),
+    do: "#{@device} NOT ANSWERING (NO ANSWER IN #{ms} MS)"
+
+  # the connection was dropped because the DAQ did not answer, and is being made again
+  def hpib_reason(%HPIB.Error{reason: :not_connected, detail: :timeout}),
+    do: "#{@device} NOT ANSWERING (TIMED OUT, RECONNECTING)"
+
+  def hpib_reason(%HPIB.Error{reason: :bad_response}), do: "#{@device} BAD ANSWER"
+  def hpib_reason(%HPIB.Error{reason: :closed}), do: "#{@device} CONNECTION LOST"
+  def hpib_reason(%HPIB.Error{reason: :no_device}), do: "NO LINK TO #{@device}"
+  def hpib_reason(%HPIB.Error{}), do: "#{@device} NOT CONNECTED"
+
+  @doc false
+  def daq_locations, do: @daq_locations
 end

@@ -1,0 +1,339 @@
+defmodule Vws.HPIB.Device do
+  @moduledoc false
+  # One device on the HPIB: a gen_statem behind the `Vws.HPIB` facade.
+  #
+  #   connecting ──ok──▶ ready ◀──answered, queue empty── busy ◀─┐ answered, next in queue
+  #       ▲  └─failed─▶ disconnected ◀──timeout / closed──────┘ ──┘
+  #       └──backoff───────┘
+  #
+  # `connecting` opens the endpoint (requests are postponed until it knows); `disconnected`
+  # answers requests :not_connected at once and retries after the back-off; `ready` sends a
+  # request and goes `busy` until every query of it is answered or its deadline passes. Requests
+  # that arrive while busy wait in `queue` (visible in `info`), in arrival order.
+  @behaviour :gen_statem
+
+  require Logger
+
+  alias Vws.{SCPI, Transport}
+  alias Vws.HPIB.Error
+
+  @default_timeout 1_000
+  @connect_timeout 1_000
+  @backoff {50, 2_000}
+
+  @impl true
+  def callback_mode, do: [:state_functions, :state_enter]
+
+  @impl true
+  def init(opts) do
+    bus = Keyword.fetch!(opts, :bus)
+    address = Keyword.fetch!(opts, :address)
+    endpoint = Vws.Endpoint.parse!(Keyword.fetch!(opts, :endpoint))
+    {first, max} = Keyword.get(opts, :backoff, @backoff)
+    Logger.metadata(hpib_bus: bus, hpib_address: address)
+
+    data = %{
+      bus: bus,
+      address: address,
+      endpoint: endpoint,
+      timeout: Keyword.get(opts, :timeout, @default_timeout),
+      connect_timeout: Keyword.get(opts, :connect_timeout, @connect_timeout),
+      backoff_first: first,
+      backoff_max: max,
+      backoff: first,
+      conn: nil,
+      decoder: SCPI.new(),
+      current: nil,
+      queue: :queue.new(),
+      was_connected: false,
+      connects: 0,
+      timeouts: 0,
+      requests: 0,
+      unsolicited: 0,
+      last_error: nil
+    }
+
+    {:ok, :connecting, data}
+  end
+
+  ## connecting
+
+  def connecting(:enter, _old, _data), do: {:keep_state_and_data, [{:state_timeout, 0, :connect}]}
+
+  def connecting(:state_timeout, :connect, data) do
+    case Transport.connect(data.endpoint, timeout: data.connect_timeout) do
+      {:ok, conn} ->
+        :ok = Transport.activate(conn)
+        Logger.info("HPIB device #{data.address} connected to #{endpoint(data)}")
+        telemetry(:connected, data, %{})
+
+        {:next_state, :ready,
+         %{
+           data
+           | conn: conn,
+             decoder: SCPI.new(),
+             backoff: data.backoff_first,
+             was_connected: true,
+             connects: data.connects + 1,
+             last_error: nil
+         }}
+
+      {:error, reason} ->
+        if data.was_connected do
+          Logger.warning(
+            "HPIB device #{data.address}: cannot connect to #{endpoint(data)}: #{inspect(reason)}"
+          )
+        end
+
+        {:next_state, :disconnected,
+         %{data | was_connected: false, last_error: {:connect, reason}}}
+    end
+  end
+
+  def connecting({:call, _from}, {:request, _, _, _}, _data),
+    do: {:keep_state_and_data, :postpone}
+
+  def connecting(event, content, data), do: common(:connecting, event, content, data)
+
+  ## disconnected
+
+  def disconnected(:enter, _old, data) do
+    backoff = data.backoff
+    next = backoff |> Kernel.*(2) |> max(data.backoff_first) |> min(data.backoff_max)
+    {:keep_state, %{data | backoff: next}, [{:state_timeout, backoff, :retry}]}
+  end
+
+  def disconnected(:state_timeout, :retry, data), do: {:next_state, :connecting, data}
+
+  def disconnected({:call, from}, {:request, _, _, _}, data) do
+    {:keep_state, count_request(data), [{:reply, from, {:error, not_connected(data)}}]}
+  end
+
+  def disconnected(event, content, data), do: common(:disconnected, event, content, data)
+
+  ## ready
+
+  def ready(:enter, _old, _data), do: :keep_state_and_data
+
+  def ready({:call, from}, {:request, _, _, _} = request, data) do
+    data = count_request(data)
+    serve(%{data | queue: :queue.in({from, request}, data.queue)}, [])
+  end
+
+  def ready(:info, msg, data), do: transport_message(msg, data)
+  def ready(event, content, data), do: common(:ready, event, content, data)
+
+  ## busy
+
+  def busy(:enter, _old, _data), do: :keep_state_and_data
+
+  def busy({:call, from}, {:request, _, _, _} = request, data) do
+    data = count_request(data)
+    {:keep_state, %{data | queue: :queue.in({from, request}, data.queue)}}
+  end
+
+  def busy(:state_timeout, :answer, data) do
+    %{from: from, commands: commands, timeout: timeout} = data.current
+    error = %Error{reason: :timeout, address: data.address, detail: timeout}
+    Logger.warning("HPIB device #{data.address}: #{Exception.message(error)}; reconnecting")
+    telemetry(:timeout, data, %{commands: commands})
+    data = %{data | current: nil, timeouts: data.timeouts + 1}
+    # reconnect at once: the device may only have been slow
+    lose_connection(%{data | backoff: 0}, :timeout, [{:reply, from, {:error, error}}])
+  end
+
+  def busy(:info, msg, data), do: transport_message(msg, data)
+  def busy(event, content, data), do: common(:busy, event, content, data)
+
+  ## Serving the queue
+
+  # Sends the next request of the queue, skipping (and failing) those whose time ran out while
+  # they waited; ends in `busy` with its deadline as the state timeout, or `ready`.
+  defp serve(data, actions) do
+    case :queue.out(data.queue) do
+      {:empty, _} ->
+        {:next_state, :ready, data, actions}
+
+      {{:value, {from, {:request, commands, deadline, timeout}}}, rest} ->
+        data = %{data | queue: rest}
+        timeout = timeout || data.timeout
+        deadline = deadline || now() + timeout
+
+        if deadline <= now() do
+          # it waited its whole time behind other requests: never sent
+          error = %Error{reason: :timeout, address: data.address, detail: timeout}
+          serve(data, actions ++ [{:reply, from, {:error, error}}])
+        else
+          send_request(data, actions, from, commands, deadline, timeout)
+        end
+    end
+  end
+
+  defp send_request(data, actions, from, commands, deadline, timeout) do
+    case Transport.send(data.conn, Enum.map(commands, &SCPI.encode_command/1)) do
+      :ok ->
+        case Enum.filter(commands, &SCPI.response?/1) do
+          [] ->
+            serve(data, actions ++ [{:reply, from, {:ok, results(commands, [])}}])
+
+          queries ->
+            current = %{
+              from: from,
+              commands: commands,
+              waiting: queries,
+              answers: [],
+              error: nil,
+              timeout: timeout
+            }
+
+            {:next_state, :busy, %{data | current: current},
+             actions ++ [{:state_timeout, max(deadline - now(), 0), :answer}]}
+        end
+
+      {:error, reason} ->
+        error = %Error{reason: :send_failed, address: data.address, detail: reason}
+        lose_connection(data, {:send, reason}, actions ++ [{:reply, from, {:error, error}}])
+    end
+  end
+
+  ## Bytes from the device
+
+  defp transport_message(msg, data) do
+    case Transport.handle_message(data.conn, msg) do
+      {:data, bytes} ->
+        Transport.activate(data.conn)
+        {lines, decoder} = SCPI.feed(data.decoder, bytes)
+        lines |> Enum.reduce(%{data | decoder: decoder}, &line/2) |> answered()
+
+      :closed ->
+        connection_closed(data, :closed)
+
+      {:error, reason} ->
+        connection_closed(data, reason)
+
+      :unknown ->
+        Logger.debug("HPIB device: unexpected message #{inspect(msg, limit: 10)}")
+        :keep_state_and_data
+    end
+  end
+
+  # One answer line: the answer to the oldest query still waiting, or unsolicited.
+  defp line(line, %{current: %{waiting: [query | rest]} = c} = data) do
+    {answer, error} =
+      case line do
+        {:error, e} ->
+          {nil, c.error || e}
+
+        text ->
+          case SCPI.decode_response(query, text) do
+            {:ok, response} -> {response, c.error}
+            {:error, e} -> {nil, c.error || e}
+          end
+      end
+
+    %{data | current: %{c | waiting: rest, answers: [answer | c.answers], error: error}}
+  end
+
+  defp line(line, data) do
+    Logger.warning("HPIB device #{data.address}: unsolicited line #{inspect(line, limit: 10)}")
+    %{data | unsolicited: data.unsolicited + 1}
+  end
+
+  defp answered(%{current: %{waiting: []} = c} = data) do
+    reply =
+      if c.error,
+        do: {:error, %Error{reason: :bad_response, address: data.address, detail: c.error}},
+        else: {:ok, results(c.commands, Enum.reverse(c.answers))}
+
+    serve(%{data | current: nil}, [{:reply, c.from, reply}])
+  end
+
+  defp answered(data), do: {:keep_state, data}
+
+  defp connection_closed(data, reason) do
+    Logger.warning("HPIB device #{data.address}: connection lost (#{inspect(reason)})")
+
+    actions =
+      case data.current do
+        %{from: from} ->
+          [{:reply, from, {:error, %Error{reason: :closed, address: data.address}}}]
+
+        nil ->
+          []
+      end
+
+    lose_connection(%{data | current: nil}, reason, actions)
+  end
+
+  # Closes the connection; every request still queued fails :not_connected.
+  defp lose_connection(data, reason, actions) do
+    if data.conn, do: Transport.close(data.conn)
+    telemetry(:disconnected, data, %{reason: reason})
+    data = %{data | conn: nil, decoder: SCPI.new(), last_error: reason}
+    error = not_connected(data)
+
+    queued =
+      for {from, _request} <- :queue.to_list(data.queue), do: {:reply, from, {:error, error}}
+
+    {:next_state, :disconnected, %{data | queue: :queue.new()}, actions ++ queued}
+  end
+
+  ## Every state
+
+  defp common(state, {:call, from}, :info, data) do
+    info = %{
+      state: state,
+      address: data.address,
+      endpoint: endpoint(data),
+      connects: data.connects,
+      timeouts: data.timeouts,
+      requests: data.requests,
+      queued: :queue.len(data.queue),
+      unsolicited: data.unsolicited,
+      last_error: data.last_error
+    }
+
+    {:keep_state_and_data, [{:reply, from, info}]}
+  end
+
+  defp common(_state, :info, msg, _data) do
+    Logger.debug("HPIB device: unexpected message #{inspect(msg, limit: 10)}")
+    :keep_state_and_data
+  end
+
+  defp common(_state, event, content, _data) do
+    Logger.warning("HPIB device: unexpected #{inspect(event)} #{inspect(content, limit: 10)}")
+    :keep_state_and_data
+  end
+
+  # Results in command order: the answers of the queries, :ok for the others.
+  defp results(commands, answers) do
+    {results, []} =
+      Enum.map_reduce(commands, answers, fn command, answers ->
+        if SCPI.response?(command) do
+          [answer | rest] = answers
+          {answer, rest}
+        else
+          {:ok, answers}
+        end
+      end)
+
+    results
+  end
+
+  defp not_connected(data),
+    do: %Error{reason: :not_connected, address: data.address, detail: data.last_error}
+
+  defp count_request(data), do: %{data | requests: data.requests + 1}
+
+  defp telemetry(what, data, extra) do
+    Vws.Telemetry.execute(
+      [:vws, :hpib, what],
+      %{count: 1},
+      Map.merge(%{bus: data.bus, address: data.address, endpoint: endpoint(data)}, extra)
+    )
+  end
+
+  defp endpoint(data), do: Vws.Endpoint.to_string(data.endpoint)
+  defp now, do: System.monotonic_time(:millisecond)
+end

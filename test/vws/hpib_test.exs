@@ -1,0 +1,267 @@
+defmodule Vws.HPIBTest do
+  use ExUnit.Case, async: true
+
+  alias Vws.{HPIB, Transport}
+  alias Vws.HPIB.Error
+  import Vws.Test.Eventually
+
+  doctest Vws.HPIB
+
+  # The test plays the instrument on a loopback endpoint, so it decides what is answered, when,
+  # and whether at all.
+  setup do
+    name = "hpib-#{System.unique_integer([:positive])}"
+    %{endpoint: "loopback:" <> name, bus: name}
+  end
+
+  defp start_device(ctx, opts \\ []) do
+    start_supervised!(
+      {HPIB, [bus: ctx.bus, address: 9, endpoint: ctx.endpoint, backoff: {10, 50}] ++ opts}
+    )
+
+    {ctx.bus, 9}
+  end
+
+  defp instrument(ctx) do
+    {:ok, listener} = Transport.listen(ctx.endpoint)
+    listener
+  end
+
+  defp accept(listener) do
+    {:ok, conn} = Transport.accept(listener, 2_000)
+    :ok = Transport.activate(conn)
+    conn
+  end
+
+  # The next complete lines the instrument received (waits for `n` of them). Other messages
+  # (task replies) are put back afterwards.
+  defp recv_lines(conn, n, acc \\ "", other \\ []) do
+    lines = String.split(acc, "\n", trim: true)
+
+    if length(lines) >= n and String.ends_with?(acc, "\n") do
+      other |> Enum.reverse() |> Enum.each(&send(self(), &1))
+      lines
+    else
+      receive do
+        msg ->
+          case Transport.handle_message(conn, msg) do
+            {:data, bytes} ->
+              Transport.activate(conn)
+              recv_lines(conn, n, acc <> bytes, other)
+
+            :unknown ->
+              recv_lines(conn, n, acc, [msg | other])
+
+            closed_or_error ->
+              flunk("instrument connection: #{inspect(closed_or_error)}")
+          end
+      after
+        2_000 -> flunk("instrument received #{inspect(acc)} only")
+      end
+    end
+  end
+
+  defp nothing_received?(conn, ms) do
+    receive do
+      msg ->
+        case Transport.handle_message(conn, msg) do
+          :unknown -> flunk("unexpected message #{inspect(msg)}")
+          _data_or_close -> false
+        end
+    after
+      ms -> true
+    end
+  end
+
+  defp closed?(conn) do
+    receive do
+      msg -> Transport.handle_message(conn, msg) == :closed
+    after
+      2_000 -> false
+    end
+  end
+
+  test "a transaction is sent back to back and each query gets its own answer, in order", ctx do
+    listener = instrument(ctx)
+    dev = start_device(ctx)
+    conn = accept(listener)
+
+    task =
+      Task.async(fn ->
+        HPIB.transaction(dev, [
+          {:rout_clos, [201]},
+          {:meas_volt_dc?, [101, 102]},
+          {:rout_clos?, [201]},
+          :idn?
+        ])
+      end)
+
+    assert recv_lines(conn, 4) == [
+             "ROUT:CLOS (@201)",
+             "MEAS:VOLT:DC? (@101,102)",
+             "ROUT:CLOS? (@201)",
+             "*IDN?"
+           ]
+
+    Transport.send(conn, "+5.0E+00,-1.0E-03\n1\nACME,3497A,1,1.0\n")
+
+    assert Task.await(task) ==
+             {:ok,
+              [
+                :ok,
+                [5.0, -0.001],
+                [true],
+                %{manufacturer: "ACME", model: "3497A", serial: "1", firmware: "1.0"}
+              ]}
+  end
+
+  test "a command without a response is done once it is written", ctx do
+    listener = instrument(ctx)
+    dev = start_device(ctx)
+    conn = accept(listener)
+    assert HPIB.write(dev, {:rout_open, [205]}) == :ok
+    assert recv_lines(conn, 1) == ["ROUT:OPEN (@205)"]
+  end
+
+  test "while the endpoint refuses, requests fail at once; it connects when it can", ctx do
+    dev = start_device(ctx)
+
+    assert {:error, %Error{reason: :not_connected, address: 9}} = HPIB.query(dev, :idn?, 5_000)
+
+    listener = instrument(ctx)
+    assert HPIB.await_connected(dev, 2_000) == :ok
+    conn = accept(listener)
+    task = Task.async(fn -> HPIB.query(dev, {:rout_clos?, [207]}) end)
+    assert recv_lines(conn, 1) == ["ROUT:CLOS? (@207)"]
+    Transport.send(conn, "0\n")
+    assert Task.await(task) == {:ok, [false]}
+  end
+
+  test "no answer in time: a timeout error, the connection is dropped and made again", ctx do
+    listener = instrument(ctx)
+    dev = start_device(ctx)
+    conn = accept(listener)
+
+    assert {:error, %Error{reason: :timeout, detail: 50} = error} =
+             HPIB.query(dev, {:meas_res?, [117]}, 50)
+
+    assert Exception.message(error) =~ "did not answer within 50 ms"
+    assert recv_lines(conn, 1) == ["MEAS:RES? (@117)"]
+    # the old connection is closed so that its late answer can never be read as a new one
+    assert closed?(conn)
+    conn2 = accept(listener)
+    assert HPIB.await_connected(dev, 2_000) == :ok
+
+    task = Task.async(fn -> HPIB.query(dev, {:meas_res?, [117]}) end)
+    assert recv_lines(conn2, 1) == ["MEAS:RES? (@117)"]
+    Transport.send(conn2, "+3.5E+02\n")
+    assert Task.await(task) == {:ok, [350.0]}
+    assert %{timeouts: 1, connects: 2} = HPIB.info(dev)
+  end
+
+  test "an answer that does not answer the query is a bad_response; the next one works", ctx do
+    listener = instrument(ctx)
+    dev = start_device(ctx)
+    conn = accept(listener)
+
+    task = Task.async(fn -> HPIB.query(dev, {:meas_volt_dc?, [101, 102]}) end)
+    assert recv_lines(conn, 1) == ["MEAS:VOLT:DC? (@101,102)"]
+    Transport.send(conn, "+5.0E+00\n")
+
+    assert {:error, %Error{reason: :bad_response, detail: %Vws.SCPI.Error{reason: :bad_response}}} =
+             Task.await(task)
+
+    task = Task.async(fn -> HPIB.query(dev, {:rout_clos?, [201]}) end)
+    assert recv_lines(conn, 1) == ["ROUT:CLOS? (@201)"]
+    Transport.send(conn, "1\n")
+    assert Task.await(task) == {:ok, [true]}
+  end
+
+  test "the connection lost while waiting ends the request :closed; it reconnects", ctx do
+    listener = instrument(ctx)
+    dev = start_device(ctx)
+    conn = accept(listener)
+    task = Task.async(fn -> HPIB.query(dev, :idn?) end)
+    assert recv_lines(conn, 1) == ["*IDN?"]
+    Transport.close(conn)
+    assert {:error, %Error{reason: :closed}} = Task.await(task)
+    _conn2 = accept(listener)
+    assert HPIB.await_connected(dev, 2_000) == :ok
+  end
+
+  test "requests from several callers are served one at a time, in arrival order", ctx do
+    listener = instrument(ctx)
+    dev = start_device(ctx)
+    conn = accept(listener)
+
+    tasks =
+      for ch <- 201..205 do
+        t = Task.async(fn -> HPIB.query(dev, {:rout_clos?, [ch]}) end)
+        # each request is in the device's queue before the next one is made
+        assert eventually(fn -> HPIB.info(dev).requests == ch - 200 end)
+        t
+      end
+
+    for {ch, answer} <- Enum.zip(201..205, ["1", "0", "1", "0", "1"]) do
+      assert recv_lines(conn, 1) == ["ROUT:CLOS? (@#{ch})"]
+      Transport.send(conn, answer <> "\n")
+    end
+
+    assert Enum.map(tasks, &Task.await/1) ==
+             [{:ok, [true]}, {:ok, [false]}, {:ok, [true]}, {:ok, [false]}, {:ok, [true]}]
+  end
+
+  test "a request whose time runs out while it waits behind another is never sent", ctx do
+    listener = instrument(ctx)
+    dev = start_device(ctx)
+    conn = accept(listener)
+    first = Task.async(fn -> HPIB.query(dev, :idn?, 2_000) end)
+    assert recv_lines(conn, 1) == ["*IDN?"]
+    second = Task.async(fn -> HPIB.query(dev, {:meas_res?, [117]}, 20) end)
+    assert eventually(fn -> HPIB.info(dev).queued == 1 end)
+    Process.sleep(40)
+    Transport.send(conn, "A,B,C,D\n")
+    assert {:ok, %{model: "B"}} = Task.await(first)
+    assert {:error, %Error{reason: :timeout}} = Task.await(second)
+    # the instrument never saw the second one
+    assert nothing_received?(conn, 100)
+    assert HPIB.info(dev).state == :ready
+  end
+
+  test "send_request/check_response make a request without blocking", ctx do
+    listener = instrument(ctx)
+    dev = start_device(ctx)
+    conn = accept(listener)
+    req = HPIB.send_request(dev, [{:rout_clos?, [210]}])
+    assert recv_lines(conn, 1) == ["ROUT:CLOS? (@210)"]
+    Transport.send(conn, "1\n")
+
+    assert_receive msg
+    assert HPIB.check_response(:something_else, req) == :no_reply
+    assert HPIB.check_response(msg, req) == {:ok, [[true]]}
+  end
+
+  test "lines nobody asked for are counted and dropped", ctx do
+    listener = instrument(ctx)
+    dev = start_device(ctx)
+    conn = accept(listener)
+    assert HPIB.await_connected(dev, 2_000) == :ok
+    Transport.send(conn, "+1.0E+00\n")
+    assert eventually(fn -> HPIB.info(dev).unsolicited == 1 end)
+  end
+
+  test "an address with no device", ctx do
+    assert {:error, %Error{reason: :no_device, address: 4}} = HPIB.query({ctx.bus, 4}, :idn?)
+    req = HPIB.send_request({ctx.bus, 4}, [:idn?])
+    assert_receive msg
+    assert {:error, %Error{reason: :no_device}} = HPIB.check_response(msg, req)
+  end
+
+  test "addresses are 0..30 and commands must be of the SCPI subset", ctx do
+    assert_raise ArgumentError, fn ->
+      HPIB.start_link(bus: ctx.bus, address: 31, endpoint: ctx.endpoint)
+    end
+
+    assert_raise ArgumentError, fn -> HPIB.query({ctx.bus, 9}, {:meas_res?, []}) end
+  end
+end

@@ -1,0 +1,231 @@
+defmodule Vws.Partitions.VwsStatusTest do
+  use ExUnit.Case, async: true
+
+  alias Vws.{Mailbox, Partition}
+  alias Vws.DAQ.Readings
+  alias Vws.Partitions.VwsStatus
+  alias Vws.Sim.{DAQ, Plant}
+  alias Vws.Test.{DAQFloor, Workstation}
+  import Vws.Test.Eventually
+
+  @text_locations [1, 2, 3, 4, 5, 7]
+
+  defp texts(ws), do: for(loc <- @text_locations, do: elem(Mailbox.get_device(ws, loc), 0))
+
+  defp seq(ws) do
+    case VwsStatus.readings(ws) do
+      {:ok, r} -> r.seq
+      _ -> nil
+    end
+  end
+
+  describe "without a link to DAQ #1" do
+    test "every location it keeps says so, and actuators answer NO LINK" do
+      %{ws: ws} = Workstation.start()
+      assert Enum.uniq(texts(ws)) == ["NO DATA (NO LINK TO DAQ #1)"]
+      assert VwsStatus.readings(ws) == {:no_data, "NO LINK TO DAQ #1"}
+      assert VwsStatus.actuate(ws, vacuum_motor: :close) == {:error, "NO LINK TO DAQ #1"}
+      assert VwsStatus.stats(ws).link == nil
+    end
+  end
+
+  describe "polling" do
+    test "writes the device texts and the readings, over and over" do
+      %{ws: ws, peer: peer} = DAQFloor.start()
+
+      assert DAQFloor.status(peer, "GRIPPER") == "GRIPPER IS OPEN AND INDEXER ROTATED 0 DEG"
+      assert DAQFloor.status(peer, "TABLE") == "TABLE IN PARK POSITION"
+      assert DAQFloor.status(peer, "VISE") =~ "VISE IS UNLOCKED PART NOT IN VISE"
+      assert DAQFloor.status(peer, "TRAYS") == "TRAY #1 IN POSITION TRAY #2 IN POSITION"
+      assert DAQFloor.status(peer, "VACUUM") == "VACUUM IS OFF"
+      # tool changer 1's switch on channel 116: released while the plant says so
+      assert DAQFloor.status(peer, "CHANGER_1") == "CHANGER_1 FINGERS RELEASED"
+
+      {:ok, %Readings{} = r} = VwsStatus.readings(ws)
+      assert length(Readings.array_b(r)) == 16
+      assert r.requested_at < r.received_at
+      first = r.seq
+      assert eventually(fn -> seq(ws) >= first + 5 end)
+      assert %{polls: polls, ok: ok, failed: 0, stale: nil, poll_ms: 10} = VwsStatus.stats(ws)
+      assert polls >= ok and ok >= 5
+    end
+
+    test "the texts follow the plant" do
+      %{ws: _ws, peer: peer, plant: plant} = DAQFloor.start()
+      :ok = Plant.move_tray(plant, 1, :out)
+
+      assert DAQFloor.await_status(peer, "TRAYS", &(&1 =~ "#1 NOT")) ==
+               "TRAY #1 NOT IN POSITION TRAY #2 IN POSITION"
+
+      :ok = Plant.set_cycle(plant, true)
+
+      assert DAQFloor.await_status(peer, "TABLE", &(&1 =~ "NOT")) ==
+               "TABLE NOT IN PARK POSITION"
+    end
+
+    test "CHANGER_1 follows tool changer 1's switch" do
+      %{peer: peer, plant: plant} = DAQFloor.start()
+      assert DAQFloor.status(peer, "CHANGER_1") == "CHANGER_1 FINGERS RELEASED"
+      :ok = Vws.Sim.Plant.set_changer1(plant, false)
+
+      assert eventually(fn ->
+               DAQFloor.status(peer, "CHANGER_1") == "CHANGER_1 FINGERS DID NOT RELEASE"
+             end)
+    end
+
+    test "without a CHANGER_1 switch in the channel map the status says so" do
+      spare = %{daq1: %{116 => %{kind: :spare, signal: :spare}}}
+      %{peer: peer} = DAQFloor.start(vws_status: [daq: [channel_map: spare]])
+      assert DAQFloor.status(peer, "CHANGER_1") == "NO DATA (CHANGER_1 NOT WIRED TO DAQ #1)"
+    end
+  end
+
+  describe "a DAQ that stops answering" do
+    test "the readings go stale: NO DATA (DAQ #1 NOT ANSWERING), never the old values" do
+      %{ws: ws, peer: peer, daq: daq} =
+        DAQFloor.start(vws_status: [timeout_ms: 200, stale_after_ms: 50])
+
+      assert DAQFloor.status(peer, "VACUUM") == "VACUUM IS OFF"
+      :ok = DAQ.set_fault(daq, :mute)
+
+      assert eventually(fn -> VwsStatus.readings(ws) == {:no_data, "DAQ #1 NOT ANSWERING"} end)
+      assert Enum.uniq(texts(ws)) == ["NO DATA (DAQ #1 NOT ANSWERING)"]
+      assert DAQFloor.status(peer, "VACUUM") == "NO DATA (DAQ #1 NOT ANSWERING)"
+      assert VwsStatus.stats(ws).stale == "DAQ #1 NOT ANSWERING"
+      assert eventually(fn -> VwsStatus.stats(ws).failed >= 1 end)
+
+      # while it stays mute, nothing fresh is ever written
+      for _ <- 1..5 do
+        assert VwsStatus.readings(ws) == {:no_data, "DAQ #1 NOT ANSWERING"}
+        Process.sleep(20)
+      end
+
+      stats = VwsStatus.stats(ws)
+      assert %Vws.HPIB.Error{} = stats.last_error
+      assert stats.missed > 0
+
+      :ok = DAQ.set_fault(daq, :none)
+      assert DAQFloor.await_status(peer, "VACUUM", &(&1 == "VACUUM IS OFF")) == "VACUUM IS OFF"
+      assert eventually(fn -> match?({:ok, _}, VwsStatus.readings(ws)) end)
+      assert eventually(fn -> VwsStatus.stats(ws).stale == nil end)
+    end
+
+    test "a DAQ that is gone: NO DATA (DAQ #1 NOT CONNECTED)" do
+      %{ws: ws, peer: peer, daq: daq} = DAQFloor.start(vws_status: [stale_after_ms: 50])
+      GenServer.stop(daq)
+      assert eventually(fn -> VwsStatus.readings(ws) == {:no_data, "DAQ #1 NOT CONNECTED"} end)
+      assert DAQFloor.status(peer, "GRIPPER") == "NO DATA (DAQ #1 NOT CONNECTED)"
+    end
+
+    test "an answer slower than the poll period: polls are missed and counted, not stacked" do
+      %{ws: ws, daq: daq} = DAQFloor.start(vws_status: [poll_ms: 10, stale_after_ms: 1_000])
+      :ok = DAQ.set_fault(daq, {:delay_ms, 35})
+      before = VwsStatus.stats(ws)
+      assert eventually(fn -> VwsStatus.stats(ws).ok >= before.ok + 3 end)
+      after_ = VwsStatus.stats(ws)
+      assert after_.missed - before.missed >= 3
+      assert after_.stale == nil
+      # still one request at a time on the HPIB
+      assert Vws.HPIB.info({ws, 9}).queued == 0
+    end
+  end
+
+  describe "actuators" do
+    test "actuate sets relays and confirms them; unknown actuators are refused" do
+      %{ws: ws, plant: plant} = DAQFloor.start()
+      assert VwsStatus.actuate(ws, [{:vacuum_motor, :close}, {209, :close}]) == :ok
+      assert {:daq1, 207} in Plant.snapshot(plant).relays
+      assert {:daq1, 209} in Plant.snapshot(plant).relays
+      assert VwsStatus.actuate(ws, vacuum_motor: :open) == :ok
+      refute {:daq1, 207} in Plant.snapshot(plant).relays
+
+      assert VwsStatus.actuate(ws, table_park: :close) ==
+               {:error, "UNKNOWN ACTUATOR :table_park"}
+
+      assert VwsStatus.stats(ws).actuations == 2
+    end
+
+    test "the cycle-start function presses the relay and lets it go" do
+      %{ws: ws, plant: plant} = DAQFloor.start()
+      me = self()
+      press = VwsStatus.cycle_start_fun(ws, pulse_ms: 300)
+      spawn_link(fn -> send(me, {:pressed, press.()}) end)
+      assert eventually(fn -> Plant.snapshot(plant).cycle_start_relay end)
+      assert_receive {:pressed, :ok}, 5_000
+      refute Plant.snapshot(plant).cycle_start_relay
+    end
+
+    test "the tray-lock function locks a tray against the material-handling system" do
+      %{ws: ws, plant: plant} = DAQFloor.start()
+      lock = VwsStatus.tray_lock_fun(ws)
+      assert lock.(1, :lock) == :ok
+      assert Plant.snapshot(plant).trays[1].locked
+      assert Plant.move_tray(plant, 1, :out) == {:error, :locked}
+      assert lock.(1, :unlock) == :ok
+      assert Plant.move_tray(plant, 1, :out) == :ok
+      assert lock.(2, :lock) == :ok
+      refute Plant.snapshot(plant).trays[1].locked
+    end
+
+    test "a lock pin that does not engage is an error, as read" do
+      %{ws: ws, plant: plant} = DAQFloor.start()
+      :ok = Plant.inject_fault(plant, :stuck_valve, actuator: :tray2_lock)
+      lock = VwsStatus.tray_lock_fun(ws, timeout_ms: 200)
+      assert lock.(2, :lock) == {:error, "TRAY 2 LOCK PIN NOT ENGAGED"}
+    end
+
+    test "ROBOT's DISABLE_TRAYn / RELEASE_TRAYn lock the tray through DAQ #1, end to end" do
+      val2 = start_supervised!({Vws.Sim.VAL2, time_scale: 0.001}, id: :val2)
+
+      %{peer: peer, plant: plant} = DAQFloor.start(devices: [robot: Vws.Sim.VAL2.endpoint(val2)])
+
+      assert DAQFloor.command(peer, "R", 1, "DISABLE_TRAY1") == "DONE"
+      assert Plant.snapshot(plant).trays[1].locked
+      assert Plant.move_tray(plant, 1, :out) == {:error, :locked}
+      assert DAQFloor.command(peer, "R", 2, "RELEASE_TRAY1") == "DONE"
+      refute Plant.snapshot(plant).trays[1].locked
+
+      :ok = Plant.inject_fault(plant, :stuck_valve, actuator: :tray2_lock)
+
+      assert DAQFloor.command(peer, "R", 3, "DISABLE_TRAY2") ==
+               "ERROR TRAY 2 LOCK FAILED TRAY 2 LOCK PIN NOT ENGAGED"
+    end
+
+    test "with the DAQ mute, actuate ends with the timeout" do
+      %{ws: ws, daq: daq} = DAQFloor.start(vws_status: [timeout_ms: 100])
+      :ok = DAQ.set_fault(daq, :mute)
+
+      assert {:error, "DAQ #1 NOT ANSWERING" <> _} = VwsStatus.actuate(ws, vacuum_motor: :close)
+
+      assert VwsStatus.cycle_start_fun(ws).() |> elem(0) == :error
+    end
+  end
+
+  describe "wiring" do
+    test "devices: [daq1: …] links the partitions, gives MONARCH and ROBOT their functions" do
+      %{ws: ws} = DAQFloor.start(partitions: [vacuum: [options: [timeout_ms: 1]]])
+
+      for p <- [:gripper, :fixture, :vacuum] do
+        assert Partition.info(ws, p).link == {ws, 9}
+      end
+
+      assert Partition.info(ws, :robot).link == nil
+      assert is_pid(Vws.HPIB.whereis({ws, 9}))
+
+      monarch = :sys.get_state(Partition.whereis(ws, :monarch)).options
+      assert is_function(monarch[:cycle_start], 0)
+      robot = :sys.get_state(Partition.whereis(ws, :robot)).options
+      assert is_function(robot[:tray_lock], 2)
+      # explicit partition options are merged over the wiring, not instead of it
+      vacuum = :sys.get_state(Partition.whereis(ws, :vacuum))
+      assert vacuum.options == [timeout_ms: 1] and vacuum.link == {ws, 9}
+    end
+
+    test "a device the workstation does not know is refused at start" do
+      Process.flag(:trap_exit, true)
+
+      assert {:error, {%ArgumentError{message: "unknown device :daq7" <> _}, _}} =
+               Vws.Workstation.start_link(id: "no-daq7", wc: nil, devices: [daq7: "tcp://x:1"])
+    end
+  end
+end
