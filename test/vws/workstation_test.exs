@@ -13,6 +13,12 @@ defmodule Vws.WorkstationTest do
     assert ws in WS.list()
   end
 
+  test "device statuses say whether a device has no link or has not been read yet" do
+    %{ws: ws} = Workstation.start(devices: [robot: "loopback:no-robot-here"])
+    assert Mailbox.get_device(ws, 9) |> elem(0) == "NO DATA (VAL II NOT READ YET)"
+    assert Mailbox.get_device(ws, 8) |> elem(0) == "NO DATA (NO LINK TO GE-2000)"
+  end
+
   test "several workstations run side by side on one node, each with its own mailboxes" do
     %{ws: a, wc: wc_a} = Workstation.start()
     %{ws: b, wc: wc_b} = Workstation.start()

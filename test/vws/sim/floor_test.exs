@@ -6,8 +6,12 @@ defmodule Vws.Sim.FloorTest do
   test "the demo's shop floor: a workstation wired to the floor polls the plant" do
     ws = "floor-#{System.unique_integer([:positive])}"
 
-    {:ok, %{name: "plant + DAQ #1", links: links, partitions: partitions}} =
-      Vws.Sim.Floor.shop_floor(workstation: ws, time_scale: 100)
+    {:ok,
+     %{
+       name: "plant + DAQ #1 + DAQ #2 + hydraulic controller",
+       links: links,
+       partitions: partitions
+     }} = Vws.Sim.Floor.shop_floor(workstation: ws, time_scale: 100)
 
     start_supervised!({Vws.Workstation, id: ws, wc: nil, links: links, partitions: partitions})
 
@@ -20,5 +24,30 @@ defmodule Vws.Sim.FloorTest do
     assert Vws.Test.Eventually.eventually(fn ->
              Vws.Status.answer(ws, "VACUUM") == "VACUUM IS ON"
            end)
+
+    # the hydraulic controller on DAQ #2 keeps the PALLET status
+    assert Vws.Test.Eventually.eventually(fn ->
+             Vws.Status.answer(ws, "PALLET") == "PALLET NOT CLAMPED"
+           end)
+
+    Enum.each(
+      201..204,
+      &(:ok = Vws.Sim.Plant.close_channel(Vws.Sim.Floor.plant(ws), {:daq2, &1}))
+    )
+
+    assert Vws.Test.Eventually.eventually(fn ->
+             Vws.Status.answer(ws, "PALLET") == "PALLET CLAMPED"
+           end)
+  end
+
+  test "without DAQ #1, or with the hydraulic controller, as asked" do
+    ws = "floor-#{System.unique_integer([:positive])}"
+    start_supervised!({Vws.Sim.Floor, workstation: ws, daq1: false, hydraulic: true})
+    assert Vws.Sim.Floor.daq2_endpoint(ws) =~ "tcp://"
+    controller = Vws.Sim.Floor.hydraulic_controller(ws)
+    assert Vws.HydraulicController.await_ready(controller, 5_000) == :ok
+    assert Vws.HydraulicController.status(controller) == :done
+    assert Vws.Sim.Floor.hydraulic_endpoint(ws) =~ "tcp://"
+    assert Vws.Sim.Floor.daq1(ws) |> GenServer.whereis() == nil
   end
 end
