@@ -1,17 +1,31 @@
 defmodule Vws.Sim.Floor do
   @moduledoc """
-  The simulated shop floor of one workstation, as far as DAQ #1 reaches it: the plant
-  (`Vws.Sim.Plant`) and the DAQ #1 simulator (`Vws.Sim.DAQ`) listening on its own endpoint.
+  The simulated shop floor of one workstation: the plant (`Vws.Sim.Plant`), the DAQ #1
+  simulator (`Vws.Sim.DAQ`) listening on its own endpoint, and — when asked — the GE-2000
+  (`Vws.Sim.GE2000`), the VAL II robot (`Vws.Sim.VAL2`) and the material-handling system
+  (`Vws.Sim.MHS`), wired to the plant as the real equipment is to the workstation:
 
   ```
   Vws.Sim.Floor (rest_for_one)
-  ├── Vws.Sim.Plant       {ws, :sim_plant} in Vws.Registry — other simulators find it with plant/1
-  └── Vws.Sim.DAQ (DAQ #1) {ws, :sim_daq1}  — on :daq1 (default tcp://127.0.0.1:0)
+  ├── Vws.Sim.Plant        {ws, :sim_plant}   — other simulators find it with plant/1
+  ├── Vws.Sim.DAQ (DAQ #1) {ws, :sim_daq1}    — on :daq1 (default tcp://127.0.0.1:0)
+  ├── Vws.Sim.GE2000       {ws, :sim_ge2000}  — option :ge2000
+  ├── Vws.Sim.VAL2         {ws, :sim_val2}    — option :robot
+  └── Vws.Sim.MHS          {ws, :sim_mhs}     — option :mhs
   ```
 
+  The wires, so that the plant's collision oracle (`Vws.Sim.Plant.collisions/1`) sees what the
+  equipment does without asking the CEC:
+
+    * the cycle-start relay of DAQ #1 drives the GE-2000's cycle-start input
+      (`Vws.Sim.GE2000.cycle_start_input/2`), and the GE-2000's cycle moves the table
+      (`Vws.Sim.Plant.set_cycle/2`);
+    * the robot's motions tell the plant where the gripper is (`on_move` →
+      `Vws.Sim.Plant.set_robot/2`, the work volumes of `priv/sims/robot_locations.exs`);
+    * the MHS moves the trays (`Vws.Sim.Plant.move_tray/3`) under the workstation's interlock.
+
   `mix vws.serve` and `Vws.Demo` start it before the workstation and give the workstation
-  `devices: [daq1: Vws.Sim.Floor.daq1_endpoint(ws)]`; pointing `daq1` at a real instrument instead
-  needs no floor at all.
+  `devices: devices(ws)`; pointing a device at real equipment instead needs no simulator for it.
 
       iex> {:ok, _floor} = Vws.Sim.Floor.start_link(workstation: "floor-doc", time_scale: 100)
       iex> Vws.Sim.Floor.daq1_endpoint("floor-doc") =~ ~r"^tcp://127.0.0.1:\\d+$"
@@ -21,12 +35,19 @@ defmodule Vws.Sim.Floor do
   """
   use Supervisor
 
-  alias Vws.Sim.{DAQ, Plant}
+  alias Vws.Sim.{DAQ, GE2000, MHS, Plant, VAL2}
 
   @doc """
-  Starts the floor of workstation `:workstation`. Options: `:time_scale` (default 1.0), `:seed`,
-  `:plant` (more `Vws.Sim.Plant` options, e.g. `config:`), `:daq1` (the endpoint DAQ #1 listens
-  on, default `"tcp://127.0.0.1:0"`).
+  Starts the floor of workstation `:workstation`. Options:
+
+    * `:time_scale` (default 1.0) — how many times faster than real time the plant runs; the
+      GE-2000's cycle and the robot's motions are scaled with it;
+    * `:seed`, `:plant` (more `Vws.Sim.Plant` options, e.g. `config:`);
+    * `:daq1` — the endpoint DAQ #1 listens on, default `"tcp://127.0.0.1:0"`;
+    * `:ge2000` — `true` or `Vws.Sim.GE2000` options (default `cycle_time` 5 s / time scale,
+      at least 1 s, so that MONARCH sees the machine run after it has let go of the button);
+    * `:robot` — `true` or `Vws.Sim.VAL2` options (default `time_scale` 1 / time scale);
+    * `:mhs` — `true` or `Vws.Sim.MHS` options.
   """
   @spec start_link(keyword) :: Supervisor.on_start()
   def start_link(opts) do
@@ -55,42 +76,135 @@ defmodule Vws.Sim.Floor do
   @spec daq1_endpoint(term) :: String.t()
   def daq1_endpoint(ws), do: DAQ.endpoint(daq1(ws))
 
+  @doc "The GE-2000 simulator of a workstation's floor (a registered name)."
+  @spec ge2000(term) :: GenServer.name()
+  def ge2000(ws), do: name(ws, :sim_ge2000)
+
+  @doc "The VAL II simulator of a workstation's floor (a registered name)."
+  @spec robot(term) :: GenServer.name()
+  def robot(ws), do: name(ws, :sim_val2)
+
+  @doc "The material-handling system of a workstation's floor (a registered name)."
+  @spec mhs(term) :: GenServer.name()
+  def mhs(ws), do: name(ws, :sim_mhs)
+
   @doc """
-  For `Vws.Demo`'s shop floor: starts the floor (linked to the caller) with the demo's
-  `:workstation` and `:time_scale`, and returns the workstation links and partition options
-  that reach it (`Vws.Partitions.VwsStatus.wiring/3`).
+  The `devices:` option of a workstation reaching every simulator of the floor:
+  `[daq1: …, ge2000: …, robot: …]` (those started).
+  """
+  @spec devices(term) :: keyword(String.t())
+  def devices(ws) do
+    [daq1: daq1_endpoint(ws)] ++
+      for {device, sim, endpoint} <- [
+            {:ge2000, ge2000(ws), &GE2000.endpoint/1},
+            {:robot, robot(ws), &VAL2.endpoint/1}
+          ],
+          GenServer.whereis(sim) != nil,
+          do: {device, endpoint.(sim)}
+  end
+
+  @doc """
+  For `Vws.Demo`'s shop floor: starts the whole floor (linked to the caller) with the demo's
+  `:workstation` and `:time_scale`, a blank in tray #1, and returns the workstation links and
+  partition options that reach it (`Vws.Workstation.device_links/3`).
   """
   @spec shop_floor(keyword) ::
           {:ok, %{name: String.t(), links: [Supervisor.child_spec()], partitions: keyword}}
           | {:error, term}
   def shop_floor(opts) do
     ws = Keyword.fetch!(opts, :workstation)
+    floor = Keyword.take(opts, [:workstation, :time_scale, :seed])
 
-    with {:ok, _pid} <- start_link(Keyword.take(opts, [:workstation, :time_scale, :seed])) do
-      wiring = Vws.Partitions.VwsStatus.wiring(ws, daq1_endpoint(ws))
-      {:ok, %{name: "plant + DAQ #1", links: wiring.links, partitions: wiring.partitions}}
+    with {:ok, _pid} <- start_link(floor ++ [ge2000: true, robot: true, mhs: true]),
+         :ok <- Plant.set_part(plant(ws), :tray1, true) do
+      {links, partitions} = Vws.Workstation.device_links(ws, devices(ws), [])
+
+      {:ok,
+       %{
+         name: "plant + DAQ #1, GE-2000, VAL II, material handling",
+         links: links,
+         partitions: partitions
+       }}
     end
   end
 
   @impl true
   def init(opts) do
     ws = Keyword.fetch!(opts, :workstation)
+    scale = Keyword.get(opts, :time_scale, 1.0)
+    plant = plant(ws)
+
+    on_relay =
+      if opts[:ge2000] do
+        ge = ge2000(ws)
+
+        fn
+          :cycle_start_relay, closed? -> GE2000.cycle_start_input(ge, closed?)
+          _signal, _closed? -> :ok
+        end
+      end
 
     plant_opts =
-      [name: plant(ws), time_scale: Keyword.get(opts, :time_scale, 1.0)] ++
+      [name: plant, time_scale: scale, on_relay: on_relay] ++
         Keyword.take(opts, [:seed]) ++ Keyword.get(opts, :plant, [])
 
-    children = [
-      {Plant, plant_opts},
-      {DAQ,
-       plant: plant(ws),
-       name: daq1(ws),
-       daq: :daq1,
-       endpoint: Keyword.get(opts, :daq1, "tcp://127.0.0.1:0")}
-    ]
+    children =
+      [
+        {Plant, plant_opts},
+        {DAQ,
+         plant: plant,
+         name: daq1(ws),
+         daq: :daq1,
+         endpoint: Keyword.get(opts, :daq1, "tcp://127.0.0.1:0")}
+      ] ++
+        ge2000_child(ws, opts[:ge2000], scale) ++
+        robot_child(ws, opts[:robot], scale) ++
+        mhs_child(ws, opts[:mhs])
 
     Supervisor.init(children, strategy: :rest_for_one)
   end
+
+  defp ge2000_child(_ws, falsy, _scale) when falsy in [nil, false], do: []
+
+  defp ge2000_child(ws, spec, scale) do
+    plant = plant(ws)
+    # at least a second: MONARCH looks for the cycle after letting go of the button (200 ms)
+    cycle = if scale > 0, do: max(round(5_000 / scale), 1_000), else: 5_000
+
+    defaults = [
+      id: GE2000,
+      name: ge2000(ws),
+      cycle_time: cycle,
+      plant: fn event -> Plant.set_cycle(plant, event == :table_out_of_park) end
+    ]
+
+    [{GE2000, Keyword.merge(defaults, options(spec))}]
+  end
+
+  defp robot_child(_ws, falsy, _scale) when falsy in [nil, false], do: []
+
+  defp robot_child(ws, spec, scale) do
+    plant = plant(ws)
+
+    defaults = [
+      id: VAL2,
+      name: robot(ws),
+      time_scale: if(scale > 0, do: 1 / scale, else: 1.0),
+      on_move: fn %{volume: volume} -> Plant.set_robot(plant, %{volume: volume}) end
+    ]
+
+    [{VAL2, Keyword.merge(defaults, options(spec))}]
+  end
+
+  defp mhs_child(_ws, falsy) when falsy in [nil, false], do: []
+
+  defp mhs_child(ws, spec) do
+    defaults = [name: mhs(ws), workstation: ws, plant: plant(ws)]
+    [{MHS, Keyword.merge(defaults, options(spec))}]
+  end
+
+  defp options(true), do: []
+  defp options(opts) when is_list(opts), do: opts
 
   defp name(ws, role), do: {:via, Registry, {Vws.Registry, {ws, role}}}
 end

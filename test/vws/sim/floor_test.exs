@@ -6,8 +6,12 @@ defmodule Vws.Sim.FloorTest do
   test "the demo's shop floor: a workstation wired to the floor polls the plant" do
     ws = "floor-#{System.unique_integer([:positive])}"
 
-    {:ok, %{name: "plant + DAQ #1", links: links, partitions: partitions}} =
-      Vws.Sim.Floor.shop_floor(workstation: ws, time_scale: 100)
+    {:ok,
+     %{
+       name: "plant + DAQ #1, GE-2000, VAL II, material handling",
+       links: links,
+       partitions: partitions
+     }} = Vws.Sim.Floor.shop_floor(workstation: ws, time_scale: 100)
 
     start_supervised!({Vws.Workstation, id: ws, wc: nil, links: links, partitions: partitions})
 
