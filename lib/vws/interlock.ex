@@ -181,14 +181,18 @@ defmodule Vws.Interlock do
     end
   end
 
-  # The holders whose entries (lease or posted request) exclude `holder` from `volume`.
+  # The holders whose entries (lease or posted request) exclude `holder` from `volume`, the
+  # earliest first.
   defp in_the_way(table, volume, holder) do
     for {{:interlock, ^volume, other} = key, entry} <-
           :ets.match_object(table, {{:interlock, volume, :_}, :_}),
         other != holder,
         not compatible?(volume, holder, other),
-        not dead_request?(table, key, entry),
-        do: other
+        not dead_request?(table, key, entry) do
+      {entry.order, other}
+    end
+    |> Enum.sort()
+    |> Enum.map(&elem(&1, 1))
   end
 
   defp dead_request?(table, key, %{state: :requesting, pid: pid} = entry) do
@@ -307,7 +311,7 @@ defmodule Vws.Interlock do
       `MACHINE STATUS NO DATA (…)`, `MACHINE STATUS STALE (n MS OLD)`;
     * the park switch must read closed in a poll of DAQ #1 *requested after this call* (so
       after the request was posted), waited for at most `:sensor_timeout_ms` (default 500):
-      else `TABLE NOT IN PARK POSITION`, `NO DATA (…)` as VWS_STATUS has it, or
+      else `NOT IN PARK POSITION`, `NO DATA (…)` as VWS_STATUS has it, or
       `PARK SWITCH NOT READ (…)`.
   """
   @spec table_conditions(Mailbox.workstation(), keyword) :: (() -> :ok | {:error, String.t()})
@@ -344,7 +348,7 @@ defmodule Vws.Interlock do
            end
          end) do
       :ok -> :ok
-      {:error, "TABLE " <> _ = text} -> {:error, text}
+      {:error, "TABLE " <> text} -> {:error, text}
       {:error, "NO DATA " <> _ = text} -> {:error, text}
       # "DAQ #1 NOT ANSWERING (NO FRESH READING IN 500 MS)": the first words say it
       {:error, why} -> {:error, "PARK SWITCH NOT READ (#{why |> String.split(" (") |> hd()})"}

@@ -25,4 +25,36 @@ defmodule Vws.Sim.FloorTest do
              Vws.Status.answer(ws, "VACUUM") == "VACUUM IS ON"
            end)
   end
+
+  test "the wires: the cycle-start relay starts the GE-2000, whose cycle moves the table" do
+    ws = "floor-#{System.unique_integer([:positive])}"
+
+    start_supervised!(
+      {Vws.Sim.Floor,
+       workstation: ws,
+       time_scale: 1000,
+       ge2000: [cycle_time: 200, programs: %{"000100.PRO" => "O100\nM30\n"}],
+       robot: true}
+    )
+
+    plant = Vws.Sim.Floor.plant(ws)
+    ge = Vws.Sim.Floor.ge2000(ws)
+
+    assert [daq1: "tcp://" <> _, ge2000: "tcp://" <> _, robot: "tcp://" <> _] =
+             Vws.Sim.Floor.devices(ws)
+
+    # no program selected: the press is refused by the machine (alarm 4), the table stays
+    :ok = Vws.Sim.Plant.close_channel(plant, 210)
+    :ok = Vws.Sim.Plant.open_channel(plant, 210)
+    assert Vws.Test.Eventually.eventually(fn -> Vws.Sim.GE2000.state(ge).alarm == 4 end)
+
+    :sys.replace_state(ge, &%{&1 | selected: "000100"})
+    :ok = Vws.Sim.Plant.close_channel(plant, 210)
+    assert Vws.Test.Eventually.eventually(fn -> Vws.Sim.GE2000.state(ge).state == :active end)
+    assert Vws.Sim.Plant.snapshot(plant).table.cycle
+    :ok = Vws.Sim.Plant.open_channel(plant, 210)
+    assert Vws.Test.Eventually.eventually(fn -> Vws.Sim.Plant.snapshot(plant).table.parked end)
+    assert Vws.Sim.GE2000.state(ge).cycles == 1
+    assert Vws.Sim.Plant.collisions(plant) == []
+  end
 end
