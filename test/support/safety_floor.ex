@@ -73,13 +73,13 @@ defmodule Vws.Test.SafetyFloor do
           ],
           monarch: [
             options: [
-              start_timeout: 400,
+              start_timeout: 150,
               poll_interval: 5,
               request_timeout: 2_000,
               interlock: interlock
             ]
           ],
-          fixture: [options: [timeout_ms: 300, interlock: interlock]],
+          fixture: [options: [timeout_ms: 200, interlock: interlock]],
           gripper: [options: [timeout_ms: 300]],
           vacuum: [options: [timeout_ms: 300]]
         ]
@@ -107,12 +107,14 @@ defmodule Vws.Test.SafetyFloor do
 
     unless ready, do: raise("the safety floor of #{ws} did not come up")
     :ok = Plant.set_part(f.plant, :vise, true)
+    # a program ready for the cycle start
+    :done = command(f, :monarch, "PROGRAM_SELECT(000100)")
     f
   end
 
   @doc "The interlock options the floor's partitions get unless told otherwise."
   def interlock_defaults do
-    [timeout: 150, retry_ms: 30, machine_stale_ms: 200, sensor_timeout_ms: 100]
+    [timeout: 100, retry_ms: 25, machine_stale_ms: 200, sensor_timeout_ms: 100]
   end
 
   @doc "Stops the workstation and the floor."
@@ -147,7 +149,13 @@ defmodule Vws.Test.SafetyFloor do
   `{:executing, number}` when `timeout` ms passed first.
   """
   def await_idle(f, partition, timeout \\ 15_000) do
-    if wait_until(fn -> Mailbox.in_flight(f.ws, partition) == nil end, timeout),
+    # the command leaves flight a moment before its status is written
+    idle? = fn ->
+      Mailbox.in_flight(f.ws, partition) == nil and
+        elem(Mailbox.command_status(f.ws, partition), 1) != :executing
+    end
+
+    if wait_until(idle?, timeout),
       do: {:ok, Mailbox.command_status(f.ws, partition)},
       else: {:executing, Mailbox.in_flight(f.ws, partition)}
   end
