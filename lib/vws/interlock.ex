@@ -55,6 +55,12 @@ defmodule Vws.Interlock do
   way. `acquire/5` adds its `:as` reason (default `:lease`), `release/4` removes one, and the
   lease ends when no reason is left (`release/3` removes them all).
 
+  ## Telemetry
+
+  `[:vws, :interlock, :acquired]` and `[:vws, :interlock, :refused]` with `wait_ms` and `tries`
+  (metadata `workstation, volume, holder, reason`, and `why` when refused);
+  `[:vws, :interlock, :released]` (see `Vws.Telemetry`).
+
   ## Durability and visibility
 
   The leases live in the mailbox table, owned by `Vws.Mailbox.Owner`: a partition that crashes
@@ -101,6 +107,9 @@ defmodule Vws.Interlock do
     deadline = now() + timeout
 
     config = %{
+      workstation: ws,
+      started: now(),
+      tries: 1,
       table: Mailbox.table(ws),
       volume: volume,
       holder: holder,
@@ -160,18 +169,31 @@ defmodule Vws.Interlock do
 
     case result do
       :ok ->
+        emit(:acquired, c, %{})
         :ok
 
       {:error, why} ->
         left = c.deadline - now()
 
         if left <= 0 do
+          emit(:refused, c, %{why: why})
           {:error, "INTERLOCK #{name(c.volume)} #{why}"}
         else
           Process.sleep(min(left, jitter(c.retry_ms)))
-          try_acquire(c)
+          try_acquire(%{c | tries: c.tries + 1})
         end
     end
+  end
+
+  defp emit(event, c, meta) do
+    Vws.Telemetry.execute(
+      [:vws, :interlock, event],
+      %{wait_ms: now() - c.started, tries: c.tries},
+      Map.merge(
+        %{workstation: c.workstation, volume: c.volume, holder: c.holder, reason: c.as},
+        meta
+      )
+    )
   end
 
   defp check(c) do
@@ -234,6 +256,13 @@ defmodule Vws.Interlock do
           [] -> :ets.delete_object(table, {key, lease})
           reasons -> :ets.insert(table, {key, %{lease | reasons: reasons}})
         end
+
+        Vws.Telemetry.execute([:vws, :interlock, :released], %{count: 1}, %{
+          workstation: ws,
+          volume: volume,
+          holder: holder,
+          reason: reason
+        })
 
       _ ->
         :ok

@@ -47,6 +47,9 @@ defmodule Vws.Telemetry do
   | `[:vws, :vws_status, :poll]` | `started_at, lateness, duration, handling` (µs) | `workstation, seq, result` |
   | `[:vws, :vws_status, :missed]` | `count` | `workstation, reason` |
   | `[:vws, :vws_status, :stale]` | `count` | `workstation, reason` |
+  | `[:vws, :interlock, :acquired]` | `wait_ms, tries` | `workstation, volume, holder, reason` |
+  | `[:vws, :interlock, :refused]` | `wait_ms, tries` | `workstation, volume, holder, reason, why` |
+  | `[:vws, :interlock, :released]` | `count` | `workstation, volume, holder, reason` (`:all` or one) |
 
   `attach_default_handler/0` logs all of them with `Logger`.
   """
@@ -93,7 +96,10 @@ defmodule Vws.Telemetry do
     [:vws, :hpib, :timeout],
     [:vws, :vws_status, :poll],
     [:vws, :vws_status, :missed],
-    [:vws, :vws_status, :stale]
+    [:vws, :vws_status, :stale],
+    [:vws, :interlock, :acquired],
+    [:vws, :interlock, :refused],
+    [:vws, :interlock, :released]
   ]
 
   @doc "Every event name listed in the moduledoc."

@@ -14,21 +14,50 @@ defmodule Vws.Test.SafetyFloor do
   alias Vws.Sim.{Floor, Plant}
 
   @partitions [:robot, :monarch, :gripper, :fixture, :vacuum, :hydraulic]
-  @dnc [reply_timeout: 100, wack_delay: 20, backoff_min: 5, backoff_max: 50]
-  @ddcmp [rep_timeout: 100, start_timeout: 50, backoff: {5, 50}]
   @program "%\nO100\nN10 M30\n%\n"
+
+  # Timers. `:fast` (the stateful test, the soak): everything short, so that a sequence takes
+  # tens of milliseconds; on a loaded machine more commands end in a timeout, which the safety
+  # properties allow. `:steady` (the rule tests, the default): long enough that a loaded
+  # machine does not turn an expected DONE into an error.
+  @timing %{
+    fast: %{
+      dnc: [reply_timeout: 50, wack_delay: 10, backoff_min: 5, backoff_max: 50],
+      ddcmp: [rep_timeout: 100, start_timeout: 50, backoff: {5, 50}],
+      cycle_ms: 60,
+      start_timeout: 150,
+      device_ms: 200,
+      val_ms: 500,
+      hpib: [timeout: 60, connect_timeout: 200],
+      vws_status: [poll_ms: 10, timeout_ms: 60, stale_after_ms: 150],
+      interlock: [timeout: 60, retry_ms: 15, machine_stale_ms: 200, sensor_timeout_ms: 100]
+    },
+    steady: %{
+      dnc: [reply_timeout: 500, wack_delay: 20, backoff_min: 5, backoff_max: 50],
+      ddcmp: [rep_timeout: 300, start_timeout: 100, backoff: {5, 50}],
+      cycle_ms: 1_000,
+      start_timeout: 2_000,
+      device_ms: 3_000,
+      val_ms: 5_000,
+      hpib: [timeout: 300, connect_timeout: 500],
+      vws_status: [poll_ms: 10, timeout_ms: 300, stale_after_ms: 600],
+      interlock: [timeout: 150, retry_ms: 30, machine_stale_ms: 600, sensor_timeout_ms: 500]
+    }
+  }
 
   @doc "The command partitions."
   def partitions, do: @partitions
 
   @doc """
-  Starts a floor and its workstation. Options: `:interlock` (merged over the partitions'
-  interlock options), `:cycle_ms` (the GE-2000's cycle, default 60), `:plant` (more plant
-  options, e.g. `config:`), `:seed`. Returns `%{ws, floor, plant, daq, ge2000, robot, mhs}`.
+  Starts a floor and its workstation. Options: `:timing` (`:steady`, the default, or `:fast`),
+  `:interlock` (merged over the partitions' interlock options), `:cycle_ms` (the GE-2000's
+  cycle), `:plant` (more plant options, e.g. `config:`), `:seed`. Returns
+  `%{ws, floor, plant, daq, ge2000, robot, mhs, interlock}`.
   """
   def start(opts \\ []) do
     ws = "safety-#{System.unique_integer([:positive])}"
-    interlock = Keyword.merge(interlock_defaults(), Keyword.get(opts, :interlock, []))
+    t = Map.fetch!(@timing, Keyword.get(opts, :timing, :steady))
+    interlock = Keyword.merge(t.interlock, Keyword.get(opts, :interlock, []))
 
     {:ok, floor} =
       Floor.start_link(
@@ -37,11 +66,11 @@ defmodule Vws.Test.SafetyFloor do
         seed: Keyword.get(opts, :seed, 1),
         plant: Keyword.get(opts, :plant, []),
         ge2000: [
-          link: @dnc,
-          cycle_time: Keyword.get(opts, :cycle_ms, 60),
+          link: t.dnc,
+          cycle_time: Keyword.get(opts, :cycle_ms, t.cycle_ms),
           programs: %{"000100.PRO" => @program}
         ],
-        robot: [ddcmp: @ddcmp],
+        robot: [ddcmp: t.ddcmp],
         mhs: [timeout: interlock[:timeout], retry_ms: interlock[:retry_ms], poll_ms: 2]
       )
 
@@ -56,32 +85,32 @@ defmodule Vws.Test.SafetyFloor do
           daq1: [
             endpoint: devices[:daq1],
             pulse_ms: 10,
-            vws_status: [poll_ms: 10, timeout_ms: 60, stale_after_ms: 150],
-            hpib: [timeout: 60, connect_timeout: 200]
+            vws_status: t.vws_status,
+            hpib: t.hpib
           ],
-          ge2000: [endpoint: devices[:ge2000], status_interval: 20] ++ @dnc,
-          robot: [endpoint: devices[:robot], ddcmp: @ddcmp]
+          ge2000: [endpoint: devices[:ge2000], status_interval: 20] ++ t.dnc,
+          robot: [endpoint: devices[:robot], ddcmp: t.ddcmp]
         ],
         partitions: [
           robot: [
             options: [
-              command_timeout: 1_000,
-              motion_timeout: 1_500,
-              program_timeout: 3_000,
+              command_timeout: t.val_ms,
+              motion_timeout: 2 * t.val_ms,
+              program_timeout: 6 * t.val_ms,
               interlock: interlock
             ]
           ],
           monarch: [
             options: [
-              start_timeout: 150,
+              start_timeout: t.start_timeout,
               poll_interval: 5,
-              request_timeout: 2_000,
+              request_timeout: 2 * t.val_ms,
               interlock: interlock
             ]
           ],
-          fixture: [options: [timeout_ms: 200, interlock: interlock]],
-          gripper: [options: [timeout_ms: 300]],
-          vacuum: [options: [timeout_ms: 300]]
+          fixture: [options: [timeout_ms: t.device_ms, interlock: interlock]],
+          gripper: [options: [timeout_ms: t.device_ms]],
+          vacuum: [options: [timeout_ms: t.device_ms]]
         ]
       )
 
@@ -92,7 +121,8 @@ defmodule Vws.Test.SafetyFloor do
       daq: Floor.daq1(ws),
       ge2000: Floor.ge2000(ws),
       robot: Floor.robot(ws),
-      mhs: Floor.mhs(ws)
+      mhs: Floor.mhs(ws),
+      interlock: interlock
     }
 
     ready =
@@ -110,11 +140,6 @@ defmodule Vws.Test.SafetyFloor do
     # a program ready for the cycle start
     :done = command(f, :monarch, "PROGRAM_SELECT(000100)")
     f
-  end
-
-  @doc "The interlock options the floor's partitions get unless told otherwise."
-  def interlock_defaults do
-    [timeout: 100, retry_ms: 25, machine_stale_ms: 200, sensor_timeout_ms: 100]
   end
 
   @doc "Stops the workstation and the floor."

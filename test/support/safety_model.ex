@@ -111,7 +111,7 @@ defmodule Vws.Test.SafetyModel do
        {:call, __MODULE__, :mhs, [:proper_types.oneof([1, 2]), :proper_types.oneof([:in, :out])]}},
       {3, {:call, __MODULE__, :fault, [:proper_types.oneof(@faults)]}},
       {2, {:call, __MODULE__, :heal, []}},
-      {3, {:call, __MODULE__, :pause, [:proper_types.oneof([1, 5, 20, 60])]}},
+      {3, {:call, __MODULE__, :pause, [:proper_types.oneof([1, 5, 20, 40])]}},
       {1, {:call, __MODULE__, :settle, []}}
     ])
   end
@@ -138,7 +138,7 @@ defmodule Vws.Test.SafetyModel do
   history, the collisions and the command statuses.
   """
   def run(cmds, opts \\ []) do
-    f = SafetyFloor.start(opts)
+    f = SafetyFloor.start(Keyword.put_new(opts, :timing, :fast))
     Process.put(:safety_floor, f)
     Process.put(:safety_issued, %{})
 

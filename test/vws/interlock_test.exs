@@ -76,6 +76,35 @@ defmodule Vws.InterlockTest do
     assert :ets.match_object(Mailbox.table(ws), {{:interlock, :_, :_}, :_}) == []
   end
 
+  test "telemetry: acquired, refused (with the tries) and released", %{ws: ws} do
+    me = self()
+    id = {__MODULE__, ws}
+
+    :ok =
+      Vws.Telemetry.attach_many(
+        id,
+        [
+          [:vws, :interlock, :acquired],
+          [:vws, :interlock, :refused],
+          [:vws, :interlock, :released]
+        ],
+        fn event, m, meta, _ -> if meta.workstation == ws, do: send(me, {event, m, meta}) end,
+        nil
+      )
+
+    on_exit(fn -> Vws.Telemetry.detach(id) end)
+    :ok = Interlock.acquire(ws, :tray1, :mhs, 0)
+    assert_received {[:vws, :interlock, :acquired], %{tries: 1}, %{holder: :mhs, volume: :tray1}}
+    {:error, _} = Interlock.acquire(ws, :tray1, :robot, 100, retry_ms: 20, as: :inside)
+
+    assert_received {[:vws, :interlock, :refused], %{tries: tries, wait_ms: wait},
+                     %{holder: :robot, reason: :inside, why: "HELD BY MHS"}}
+
+    assert tries >= 4 and wait >= 100
+    :ok = Interlock.release(ws, :tray1, :mhs)
+    assert_received {[:vws, :interlock, :released], %{count: 1}, %{holder: :mhs, reason: :all}}
+  end
+
   test "a request waits for the holder to let go", %{ws: ws} do
     :ok = Interlock.acquire(ws, :tray1, :mhs, 0)
 

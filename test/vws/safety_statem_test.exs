@@ -5,7 +5,9 @@ defmodule Vws.SafetyStatemTest do
   # (Vws.Test.SafetyModel, Vws.Test.SafetyFloor). The plant's collision oracle must record
   # nothing; every command must end DONE or ERROR with a reason, none stay EXECUTING.
   # bench/safety_soak.exs runs the same model for 10 000 sequences.
-  use ExUnit.Case, async: true
+  # Not async: it keeps two cores busy for half a minute, and the timing tests of the other
+  # modules should not have to share them with it.
+  use ExUnit.Case, async: false
   use Vws.PropCase
 
   alias Vws.Test.SafetyModel

@@ -11,7 +11,7 @@ defmodule Vws.Partitions.Robot do
   | `DO APPRO loc/d`, `DO APPROS loc/d` | `DO APPRO loc, d` … | MOTION COMPLETE |
   | `DO DEPART d`, `DO DEPARTS d` | the same | MOTION COMPLETE |
   | `EXECUTE name` | monitor `EXECUTE name` | PROGRAM COMPLETE |
-  | `DISABLE_TRAYn`, `RELEASE_TRAYn`, `DISABLE_TABLE`, `RELEASE_TABLE` | interlock flags (below) | the flag is set / cleared |
+  | `DISABLE_TRAYn`, `RELEASE_TRAYn`, `DISABLE_TABLE`, `RELEASE_TABLE` | interlocks (below) | the lease is taken / given up |
 
   The WC writes the robot's commands with `/` between arguments; VAL II wants commas, so motion
   instructions are rewritten from the parsed command (`Vws.Commands`), never passed through.
@@ -48,7 +48,7 @@ defmodule Vws.Partitions.Robot do
       `ERROR INTERLOCK ROBOT IN TABLE VOLUME`.
 
   A request that times out ends `ERROR INTERLOCK <VOLUME> HELD BY <HOLDER>` or
-  `ERROR INTERLOCK TABLE <condition>` (`MACHINE ACTIVE`, `TABLE NOT IN PARK POSITION`,
+  `ERROR INTERLOCK TABLE <condition>` (`MACHINE ACTIVE`, `NOT IN PARK POSITION`,
   `MACHINE STATUS STALE (n MS OLD)`, …). The leases live in the mailboxes: a restarted ROBOT
   finds them.
 
@@ -56,8 +56,8 @@ defmodule Vws.Partitions.Robot do
 
     * `:tray_lock` — `fun(n, :lock | :release) :: :ok | {:error, reason}`, the seam for the DAQ
       relay that physically locks tray `n` out of the material-handling system; called after
-      the flag is taken (a failure gives it back) and before it is cleared. Without it only the
-      flag is set.
+      the lease is taken (a failure gives it back) and before it is given up. Without it only
+      the lease is taken.
     * `:reinit` — `true`: re-initialise the DDCMP link after every command that went to the
       VAL II, as the seed's ROBOT program does (seed §4.3.2). Default `false`.
     * `:command_timeout` (default 10 s), `:motion_timeout` (120 s), `:program_timeout` (600 s),

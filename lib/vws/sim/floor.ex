@@ -24,8 +24,10 @@ defmodule Vws.Sim.Floor do
       `Vws.Sim.Plant.set_robot/2`, the work volumes of `priv/sims/robot_locations.exs`);
     * the MHS moves the trays (`Vws.Sim.Plant.move_tray/3`) under the workstation's interlock.
 
-  `mix vws.serve` and `Vws.Demo` start it before the workstation and give the workstation
-  `devices: devices(ws)`; pointing a device at real equipment instead needs no simulator for it.
+  `Vws.Demo` starts the whole floor before the workstation and gives the workstation
+  `devices: devices(ws)`; `mix vws.serve` starts the plant and DAQ #1 here (and the GE-2000 and
+  VAL II simulators on their own). Pointing a device at real equipment instead needs no
+  simulator for it.
 
       iex> {:ok, _floor} = Vws.Sim.Floor.start_link(workstation: "floor-doc", time_scale: 100)
       iex> Vws.Sim.Floor.daq1_endpoint("floor-doc") =~ ~r"^tcp://127.0.0.1:\\d+$"

@@ -100,7 +100,7 @@ defmodule Vws.Interlock.RulesTest do
 
       # the GE-2000 stops answering: its status grows old and is not trusted
       :ok = GE2000.set_fault(f.ge2000, :silent)
-      assert SafetyFloor.wait_until(fn -> elem(Mailbox.get_device(f.ws, 8), 1) > 200 end, 2_000)
+      assert SafetyFloor.wait_until(fn -> elem(Mailbox.get_device(f.ws, 8), 1) > 600 end, 2_000)
 
       assert {:error, "INTERLOCK TABLE MACHINE STATUS STALE (" <> _} =
                run(f, :robot, "DO APPRO VISE/50")
@@ -254,7 +254,7 @@ defmodule Vws.Interlock.RulesTest do
       assert SafetyFloor.wait_until(fn -> run(f, :fixture, "CLOSE") == :done end, 3_000)
 
       :ok = GE2000.set_fault(f.ge2000, :silent)
-      assert SafetyFloor.wait_until(fn -> elem(Mailbox.get_device(f.ws, 8), 1) > 200 end, 2_000)
+      assert SafetyFloor.wait_until(fn -> elem(Mailbox.get_device(f.ws, 8), 1) > 600 end, 2_000)
       assert {:error, "INTERLOCK TABLE MACHINE STATUS STALE (" <> _} = run(f, :fixture, "OPEN")
       assert Plant.snapshot(f.plant).vise.force_n > 1_900
       no_collisions(f)
