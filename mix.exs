@@ -17,7 +17,7 @@ defmodule Vws.MixProject do
 
   def application do
     [
-      extra_applications: [:logger, :runtime_tools],
+      extra_applications: [:logger, :runtime_tools, :inets],
       mod: {Vws.Application, []}
     ]
   end

@@ -3,9 +3,65 @@ import Config
 # Deployment values come from the environment, read once at boot (a release, or `mix run`).
 # With VWS_WC set, the application starts one workstation itself; in dev and test nothing
 # starts by itself (mix vws.serve / mix vws.demo / the tests start what they need).
-if wc = System.get_env("VWS_WC") do
+#
+#   VWS_ID            the workstation id (default VWS); also its MTConnect device name
+#   VWS_WC            the WC endpoint: tty:/dev/ttyS0?baud=9600 or tcp://0.0.0.0:7070
+#   VWS_BCC           sum (default) or xor: the WC link's block check
+#   VWS_JOURNAL_DIR   where the command journal lives (none when unset)
+#   VWS_ROBOT         the VAL II's supervisory port (tty:/dev/ttyS1?baud=9600 or tcp://…)
+#   VWS_GE2000        the GE-2000's DNC port (tty:/dev/ttyS2?baud=4800 or tcp://…)
+#   VWS_DAQ1, VWS_DAQ2, VWS_HYDRAULIC
+#                     the HPIB instruments' endpoints (tcp://gpib-gateway:1234 …)
+#   VWS_HTTP_PORT     the dashboard and MTConnect agent (default 4000 in a release; "off": none)
+#   VWS_HTTP_BIND     the address they listen on (default 127.0.0.1)
+#   VWS_HTTP_TOKEN    enables the dashboard's control actions for requests carrying it
+env = fn name ->
+  case System.get_env(name) do
+    nil -> nil
+    value -> if String.trim(value) == "", do: nil, else: String.trim(value)
+  end
+end
+
+if wc = env.("VWS_WC") do
+  devices =
+    for {device, var} <- [
+          robot: "VWS_ROBOT",
+          ge2000: "VWS_GE2000",
+          daq1: "VWS_DAQ1",
+          daq2: "VWS_DAQ2",
+          hydraulic: "VWS_HYDRAULIC"
+        ],
+        endpoint = env.(var),
+        do: {device, endpoint}
+
+  bcc =
+    case env.("VWS_BCC") do
+      nil -> :sum
+      "sum" -> :sum
+      "xor" -> :xor
+      other -> raise "VWS_BCC must be sum or xor, not #{other}"
+    end
+
   config :vws, :workstation,
-    id: System.get_env("VWS_ID", "VWS"),
+    id: env.("VWS_ID") || "VWS",
     wc: wc,
-    journal: System.get_env("VWS_JOURNAL_DIR")
+    journal: env.("VWS_JOURNAL_DIR"),
+    sun_comm: [bcc: bcc],
+    devices: devices
+end
+
+http_port =
+  case {env.("VWS_HTTP_PORT"), config_env()} do
+    {"off", _} -> nil
+    {nil, :prod} -> 4000
+    {nil, _} -> nil
+    {_, :test} -> nil
+    {port, _} -> String.to_integer(port)
+  end
+
+if http_port do
+  config :vws, :http,
+    port: http_port,
+    bind: env.("VWS_HTTP_BIND") || "127.0.0.1",
+    token: env.("VWS_HTTP_TOKEN")
 end

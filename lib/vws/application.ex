@@ -8,8 +8,9 @@ defmodule Vws.Application do
       [
         {Registry, keys: :unique, name: Vws.Registry},
         {Registry, keys: :duplicate, name: Vws.Events, partitions: System.schedulers_online()},
-        {DynamicSupervisor, name: Vws.WorkstationSupervisor, strategy: :one_for_one}
-      ] ++ configured_workstation()
+        {DynamicSupervisor, name: Vws.WorkstationSupervisor, strategy: :one_for_one},
+        {DynamicSupervisor, name: Vws.WebSupervisor, strategy: :one_for_one}
+      ] ++ configured_workstation() ++ configured_http()
 
     Supervisor.start_link(children, strategy: :one_for_one, name: Vws.Supervisor)
   end
@@ -30,6 +31,15 @@ defmodule Vws.Application do
             restart: :temporary
           )
         ]
+    end
+  end
+
+  # The dashboard and MTConnect agent of config/runtime.exs (`config :vws, :http, port: …`).
+  # Nothing is configured in dev and test: there the mix tasks and the tests start what they need.
+  defp configured_http do
+    case Application.get_env(:vws, :http) do
+      nil -> []
+      opts -> [Supervisor.child_spec({Vws.Web, opts}, id: :configured_http)]
     end
   end
 end

@@ -47,7 +47,11 @@ defmodule Vws.DDCMP do
       `:restart` (after `restart/1`), `:maintenance`, `:closed` or `{:transport, reason}`;
     * `{:ddcmp, link, :peer_restarted}` — a STRT arrived while RUNNING: the peer restarted.
 
-  `:up` alternates with `{:down, _}` / `:peer_restarted`. Whenever the link leaves RUNNING the
+  `:up` alternates with `{:down, _}` / `:peer_restarted`. Each time the link enters RUNNING a new
+  **session** begins; sessions are numbered 1, 2, … in the order of the `:up` messages, so an
+  owner that counts its `:up`s knows the session of every message it handles (the messages come in
+  order) — even when the link has already restarted and is RUNNING again in a later one, its news
+  still in the owner's mailbox. Whenever the link leaves RUNNING the
   messages not yet acknowledged by the peer, and those still queued, are dropped: the layer above
   decides what to send again. Messages given to `send_data/2` while the link is not RUNNING wait
   for it (in order) and go out once it is.
@@ -87,7 +91,8 @@ defmodule Vws.DDCMP do
   | ASTRT | receive STRT | send STACK, start timer | ASTRT |
   | ASTRT | timer expires | send STACK, start timer | ASTRT |
   | ASTRT | receive other ACK, NAK, REP, data, error | ignore | ASTRT |
-  | RUNNING | `send_data/2` | queue; sent when T = N + 1 and N − A < window, with RESP = R | RUNNING |
+  | ISTRT / ASTRT → RUNNING | (entering RUNNING) | session := session + 1 | RUNNING |
+  | RUNNING | `send_data/2` (with `session:`, only that session's) | queue; sent when T = N + 1 and N − A < window, with RESP = R | RUNNING |
   | RUNNING | receive data, NUM = R + 1 | R := NUM, give to owner, set SACK | RUNNING |
   | RUNNING | receive data, other NUM | discard | RUNNING |
   | RUNNING | receive data or ACK, A < RESP ≤ N | A := RESP (messages up to it done), T := max(T, A + 1); all done → stop timer | RUNNING |
@@ -212,13 +217,25 @@ defmodule Vws.DDCMP do
 
   With `hold: false` a message is refused with `{:error, :not_running}` unless the link is RUNNING:
   a command meant for this session must never be delivered in the next one (after a restart).
+
+  With `session: n` (the owner's count of `:up` messages, see "Owner messages") a message is
+  refused with `{:error, :not_running}` unless the link is RUNNING **in session `n`**: what the
+  owner sends in answer to a message of session `n` never reaches the peer in a later session,
+  however far behind the link the owner is. `hold: false` cannot promise that: by the time the
+  owner answers, the link may have restarted and be RUNNING again.
   """
   @spec send_data(link, iodata, keyword) :: :ok | {:error, :too_long | :not_running}
   def send_data(link, iodata, opts \\ []) do
-    if Keyword.get(opts, :hold, true) do
-      :gen_statem.call(link, {:send, IO.iodata_to_binary(iodata)})
-    else
-      :gen_statem.call(link, {:send_now, IO.iodata_to_binary(iodata)})
+    bytes = IO.iodata_to_binary(iodata)
+
+    case Keyword.fetch(opts, :session) do
+      {:ok, session} when is_integer(session) ->
+        :gen_statem.call(link, {:send_in, session, bytes})
+
+      :error ->
+        if Keyword.get(opts, :hold, true),
+          do: :gen_statem.call(link, {:send, bytes}),
+          else: :gen_statem.call(link, {:send_now, bytes})
     end
   end
 
@@ -232,7 +249,8 @@ defmodule Vws.DDCMP do
   def restart(link), do: :gen_statem.call(link, :restart)
 
   @doc """
-  The link's state and numbers: `state`, `role`, `connected`, `peer`, `r`, `n`, `a`, `t`,
+  The link's state and numbers: `state`, `role`, `connected`, `peer`, `session` (the number of
+  the latest session, 0 before the first), `r`, `n`, `a`, `t`,
   `window`, `outstanding`, `queue` (waiting for the window), `failures` (successive),
   `counters` (`sent, received, retransmitted, naks_sent, naks_received, reps_sent, timeouts,
   header_crc_errors, data_crc_errors, restarts, ignored, unexpected`), `halt_reason` (HALTED only)

@@ -15,11 +15,11 @@ defmodule Vws.Demo do
   which starts the simulated device (the `opts` carry `:workstation` and `:time_scale`) and says
   which workstation links and partition options reach it. Today the list holds the whole floor
   (`Vws.Sim.Floor`): the plant with DAQ #1 (VWS_STATUS, GRIPPER, FIXTURE and VACUUM reach it; ROBOT
-  gets its tray locks, MONARCH its cycle-start relay), the GE-2000 (whose cycle-start input is
-  that relay), the VAL II robot and the material-handling system, with a blank in tray #1. The
-  hydraulic controller is being built, so HYDRAULIC starts without a device link and answers
-  each valid command `ERROR NO LINK TO <device>` — truthfully — and a cycle stops at its first
-  such command.
+  gets its tray locks, MONARCH its cycle-start relay), DAQ #2 with the hydraulic controller
+  (HYDRAULIC), the GE-2000 (whose cycle-start input is that relay), the VAL II robot and the
+  material-handling system, with a blank in tray #1. A partition whose device is not on the
+  floor starts without a device link and answers each valid command `ERROR NO LINK TO
+  <device>` — truthfully — and a cycle stops at its first such command.
 
   ## The printed dialogue
 

@@ -29,9 +29,17 @@ defmodule Vws.DNC do
     * When a limit is reached the link sends EOT and the request ends `{:error, %Vws.DNC.LinkError{}}`.
       A transmission either completes with every block acknowledged or ends with an error; a
       receiver never hands on a partial transmission.
-    * A bad block received (bad BCC, malformed) is answered NAK; ENQ is answered by repeating the
-      last reply. An EOT right after our NAK or WACK means the sender gave up: what arrived is not
-      handed on as a transmission (a request waiting for it ends `:aborted`).
+    * A bad block received (bad BCC, malformed — a control inside it, which makes it one error,
+      see `Vws.DNC.Frame`) is answered NAK; ENQ is answered by repeating the last reply. An EOT
+      right after our NAK or WACK means the sender gave up: what arrived is not handed on as a
+      transmission (a request waiting for it ends `:aborted`).
+    * **Every block counts once.** Blocks carry no number; the ACK0/ACK1 alternation is what
+      tells a copy from the next block. A block equal to the last one accepted, while a copy of
+      it may still come (one per NAK we sent for it, and at least one for an ACK the sender did
+      not see or misread), is answered with that block's ACK again and dropped; a block after our
+      NAK replaces nothing accepted. A new block that merely repeats the last one's text is
+      answered the same way at first: the sender finds the parity wrong, asks with ENQ, gets the
+      same ACK and sends it again, and then it is taken — a round trip lost, never a block.
     * Limit of the line discipline (no ETB in this link): when a sender gives up after its
       acknowledgements were lost, the receiver cannot tell that EOT from a normal end.
 
@@ -79,7 +87,7 @@ defmodule Vws.DNC do
   | `[:vws, :dnc, :connected]` / `:disconnected` | `count` | `link, role, peer` (+ `reason`) |
   | `[:vws, :dnc, :block_sent]` | `bytes` | `link, role, block, retransmission` |
   | `[:vws, :dnc, :block_received]` | `bytes` | `link, role, block` |
-  | `[:vws, :dnc, :retry]` | `count` | `link, role, kind` (`:nak_received`, `:nak_sent`, `:wack_received`, `:no_reply`, `:lost_reply`), `block` |
+  | `[:vws, :dnc, :retry]` | `count` | `link, role, kind` (`:nak_received`, `:nak_sent`, `:wack_received`, `:no_reply`, `:lost_reply`, `:duplicate_received`), `block` |
   | `[:vws, :dnc, :transmission]` | `duration` (native), `blocks`, `bytes` | `link, role, direction, result` (+ `kind`) |
 
   ## Example

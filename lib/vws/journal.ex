@@ -23,8 +23,10 @@ defmodule Vws.Journal do
   but not yet dispatched — when the workstation went down answers `ERROR INTERRUPTED BY RESTART`
   and is never run again by itself: a robot move is physical.
 
-  The log is a wrap log (`:max_bytes` × `:max_files`, bounded) opened with `repair: true`, so a torn
-  last record (power lost in the middle of a write) is cut off and the records before it are kept.
+  The log is a wrap log (`:max_bytes` × `:max_files`, bounded) opened with `repair: true`; it is
+  read record by record, so a torn last record (power lost in the middle of a write) is cut off and
+  the records before it are kept. Each time the journal opens it is compacted to one snapshot of
+  the restored state, so damage never stands in front of new records.
 
   ## Options
 
@@ -108,9 +110,12 @@ defmodule Vws.Journal do
       restore(table, read_all(log))
     end
 
-    :ets.insert(table, {:journal, log, Keyword.get(opts, :snapshot_every, 500)})
+    # Compact: the snapshot of the restored state replaces everything before it, so a damaged
+    # record never stands in front of the records written from now on.
+    :ok = :disk_log.truncate(log)
     :ok = :disk_log.log(log, {:snapshot, state_of(table)})
     :ok = :disk_log.sync(log)
+    :ets.insert(table, {:journal, log, Keyword.get(opts, :snapshot_every, 500)})
     {:ok, %{workstation: ws, log: log}}
   end
 
@@ -122,8 +127,10 @@ defmodule Vws.Journal do
 
   defp read_all(log), do: read_all(log, :start, [])
 
+  # One term at a time: a damaged record loses only itself and what follows it, never the good
+  # records read in the same block.
   defp read_all(log, cont, acc) do
-    case :disk_log.chunk(log, cont) do
+    case :disk_log.chunk(log, cont, 1) do
       :eof ->
         acc |> Enum.reverse() |> List.flatten()
 

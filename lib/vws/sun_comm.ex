@@ -137,8 +137,7 @@ defmodule Vws.SunComm do
     else
       case Transport.listen(endpoint) do
         {:ok, listener} ->
-          me = self()
-          acceptor = spawn_link(fn -> accept_loop(listener, me) end)
+          acceptor = Transport.start_acceptor(listener, self(), :wc_accepted)
           bound = Transport.listener_endpoint(listener)
           Logger.info("SUN_COMM listening for the WC on #{bound}")
           {:noreply, %{s | listener: listener, listening: bound, acceptor: acceptor}}
@@ -146,18 +145,6 @@ defmodule Vws.SunComm do
         {:error, reason} ->
           {:stop, {:cannot_listen, s.endpoint, reason}, s}
       end
-    end
-  end
-
-  defp accept_loop(listener, owner) do
-    case Transport.accept(listener, :infinity) do
-      {:ok, conn} ->
-        :ok = Transport.controlling_process(conn, owner)
-        send(owner, {:wc_accepted, conn})
-        accept_loop(listener, owner)
-
-      {:error, reason} ->
-        exit({:accept_failed, reason})
     end
   end
 

@@ -42,6 +42,7 @@ defmodule Vws.Telemetry do
   | `[:vws, :dnc, :block_received]` | `bytes` | `link, role, block` |
   | `[:vws, :dnc, :retry]` | `count` | `link, role, kind, block` |
   | `[:vws, :dnc, :transmission]` | `duration, blocks, bytes` | `link, role, direction, result` |
+  | `[:vws, :web, :request]` | `duration, bytes` | `method, path, status, port` |
   | `[:vws, :hpib, :connected]` / `:disconnected` | `count` | `bus, address, endpoint` (+ `reason`) |
   | `[:vws, :hpib, :timeout]` | `count` | `bus, address, endpoint, commands` |
   | `[:vws, :vws_status, :poll]` | `started_at, lateness, duration, handling` (µs) | `workstation, seq, result` |
@@ -97,6 +98,7 @@ defmodule Vws.Telemetry do
     [:vws, :vws_status, :poll],
     [:vws, :vws_status, :missed],
     [:vws, :vws_status, :stale],
+    [:vws, :web, :request],
     [:vws, :interlock, :acquired],
     [:vws, :interlock, :refused],
     [:vws, :interlock, :released]

@@ -158,6 +158,28 @@ defmodule Vws.Transport do
     end
   end
 
+  @doc """
+  Starts a process, linked to the caller, that accepts connections on `listener` for ever: each
+  one is handed to `owner` (its controlling process from then on) as the message `{tag, conn}`.
+  When accepting fails (the listener was closed) it exits `{:shutdown, {:accept_failed, reason}}`.
+  """
+  @spec start_acceptor(Listener.t(), pid, atom) :: pid
+  def start_acceptor(%Listener{} = listener, owner, tag) do
+    spawn_link(fn -> accept_loop(listener, owner, tag) end)
+  end
+
+  defp accept_loop(listener, owner, tag) do
+    case accept(listener, :infinity) do
+      {:ok, conn} ->
+        :ok = controlling_process(conn, owner)
+        Kernel.send(owner, {tag, conn})
+        accept_loop(listener, owner, tag)
+
+      {:error, reason} ->
+        exit({:shutdown, {:accept_failed, reason}})
+    end
+  end
+
   @doc "Stops listening."
   @spec close_listener(Listener.t()) :: :ok
   def close_listener(%Listener{module: module, handle: handle}), do: module.close_listener(handle)

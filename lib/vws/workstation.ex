@@ -27,7 +27,9 @@ defmodule Vws.Workstation do
       `[ge2000: "tcp://host:port"]` adds the DNC link to the GE-2000 and gives it to MONARCH;
       `[robot: "tcp://host:port"]` adds a `Vws.VAL` (with its `Vws.DDCMP` link) and gives it to ROBOT;
       `[daq1: "tcp://host:5025"]` puts DAQ #1 on the HPIB, links VWS_STATUS, GRIPPER, FIXTURE and
-      VACUUM to it, and gives MONARCH its cycle-start relay and ROBOT its tray locks
+      VACUUM to it, and gives MONARCH its cycle-start relay and ROBOT its tray locks;
+      `[hydraulic: "tcp://host:port"]` puts the hydraulic controller on the HPIB and links HYDRAULIC
+      and the PALLET status to it
     * `:partitions` — per partition, keyword options: `[robot: [link: …, module: …, options: …]]`
   """
   use Supervisor
@@ -72,7 +74,8 @@ defmodule Vws.Workstation do
     partitions =
       [
         {Vws.Partitions.VwsStatus,
-         [workstation: ws] ++ Keyword.get(partition_opts, :vws_status, [])}
+         [workstation: ws, devices: Keyword.keys(Keyword.get(opts, :devices, []))] ++
+           Keyword.get(partition_opts, :vws_status, [])}
       ] ++
         for {p, default_module} <- @partition_modules do
           popts = Keyword.get(partition_opts, p, [])
@@ -147,6 +150,9 @@ defmodule Vws.Workstation do
 
   `daq1: endpoint` (or `daq1: [endpoint: …, …]`) puts DAQ #1 on the HPIB and merges in the
   partition options of `Vws.Partitions.VwsStatus.wiring/3` (explicit ones win).
+
+  `hydraulic: endpoint` (or `hydraulic: [endpoint: …, …]`) puts the hydraulic controller on the
+  HPIB with the PALLET monitor and merges in the options of `Vws.Partitions.Hydraulic.wiring/3`.
   """
   @spec device_links(term, keyword, keyword) ::
           {[Supervisor.child_spec() | {module, term}], keyword}
@@ -181,8 +187,13 @@ defmodule Vws.Workstation do
         %{links: more, partitions: wired} = daq1(ws, spec)
         {links ++ more, merge_partitions(wired, popts)}
 
+      {:hydraulic, spec}, {links, popts} ->
+        %{links: more, partitions: wired} = hydraulic(ws, spec)
+        {links ++ more, merge_partitions(wired, popts)}
+
       {device, _spec}, _acc ->
-        raise ArgumentError, "unknown device #{inspect(device)} (known: :ge2000, :robot, :daq1)"
+        raise ArgumentError,
+              "unknown device #{inspect(device)} (known: :ge2000, :robot, :daq1, :hydraulic)"
     end)
   end
 
@@ -192,6 +203,13 @@ defmodule Vws.Workstation do
 
   defp daq1(ws, opts) when is_list(opts),
     do: Vws.Partitions.VwsStatus.wiring(ws, Keyword.fetch!(opts, :endpoint), opts)
+
+  # The hydraulic controller on the HPIB: its link, the PALLET monitor, HYDRAULIC's link.
+  defp hydraulic(ws, endpoint) when is_binary(endpoint),
+    do: Vws.Partitions.Hydraulic.wiring(ws, endpoint)
+
+  defp hydraulic(ws, opts) when is_list(opts),
+    do: Vws.Partitions.Hydraulic.wiring(ws, Keyword.fetch!(opts, :endpoint), opts)
 
   # Partition options merged per partition, and their `options:` merged too; `right` wins.
   defp merge_partitions(left, right) do

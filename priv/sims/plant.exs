@@ -52,8 +52,8 @@
     114 => %{kind: :switch, signal: :tray1_locked},
     # closed when the lock pin of tray #2 is engaged
     115 => %{kind: :switch, signal: :tray2_locked},
-    # spare: wired to nothing
-    116 => %{kind: :spare, signal: :spare},
+    # closed when the fingers of tool changer 1 have released (the CHANGER_1 status)
+    116 => %{kind: :switch, signal: :changer1_released},
     # vise clamping force, read with MEAS:RES? (@117): 350 ohm unloaded, 370 ohm at 2000 N
     117 => %{kind: :gauge, signal: :vise_force_n, ohms_at_zero: 350.0, ohms_per_newton: 0.01},
 

@@ -22,6 +22,9 @@ defmodule Vws.DAQTest do
     DAQ.readings(DAQ.new(), [volts(volt_overrides), [ohms]])
   end
 
+  # the shipped map with channel 116 back to spare
+  @spare_116 %{daq1: %{116 => %{kind: :spare, signal: :spare}}}
+
   describe "the driver" do
     test "reads slot 1 as one voltage scan and the gauge as one resistance reading" do
       assert DAQ.poll_commands(DAQ.new()) == [
@@ -53,7 +56,7 @@ defmodule Vws.DAQTest do
     end
 
     test "a switch can be wired to a spare channel; anything else is refused" do
-      daq = DAQ.new(switches: [changer1_released: 116])
+      daq = DAQ.new(channel_map: @spare_116, switches: [changer1_released: 116])
       r = DAQ.readings(daq, [volts(%{116 => @closed}), [350.0]])
       assert r.values.changer1_released == true
       assert_raise ArgumentError, fn -> DAQ.new(switches: [changer1_released: 103]) end
@@ -134,8 +137,10 @@ defmodule Vws.DAQTest do
     end
 
     test "CHANGER_1 only from a wired switch" do
-      assert DeviceStatus.changer_1(readings(%{})) == "NO DATA (CHANGER_1 NOT WIRED TO DAQ #1)"
-      daq = DAQ.new(switches: [changer1_released: 116])
+      unwired = DAQ.new(channel_map: @spare_116)
+      no_switch = DAQ.readings(unwired, [volts(%{}), [350.0]])
+      assert DeviceStatus.changer_1(no_switch) == "NO DATA (CHANGER_1 NOT WIRED TO DAQ #1)"
+      daq = DAQ.new()
 
       assert DeviceStatus.changer_1(DAQ.readings(daq, [volts(%{116 => @closed}), [350.0]])) ==
                "CHANGER_1 FINGERS RELEASED"

@@ -161,6 +161,28 @@ defmodule Vws.DDCMPTest do
     assert DDCMP.info(link).state != :running
   end
 
+  test "send_data with session: n goes only into session n, never into a later one the link has begun" do
+    {_relay, a, b} = pair([], [])
+    assert DDCMP.info(a).session == 1
+    assert DDCMP.send_data(a, "first", session: 1) == :ok
+    assert_receive {:ddcmp, ^b, {:data, "first"}}, 5000
+
+    # the link restarts and is RUNNING again before its owner has handled anything of it:
+    # an answer the owner gives to a message of session 1 must not reach the peer in session 2
+    :ok = DDCMP.restart(a)
+    assert_receive {:ddcmp, ^a, {:down, :restart}}
+    assert_receive {:ddcmp, ^b, :peer_restarted}, 5000
+    assert_receive {:ddcmp, ^a, :up}, 5000
+    assert_receive {:ddcmp, ^b, :up}, 5000
+    assert %{state: :running, session: 2} = DDCMP.info(a)
+
+    assert DDCMP.send_data(a, "late answer", session: 1) == {:error, :not_running}
+    assert DDCMP.send_data(a, "second", session: 2) == :ok
+    assert_receive {:ddcmp, ^b, {:data, data}}, 5000
+    assert data == "second"
+    assert DDCMP.info(b).counters.received == 2
+  end
+
   test "lossy line (PropEr over seeds, windows, loss and damage rates): each message once, in order" do
     assert_property(lossy_line_property(), 4)
   end

@@ -399,6 +399,168 @@ defmodule Vws.DNCTest do
     end
   end
 
+  # A block counts once: a copy of the block just accepted (the sender did not see, or misread,
+  # its ACK; or it answered two NAKs) is acknowledged again with the same ACK and dropped. The same
+  # receive logic serves the GE-2000 in an S transfer and the CEC in the answer to its R command.
+  describe "receiving: every block counts once" do
+    # seed 6 of the line test: a flipped bit turned the 0 of N60 into DLE (LRC 0x72, python3)
+    @n60 "N60 G01 X6.5\n"
+    @n60_broken <<0x02, "N6", 0x10, " G01 X6.5\n", 0x03, 0x72>>
+
+    # GE role, slave: the peer bids and sends an SNS command; ACK1 answers it.
+    defp ge_receiving(ctx) do
+      {link, peer} = connected(ctx, role: :ge)
+      DNCPeer.send_raw(peer, @enq)
+      expect(peer, @ack0)
+      DNCPeer.send_raw(peer, @sns_bytes)
+      expect(peer, @ack1)
+      {link, peer}
+    end
+
+    # CEC role: its RNL request is sent, the peer bids back; the task ends with what it got.
+    defp cec_receiving(ctx) do
+      {link, peer} = connected(ctx)
+      task = request(link, @rnl, [])
+      expect(peer, @enq)
+      DNCPeer.send_raw(peer, @ack0)
+      expect(peer, @rnl_bytes)
+      DNCPeer.send_raw(peer, @ack1)
+      expect(peer, @eot)
+      DNCPeer.send_raw(peer, @enq_del)
+      expect(peer, @ack0)
+      {link, peer, task}
+    end
+
+    defp finish(link, peer, :ge) do
+      DNCPeer.send_raw(peer, @eot)
+      assert_receive {:dnc, ^link, {:received, @sns, blocks}}, 5_000
+      blocks
+    end
+
+    defp finish(_link, peer, task) do
+      DNCPeer.send_raw(peer, @eot_del)
+      assert {:ok, blocks} = Task.await(task)
+      blocks
+    end
+
+    for side <- [:ge, :cec] do
+      test "#{side}: a lost ACK, the block sent again: same ACK, the copy dropped", ctx do
+        {link, peer, how} = receiving(unquote(side), ctx)
+        {odd, even} = acks(unquote(side))
+        DNCPeer.send_raw(peer, text("O1\n"))
+        expect(peer, odd)
+        # the sender did not see ACK0; it asks, is told, but (misreading it) sends the block again
+        DNCPeer.send_raw(peer, @enq)
+        expect(peer, odd)
+        DNCPeer.send_raw(peer, text("O1\n"))
+        expect(peer, odd)
+        # a sender that resends on its reply timeout, without asking, gets the same answer
+        DNCPeer.send_raw(peer, text("N10\n"))
+        expect(peer, even)
+        DNCPeer.send_raw(peer, text("N10\n"))
+        expect(peer, even)
+        DNCPeer.send_raw(peer, text("M30\n"))
+        expect(peer, odd)
+        assert finish(link, peer, how) == ["O1\n", "N10\n", "M30\n"]
+        assert DNC.info(link).counters.duplicates == 2
+      end
+
+      test "#{side}: a block broken off by a control draws one NAK; sent again, it is taken once",
+           ctx do
+        {link, peer, how} = receiving(unquote(side), ctx)
+        {odd, even} = acks(unquote(side))
+        DNCPeer.send_raw(peer, text("O1\n"))
+        expect(peer, odd)
+        DNCPeer.send_raw(peer, @n60_broken)
+        expect(peer, @nak)
+        assert DNCPeer.quiet?(peer, 100)
+        DNCPeer.send_raw(peer, text(@n60))
+        expect(peer, even)
+        DNCPeer.send_raw(peer, text("M30\n"))
+        expect(peer, odd)
+        assert finish(link, peer, how) == ["O1\n", @n60, "M30\n"]
+        assert DNC.info(link).counters.naks_sent == 1
+      end
+
+      test "#{side}: two NAKs for one block bring two copies; the second is dropped", ctx do
+        # the seed-6 failure: the first NAK is on its way when the sender polls, and the NAK
+        # said again makes it send the block a second time
+        {link, peer, how} = receiving(unquote(side), ctx)
+        {odd, even} = acks(unquote(side))
+        DNCPeer.send_raw(peer, text("O1\n"))
+        expect(peer, odd)
+        # a bad BCC (it is 0x72)
+        DNCPeer.send_raw(peer, <<0x02, @n60::binary, 0x03, 0x00>>)
+        expect(peer, @nak)
+        DNCPeer.send_raw(peer, @enq)
+        expect(peer, @nak)
+        DNCPeer.send_raw(peer, text(@n60))
+        expect(peer, even)
+        DNCPeer.send_raw(peer, text(@n60))
+        expect(peer, even)
+        DNCPeer.send_raw(peer, text("M30\n"))
+        expect(peer, odd)
+        assert finish(link, peer, how) == ["O1\n", @n60, "M30\n"]
+      end
+
+      test "#{side}: after our NAK a copy of the block before replaces nothing", ctx do
+        {link, peer, how} = receiving(unquote(side), ctx)
+        {odd, even} = acks(unquote(side))
+        DNCPeer.send_raw(peer, text("O1\n"))
+        expect(peer, odd)
+        # the next thing arrives damaged (the sender's poll, say): NAK; the sender, which never
+        # saw ACK0, sends O1 again
+        DNCPeer.send_raw(peer, @n60_broken)
+        expect(peer, @nak)
+        DNCPeer.send_raw(peer, text("O1\n"))
+        expect(peer, odd)
+        DNCPeer.send_raw(peer, text(@n60))
+        expect(peer, even)
+        assert finish(link, peer, how) == ["O1\n", @n60]
+      end
+
+      test "#{side}: a new block equal to the last is not lost: the sender's poll brings it in",
+           ctx do
+        {link, peer, how} = receiving(unquote(side), ctx)
+        {odd, even} = acks(unquote(side))
+        DNCPeer.send_raw(peer, text("G04 P1\n"))
+        expect(peer, odd)
+        # the same text again, as the next block: taken for a copy, answered ACK0 ...
+        DNCPeer.send_raw(peer, text("G04 P1\n"))
+        expect(peer, odd)
+        # ... the sender, waiting for ACK1, asks; ACK0 again: it sends the block again
+        DNCPeer.send_raw(peer, @enq)
+        expect(peer, odd)
+        DNCPeer.send_raw(peer, text("G04 P1\n"))
+        expect(peer, even)
+        DNCPeer.send_raw(peer, text("M30\n"))
+        expect(peer, odd)
+        assert finish(link, peer, how) == ["G04 P1\n", "G04 P1\n", "M30\n"]
+      end
+    end
+
+    defp receiving(:ge, ctx) do
+      {link, peer} = ge_receiving(ctx)
+      {link, peer, :ge}
+    end
+
+    defp receiving(:cec, ctx), do: cec_receiving(ctx)
+
+    # The acknowledgements of the 1st, 3rd, … and the 2nd, 4th, … text block: the GE's text
+    # follows the command block (ACK1), the CEC's is the first thing after the bid (ACK0).
+    defp acks(:ge), do: {@ack0, @ack1}
+    defp acks(:cec), do: {@ack1, @ack0}
+
+    test "ge: the command block sent again is acknowledged again, not refused", ctx do
+      {link, peer} = ge_receiving(ctx)
+      DNCPeer.send_raw(peer, @sns_bytes)
+      expect(peer, @ack1)
+      DNCPeer.send_raw(peer, text("O1\n"))
+      expect(peer, @ack0)
+      assert finish(link, peer, :ge) == ["O1\n"]
+    end
+  end
+
   describe "connection" do
     test "requests while down end :link_down at once; the link reconnects", ctx do
       {link, peer} = connected(ctx, backoff_min: 10, backoff_max: 20)

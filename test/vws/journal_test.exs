@@ -70,19 +70,17 @@ defmodule Vws.JournalTest do
     :ok = Mailbox.dispatch(id, :gripper, 4, "OPEN")
     :ok = Mailbox.finish(id, :gripper, 4, :done)
 
-    # power lost: the files as they are on disk while the log is open (not closed cleanly) …
-    files = Path.wildcard(Path.join(dir, "journal*"))
-    saved = Map.new(files, &{&1, File.read!(&1)})
+    # power lost: the log process dies without closing its files …
+    [log_pid] =
+      for {_, pid, _, _} <- Supervisor.which_children(:disk_log_sup),
+          :disk_log.pid2name(pid) == {:ok, {:vws_journal, id}},
+          do: pid
+
+    Process.exit(log_pid, :kill)
     :ok = stop_supervised(id)
-    for {file, bytes} <- saved, do: File.write!(file, bytes)
 
     # … in the middle of writing one more record
-    [current] =
-      files
-      |> Enum.filter(&(&1 =~ ~r/journal\.\d+$/))
-      |> Enum.sort_by(&byte_size(saved[&1]))
-      |> Enum.take(-1)
-
+    [current] = Path.wildcard(Path.join(dir, "journal.[0-9]*"))
     File.write!(current, <<0, 0, 0, 40, 0x12, 0x34, 0x56, 0x78, 131, 104, 4>>, [:append])
 
     log =
@@ -92,6 +90,18 @@ defmodule Vws.JournalTest do
       end)
 
     assert log =~ "repaired" or log =~ "unreadable"
+
+    # and the next restart finds the journal whole again (it was compacted on open)
+    :ok = Mailbox.dispatch(id, :gripper, 5, "CLOSE")
+    :ok = stop_supervised(id)
+
+    quiet =
+      ExUnit.CaptureLog.capture_log(fn ->
+        start_ws(id, dir)
+        assert Mailbox.command_status(id, :gripper) == {5, {:error, "INTERRUPTED BY RESTART"}}
+      end)
+
+    refute quiet =~ "unreadable"
   end
 
   test "the journal is bounded and the newest state survives the wrap", %{tmp_dir: dir} do

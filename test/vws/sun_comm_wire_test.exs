@@ -31,6 +31,8 @@ defmodule Vws.SunCommWireTest do
 
   test "over TCP" do
     %{ws: ws} = Workstation.start(wc: "tcp://127.0.0.1:0")
+    # SUN_COMM opens its listener once OK_TO_PROCEED has reached it
+    assert Vws.Test.Eventually.eventually(fn -> Vws.SunComm.listening(ws) != nil end)
     endpoint = Vws.SunComm.listening(ws)
     assert endpoint.kind == :tcp and endpoint.port > 0
     {:ok, peer} = WCPeer.connect(to_string(endpoint))

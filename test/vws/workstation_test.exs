@@ -13,6 +13,12 @@ defmodule Vws.WorkstationTest do
     assert ws in WS.list()
   end
 
+  test "device statuses say whether a device has no link or has not been read yet" do
+    %{ws: ws} = Workstation.start(devices: [robot: "loopback:no-robot-here"])
+    assert Mailbox.get_device(ws, 9) |> elem(0) == "NO DATA (VAL II NOT READ YET)"
+    assert Mailbox.get_device(ws, 8) |> elem(0) == "NO DATA (NO LINK TO GE-2000)"
+  end
+
   test "several workstations run side by side on one node, each with its own mailboxes" do
     %{ws: a, wc: wc_a} = Workstation.start()
     %{ws: b, wc: wc_b} = Workstation.start()
@@ -58,7 +64,8 @@ defmodule Vws.WorkstationTest do
 
       assert Eventually.eventually(fn -> Partition.whereis(ws, :robot) not in [nil, old] end)
 
-      assert WCPeer.status(peer, 2, 39, "ROBOT_CMD") ==
+      # the name is registered before init/1 has run: wait for the restarted partition's verdict
+      assert WCPeer.await_status(peer, 39, "ROBOT_CMD", &(&1 =~ "ERROR")) ==
                "0009ERROR INTERRUPTED BY PARTITION RESTART"
 
       refute_receive {:executing, _, 9, _}, 200

@@ -18,7 +18,9 @@ defmodule Mix.Tasks.Vws.Demo do
     * `--time-scale N` — passed to the shop floor's simulators (default 1)
     * `--wc-port N` — the TCP port SUN_COMM serves the WC on (default: a free port); another WC
       connecting there takes over the link
-    * `--http-port N` — the dashboard's port (the dashboard is not available yet)
+    * `--http-port N` — the dashboard and MTConnect agent (`Vws.Web`) on port N (default 4000;
+      0 picks a free port)
+    * `--http-bind ADDR`, `--http-token TOKEN` — as for `mix vws.serve`
     * `--id ID` — the workstation id (default `VWS-DEMO`)
     * `--verbose` — keep the application's info logs (by default only warnings interleave with
       the dialogue)
@@ -33,6 +35,8 @@ defmodule Mix.Tasks.Vws.Demo do
     time_scale: :float,
     wc_port: :integer,
     http_port: :integer,
+    http_bind: :string,
+    http_token: :string,
     id: :string,
     verbose: :boolean
   ]
@@ -53,9 +57,7 @@ defmodule Mix.Tasks.Vws.Demo do
       [time_scale: time_scale, wc: "tcp://127.0.0.1:#{opts[:wc_port] || 0}"] ++
         Keyword.take(opts, [:script, :id])
 
-    if port = opts[:http_port] do
-      IO.puts("--http-port #{port}: the dashboard is not available yet; nothing listens there")
-    end
+    IO.puts("dashboard and MTConnect agent: #{start_web(opts)}")
 
     case Vws.Demo.run(demo_opts) do
       {:ok, summary, floor, _client} ->
@@ -72,7 +74,7 @@ defmodule Mix.Tasks.Vws.Demo do
           true ->
             IO.puts(
               "The shop floor keeps running: SUN_COMM serves the WC on #{floor.wc}. " <>
-                "No dashboard yet. Ctrl-C to stop."
+                "Ctrl-C to stop."
             )
 
             unless Code.ensure_loaded?(IEx) and IEx.started?(), do: Process.sleep(:infinity)
@@ -80,6 +82,13 @@ defmodule Mix.Tasks.Vws.Demo do
 
       {:error, message} ->
         Mix.raise(message)
+    end
+  end
+
+  defp start_web(opts) do
+    case Vws.Web.start_from_cli(opts) do
+      {:ok, url} -> url
+      {:error, message} -> Mix.raise(message)
     end
   end
 end

@@ -2,8 +2,9 @@ defmodule Mix.Tasks.Vws.Serve do
   @shortdoc "Starts a VWS workstation and waits for a workstation controller"
   @moduledoc """
   Starts one workstation (VWS_CONTROL, the mailboxes, the partitions and SUN_COMM) and waits for a
-  workstation controller. The simulated plant and DAQ #1 (`Vws.Sim.Floor`) start first and the
-  workstation is connected to them, unless `--daq1` points at a real instrument.
+  workstation controller. The simulated plant, DAQ #1, DAQ #2 and the hydraulic controller on it
+  (`Vws.Sim.Floor`) start first and the workstation is connected to them, unless `--daq1` points
+  at a real instrument and `--hydraulic` at a hydraulic controller running elsewhere.
 
       mix vws.serve                       # WC on tcp://127.0.0.1:7070
       mix vws.serve --wc-port 7071 --bind 0.0.0.0
@@ -11,7 +12,9 @@ defmodule Mix.Tasks.Vws.Serve do
       mix vws.serve --time-scale 10       # the simulated plant ten times faster
       mix vws.serve --daq1 tcp://10.0.0.9:5025   # a real DAQ #1 (LAN SCPI socket): no simulators
       mix vws.serve --ge2000 tty:/dev/ttyS1?baud=4800   # the real VMC instead of the simulator
+      mix vws.serve --hydraulic tcp://10.0.0.12:5026    # a hydraulic controller of its own (mix vws.hydraulic)
       iex -S mix vws.serve                # the same, with a shell to inspect it live
+      mix vws.serve --http-port 8080      # the dashboard and MTConnect agent on another port
 
   Options:
 
@@ -23,6 +26,11 @@ defmodule Mix.Tasks.Vws.Serve do
     * `--time-scale N` — the simulated plant runs N times faster than real time (default 1)
     * `--daq1 ENDPOINT` — DAQ #1 is real equipment there; the plant and DAQ #1 are not simulated
     * `--daq1-port N` — the TCP port the simulated DAQ #1 listens on (default: a free port)
+    * `--http-port N` — the dashboard and MTConnect agent (`Vws.Web`) on port N (default 4000;
+      0 picks a free port)
+    * `--http-bind ADDR` — the address they listen on (default 127.0.0.1)
+    * `--http-token TOKEN` — enables the dashboard's control actions for requests carrying this
+      token (default: `$VWS_HTTP_TOKEN`, else none: read-only)
     * `--robot ENDPOINT` — the VAL II's supervisory port (`tty:/dev/ttyS1?baud=9600`, a terminal
       server's `tcp://host:port`); without it a simulated VAL II (`Vws.Sim.VAL2`) is started on a
       free local port and ROBOT is connected to it
@@ -31,6 +39,9 @@ defmodule Mix.Tasks.Vws.Serve do
       server's `tcp://host:port`). Without it a simulated GE-2000 (`Vws.Sim.GE2000`) is started on
       a free local port and connected; its cycle-start button stands in for the DAQ #1 relay.
     * `--ge2000-baud N` — pace the simulated GE-2000's line at N Bd (default: unpaced)
+    * `--hydraulic ENDPOINT` — the hydraulic controller's HPIB endpoint, e.g. one started on another
+      node or machine with `mix vws.hydraulic`. Without it the hydraulic controller
+      (`Vws.HydraulicController`) runs in this node on the simulated plant's DAQ #2.
   """
   use Mix.Task
 
@@ -46,7 +57,11 @@ defmodule Mix.Tasks.Vws.Serve do
     robot: :string,
     robot_time_scale: :float,
     ge2000: :string,
-    ge2000_baud: :integer
+    ge2000_baud: :integer,
+    hydraulic: :string,
+    http_port: :integer,
+    http_bind: :string,
+    http_token: :string
   ]
 
   @impl true
@@ -69,7 +84,7 @@ defmodule Mix.Tasks.Vws.Serve do
 
     robot = robot(opts)
     {ge2000, monarch} = ge2000(opts)
-    devices = [ge2000: ge2000, robot: robot] ++ daq1_device(id, opts)
+    devices = [ge2000: ge2000, robot: robot] ++ floor_devices(id, opts)
 
     # a simulated GE-2000's own button is MONARCH's cycle start; else the DAQ #1 relay is
     {:ok, _} =
@@ -84,27 +99,61 @@ defmodule Mix.Tasks.Vws.Serve do
     listening = wait_listening(id, 50)
     Mix.shell().info("VWS workstation #{id}: SUN_COMM waits for the WC on #{listening || wc}")
     Mix.shell().info("GE-2000 DNC link: #{ge2000}")
-    Mix.shell().info("Inspect it: Vws.Mailbox.print(#{inspect(id)})   Stop: Ctrl-C twice")
+    Mix.shell().info("Dashboard and MTConnect agent: #{start_web(opts)}")
+    Mix.shell().info("Inspect it: Vws.Inspect.overview(#{inspect(id)})   Stop: Ctrl-C twice")
 
     unless iex_running?(), do: Process.sleep(:infinity)
   end
 
-  # DAQ #1: the real instrument given with --daq1, or the simulated plant and DAQ #1, started here.
-  defp daq1_device(id, opts) do
-    case opts[:daq1] do
-      nil ->
-        scale = opts[:time_scale] || 1.0
-        if scale <= 0, do: Mix.raise("--time-scale must be positive")
-        endpoint = "tcp://127.0.0.1:#{opts[:daq1_port] || 0}"
-        {:ok, _} = Vws.Sim.Floor.start_link(workstation: id, time_scale: scale, daq1: endpoint)
-        daq1 = Vws.Sim.Floor.daq1_endpoint(id)
-        Mix.shell().info("simulated plant (time scale ×#{scale}) and DAQ #1 on #{daq1}")
-        [daq1: daq1]
+  # DAQ #1 and the hydraulic controller: the real ones given with --daq1 / --hydraulic, or the
+  # simulated floor (plant, DAQ #1, DAQ #2, the hydraulic controller on it), started here.
+  defp floor_devices(id, opts) do
+    sim_daq1 = opts[:daq1] == nil
+    sim_hydraulic = opts[:hydraulic] == nil
 
-      real ->
-        Mix.shell().info("DAQ #1: #{real}")
-        [daq1: real]
+    if sim_daq1 or sim_hydraulic do
+      scale = opts[:time_scale] || 1.0
+      if scale <= 0, do: Mix.raise("--time-scale must be positive")
+      daq1 = sim_daq1 && "tcp://127.0.0.1:#{opts[:daq1_port] || 0}"
+
+      {:ok, _} =
+        Vws.Sim.Floor.start_link(
+          workstation: id,
+          time_scale: scale,
+          daq1: daq1,
+          daq2: sim_hydraulic && "tcp://127.0.0.1:0",
+          hydraulic: sim_hydraulic
+        )
+
+      Mix.shell().info("simulated plant (time scale ×#{scale})")
     end
+
+    daq1 =
+      if sim_daq1 do
+        endpoint = Vws.Sim.Floor.daq1_endpoint(id)
+        Mix.shell().info("simulated DAQ #1 on #{endpoint}")
+        endpoint
+      else
+        Mix.shell().info("DAQ #1: #{opts[:daq1]}")
+        opts[:daq1]
+      end
+
+    hydraulic =
+      if sim_hydraulic do
+        :ok = Vws.HydraulicController.await_ready(Vws.Sim.Floor.hydraulic_controller(id), 10_000)
+        endpoint = Vws.Sim.Floor.hydraulic_endpoint(id)
+
+        Mix.shell().info(
+          "hydraulic controller on #{endpoint}, its DAQ #2 simulated on #{Vws.Sim.Floor.daq2_endpoint(id)}"
+        )
+
+        endpoint
+      else
+        Mix.shell().info("hydraulic controller: #{opts[:hydraulic]}")
+        opts[:hydraulic]
+      end
+
+    [daq1: daq1, hydraulic: hydraulic]
   end
 
   # the real VAL II, or a simulated one started here (outside the workstation: it is equipment)
@@ -146,4 +195,11 @@ defmodule Mix.Tasks.Vws.Serve do
   end
 
   defp iex_running?, do: Code.ensure_loaded?(IEx) and IEx.started?()
+
+  defp start_web(opts) do
+    case Vws.Web.start_from_cli(opts) do
+      {:ok, url} -> url
+      {:error, message} -> Mix.raise(message)
+    end
+  end
 end

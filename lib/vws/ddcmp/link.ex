@@ -74,6 +74,8 @@ defmodule Vws.DDCMP.Link do
     srep: false,
     failures: 0,
     started_once: false,
+    # sessions: counts the entries into RUNNING (each one tells the owner :up)
+    session: 0,
     counters: Map.new(@counters, &{&1, 0}),
     last_error: nil
   ]
@@ -272,7 +274,9 @@ defmodule Vws.DDCMP.Link do
     changed(old_state, :running, data)
     {min_backoff, _} = data.backoff
     notify(data, :up)
-    {:keep_state, %__MODULE__{data | failures: 0, reconnect_delay: min_backoff}}
+
+    {:keep_state,
+     %__MODULE__{data | failures: 0, reconnect_delay: min_backoff, session: data.session + 1}}
   end
 
   def running(:internal, {:send, bytes}, data) do
@@ -397,6 +401,16 @@ defmodule Vws.DDCMP.Link do
 
   defp common(state, {:call, from}, {:send_now, bytes}, data) when is_binary(bytes) do
     if state == :running do
+      common(state, {:call, from}, {:send, bytes}, data)
+    else
+      {:keep_state_and_data, [{:reply, from, {:error, :not_running}}]}
+    end
+  end
+
+  # Only into the session the owner means: an answer to a message of an ended session is refused
+  # even when the link is RUNNING again (in a later session).
+  defp common(state, {:call, from}, {:send_in, session, bytes}, data) when is_binary(bytes) do
+    if state == :running and session == data.session do
       common(state, {:call, from}, {:send, bytes}, data)
     else
       {:keep_state_and_data, [{:reply, from, {:error, :not_running}}]}
@@ -736,6 +750,7 @@ defmodule Vws.DDCMP.Link do
       role: data.role,
       connected: data.conn != nil,
       peer: data.conn && Transport.peer(data.conn),
+      session: data.session,
       r: data.r,
       n: n(data),
       a: data.a,

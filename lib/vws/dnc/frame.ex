@@ -36,16 +36,30 @@ defmodule Vws.DNC.Frame do
       `encode(control_or_frame, pad: true)` appends one DEL, to speak like the GE-2000.
     * **No transparency.** The link runs X3.28 non-transparent: text may hold any byte except the
       transmission controls SOH STX ETX EOT ENQ ACK DLE NAK SYN ETB. `encode/2` raises
-      `ArgumentError` on them; in received text they break the block off (`:malformed`) and are
-      decoded afresh, so an EOT or SOH cutting a block short is not lost. Part programs are ASCII
-      lines ended by LF, which is fine; `split_text/2` cuts a program into block texts.
+      `ArgumentError` on them. Part programs are ASCII lines ended by LF, which is fine;
+      `split_text/2` cuts a program into block texts.
+    * **A damaged block is one error.** A transmission control other than ETX inside a received
+      block breaks it off: the block is reported `:malformed` once — the receiver answers it like
+      a bad BCC, with one NAK — and the rest of it, through its ETX and BCC, is dropped with it,
+      so a bit error that turns a `0` into DLE or an LF into STX can neither draw a second
+      reply nor start a "block" from the tail. The drop ends early at what a sender sends next
+      (SOH, STX, EOT, ENQ), which is decoded. Two controls are special: EOT is the sender giving
+      the transmission up (X3.28 abort) and is decoded after the error; ENQ is X3.28's block
+      abort ("discard this block"), whose answer is the NAK the error draws, so it is part of the
+      break and not decoded on its own. A SOH followed by anything but a valid header is
+      `:malformed` the same way, and the header's own STX, further on, is part of the dropped
+      block, not a new one.
     * **Block size.** At most `max_text` (default 256) text bytes per block, command or text.
       Longer blocks are refused by `encode/2` and reported `:too_long` by the decoder.
     * **SOH runs.** The seed shows the CEC sending `SOH SOH SOH` after an upload; a SOH immediately
       followed by another SOH is dropped silently as fill. A SOH followed by anything but a valid
       header is `:malformed`.
     * **Garbage** between blocks yields one `:unexpected_byte` error per run, never one per byte.
-      The decoder keeps at most one unfinished block (`max_text + 8` bytes).
+      An ETX in it ends a block whose STX or SOH was damaged: the BCC after it is skipped, never
+      decoded, so a BCC that happens to be EOT cannot end the transmission.
+      The decoder keeps at most one unfinished block (`max_text + 8` bytes), copied out of the
+      input, and the text of a decoded block is a copy too: a block never keeps the whole chunk
+      it arrived in alive.
   """
 
   import Bitwise
@@ -71,8 +85,8 @@ defmodule Vws.DNC.Frame do
   # X3.28 transmission controls: never in non-transparent text.
   @transmission_controls [@soh, @stx, @etx, @eot, @enq, @ack, @dle, @nak, @syn, @etb]
   @control_patterns Enum.map(@transmission_controls, &<<&1>>)
-  # Bytes that start something; they end a resync skip.
-  @starts [@soh, @stx, @eot, @enq, @dle, @nak]
+  # What a sender sends after a block: they end the skip of a dropped block.
+  @resync [@soh, @stx, @eot, @enq]
 
   @default_max_text 256
 
@@ -134,13 +148,20 @@ defmodule Vws.DNC.Frame do
   defmodule Decoder do
     @moduledoc false
     # state: :idle between blocks; :garbage inside a reported run of unexpected bytes;
-    # {:skip, check} discarding an overlong block; {:skip_bcc, n} discarding its last n BCC bytes.
+    # {:skip, check} discarding an overlong or damaged block; {:skip_header, left, check} the
+    # `left` header positions after a damaged header byte; {:skip_bcc, n} discarding the last n
+    # BCC bytes.
     # reverse?: an R command was decoded and its line-turnaround EOT not yet seen.
     @type t :: %__MODULE__{
             check: Vws.DNC.Frame.check(),
             max_text: pos_integer,
             reverse?: boolean,
-            state: :idle | :garbage | {:skip, Vws.DNC.Frame.check()} | {:skip_bcc, 1..2},
+            state:
+              :idle
+              | :garbage
+              | {:skip, Vws.DNC.Frame.check()}
+              | {:skip_header, 1..3, Vws.DNC.Frame.check()}
+              | {:skip_bcc, 1..2},
             buffer: binary
           }
     defstruct check: :lrc, max_text: 256, reverse?: false, state: :idle, buffer: <<>>
@@ -326,14 +347,25 @@ defmodule Vws.DNC.Frame do
     {Enum.reverse(acc), decoder}
   end
 
-  # Resync after an overlong block: to its ETX (then its BCC) or to anything that starts a new one.
+  # Resync after an overlong or damaged block: to its ETX (then its BCC) or to what a sender
+  # sends next.
   defp parse(<<>>, decoder, acc), do: {acc, decoder}
 
   defp parse(<<byte, rest::binary>> = bytes, %{state: {:skip, check}} = decoder, acc) do
     cond do
       byte == @etx -> parse(rest, %{decoder | state: {:skip_bcc, bcc_size(check)}}, acc)
-      byte in @starts -> parse(bytes, %{decoder | state: :idle}, acc)
+      byte in @resync -> parse(bytes, %{decoder | state: :idle}, acc)
       true -> parse(rest, decoder, acc)
+    end
+  end
+
+  # The rest of a damaged header: up to and including its STX, unless something new starts.
+  defp parse(<<byte, rest::binary>> = bytes, %{state: {:skip_header, left, check}} = decoder, acc) do
+    cond do
+      byte == @stx -> parse(rest, %{decoder | state: {:skip, check}}, acc)
+      byte in @resync -> parse(bytes, idle(decoder), acc)
+      left == 1 -> parse(rest, %{decoder | state: {:skip, check}}, acc)
+      true -> parse(rest, %{decoder | state: {:skip_header, left - 1, check}}, acc)
     end
   end
 
@@ -360,6 +392,13 @@ defmodule Vws.DNC.Frame do
 
   defp parse(<<@stx, rest::binary>> = bytes, decoder, acc) do
     parse_body(rest, bytes, :text, decoder.check, decoder, acc)
+  end
+
+  # An ETX outside a block ends one whose start was lost: its BCC, which may be any byte (EOT,
+  # say), is skipped with it, never decoded.
+  defp parse(<<@etx, rest::binary>>, decoder, acc) do
+    acc = if decoder.state == :garbage, do: acc, else: [error(:unexpected_byte, @etx) | acc]
+    parse(rest, %{decoder | state: {:skip_bcc, bcc_size(decoder.check)}}, acc)
   end
 
   defp parse(<<_, rest::binary>>, %{state: :garbage} = decoder, acc),
@@ -400,11 +439,32 @@ defmodule Vws.DNC.Frame do
 
     case bad do
       nil ->
-        {acc, %{decoder | buffer: bytes}}
+        {acc, keep(decoder, bytes)}
 
       index ->
-        <<_::binary-size(index), rest::binary>> = header
-        malformed(rest, :binary.first(rest), decoder, acc)
+        # A damaged header: the block is dropped through its ETX and BCC, checked as its header
+        # says when that character survived. EOT and ENQ break it off as in text (abort, block
+        # abort); any other byte, a control too, is damage in place: the header positions after
+        # it (its STX among them) are the block's own, not a new start.
+        <<_::binary-size(index), byte, rest::binary>> = header
+
+        check =
+          case header do
+            <<_dir, c, _::binary>> when is_map_key(@check_of, c) -> Map.fetch!(@check_of, c)
+            _ -> decoder.check
+          end
+
+        cond do
+          byte in [@eot, @enq] ->
+            broken_off(byte, rest, check, decoder, acc)
+
+          index == 3 ->
+            parse(rest, %{decoder | state: {:skip, check}}, [error(:malformed, byte) | acc])
+
+          true ->
+            state = {:skip_header, 3 - index, check}
+            parse(rest, %{decoder | state: state}, [error(:malformed, byte) | acc])
+        end
     end
   end
 
@@ -417,7 +477,7 @@ defmodule Vws.DNC.Frame do
         {[error(:too_long) | acc], %{decoder | state: {:skip, check}}}
 
       :nomatch ->
-        {acc, %{decoder | buffer: bytes}}
+        {acc, keep(decoder, bytes)}
 
       {pos, 1} when pos > max ->
         <<_::binary-size(pos), rest::binary>> = body
@@ -428,12 +488,19 @@ defmodule Vws.DNC.Frame do
           <<text::binary-size(pos), @etx, rest::binary>> ->
             complete(text, rest, bytes, kind, check, decoder, acc)
 
-          <<_::binary-size(pos), byte, _::binary>> ->
-            <<_::binary-size(pos), rest::binary>> = body
-            malformed(rest, byte, decoder, acc)
+          <<_::binary-size(pos), byte, rest::binary>> ->
+            broken_off(byte, rest, check, decoder, acc)
         end
     end
   end
+
+  # A control inside a block: one :malformed for the block (see the moduledoc). EOT (abort) is
+  # decoded after it; anything else, ENQ included, goes with the block, whose rest is skipped.
+  defp broken_off(@eot, rest, _check, decoder, acc),
+    do: parse(<<@eot, rest::binary>>, idle(decoder), [error(:malformed, @eot) | acc])
+
+  defp broken_off(byte, rest, check, decoder, acc),
+    do: parse(rest, %{decoder | state: {:skip, check}}, [error(:malformed, byte) | acc])
 
   defp complete(text, after_etx, bytes, kind, check, decoder, acc) do
     size = bcc_size(check)
@@ -451,28 +518,32 @@ defmodule Vws.DNC.Frame do
         end
 
       _ ->
-        {acc, %{decoder | buffer: bytes}}
+        {acc, keep(decoder, bytes)}
     end
   end
 
-  defp accept(:text, text, decoder), do: {%Text{text: text}, decoder}
+  # The text is a sub-binary of the chunk fed in: copied, so the block does not keep it alive.
+  defp accept(:text, text, decoder), do: {%Text{text: :binary.copy(text)}, decoder}
 
   defp accept({:command, dir, check, op}, text, decoder) do
     command = %Command{
       direction: Map.fetch!(@direction_of, dir),
       check: Map.fetch!(@check_of, check),
       operation: Map.fetch!(@operation_of, op),
-      text: text
+      text: :binary.copy(text)
     }
 
     {command, %{decoder | check: command.check, reverse?: command.direction == :receive}}
   end
 
-  # The broken-off part is dropped; decoding resumes at `rest`, whose bytes up to the next start
-  # belong to the same trouble and are not reported again.
+  # A DLE followed by anything but 0, 1 or ;: decoding resumes at that byte, whose run up to the
+  # next start belongs to the same trouble and is not reported again.
   defp malformed(rest, byte, decoder, acc) do
     parse(rest, %{decoder | state: :garbage}, [error(:malformed, byte) | acc])
   end
+
+  # An unfinished block (at most max_text + 8 bytes) waits for more input as a copy of its own.
+  defp keep(decoder, bytes), do: %{decoder | buffer: :binary.copy(bytes)}
 
   defp after_eot(%{reverse?: true} = decoder), do: %{decoder | reverse?: false, state: :idle}
   defp after_eot(decoder), do: %{decoder | check: :lrc, state: :idle}

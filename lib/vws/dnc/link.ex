@@ -73,6 +73,7 @@ defmodule Vws.DNC.Link do
     :retransmissions,
     :naks_sent,
     :naks_received,
+    :duplicates,
     :enqs_sent,
     :wacks_received,
     :contentions,
@@ -307,31 +308,19 @@ defmodule Vws.DNC.Link do
   def turnaround(type, content, data), do: common(type, content, :turnaround, data)
 
   ## :receiving — the peer is master; we acknowledge its blocks ACK1, ACK0, …
+  #
+  # A block counts once. Blocks carry no number, so what makes a copy recognisable is the
+  # alternation: the sender sends a block again only when it did not see that block's ACK (or saw
+  # a NAK), so a copy of the block just accepted is answered with that block's ACK again — the
+  # one the sender is waiting for — and dropped. A NAK of ours asks for the block after the last
+  # accepted one: whatever comes back replaces nothing. See duplicate?/2 for when a block equal
+  # to the last one is a copy.
 
   def receiving(:enter, _old, _data), do: :keep_state_and_data
 
-  def receiving(
-        :internal,
-        {:frame, %Command{} = command},
-        %{rx: %{command: nil, count: 0}} = data
-      ) do
-    accept_block(data, command, 0)
-  end
-
-  def receiving(:internal, {:frame, %Command{}}, data) do
-    Logger.warning("DNC: a second command block in one transmission; answered NAK")
-    reply_nak(data)
-  end
-
-  def receiving(:internal, {:frame, %Text{text: text}}, %{rx: rx} = data) do
-    if rx.bytes + byte_size(text) > data.limits.max_receive do
-      # receiver interrupt (X3.28): EOT instead of an acknowledgement
-      data = send_control(data, :eot)
-      data = fail(data, :too_large, rx.count + 1, data.limits.max_receive)
-      {:next_state, :idle, %{data | rx: nil}}
-    else
-      accept_block(data, text, byte_size(text))
-    end
+  def receiving(:internal, {:frame, block}, %{rx: rx} = data)
+      when is_struct(block, Command) or is_struct(block, Text) do
+    if duplicate?(rx, block), do: discard_duplicate(data), else: take_block(block, data)
   end
 
   def receiving(:internal, {:line_error, %{reason: reason}}, data)
@@ -347,7 +336,9 @@ defmodule Vws.DNC.Link do
         _ -> {data, data.rx.last}
       end
 
-    data = send_control(%{data | rx: %{data.rx | sent: reply}}, reply)
+    # a NAK said again may bring one more copy of the block, like the first
+    naks = if reply == :nak, do: data.rx.naks + 1, else: data.rx.naks
+    data = send_control(%{data | rx: %{data.rx | sent: reply, naks: naks}}, reply)
     {:keep_state, data, [receive_timer(data)]}
   end
 
@@ -677,6 +668,10 @@ defmodule Vws.DNC.Link do
       bytes: 0,
       last: :ack0,
       sent: :ack0,
+      accepted: nil,
+      ack: :ack0,
+      naks: 0,
+      copies: 0,
       naked: 0,
       dropped: 0,
       ref: nil,
@@ -705,7 +700,21 @@ defmodule Vws.DNC.Link do
             text -> %{rx | blocks: [text | rx.blocks]}
           end
 
-        rx = %{rx | count: index, bytes: rx.bytes + size, last: ack}
+        # every NAK since the previous block may bring a copy of this one; so may a reply of
+        # ours the sender did not see or misread: at least one copy is expected
+        copies = max(rx.naks, 1)
+
+        rx = %{
+          rx
+          | count: index,
+            bytes: rx.bytes + size,
+            last: ack,
+            accepted: block_frame(block),
+            ack: ack,
+            naks: 0,
+            copies: copies
+        }
+
         data = bump(%{data | rx: rx}, :blocks_received)
         emit(data, :block_received, %{block: index}, %{bytes: size})
 
@@ -725,9 +734,54 @@ defmodule Vws.DNC.Link do
     end
   end
 
+  defp take_block(%Command{} = command, %{rx: %{command: nil, count: 0}} = data),
+    do: accept_block(data, command, 0)
+
+  defp take_block(%Command{}, data) do
+    Logger.warning("DNC: a second command block in one transmission; answered NAK")
+    reply_nak(data)
+  end
+
+  defp take_block(%Text{text: text}, %{rx: rx} = data) do
+    if rx.bytes + byte_size(text) > data.limits.max_receive do
+      # receiver interrupt (X3.28): EOT instead of an acknowledgement
+      data = send_control(data, :eot)
+      data = fail(data, :too_large, rx.count + 1, data.limits.max_receive)
+      {:next_state, :idle, %{data | rx: nil}}
+    else
+      accept_block(data, text, byte_size(text))
+    end
+  end
+
+  defp block_frame(%Command{} = command), do: command
+  defp block_frame(text) when is_binary(text), do: %Text{text: text}
+
+  # A block equal to the last one accepted is a copy of it while a copy may still come: a NAK of
+  # ours answered by more than one transmission (a damaged block that drew two errors, a NAK
+  # said again to an ENQ while the first was on its way), or an ACK the sender did not see
+  # (lost, or misread as the other parity) before it sent the block again. Blocks are not
+  # numbered, so a new block that merely repeats the last one's text looks the same: it is
+  # answered with the last ACK too, the sender finds the parity wrong, asks with ENQ, is told the
+  # same, and sends it again — by then no copy is expected and it is taken. Erring this way costs
+  # a round trip; erring the other way would take a block twice.
+  defp duplicate?(%{accepted: nil}, _block), do: false
+
+  defp duplicate?(%{copies: copies, accepted: accepted}, block),
+    do: copies > 0 and accepted == block
+
+  defp discard_duplicate(%{rx: rx} = data) do
+    Logger.info("DNC: block #{rx.count} received again; acknowledged again and dropped")
+    rx = %{rx | copies: rx.copies - 1, last: rx.ack, sent: rx.ack}
+    data = bump(%{data | rx: rx}, :duplicates)
+    emit(data, :retry, %{kind: :duplicate_received, block: rx.count})
+    data = send_control(data, rx.ack)
+    {:keep_state, data, [receive_timer(data)]}
+  end
+
   defp reply_nak(data) do
     data = send_control(data, :nak)
-    data = bump(%{data | rx: %{data.rx | last: :nak, sent: :nak}}, :naks_sent)
+    rx = %{data.rx | last: :nak, sent: :nak, naks: data.rx.naks + 1}
+    data = bump(%{data | rx: rx}, :naks_sent)
     emit(data, :retry, %{kind: :nak_sent, block: data.rx.count + 1})
     {:keep_state, data, [receive_timer(data)]}
   end

@@ -39,7 +39,10 @@ defmodule Vws.Partitions.Monarch do
   ## Options (`partitions: [monarch: [options: …]]`)
 
     * `:cycle_start` — the relay function above
-    * `:check` — `:lrc` (default, commands `SN…`/`RN…`) or `:crc` (`SC…`/`RC…`)
+    * `:check` — `:crc` (default, commands `SC…`/`RC…`) or `:lrc` (`SN…`/`RN…`, as the seed's
+      dialogues show). CRC is the default because two bit errors in the same position of a block
+      cancel in the LRC's XOR: under line faults (BER 1.5e-3) LRC let corrupted programs through
+      as complete, CRC never did.
     * `:verify` — read the status report after S commands (default true)
     * `:start_timeout` — ms for the machine to report ACTIVE after the relay (10 000)
     * `:poll_interval` — ms between status reports while waiting for it (100)
@@ -229,7 +232,7 @@ defmodule Vws.Partitions.Monarch do
   defp request(ctx, direction, operation, text, blocks) do
     command = %Command{
       direction: direction,
-      check: Keyword.get(ctx.options, :check, :lrc),
+      check: Keyword.get(ctx.options, :check, :crc),
       operation: operation,
       text: text
     }

@@ -68,7 +68,13 @@ defmodule Vws.Partitions.VwsStatus do
   @daq_locations [1, 2, 3, 4, 5, 7, 11]
   @text_locations [1, 2, 3, 4, 5, 7]
   @sensors_location 11
-  @other_locations [{6, "GE-2000"}, {8, "GE-2000"}, {9, "VAL II"}, {10, "HYDRAULIC CONTROLLER"}]
+  # Locations written by another partition: {location, its device, the `devices:` key of its link}
+  @other_locations [
+    {6, "GE-2000", :ge2000},
+    {8, "GE-2000", :ge2000},
+    {9, "VAL II", :robot},
+    {10, "HYDRAULIC CONTROLLER", :hydraulic}
+  ]
 
   @defaults [
     poll_ms: 20,
@@ -330,8 +336,12 @@ defmodule Vws.Partitions.VwsStatus do
     opts = Keyword.merge(@defaults, opts)
     link = Keyword.get(opts, :link)
 
-    for {loc, device} <- @other_locations, Mailbox.get_device(ws, loc) |> elem(0) == nil do
-      Mailbox.put_device(ws, loc, "NO DATA (NO LINK TO #{device})")
+    configured = Keyword.get(opts, :devices, [])
+
+    for {loc, device, key} <- @other_locations, Mailbox.get_device(ws, loc) |> elem(0) == nil do
+      # a configured device has not been read yet; an unconfigured one has no link at all
+      why = if key in configured, do: "#{device} NOT READ YET", else: "NO LINK TO #{device}"
+      Mailbox.put_device(ws, loc, "NO DATA (#{why})")
     end
 
     if link == nil do

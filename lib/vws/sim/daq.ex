@@ -94,8 +94,7 @@ defmodule Vws.Sim.DAQ do
 
     case Transport.listen(Keyword.get(opts, :endpoint, "tcp://127.0.0.1:0")) do
       {:ok, listener} ->
-        me = self()
-        acceptor = spawn_link(fn -> accept_loop(listener, me) end)
+        acceptor = Transport.start_acceptor(listener, self(), :accepted)
 
         {:ok,
          %{
@@ -111,18 +110,6 @@ defmodule Vws.Sim.DAQ do
 
       {:error, reason} ->
         {:stop, {:cannot_listen, reason}}
-    end
-  end
-
-  defp accept_loop(listener, owner) do
-    case Transport.accept(listener, :infinity) do
-      {:ok, conn} ->
-        :ok = Transport.controlling_process(conn, owner)
-        send(owner, {:accepted, conn})
-        accept_loop(listener, owner)
-
-      {:error, reason} ->
-        exit({:accept_failed, reason})
     end
   end
 

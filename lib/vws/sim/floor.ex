@@ -1,18 +1,24 @@
 defmodule Vws.Sim.Floor do
   @moduledoc """
-  The simulated shop floor of one workstation: the plant (`Vws.Sim.Plant`), the DAQ #1
-  simulator (`Vws.Sim.DAQ`) listening on its own endpoint, and — when asked — the GE-2000
+  The simulated shop floor of one workstation: the plant (`Vws.Sim.Plant`), the two
+  data-acquisition units on it (`Vws.Sim.DAQ`, each listening on its own endpoint) and — when
+  asked — the hydraulic controller (`Vws.HydraulicController`) on DAQ #2, the GE-2000
   (`Vws.Sim.GE2000`), the VAL II robot (`Vws.Sim.VAL2`) and the material-handling system
   (`Vws.Sim.MHS`), wired to the plant as the real equipment is to the workstation:
 
   ```
   Vws.Sim.Floor (rest_for_one)
   ├── Vws.Sim.Plant        {ws, :sim_plant}   — other simulators find it with plant/1
-  ├── Vws.Sim.DAQ (DAQ #1) {ws, :sim_daq1}    — on :daq1 (default tcp://127.0.0.1:0)
+  ├── Vws.Sim.DAQ (DAQ #1) {ws, :sim_daq1}    — on :daq1 (default tcp://127.0.0.1:0); `daq1: false`: none
+  ├── Vws.Sim.DAQ (DAQ #2) {ws, :sim_daq2}    — the pallet's channels, on :daq2 (default tcp://127.0.0.1:0)
+  ├── Vws.HydraulicController  named {:sim_floor, ws}, on DAQ #2 — option :hydraulic
   ├── Vws.Sim.GE2000       {ws, :sim_ge2000}  — option :ge2000
   ├── Vws.Sim.VAL2         {ws, :sim_val2}    — option :robot
   └── Vws.Sim.MHS          {ws, :sim_mhs}     — option :mhs
   ```
+
+  The hydraulic controller is not a simulator — it is the controller itself — but on the
+  simulated floor it has nowhere else to run; it comes after DAQ #2, which it needs.
 
   The wires, so that the plant's collision oracle (`Vws.Sim.Plant.collisions/1`) sees what the
   equipment does without asking the CEC:
@@ -25,18 +31,21 @@ defmodule Vws.Sim.Floor do
     * the MHS moves the trays (`Vws.Sim.Plant.move_tray/3`) under the workstation's interlock.
 
   `Vws.Demo` starts the whole floor before the workstation and gives the workstation
-  `devices: devices(ws)`; `mix vws.serve` starts the plant and DAQ #1 here (and the GE-2000 and
-  VAL II simulators on their own). Pointing a device at real equipment instead needs no
-  simulator for it.
+  `devices: devices(ws)`; `mix vws.serve` starts the plant, the DAQs and the hydraulic
+  controller here (and the GE-2000 and VAL II simulators on their own). Pointing a device at
+  real equipment instead needs no simulator for it.
 
       iex> {:ok, _floor} = Vws.Sim.Floor.start_link(workstation: "floor-doc", time_scale: 100)
       iex> Vws.Sim.Floor.daq1_endpoint("floor-doc") =~ ~r"^tcp://127.0.0.1:\\d+$"
+      true
+      iex> Vws.Sim.Floor.daq2_endpoint("floor-doc") =~ ~r"^tcp://127.0.0.1:\\d+$"
       true
       iex> Vws.Sim.Plant.snapshot(Vws.Sim.Floor.plant("floor-doc")).vise.jaw_mm
       150.0
   """
   use Supervisor
 
+  alias Vws.HydraulicController
   alias Vws.Sim.{DAQ, GE2000, MHS, Plant, VAL2}
 
   @doc """
@@ -45,7 +54,10 @@ defmodule Vws.Sim.Floor do
     * `:time_scale` (default 1.0) — how many times faster than real time the plant runs; the
       GE-2000's cycle and the robot's motions are scaled with it;
     * `:seed`, `:plant` (more `Vws.Sim.Plant` options, e.g. `config:`);
-    * `:daq1` — the endpoint DAQ #1 listens on, default `"tcp://127.0.0.1:0"`;
+    * `:daq1` — the endpoint DAQ #1 listens on, default `"tcp://127.0.0.1:0"`; `false` for no
+      DAQ #1; `:daq2` the same for DAQ #2;
+    * `:hydraulic` — `true`, or `Vws.HydraulicController.start_link/1` options, to run the
+      hydraulic controller on DAQ #2 (default `false`);
     * `:ge2000` — `true` or `Vws.Sim.GE2000` options (default `cycle_time` 5 s / time scale,
       at least 1 s, so that MONARCH sees the machine run after it has let go of the button);
     * `:robot` — `true` or `Vws.Sim.VAL2` options (default `time_scale` 1 / time scale);
@@ -78,6 +90,22 @@ defmodule Vws.Sim.Floor do
   @spec daq1_endpoint(term) :: String.t()
   def daq1_endpoint(ws), do: DAQ.endpoint(daq1(ws))
 
+  @doc "The DAQ #2 simulator of a workstation's floor (a registered name)."
+  @spec daq2(term) :: GenServer.name()
+  def daq2(ws), do: name(ws, :sim_daq2)
+
+  @doc "Where the DAQ #2 simulator listens, as an endpoint string."
+  @spec daq2_endpoint(term) :: String.t()
+  def daq2_endpoint(ws), do: DAQ.endpoint(daq2(ws))
+
+  @doc "The name of the floor's hydraulic controller (for `Vws.HydraulicController` calls)."
+  @spec hydraulic_controller(term) :: term
+  def hydraulic_controller(ws), do: {:sim_floor, ws}
+
+  @doc "Where the floor's hydraulic controller is reached by the CEC, as an endpoint string."
+  @spec hydraulic_endpoint(term) :: String.t()
+  def hydraulic_endpoint(ws), do: HydraulicController.endpoint(hydraulic_controller(ws))
+
   @doc "The GE-2000 simulator of a workstation's floor (a registered name)."
   @spec ge2000(term) :: GenServer.name()
   def ge2000(ws), do: name(ws, :sim_ge2000)
@@ -91,24 +119,34 @@ defmodule Vws.Sim.Floor do
   def mhs(ws), do: name(ws, :sim_mhs)
 
   @doc """
-  The `devices:` option of a workstation reaching every simulator of the floor:
-  `[daq1: …, ge2000: …, robot: …]` (those started).
+  The `devices:` option of a workstation reaching every device of the floor:
+  `[daq1: …, hydraulic: …, ge2000: …, robot: …]` (those started).
   """
   @spec devices(term) :: keyword(String.t())
   def devices(ws) do
-    [daq1: daq1_endpoint(ws)] ++
-      for {device, sim, endpoint} <- [
-            {:ge2000, ge2000(ws), &GE2000.endpoint/1},
-            {:robot, robot(ws), &VAL2.endpoint/1}
-          ],
-          GenServer.whereis(sim) != nil,
-          do: {device, endpoint.(sim)}
+    for {device, sim, endpoint} <- [
+          {:daq1, daq1(ws), &DAQ.endpoint/1},
+          {:hydraulic, hydraulic_controller(ws), &HydraulicController.endpoint/1},
+          {:ge2000, ge2000(ws), &GE2000.endpoint/1},
+          {:robot, robot(ws), &VAL2.endpoint/1}
+        ],
+        running?(sim),
+        do: {device, endpoint.(sim)}
   end
+
+  defp running?({:sim_floor, _ws} = controller) do
+    HydraulicController.endpoint(controller) != nil
+  catch
+    :exit, _ -> false
+  end
+
+  defp running?(name), do: GenServer.whereis(name) != nil
 
   @doc """
   For `Vws.Demo`'s shop floor: starts the whole floor (linked to the caller) with the demo's
-  `:workstation` and `:time_scale`, a blank in tray #1, and returns the workstation links and
-  partition options that reach it (`Vws.Workstation.device_links/3`).
+  `:workstation` and `:time_scale` — hydraulic controller, GE-2000, VAL II, material handling —
+  and a blank in tray #1, and returns the workstation links and partition options that reach
+  it (`Vws.Workstation.device_links/3`).
   """
   @spec shop_floor(keyword) ::
           {:ok, %{name: String.t(), links: [Supervisor.child_spec()], partitions: keyword}}
@@ -117,16 +155,22 @@ defmodule Vws.Sim.Floor do
     ws = Keyword.fetch!(opts, :workstation)
     floor = Keyword.take(opts, [:workstation, :time_scale, :seed])
 
-    with {:ok, _pid} <- start_link(floor ++ [ge2000: true, robot: true, mhs: true]),
+    with {:ok, _pid} <-
+           start_link(floor ++ [hydraulic: true, ge2000: true, robot: true, mhs: true]),
+         :ok <- HydraulicController.await_ready(hydraulic_controller(ws), 10_000),
          :ok <- Plant.set_part(plant(ws), :tray1, true) do
       {links, partitions} = Vws.Workstation.device_links(ws, devices(ws), [])
 
       {:ok,
        %{
-         name: "plant + DAQ #1, GE-2000, VAL II, material handling",
+         name:
+           "plant + DAQ #1 + DAQ #2 + hydraulic controller, GE-2000, VAL II, material handling",
          links: links,
          partitions: partitions
        }}
+    else
+      :timeout -> {:error, :hydraulic_controller_not_ready}
+      {:error, _} = error -> error
     end
   end
 
@@ -150,20 +194,43 @@ defmodule Vws.Sim.Floor do
       [name: plant, time_scale: scale, on_relay: on_relay] ++
         Keyword.take(opts, [:seed]) ++ Keyword.get(opts, :plant, [])
 
+    daqs =
+      for daq <- [:daq1, :daq2], Keyword.get(opts, daq) != false do
+        endpoint = Keyword.get(opts, daq, "tcp://127.0.0.1:0")
+        {DAQ, plant: plant, name: name(ws, :"sim_#{daq}"), daq: daq, endpoint: endpoint}
+      end
+
     children =
-      [
-        {Plant, plant_opts},
-        {DAQ,
-         plant: plant,
-         name: daq1(ws),
-         daq: :daq1,
-         endpoint: Keyword.get(opts, :daq1, "tcp://127.0.0.1:0")}
-      ] ++
+      [{Plant, plant_opts}] ++
+        daqs ++
+        hydraulic_child(ws, Keyword.get(opts, :hydraulic, false)) ++
         ge2000_child(ws, opts[:ge2000], scale) ++
         robot_child(ws, opts[:robot], scale) ++
         mhs_child(ws, opts[:mhs])
 
     Supervisor.init(children, strategy: :rest_for_one)
+  end
+
+  defp hydraulic_child(_ws, false), do: []
+
+  defp hydraulic_child(ws, hopts) do
+    hopts = if hopts == true, do: [], else: hopts
+
+    [
+      %{
+        id: HydraulicController,
+        type: :supervisor,
+        # DAQ #2 listens before the controller starts: its endpoint is known by then
+        start:
+          {__MODULE__, :start_hydraulic_controller,
+           [[name: hydraulic_controller(ws)] ++ hopts, daq2(ws)]}
+      }
+    ]
+  end
+
+  @doc false
+  def start_hydraulic_controller(opts, daq2) do
+    HydraulicController.start_link(Keyword.put_new(opts, :daq2, DAQ.endpoint(daq2)))
   end
 
   defp ge2000_child(_ws, falsy, _scale) when falsy in [nil, false], do: []

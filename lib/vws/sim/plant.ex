@@ -129,6 +129,11 @@ defmodule Vws.Sim.Plant do
   def set_cycle(plant, running?) when is_boolean(running?),
     do: call(plant, {:set_cycle, running?})
 
+  @doc "Tool changer 1's fingers release (`true`) or hold their tool (`false`): the CHANGER_1 switch."
+  @spec set_changer1(plant, boolean) :: :ok
+  def set_changer1(plant, released?) when is_boolean(released?),
+    do: call(plant, {:set_changer1, released?})
+
   @doc "The material-handling system moves tray 1 or 2 in or out; refused while it is locked."
   @spec move_tray(plant, 1 | 2, :in | :out) :: :ok | {:error, :locked}
   def move_tray(plant, tray, direction) when tray in [1, 2] and direction in [:in, :out],
@@ -208,6 +213,7 @@ defmodule Vws.Sim.Plant do
   defp handle({:set_part, where, present}, m), do: ok(Model.set_part(m, where, present), m)
   defp handle({:set_robot, robot}, m), do: {:ok, Model.set_robot(m, robot)}
   defp handle({:set_cycle, running?}, m), do: {:ok, Model.set_cycle(m, running?)}
+  defp handle({:set_changer1, released?}, m), do: {:ok, Model.set_changer1(m, released?)}
   defp handle({:move_tray, tray, dir}, m), do: ok(Model.move_tray(m, tray, dir), m)
   defp handle({:advance, seconds}, m), do: {:ok, Model.advance(m, seconds)}
   defp handle(:snapshot, m), do: {Model.snapshot(m), m}

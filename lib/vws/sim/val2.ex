@@ -138,6 +138,8 @@ defmodule Vws.Sim.VAL2 do
       acceptor: nil,
       link: nil,
       up: false,
+      # the link's session (`Vws.DDCMP`, "Owner messages"): the count of its :up messages
+      link_session: 0,
       ddcmp: Keyword.get(opts, :ddcmp, []),
       time_scale: Keyword.get(opts, :time_scale, 1.0),
       on_move: Keyword.get(opts, :on_move),
@@ -165,7 +167,7 @@ defmodule Vws.Sim.VAL2 do
       {:ok, listener} ->
         bound = to_string(Transport.listener_endpoint(listener))
         owner = self()
-        acceptor = spawn_link(fn -> accept_loop(listener, owner) end)
+        acceptor = Transport.start_acceptor(listener, owner, :accepted)
         Logger.info("VAL II simulator listening on #{bound}")
         {:noreply, %{s | listener: listener, bound: bound, acceptor: acceptor}}
 
@@ -175,18 +177,6 @@ defmodule Vws.Sim.VAL2 do
 
       {:error, reason} ->
         {:stop, {:listen_failed, reason}, s}
-    end
-  end
-
-  defp accept_loop(listener, owner) do
-    case Transport.accept(listener, :infinity) do
-      {:ok, conn} ->
-        :ok = Transport.controlling_process(conn, owner)
-        send(owner, {:accepted, conn})
-        accept_loop(listener, owner)
-
-      {:error, reason} ->
-        exit({:shutdown, {:accept, reason}})
     end
   end
 
@@ -249,7 +239,15 @@ defmodule Vws.Sim.VAL2 do
 
   def handle_info({:ddcmp, link, :up}, %{link: link} = s) do
     # every start-up: the units start afresh, LUN 2 prompts, LUN 1 tells its status
-    s = %{s | up: true, waiting: %{}, session: %{}, outbox: Map.delete(s.outbox, @lun_monitor)}
+    s = %{
+      s
+      | up: true,
+        link_session: s.link_session + 1,
+        waiting: %{},
+        session: %{},
+        outbox: Map.delete(s.outbox, @lun_monitor)
+    }
+
     s = enqueue(s, @lun_monitor, {:read, 0, @prompt})
     {:noreply, s |> enqueue_status() |> pump_all()}
   end
@@ -323,7 +321,7 @@ defmodule Vws.Sim.VAL2 do
   defp start_link_on(s, transport) do
     opts = s.ddcmp |> Keyword.merge(transport) |> Keyword.merge(owner: self(), role: :passive)
     {:ok, link} = Vws.DDCMP.start_link(opts)
-    %{s | link: link, up: false, waiting: %{}}
+    %{s | link: link, up: false, link_session: 0, waiting: %{}}
   end
 
   ## The logical units
@@ -478,21 +476,35 @@ defmodule Vws.Sim.VAL2 do
   defp pump_all(s), do: Enum.reduce(Map.keys(s.outbox), s, &pump(&2, &1))
 
   # Sends the unit's next message if it is not waiting for the CEC and the link is up.
+  #
+  # Only into the session this process knows of: `up` lags the link, which may already have
+  # restarted (even be RUNNING again) while its news waits in our mailbox behind the data being
+  # handled. What that data causes — the prompt after the CEC's REPLY, above all — must not reach
+  # the CEC in the new session, where the start-up prompts afresh: two prompts in one session
+  # would end the CEC's next command `no_response`. A refused message stays in the outbox; the
+  # coming :up decides what goes then.
   defp pump(%{up: true} = s, lun) do
     case {s.waiting[lun], Map.get(s.outbox, lun, [])} do
       {nil, [{function, qualifier, text} | rest]} ->
         text = binary_part(text, 0, min(byte_size(text), Message.max_text()))
-        {q, s} = number(s, lun, qualifier)
+        {q, sent} = number(s, lun, qualifier)
         {:ok, message} = Message.new(lun, function, q, text)
-        :ok = Vws.DDCMP.send_data(s.link, Message.encode(message))
-        wait = if function == :read, do: :input, else: :reply
 
-        %{
-          s
-          | waiting: Map.put(s.waiting, lun, {wait, message.qualifier}),
-            outbox: Map.put(s.outbox, lun, rest),
-            session: Map.update(s.session, lun, [message.qualifier], &[message.qualifier | &1])
-        }
+        case Vws.DDCMP.send_data(s.link, Message.encode(message), session: s.link_session) do
+          :ok ->
+            wait = if function == :read, do: :input, else: :reply
+            q = message.qualifier
+
+            %{
+              sent
+              | waiting: Map.put(sent.waiting, lun, {wait, q}),
+                outbox: Map.put(sent.outbox, lun, rest),
+                session: Map.update(sent.session, lun, [q], &[q | &1])
+            }
+
+          {:error, :not_running} ->
+            s
+        end
 
       _ ->
         s

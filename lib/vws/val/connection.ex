@@ -40,6 +40,8 @@ defmodule Vws.VAL.Connection do
       link_module: Keyword.get(opts, :link_module, Vws.DDCMP),
       link_opts: Keyword.get(opts, :ddcmp, []),
       link: nil,
+      # the link's session (`Vws.DDCMP`, "Owner messages"): the count of its :up messages
+      session: 0,
       queue: [],
       lun2_request: nil,
       activity_request: nil,
@@ -159,7 +161,7 @@ defmodule Vws.VAL.Connection do
   def handle_event(:info, {:ddcmp, link, :up}, {lun2, activity}, %{link: link} = data) do
     Logger.info("VAL II link up")
     lun2 = if lun2 == :down, do: :idle, else: lun2
-    {:next_state, {lun2, activity}, data}
+    {:next_state, {lun2, activity}, %{data | session: data.session + 1}}
   end
 
   def handle_event(:info, {:ddcmp, link, {:down, reason}}, _state, %{link: link} = data) do
@@ -445,8 +447,9 @@ defmodule Vws.VAL.Connection do
     bytes = Message.encode(message)
     telemetry_message(data, :out, message, IO.iodata_length(bytes))
 
-    # hold: false — never let the link keep a message for a later session
-    case data.link_module.send_data(data.link, bytes, hold: false) do
+    # only into the session the message belongs to: never let a command (or a reply) reach the
+    # controller in a later session, even one the link has already started
+    case data.link_module.send_data(data.link, bytes, session: data.session) do
       :ok -> :ok
       other -> Logger.warning("VAL message not sent: #{inspect(other)}")
     end

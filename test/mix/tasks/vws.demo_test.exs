@@ -7,12 +7,12 @@ defmodule Mix.Tasks.Vws.DemoTest do
     {output, status} =
       System.cmd(
         System.find_executable("mix"),
-        ~w(vws.demo --once --time-scale 50 --http-port 4999),
+        ~w(vws.demo --once --time-scale 50 --http-port 0),
         env: [{"MIX_ENV", "test"}],
         stderr_to_stdout: true
       )
 
-    assert output =~ "--http-port 4999: the dashboard is not available yet"
+    assert output =~ ~r{^dashboard and MTConnect agent: http://127\.0\.0\.1:\d+/ \(read-only\)$}m
     assert output =~ ~r/^ +\d+\.\d{3}s  → \*0001\*R0001DISABLE_TRAY1\*\d{3} /m
     assert output =~ ~r/^ +\d+\.\d{3}s  ← 05A0001\d{3} +ack: string 0001 received intact$/m
     assert output =~ "== Summary =="

@@ -59,6 +59,20 @@ defmodule Vws.DNC.FrameTest do
 
   defp bin(iodata), do: IO.iodata_to_binary(iodata)
 
+  defp malformed(byte), do: {:error, %Error{reason: :malformed, byte: byte}}
+
+  defp decode_bytewise(bytes, opts \\ []) do
+    {out, decoder} =
+      for byte <- :binary.bin_to_list(bytes), reduce: {[], Frame.new(opts)} do
+        {out, decoder} ->
+          {more, decoder} = Frame.feed(decoder, <<byte>>)
+          {out ++ more, decoder}
+      end
+
+    assert decoder.buffer == ""
+    out
+  end
+
   defp decode(bytes, opts \\ []) do
     {out, decoder} = Frame.feed(Frame.new(opts), bytes)
     {out, decoder.buffer}
@@ -189,8 +203,11 @@ defmodule Vws.DNC.FrameTest do
       assert decode(bin(Frame.encode(text, max_text: 10)), max_text: 10) == {[text], ""}
     end
 
-    test "a block broken off by a control is malformed, and the control is kept" do
+    test "a block broken off by EOT is malformed, and the EOT (the sender's abort) is kept" do
       assert decode(<<0x02, "N10", 0x04>>) ==
+               {[{:error, %Error{reason: :malformed, byte: 0x04}}, :eot], ""}
+
+      assert decode(<<0x01, "S", 0x04, 0x7F>>) ==
                {[{:error, %Error{reason: :malformed, byte: 0x04}}, :eot], ""}
 
       assert decode(<<0x01, "SX">>) ==
@@ -199,8 +216,64 @@ defmodule Vws.DNC.FrameTest do
       assert decode(<<0x10, ?2, ?3>>) ==
                {[{:error, %Error{reason: :malformed, byte: ?2}}], ""}
 
+      # ENQ in a block is X3.28's block abort: answered by the NAK the error draws, not decoded
       assert decode(<<0x01, 0x05>>) ==
-               {[{:error, %Error{reason: :malformed, byte: 0x05}}, :enq], ""}
+               {[{:error, %Error{reason: :malformed, byte: 0x05}}], ""}
+    end
+
+    # LRCs of the blocks below computed with python3 (XOR of text and ETX).
+    @n60 %Text{text: "N60 G01 X6.5\n"}
+    @n60_wire <<0x02, "N60 G01 X6.5\n", 0x03, 0x72>>
+
+    test "a block broken off by any other control is one error; its rest goes with it" do
+      # seed 6 of the line test: a flipped bit turns the 0 of N60 into DLE
+      damaged = <<0x02, "N6", 0x10, " G01 X6.5\n", 0x03, 0x72>>
+      assert decode(damaged <> @n60_wire) == {[malformed(0x10), @n60], ""}
+
+      # the same block cut by each control (ENQ: the sender's block abort); the block sent
+      # again after the one NAK is taken
+      for control <- [0x01, 0x02, 0x05, 0x06, 0x10, 0x15, 0x16, 0x17],
+          {head, tail} <- [{"N60", " G01 X6.5\n"}, {"N60 G01 X6.5", ""}, {"", "N60"}] do
+        damaged = <<0x02, head::binary, control, tail::binary, 0x03, 0x72>>
+        assert decode(damaged <> @n60_wire) == {[malformed(control), @n60], ""}
+        # fed byte by byte
+        assert decode_bytewise(damaged <> @n60_wire) == [malformed(control), @n60]
+      end
+
+      # the drop ends at the sender's next ENQ (its poll when the ETX was lost too)
+      assert decode(<<0x02, "N6", 0x10, " G01", 0x05>>) == {[malformed(0x10), :enq], ""}
+      # DLE 1 or NAK in the tail are not replies: the tail is the sender's text
+      assert decode(<<0x02, "N6", 0x10, "1 ", 0x15, 0x03, 0x72>>) == {[malformed(0x10)], ""}
+    end
+
+    test "a damaged command header is one error too: its own STX starts nothing" do
+      # RNS 004711.PRO, LRC 0x2E; seed 10 of the line test turned its R (0x52) into 0xD2
+      rns = %Command{direction: :receive, operation: :part_program, text: "004711.PRO"}
+      good = <<0x01, "RNS", 0x02, "004711.PRO", 0x03, 0x2E>>
+      assert decode(good) == {[rns], ""}
+
+      for {at, byte} <- [{1, 0xD2}, {2, 0x03}, {3, 0x7F}, {4, ?X}] do
+        <<head::binary-size(at), _, tail::binary>> = good
+        damaged = <<head::binary, byte, tail::binary>>
+        assert decode(damaged <> good) == {[malformed(byte), rns], ""}
+        assert decode_bytewise(damaged <> good) == [malformed(byte), rns]
+      end
+    end
+
+    test "a block whose STX was damaged is garbage, and its BCC is never decoded, even as EOT" do
+      # LRC of "N20 G01 X1.5 T01\n" ETX is 0x04: EOT (seed 6: an upload ended early this way)
+      lost_start = <<?B, "N20 G01 X1.5 T01\n", 0x03, 0x04>>
+      unexpected = {:error, %Error{reason: :unexpected_byte, byte: ?B}}
+      assert decode(lost_start) == {[unexpected], ""}
+      # no reply: the sender polls, then sends it again
+      again = <<0x02, "N20 G01 X1.5 T01\n", 0x03, 0x04>>
+
+      assert decode(lost_start <> <<0x05>> <> again) ==
+               {[unexpected, :enq, %Text{text: "N20 G01 X1.5 T01\n"}], ""}
+
+      # a CRC block's two BCC bytes are skipped, whatever they are
+      assert decode(<<0x7F, 0x03, 0x04, 0x05, 0x10, ?1>>, check: :crc) ==
+               {[{:error, %Error{reason: :unexpected_byte, byte: 0x03}}, :ack1], ""}
     end
 
     test "garbage between blocks is one error per run" do
@@ -469,6 +542,85 @@ defmodule Vws.DNC.FrameTest do
       )
 
     assert_property(prop, 500)
+  end
+
+  # What the receiving link answers: NAK to these errors, its last reply again to ENQ.
+  defp replies(out) do
+    Enum.count(out, fn
+      {:error, %Error{reason: r}} -> r in [:bad_bcc, :malformed, :too_long]
+      control -> control == :enq
+    end)
+  end
+
+  defp poll_and_resend(out, decoder, wire, polls) do
+    if replies(out) > 0 or :eot in out or polls == 0 do
+      {more, decoder} = Frame.feed(decoder, wire)
+      {out ++ more, decoder}
+    else
+      {more, decoder} = Frame.feed(decoder, <<0x05>>)
+      poll_and_resend(out ++ more, decoder, wire, polls - 1)
+    end
+  end
+
+  test "one flipped bit in a block draws one reply, and the block sent again is taken once" do
+    program = for n <- 1..12, do: %Text{text: "N#{n * 10} G01 X#{n}.5 Y-#{n}.25 F300\n"}
+
+    blocks =
+      Enum.map(@golden, fn {command, wire} -> {command, :lrc, wire} end) ++
+        Enum.map(@golden_text, fn {check, text, wire} -> {text, check, wire} end) ++
+        for text <- program,
+            check <- [:lrc, :crc],
+            do: {text, check, bin(Frame.encode(text, check: check))}
+
+    for {block, check, wire} <- blocks,
+        pos <- 0..(byte_size(wire) - 1),
+        bit <- 0..7 do
+      <<head::binary-size(pos), original, tail::binary>> = wire
+      flipped = Bitwise.bxor(original, Bitwise.bsl(1, bit))
+
+      {first, decoder} =
+        Frame.feed(Frame.new(check: check), <<head::binary, flipped, tail::binary>>)
+
+      refute block in first
+
+      # what the sender does next: after a reply it sends the block again; without one it
+      # polls with ENQ until it gets one (an empty block's BCC is ETX: when its STX is lost, the
+      # skip of that "BCC" takes the first poll), at most 3 times
+      {out, decoder} = poll_and_resend(first, decoder, wire, 3)
+      taken = Enum.count(out, &(&1 == block))
+
+      cond do
+        # a flip into EOT reads as the sender's abort: the transmission ends in error
+        :eot in out ->
+          assert taken <= 1
+
+        # the two flips that can draw a second reply, which the receiving link must survive (it
+        # drops copies): SOH made ENQ, a real-looking poll ahead of a block whose header then
+        # goes wrong; and ETX made STX or SOH, where the BCC is read as text and may hold a start
+        (pos == 0 and flipped == 0x05) or (original == 0x03 and flipped in [0x01, 0x02]) ->
+          assert taken <= 1 and replies(out) <= 2
+
+        true ->
+          assert {taken, replies(out), decoder.state, decoder.buffer} == {1, 1, :idle, ""},
+                 "bit #{bit} of byte #{pos} of #{inspect(wire)}: #{inspect(out)}"
+      end
+    end
+  end
+
+  test "a decoded block does not keep the chunk it came in alive" do
+    text = String.duplicate("N10 G01 X1.5\n", 15)
+    command = %Command{text: "000123.PRO"}
+    pad = :binary.copy(<<0x7F>>, 1_000_000)
+    chunk = bin([Frame.encode(%Text{text: text}), Frame.encode(command), pad, 0x02, "N20"])
+    assert byte_size(chunk) > 1_000_000
+
+    {[%Text{text: decoded}, %Command{text: name}], decoder} = Frame.feed(Frame.new(), chunk)
+    assert decoded == text and name == command.text
+    assert :binary.referenced_byte_size(decoded) == byte_size(decoded)
+    assert :binary.referenced_byte_size(name) == byte_size(name)
+    # and the unfinished block kept for the next feed
+    assert decoder.buffer == <<0x02, "N20">>
+    assert :binary.referenced_byte_size(decoder.buffer) == byte_size(decoder.buffer)
   end
 
   describe "split_text/2" do

@@ -38,8 +38,8 @@ defmodule Vws.Partitions.VwsStatusTest do
       assert DAQFloor.status(peer, "VISE") =~ "VISE IS UNLOCKED PART NOT IN VISE"
       assert DAQFloor.status(peer, "TRAYS") == "TRAY #1 IN POSITION TRAY #2 IN POSITION"
       assert DAQFloor.status(peer, "VACUUM") == "VACUUM IS OFF"
-      # the shipped channel map has no CHANGER_1 sensor
-      assert DAQFloor.status(peer, "CHANGER_1") == "NO DATA (CHANGER_1 NOT WIRED TO DAQ #1)"
+      # tool changer 1's switch on channel 116: released while the plant says so
+      assert DAQFloor.status(peer, "CHANGER_1") == "CHANGER_1 FINGERS RELEASED"
 
       {:ok, %Readings{} = r} = VwsStatus.readings(ws)
       assert length(Readings.array_b(r)) == 16
@@ -63,10 +63,20 @@ defmodule Vws.Partitions.VwsStatusTest do
                "TABLE NOT IN PARK POSITION"
     end
 
-    test "a switch wired to a spare channel reports CHANGER_1" do
-      %{peer: peer} = DAQFloor.start(vws_status: [daq: [switches: [changer1_released: 116]]])
-      # nothing drives channel 116 in the simulated plant: it reads 0 V
-      assert DAQFloor.status(peer, "CHANGER_1") == "CHANGER_1 FINGERS DID NOT RELEASE"
+    test "CHANGER_1 follows tool changer 1's switch" do
+      %{peer: peer, plant: plant} = DAQFloor.start()
+      assert DAQFloor.status(peer, "CHANGER_1") == "CHANGER_1 FINGERS RELEASED"
+      :ok = Vws.Sim.Plant.set_changer1(plant, false)
+
+      assert eventually(fn ->
+               DAQFloor.status(peer, "CHANGER_1") == "CHANGER_1 FINGERS DID NOT RELEASE"
+             end)
+    end
+
+    test "without a CHANGER_1 switch in the channel map the status says so" do
+      spare = %{daq1: %{116 => %{kind: :spare, signal: :spare}}}
+      %{peer: peer} = DAQFloor.start(vws_status: [daq: [channel_map: spare]])
+      assert DAQFloor.status(peer, "CHANGER_1") == "NO DATA (CHANGER_1 NOT WIRED TO DAQ #1)"
     end
   end
 

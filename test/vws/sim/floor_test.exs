@@ -8,7 +8,7 @@ defmodule Vws.Sim.FloorTest do
 
     {:ok,
      %{
-       name: "plant + DAQ #1, GE-2000, VAL II, material handling",
+       name: "plant + DAQ #1 + DAQ #2 + hydraulic controller, GE-2000, VAL II, material handling",
        links: links,
        partitions: partitions
      }} = Vws.Sim.Floor.shop_floor(workstation: ws, time_scale: 100)
@@ -24,6 +24,31 @@ defmodule Vws.Sim.FloorTest do
     assert Vws.Test.Eventually.eventually(fn ->
              Vws.Status.answer(ws, "VACUUM") == "VACUUM IS ON"
            end)
+
+    # the hydraulic controller on DAQ #2 keeps the PALLET status
+    assert Vws.Test.Eventually.eventually(fn ->
+             Vws.Status.answer(ws, "PALLET") == "PALLET NOT CLAMPED"
+           end)
+
+    Enum.each(
+      201..204,
+      &(:ok = Vws.Sim.Plant.close_channel(Vws.Sim.Floor.plant(ws), {:daq2, &1}))
+    )
+
+    assert Vws.Test.Eventually.eventually(fn ->
+             Vws.Status.answer(ws, "PALLET") == "PALLET CLAMPED"
+           end)
+  end
+
+  test "without DAQ #1, or with the hydraulic controller, as asked" do
+    ws = "floor-#{System.unique_integer([:positive])}"
+    start_supervised!({Vws.Sim.Floor, workstation: ws, daq1: false, hydraulic: true})
+    assert Vws.Sim.Floor.daq2_endpoint(ws) =~ "tcp://"
+    controller = Vws.Sim.Floor.hydraulic_controller(ws)
+    assert Vws.HydraulicController.await_ready(controller, 5_000) == :ok
+    assert Vws.HydraulicController.status(controller) == :done
+    assert Vws.Sim.Floor.hydraulic_endpoint(ws) =~ "tcp://"
+    assert Vws.Sim.Floor.daq1(ws) |> GenServer.whereis() == nil
   end
 
   test "the wires: the cycle-start relay starts the GE-2000, whose cycle moves the table" do

@@ -49,11 +49,13 @@ defmodule Vws.Sim.LineDeviceTest do
     assert info.disconnects == 0
   end
 
-  # Found by this line (the upload comes back 56 bytes long, one block twice): one flip turns the
-  # "0" of "N60" into DLE inside a GE-2000 text block; the CEC answers that block NAK twice (once
-  # for the block the DLE broke off, once for its tail up to ETX BCC), the GE-2000 sends it again
-  # twice, and the CEC acknowledges both copies, taking the second for the next block.
-  @tag skip: "Vws.DNC: one damaged block can draw two NAKs, and a block is then taken twice"
+  # Found by this line. One flip turns the "0" of "N60" into DLE inside a GE-2000 text block; the
+  # CEC used to answer that block NAK twice (once for the block the DLE broke off, once for its
+  # tail), the GE-2000 sent it twice, and the CEC took both copies — after which every ACK was
+  # one block ahead, so later blocks were taken twice or skipped. Fixed twice over: a damaged
+  # block is one error (Vws.DNC.Frame), and a copy of the block just taken is acknowledged again
+  # and dropped (Vws.DNC). With the first fix alone the same seed then found a block whose STX
+  # was damaged and whose BCC, 0x04, was read as EOT: the upload ended early as if complete.
   test "seed 6: a block damaged into two errors is not taken twice" do
     round_trip(6)
   end

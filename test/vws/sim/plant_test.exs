@@ -256,7 +256,8 @@ defmodule Vws.Sim.PlantTest do
       {104, 5.0, 0.02},
       {108, 8.2, 0.005},
       {110, 0.0, 0.02},
-      {116, 0.0, 0.01}
+      # tool changer 1 released at rest
+      {116, 5.0, 0.02}
     ]
 
     test "stays within the configured half-widths, and is there" do

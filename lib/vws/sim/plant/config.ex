@@ -35,7 +35,7 @@ defmodule Vws.Sim.Plant.Config do
   @sensors %{
     switch: ~w(vise_part_present vise_fully_open table_park tray1_in tray2_in gripper_fully_open
                indexer_0 indexer_90 indexer_180 indexer_270 vacuum_on tray1_locked tray2_locked
-               pallet_x pallet_y)a,
+               pallet_x pallet_y changer1_released)a,
     pot: ~w(vise_jaw_mm gripper_finger_mm)a,
     gauge: ~w(vise_force_n clamp1_force_n clamp2_force_n)a,
     spare: [:spare]

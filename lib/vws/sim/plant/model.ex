@@ -68,6 +68,7 @@ defmodule Vws.Sim.Plant.Model do
           trays: %{1 => %{mm: float, target_mm: float}, 2 => %{mm: float, target_mm: float}},
           table_mm: float,
           cycle: boolean,
+          changer1_released: boolean,
           pallet: map,
           robot: atom,
           parts: %{where => float | nil},
@@ -87,6 +88,7 @@ defmodule Vws.Sim.Plant.Model do
     vacuum: 0.0,
     table_mm: 0.0,
     cycle: false,
+    changer1_released: true,
     pallet: %{
       ram_x_mm: 0.0,
       ram_y_mm: 0.0,
@@ -467,6 +469,7 @@ defmodule Vws.Sim.Plant.Model do
       :tray2_locked -> actuator?(m, :tray2_lock)
       :pallet_x -> m.pallet.ram_x_mm >= mo.ram_stroke_mm - @eps
       :pallet_y -> m.pallet.ram_y_mm >= mo.ram_stroke_mm - @eps
+      :changer1_released -> m.changer1_released
     end
   end
 
@@ -757,6 +760,11 @@ defmodule Vws.Sim.Plant.Model do
   end
 
   def set_cycle(m, false), do: settle(%{m | cycle: false})
+
+  @doc "Tool changer 1's fingers release (`true`) or hold their tool (`false`)."
+  @spec set_changer1(t, boolean) :: t
+  def set_changer1(m, released?) when is_boolean(released?),
+    do: settle(%{m | changer1_released: released?})
 
   @doc "The material-handling system moves a tray; refused while its lock relay holds it."
   @spec move_tray(t, 1 | 2, :in | :out) :: {:ok, t} | {:error, :locked}

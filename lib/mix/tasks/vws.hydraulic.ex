@@ -1,0 +1,69 @@
+defmodule Mix.Tasks.Vws.Hydraulic do
+  @shortdoc "Runs the hydraulic controller (the HP-9836 program) on its own"
+  @moduledoc """
+  Runs the hydraulic controller (`Vws.HydraulicController`) in a node of its own: it listens
+  for the CEC's HPIB link and drives the pallet through DAQ #2. A workstation reaches it with
+  `mix vws.serve --hydraulic ENDPOINT` (or `devices: [hydraulic: ENDPOINT]`).
+
+      mix vws.hydraulic                                   # CEC on tcp://127.0.0.1:5026, DAQ #2 simulated
+      mix vws.hydraulic --listen tcp://0.0.0.0:5026 --daq2 tcp://10.0.0.10:5025   # a real DAQ #2
+      iex -S mix vws.hydraulic                            # with a shell: Vws.HydraulicController.info()
+
+  Options:
+
+    * `--listen ENDPOINT` — where the CEC connects (default `tcp://127.0.0.1:5026`)
+    * `--daq2 ENDPOINT` — DAQ #2 (a LAN SCPI socket, a GPIB gateway). Without it a simulated
+      plant and DAQ #2 (`Vws.Sim.Plant`, `Vws.Sim.DAQ`) are started here
+    * `--time-scale N` — the simulated plant runs N times faster than real time (default 1)
+    * `--min-force N` — the clamp force, in newtons, from which a swing clamp holds (default 4000)
+  """
+  use Mix.Task
+
+  @switches [listen: :string, daq2: :string, time_scale: :float, min_force: :integer]
+
+  @impl true
+  def run(args) do
+    {opts, _rest, invalid} = OptionParser.parse(args, strict: @switches)
+    if invalid != [], do: Mix.raise("unknown options: #{inspect(invalid)}")
+
+    Mix.Task.run("app.start")
+
+    daq2 = opts[:daq2] || simulated_daq2(opts[:time_scale] || 1.0)
+    listen = opts[:listen] || "tcp://127.0.0.1:5026"
+
+    {:ok, sup} =
+      Vws.HydraulicController.start_link(
+        [listen: listen, daq2: daq2] ++
+          if(opts[:min_force], do: [min_force_n: opts[:min_force]], else: [])
+      )
+
+    Process.unlink(sup)
+    Mix.shell().info("hydraulic controller: DAQ #2 at #{daq2}; initialising")
+
+    case Vws.HydraulicController.await_ready(30_000) do
+      :ok ->
+        info = Vws.HydraulicController.info()
+        Mix.shell().info("hydraulic controller: the CEC connects to #{info.endpoint}")
+        Mix.shell().info("start-up: #{start_up(info.init_result)}")
+
+      :timeout ->
+        Mix.shell().info("hydraulic controller: still initialising after 30 s")
+    end
+
+    unless Code.ensure_loaded?(IEx) and IEx.started?(), do: Process.sleep(:infinity)
+  end
+
+  defp simulated_daq2(scale) do
+    if scale <= 0, do: Mix.raise("--time-scale must be positive")
+    {:ok, plant} = Vws.Sim.Plant.start_link(time_scale: scale)
+    {:ok, daq2} = Vws.Sim.DAQ.start_link(plant: plant, daq: :daq2)
+    Process.unlink(plant)
+    Process.unlink(daq2)
+    endpoint = Vws.Sim.DAQ.endpoint(daq2)
+    Mix.shell().info("simulated pallet (time scale ×#{scale}) and DAQ #2 on #{endpoint}")
+    endpoint
+  end
+
+  defp start_up(:done), do: "depressurised, the swing clamps are released"
+  defp start_up({:error, why}), do: "NOT depressurised (#{why}); CLAMP_PALLET depressurises first"
+end

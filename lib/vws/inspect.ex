@@ -1,0 +1,564 @@
+defmodule Vws.Inspect do
+  @moduledoc """
+  One-call live views of a running workstation, for iex (`iex -S mix vws.serve`), and the plain
+  data behind the web dashboard.
+
+      iex> Vws.Inspect.overview("VWS")            # everything below, one after the other
+      iex> Vws.Inspect.mailboxes("VWS")           # device status 1–14, command status 34–39, CMD_IN
+      iex> Vws.Inspect.partitions("VWS")          # state, current command, done/errors, restarts
+      iex> Vws.Inspect.links("VWS")               # each device link: state, counters, last error
+      iex> Vws.Inspect.interlocks("VWS")          # who holds the table, the trays, …
+      iex> Vws.Inspect.watch("VWS", :robot)       # a partition's traffic live, until Enter
+      iex> Vws.Inspect.watch("VWS", :wc, timeout: 10_000)   # the WC dialogue for ten seconds
+
+  The views print a table and return `:ok`; `snapshot/1` and the `*_rows/1` functions return the
+  same facts as data. None of them ever blocks on a busy process for long: a partition, link or
+  SUN_COMM that does not answer within half a second is shown as `not answering`, one that is not
+  running as `down`.
+
+  ## What is shown
+
+    * **partitions** — each command partition's process state (`idle`, `running`, `down`), its
+      command status (mailbox 34–39), the command in flight and for how long, commands done and
+      ended in error since it started, and its restarts;
+    * **links** — every child of the workstation's links supervisor: its id, pid, state and,
+      when its module exports `info/1` (called with the pid), that map (counters, last error, …);
+    * **interlocks** — every mailbox entry `{:interlock, what}` and its holder.
+  """
+
+  alias Vws.{Events, Mailbox}
+
+  @call_timeout 500
+
+  @typedoc "A workstation id."
+  @type workstation :: term
+
+  ## Data
+
+  @doc """
+  Everything about a workstation as plain data: `%{workstation, mailboxes, partitions, links,
+  interlocks, wc: %{info, dialogue}}` (`mailboxes` is `Vws.Mailbox.snapshot/1`).
+  """
+  @spec snapshot(workstation) :: map
+  def snapshot(ws) do
+    %{
+      workstation: ws,
+      mailboxes: Mailbox.snapshot(ws),
+      partitions: partition_rows(ws),
+      links: link_rows(ws),
+      interlocks: interlock_rows(ws),
+      wc: %{info: wc_info(ws), dialogue: wc_dialogue(ws)}
+    }
+  end
+
+  @doc """
+  One map per command partition: `partition, state (:idle | :running | :down | :not_answering),
+  number, status, in_flight, cmd_in, current (nil | %{number, text, running_ms}), done, errors,
+  restarts, link`.
+  """
+  @spec partition_rows(workstation) :: [map]
+  def partition_rows(ws) do
+    Mailbox.partitions()
+    |> parallel(fn p ->
+      {p, Vws.Partition.whereis(ws, p) && call(fn -> Vws.Partition.info(ws, p) end)}
+    end)
+    |> Enum.map(fn {p, info} ->
+      {number, status} = Mailbox.command_status(ws, p)
+      {_in_n, in_text} = Mailbox.cmd_in(ws, p)
+
+      state =
+        case info do
+          nil -> :down
+          :down -> :down
+          :not_answering -> :not_answering
+          %{current: nil} -> :idle
+          %{current: _} -> :running
+        end
+
+      info = if is_map(info), do: info, else: %{}
+
+      %{
+        partition: p,
+        state: state,
+        number: number,
+        status: status,
+        in_flight: Mailbox.in_flight(ws, p),
+        cmd_in: in_text,
+        current: info[:current],
+        done: info[:done],
+        errors: info[:errors],
+        restarts: info[:restarts] || restarts(ws, p),
+        link: info[:link]
+      }
+    end)
+  end
+
+  defp restarts(ws, p) do
+    case :ets.lookup(Mailbox.table(ws), {:starts, p}) do
+      [{_, n}] -> max(n - 1, 0)
+      [] -> 0
+    end
+  end
+
+  @doc """
+  One map per device link (child of the workstation's links supervisor): `id, pid, module, state,
+  info` — `state` is the `:state` of the link's `info/1` map when it has one, else `:running`,
+  `:restarting`, `:down` or `:not_answering`; `info` is that map or nil.
+  """
+  @spec link_rows(workstation) :: [map]
+  def link_rows(ws) do
+    case Vws.Workstation.whereis(ws, :links) do
+      nil ->
+        []
+
+      sup ->
+        children =
+          case call(fn -> Supervisor.which_children(sup) end) do
+            list when is_list(list) -> list
+            _ -> []
+          end
+
+        children
+        |> Enum.sort_by(fn {id, _, _, _} -> inspect(id) end)
+        |> parallel(&link_row/1)
+    end
+  end
+
+  defp link_row({id, pid, _type, modules}) do
+    module = if is_list(modules), do: List.first(modules)
+
+    {state, info} =
+      cond do
+        pid == :restarting ->
+          {:restarting, nil}
+
+        not is_pid(pid) ->
+          {:down, nil}
+
+        module && Code.ensure_loaded?(module) && function_exported?(module, :info, 1) ->
+          case call(fn -> module.info(pid) end) do
+            %{} = info -> {Map.get(info, :state, :running), info}
+            :not_answering -> {:not_answering, nil}
+            :down -> {:down, nil}
+            other -> {:running, %{info: other}}
+          end
+
+        true ->
+          {:running, nil}
+      end
+
+    %{id: id, pid: if(is_pid(pid), do: pid), module: module, state: state, info: info}
+  end
+
+  @doc "Every interlock in the mailboxes: `%{what, holder, extra}` (`extra` is the rest of the entry)."
+  @spec interlock_rows(workstation) :: [map]
+  def interlock_rows(ws) do
+    # one clause per entry size: {{:interlock, what}, holder, ...}
+    spec =
+      for extra <- 0..6 do
+        {List.to_tuple([{:interlock, :_} | List.duplicate(:_, extra)]), [], [:"$_"]}
+      end
+
+    Mailbox.table(ws)
+    |> :ets.select(spec)
+    |> Enum.map(fn entry ->
+      [{:interlock, what} | rest] = Tuple.to_list(entry)
+
+      case rest do
+        [] -> %{what: what, holder: nil, extra: []}
+        [holder | extra] -> %{what: what, holder: holder, extra: extra}
+      end
+    end)
+    |> Enum.sort_by(&inspect(&1.what))
+  end
+
+  @doc "SUN_COMM's `info/1` map, or `:down` / `:not_answering`."
+  @spec wc_info(workstation) :: map | :down | :not_answering
+  def wc_info(ws) do
+    if Vws.Workstation.whereis(ws, :sun_comm),
+      do: call(fn -> Vws.SunComm.info(ws) end),
+      else: :down
+  end
+
+  @doc "The recent WC dialogue (`Vws.SunComm.dialogue/1`), `[]` when SUN_COMM is not answering."
+  @spec wc_dialogue(workstation) :: [{integer, :in | :out, binary}]
+  def wc_dialogue(ws) do
+    with pid when is_pid(pid) <- Vws.Workstation.whereis(ws, :sun_comm),
+         list when is_list(list) <- call(fn -> Vws.SunComm.dialogue(ws) end) do
+      list
+    else
+      _ -> []
+    end
+  end
+
+  ## Printed views
+
+  @doc "Prints the mailboxes (`Vws.Mailbox.print/1`)."
+  @spec mailboxes(workstation) :: :ok
+  def mailboxes(ws), do: Mailbox.print(ws)
+
+  @doc "Prints the partitions table."
+  @spec partitions(workstation) :: :ok
+  def partitions(ws), do: IO.puts(format_partitions(ws))
+
+  @doc "Prints the links table."
+  @spec links(workstation) :: :ok
+  def links(ws), do: IO.puts(format_links(ws))
+
+  @doc "Prints the interlocks table."
+  @spec interlocks(workstation) :: :ok
+  def interlocks(ws), do: IO.puts(format_interlocks(ws))
+
+  @doc "Prints the WC link (peer, mode, counters) and its last `n` dialogue lines."
+  @spec wc(workstation, pos_integer) :: :ok
+  def wc(ws, n \\ 20), do: IO.puts(format_wc(ws, n))
+
+  @doc "Prints every view of a workstation."
+  @spec overview(workstation) :: :ok
+  def overview(ws) do
+    IO.puts(
+      Enum.join(
+        [
+          Mailbox.format(ws),
+          format_partitions(ws),
+          format_links(ws),
+          format_interlocks(ws),
+          format_wc(ws, 10)
+        ],
+        "\n\n"
+      )
+    )
+  end
+
+  @doc "The table `partitions/1` prints."
+  @spec format_partitions(workstation) :: String.t()
+  def format_partitions(ws) do
+    rows =
+      for r <- partition_rows(ws) do
+        current =
+          case r.current do
+            %{number: n, text: t, running_ms: ms} -> "#{pad4(n)} #{t} (#{ms} ms)"
+            nil -> "-"
+          end
+
+        [
+          String.upcase(to_string(r.partition)),
+          to_string(r.state),
+          "#{pad4(r.number)} #{Mailbox.status_word(r.status)}",
+          current,
+          count(r.done),
+          count(r.errors),
+          to_string(r.restarts),
+          if(r.link == nil, do: "none", else: inspect(r.link, limit: 5))
+        ]
+      end
+
+    table(
+      "PARTITIONS of #{inspect(ws)}",
+      ["partition", "state", "command status", "running", "done", "errors", "restarts", "link"],
+      rows
+    )
+  end
+
+  @doc "The table `links/1` prints."
+  @spec format_links(workstation) :: String.t()
+  def format_links(ws) do
+    rows =
+      for r <- link_rows(ws) do
+        [
+          label(r.id),
+          if(r.pid, do: inspect(r.pid), else: "-"),
+          label(r.state),
+          format_info(r.info)
+        ]
+      end
+
+    if rows == [],
+      do: "LINKS of #{inspect(ws)}\n(no device links configured)",
+      else: table("LINKS of #{inspect(ws)}", ["link", "pid", "state", "info"], rows)
+  end
+
+  @doc "The table `interlocks/1` prints."
+  @spec format_interlocks(workstation) :: String.t()
+  def format_interlocks(ws) do
+    rows =
+      for r <- interlock_rows(ws) do
+        [label(r.what), holder(r.holder)] ++
+          if r.extra == [], do: [""], else: [inspect(r.extra, limit: 8, charlists: :as_lists)]
+      end
+
+    if rows == [],
+      do: "INTERLOCKS of #{inspect(ws)}\n(none held)",
+      else: table("INTERLOCKS of #{inspect(ws)}", ["interlock", "holder", ""], rows)
+  end
+
+  @doc "The text `wc/2` prints."
+  @spec format_wc(workstation, pos_integer) :: String.t()
+  def format_wc(ws, n \\ 20) do
+    head =
+      case wc_info(ws) do
+        %{} = i ->
+          counters = Enum.map_join(Enum.sort(i.counters), " ", fn {k, v} -> "#{k}=#{v}" end)
+
+          "WC LINK of #{inspect(ws)}: #{i.listening || i.endpoint || "no endpoint"}, " <>
+            "peer #{i.peer || "none"}, mode #{inspect(i.mode)}\n#{counters}"
+
+        other ->
+          "WC LINK of #{inspect(ws)}: SUN_COMM #{label(other)}"
+      end
+
+    lines =
+      ws
+      |> wc_dialogue()
+      |> Enum.take(-n)
+      |> Enum.map(fn {ms, dir, line} -> "#{clock(ms)} #{arrow(dir)} #{printable(line)}" end)
+
+    Enum.join([head | lines], "\n")
+  end
+
+  ## Watching live
+
+  @doc """
+  Prints a workstation's traffic as it happens: for a partition (`:robot`, `:monarch`, …) every
+  telemetry event about it (commands dispatched, started, finished, and whatever its link
+  reports), for `:wc` every line of the WC dialogue and SUN_COMM's events, for `:all` both.
+
+  It prints until Enter is pressed (in iex) or for `:timeout` ms (when given, or 30 s outside
+  iex; a message `:stop_watch` to the watching process ends it sooner), then returns the number
+  of lines printed. Options: `:timeout`, `:device` (default the group leader).
+  """
+  @spec watch(workstation, atom, keyword) :: non_neg_integer
+  def watch(ws, target, opts \\ []) do
+    device = Keyword.get(opts, :device, Process.group_leader())
+    Mailbox.table(ws)
+    me = self()
+    ref = make_ref()
+
+    watcher =
+      spawn_link(fn ->
+        id = {__MODULE__, :watch, self()}
+        subscribe(ws, target)
+
+        Vws.Telemetry.attach_many(id, Vws.Telemetry.events(), &__MODULE__.forward/4, %{
+          pid: self(),
+          ws: ws,
+          target: target
+        })
+
+        send(me, {ref, :ready})
+
+        try do
+          watch_loop(ws, device, 0)
+        after
+          Vws.Telemetry.detach(id)
+        end
+      end)
+
+    receive do
+      {^ref, :ready} -> :ok
+    end
+
+    interactive? =
+      Code.ensure_loaded?(IEx) and IEx.started?() and not Keyword.has_key?(opts, :timeout)
+
+    if interactive? do
+      IO.puts(device, "watching #{inspect(ws)} #{target}: press Enter to stop")
+      IO.gets("")
+    else
+      timeout = Keyword.get(opts, :timeout, 30_000)
+      IO.puts(device, "watching #{inspect(ws)} #{target} for #{timeout} ms")
+
+      receive do
+        :stop_watch -> :ok
+      after
+        timeout -> :ok
+      end
+    end
+
+    wref = Process.monitor(watcher)
+    send(watcher, {:stop, me, ref})
+
+    receive do
+      {^ref, :printed, n} ->
+        Process.demonitor(wref, [:flush])
+        n
+
+      {:DOWN, ^wref, _, _, _} ->
+        0
+    end
+  end
+
+  defp subscribe(ws, target) do
+    if target in [:wc, :all], do: Events.subscribe(ws, :wc_dialogue)
+    if target not in [:wc, :all], do: Events.subscribe(ws, target)
+  end
+
+  @doc false
+  # A telemetry handler (runs in the emitting process): forwards the workstation's events about
+  # the target to the watcher.
+  def forward(event, measurements, metadata, %{pid: pid, ws: ws, target: target}) do
+    if Map.get(metadata, :workstation) == ws and about?(event, metadata, target) do
+      send(pid, {:watch_telemetry, event, measurements, metadata})
+    end
+  end
+
+  defp about?(_event, _meta, :all), do: true
+  defp about?([:vws, :sun_comm | _], _meta, :wc), do: true
+  defp about?(_event, _meta, :wc), do: false
+  defp about?(event, meta, target), do: Map.get(meta, :partition) == target or target in event
+
+  defp watch_loop(ws, device, n) do
+    receive do
+      {:vws_event, ^ws, :wc_dialogue, {ms, dir, line}} ->
+        IO.puts(device, "#{clock(ms)} WC #{arrow(dir)} #{printable(line)}")
+        watch_loop(ws, device, n + 1)
+
+      {:vws_event, ^ws, event, payload} ->
+        IO.puts(device, "#{clock(now())} EVENT #{event} caused (#{inspect(payload)})")
+        watch_loop(ws, device, n + 1)
+
+      {:watch_telemetry, event, measurements, metadata} ->
+        IO.puts(device, "#{clock(now())} " <> telemetry_line(event, measurements, metadata))
+        watch_loop(ws, device, n + 1)
+
+      {:stop, from, ref} ->
+        send(from, {ref, :printed, n})
+    end
+  end
+
+  @doc false
+  def telemetry_line(event, measurements, metadata) do
+    name = event |> Enum.drop(1) |> Enum.join(".")
+
+    meta =
+      metadata
+      |> Map.drop([:workstation, :stacktrace])
+      |> Enum.sort()
+      |> Enum.map_join(" ", fn {k, v} -> "#{k}=#{short(v)}" end)
+
+    measured =
+      measurements
+      |> Enum.sort()
+      |> Enum.map_join(" ", fn
+        {:duration, d} -> "duration=#{System.convert_time_unit(d, :native, :millisecond)}ms"
+        {k, v} -> "#{k}=#{short(v)}"
+      end)
+
+    String.trim("#{name} #{meta} #{measured}")
+  end
+
+  ## Helpers
+
+  # Runs fun with a deadline: its result, or :not_answering (an exit, or no answer in time).
+  defp call(fun) do
+    task = Task.async(fn -> try_call(fun) end)
+
+    case Task.yield(task, @call_timeout) || Task.shutdown(task, :brutal_kill) do
+      {:ok, {:ok, result}} -> result
+      {:ok, :down} -> :down
+      _ -> :not_answering
+    end
+  end
+
+  defp try_call(fun) do
+    {:ok, fun.()}
+  catch
+    :exit, _ -> :down
+  end
+
+  defp parallel(list, fun) do
+    list
+    |> Task.async_stream(fun, timeout: @call_timeout * 3, on_timeout: :kill_task)
+    |> Enum.zip(list)
+    |> Enum.map(fn
+      {{:ok, result}, _} -> result
+      {{:exit, _}, item} -> fun_failed(item)
+    end)
+  end
+
+  defp fun_failed(p) when is_atom(p), do: {p, :not_answering}
+
+  defp fun_failed({id, _pid, _type, modules}),
+    do: %{
+      id: id,
+      pid: nil,
+      module: List.first(List.wrap(modules)),
+      state: :not_answering,
+      info: nil
+    }
+
+  defp table(title, header, rows) do
+    widths =
+      Enum.reduce([header | rows], List.duplicate(0, length(header)), fn row, acc ->
+        Enum.zip_with(row, acc, &max(String.length(&1), &2))
+      end)
+
+    line = fn row ->
+      row
+      |> Enum.zip(widths)
+      |> Enum.map_join("  ", fn {cell, w} -> String.pad_trailing(cell, w) end)
+      |> String.trim_trailing()
+    end
+
+    Enum.join([title, line.(header) | Enum.map(rows, line)], "\n")
+  end
+
+  @doc false
+  # A short human label for an id, state or interlock name: :table -> "table", {:tray, 1} -> "tray 1".
+  def label(a) when is_atom(a), do: to_string(a)
+  def label(b) when is_binary(b), do: b
+  def label(n) when is_integer(n), do: Integer.to_string(n)
+
+  def label(t) when is_tuple(t) and tuple_size(t) > 0 do
+    t |> Tuple.to_list() |> Enum.map_join(" ", &label/1)
+  end
+
+  def label(other), do: inspect(other, limit: 8)
+
+  defp holder(nil), do: "-"
+  defp holder(h), do: label(h)
+
+  defp format_info(nil), do: ""
+
+  defp format_info(info) do
+    info
+    |> Map.drop([:state])
+    |> Enum.sort()
+    |> Enum.map_join("  ", fn
+      {k, %{} = m} ->
+        "#{k}: " <> Enum.map_join(Enum.sort(m), " ", fn {a, b} -> "#{a}=#{short(b)}" end)
+
+      {k, v} ->
+        "#{k}=#{short(v)}"
+    end)
+  end
+
+  defp short(v) when is_binary(v), do: printable(v)
+  defp short(v) when is_atom(v) or is_number(v), do: to_string(v)
+  defp short(v), do: inspect(v, limit: 8, printable_limit: 80)
+
+  defp count(nil), do: "-"
+  defp count(n), do: to_string(n)
+
+  defp pad4(nil), do: "----"
+  defp pad4(n), do: n |> Integer.to_string() |> String.pad_leading(4, "0")
+
+  defp arrow(:in), do: "→"
+  defp arrow(:out), do: "←"
+
+  defp printable(line) do
+    if String.printable?(line), do: line, else: inspect(line)
+  end
+
+  defp now, do: System.monotonic_time(:millisecond)
+
+  @doc false
+  # Wall-clock time of a monotonic millisecond stamp, as HH:MM:SS.mmm.
+  def clock(monotonic_ms) do
+    (monotonic_ms + System.time_offset(:millisecond))
+    |> DateTime.from_unix!(:millisecond)
+    |> DateTime.to_time()
+    |> Time.to_string()
+    |> String.pad_trailing(12, "0")
+  end
+end

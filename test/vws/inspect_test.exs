@@ -1,0 +1,179 @@
+defmodule Vws.InspectTest do
+  use ExUnit.Case, async: true
+
+  import ExUnit.CaptureIO
+
+  alias Vws.Inspect
+  alias Vws.Test.WCPeer
+
+  defmodule FakeLink do
+    @moduledoc false
+    # A device link as the equipment links are: a process under the links supervisor whose
+    # module exports info/1.
+    use Agent
+
+    def start_link(info), do: Agent.start_link(fn -> info end)
+    def info(pid), do: Agent.get(pid, & &1)
+  end
+
+  defmodule SilentLink do
+    @moduledoc false
+    use GenServer
+    def start_link(_), do: GenServer.start_link(__MODULE__, nil)
+    def init(nil), do: {:ok, nil}
+    # never answers
+    def info(pid), do: GenServer.call(pid, :info, :infinity)
+    def handle_call(:info, _from, s), do: {:noreply, s}
+  end
+
+  setup do
+    links = [
+      Supervisor.child_spec(
+        {FakeLink, %{state: :running, counters: %{frames_out: 12, naks: 1}, last_error: "NAK 2"}},
+        id: :val_ii
+      ),
+      Supervisor.child_spec({SilentLink, nil}, id: :daq1)
+    ]
+
+    %{ws: ws, wc: wc} =
+      Vws.Test.Workstation.start(partitions: Vws.Test.Workstation.held_robot(), links: links)
+
+    %{ws: ws, wc: wc}
+  end
+
+  test "partitions: state, current command, status, restarts", %{ws: ws, wc: wc} do
+    {:ok, peer} = WCPeer.connect(wc)
+    WCPeer.send_string(peer, 1, [{"R", 7, "HOLD X"}])
+    assert_receive {:executing, cmd, 7, _}, 5_000
+
+    robot = Enum.find(Inspect.partition_rows(ws), &(&1.partition == :robot))
+    assert %{state: :running, number: 7, status: :executing, in_flight: 7, restarts: 0} = robot
+    assert %{number: 7, text: "HOLD X"} = robot.current
+
+    table = Inspect.format_partitions(ws)
+    assert table =~ ~r/ROBOT +running +0007 EXECUTING +0007 HOLD X \(\d+ ms\)/
+    assert table =~ ~r/MONARCH +idle +---- NONE/
+
+    send(cmd, {:result, :done})
+
+    assert Vws.Test.Eventually.eventually(fn ->
+             Vws.Mailbox.command_status(ws, :robot) == {7, :done}
+           end)
+
+    # a partition that crashed and restarted says so
+    Process.exit(Vws.Partition.whereis(ws, :monarch), :kill)
+
+    assert Vws.Test.Eventually.eventually(fn ->
+             match?(
+               %{restarts: 1, state: :idle},
+               Enum.find(Inspect.partition_rows(ws), &(&1.partition == :monarch))
+             )
+           end)
+  end
+
+  test "links: every child of the links supervisor, with its info/1 map; a silent one does not block",
+       %{ws: ws} do
+    {time, rows} = :timer.tc(fn -> Inspect.link_rows(ws) end)
+    assert time < 2_000_000
+
+    assert [%{id: :daq1, state: :not_answering}, %{id: :val_ii, state: :running, info: info}] =
+             rows
+
+    assert info.last_error == "NAK 2"
+
+    table = Inspect.format_links(ws)
+
+    assert table =~
+             ~r/val_ii +#PID<[\d.]+> +running +counters: frames_out=12 naks=1  last_error=NAK 2/
+
+    assert table =~ ~r/daq1 +#PID<[\d.]+> +not_answering/
+  end
+
+  test "interlocks: whatever {:interlock, what} entries exist, with their holders", %{ws: ws} do
+    assert Inspect.format_interlocks(ws) =~ "(none held)"
+    table = Vws.Mailbox.table(ws)
+    :ets.insert(table, {{:interlock, :table}, :robot})
+    :ets.insert(table, {{:interlock, {:tray, 2}}, :gripper, 123})
+
+    assert [%{what: :table, holder: :robot}, %{what: {:tray, 2}, holder: :gripper, extra: [123]}] =
+             Inspect.interlock_rows(ws)
+
+    text = Inspect.format_interlocks(ws)
+    assert text =~ ~r/^table +robot$/m
+    assert text =~ ~r/^tray 2 +gripper +\[123\]$/m
+  end
+
+  test "the printed views", %{ws: ws} do
+    out = capture_io(fn -> Inspect.overview(ws) end)
+    assert out =~ "VWS mailboxes of workstation"
+    assert out =~ "PARTITIONS of"
+    assert out =~ "LINKS of"
+    assert out =~ "INTERLOCKS of"
+    assert out =~ "WC LINK of"
+    assert capture_io(fn -> :ok = Inspect.partitions(ws) end) =~ "HYDRAULIC"
+  end
+
+  test "a partition that is down is shown down, not waited for", %{ws: ws} do
+    sup = Vws.Workstation.whereis(ws, :partitions)
+    :ok = Supervisor.terminate_child(sup, :vacuum)
+    assert %{state: :down} = Enum.find(Inspect.partition_rows(ws), &(&1.partition == :vacuum))
+  end
+
+  test "watch a partition: its commands as they happen", %{ws: ws, wc: wc} do
+    {:ok, peer} = WCPeer.connect(wc)
+    {:ok, device} = StringIO.open("")
+    watcher = Task.async(fn -> Inspect.watch(ws, :robot, timeout: 30_000, device: device) end)
+    # the watcher subscribes before it waits; give it that moment through the telemetry table
+    # it says so once it is subscribed
+    assert Vws.Test.Eventually.eventually(fn ->
+             StringIO.contents(device) |> elem(1) =~ "watching"
+           end)
+
+    WCPeer.send_string(peer, 1, [{"R", 7, "HOLD Y"}, {"G", 8, "OPEN"}])
+    assert_receive {:executing, cmd, 7, _}, 5_000
+    send(cmd, {:result, :done})
+
+    assert Vws.Test.Eventually.eventually(
+             fn -> StringIO.contents(device) |> elem(1) =~ "command_finished" end,
+             10_000
+           )
+
+    send(watcher.pid, :stop_watch)
+    printed = Task.await(watcher, 5_000)
+    {_, out} = StringIO.contents(device)
+
+    assert printed >= 3
+    assert out =~ ~r/partition\.command_dispatched command=7 partition=robot text=HOLD Y/
+    assert out =~ ~r/partition\.command\.stop command=7 partition=robot result=done/
+
+    assert out =~
+             ~r/partition\.command_finished command=7 partition=robot status=done duration=\d+ms/
+
+    refute out =~ "partition=gripper"
+  end
+
+  test "watch the WC: the dialogue both ways", %{ws: ws, wc: wc} do
+    {:ok, peer} = WCPeer.connect(wc)
+    {:ok, device} = StringIO.open("")
+    watcher = Task.async(fn -> Inspect.watch(ws, :wc, timeout: 30_000, device: device) end)
+
+    # it says so once it is subscribed
+    assert Vws.Test.Eventually.eventually(fn ->
+             StringIO.contents(device) |> elem(1) =~ "watching"
+           end)
+
+    WCPeer.send_string(peer, 3, [{"S", 9, "ROBOT_CMD"}])
+    WCPeer.recv_line(peer)
+
+    assert Vws.Test.Eventually.eventually(
+             fn -> StringIO.contents(device) |> elem(1) =~ "NONE" end,
+             10_000
+           )
+
+    send(watcher.pid, :stop_watch)
+    Task.await(watcher, 5_000)
+    {_, out} = StringIO.contents(device)
+    assert out =~ ~r/\d\d:\d\d:\d\d\.\d{3} WC → \*0003\*S0009ROBOT_CMD\*\d{3}/
+    assert out =~ ~r/WC ← \d\dS0009\d{4}NONE\d{3}/
+  end
+end
