@@ -13,13 +13,13 @@ defmodule Vws.Demo do
       shop_floor(opts) :: {:ok, %{name: String.t(), links: [child_spec], partitions: keyword}}
 
   which starts the simulated device (the `opts` carry `:workstation` and `:time_scale`) and says
-  which workstation links and partition options reach it. Today the list holds the plant with
-  DAQ #1 (`Vws.Sim.Floor`: VWS_STATUS, GRIPPER, FIXTURE and VACUUM reach it; ROBOT gets its tray
-  locks) and the GE-2000 (`Vws.Sim.GE2000`, whose own cycle-start button stands in for the DAQ #1
-  relay: it comes after the floor, so MONARCH's `cycle_start` is its); the robot and the
-  hydraulic controller are being built, so their partitions start without a device link and
-  answer each valid command `ERROR NO LINK TO <device>` — truthfully — and a cycle stops at its
-  first such command.
+  which workstation links and partition options reach it. Today the list holds the whole floor
+  (`Vws.Sim.Floor`): the plant with DAQ #1 (VWS_STATUS, GRIPPER, FIXTURE and VACUUM reach it; ROBOT
+  gets its tray locks, MONARCH its cycle-start relay), DAQ #2 with the hydraulic controller
+  (HYDRAULIC), the GE-2000 (whose cycle-start input is that relay), the VAL II robot and the
+  material-handling system, with a blank in tray #1. A partition whose device is not on the
+  floor starts without a device link and answers each valid command `ERROR NO LINK TO
+  <device>` — truthfully — and a cycle stops at its first such command.
 
   ## The printed dialogue
 
@@ -34,7 +34,7 @@ defmodule Vws.Demo do
 
   # Modules that put a simulated device on the shop floor (see the moduledoc). Filled in by the
   # issues that build the simulators.
-  @simulators [Vws.Sim.Floor, Vws.Sim.GE2000]
+  @simulators [Vws.Sim.Floor]
 
   @partition_devices [
     robot: Vws.Partitions.Robot,

@@ -31,6 +31,9 @@ defmodule Vws.Mailbox do
     * **NC file** (the program downloaded from the WC, DOWNLOAD_HP) and **NC_UP** (the program
       uploaded from the GE-2000, UPLOAD_GE), as lists of lines.
 
+    * **Interlocks**: the work-volume leases of `Vws.Interlock` (seed §2.3.8), one entry
+      `{:interlock, volume, holder}` per holder.
+
   ## Durability
 
   With a journal (`Vws.Journal`), every command-status change is written to disk before it is
@@ -318,6 +321,7 @@ defmodule Vws.Mailbox do
       last_sequence: seq,
       nc_file: nc_file(ws),
       nc_up: nc_up(ws),
+      interlocks: Vws.Interlock.held(ws),
       events: Vws.Events.list(ws)
     }
   end
@@ -366,6 +370,7 @@ defmodule Vws.Mailbox do
       Enum.map(command_rows, &Enum.join/1),
       "",
       "NC file: #{length(s.nc_file)} lines   NC_UP: #{length(s.nc_up)} lines",
+      "INTERLOCKS: " <> Vws.Interlock.format(ws),
       "EVENTS: " <> Enum.map_join(s.events, "  ", fn {e, n} -> "#{e}=#{n}" end)
     ]
     |> List.flatten()

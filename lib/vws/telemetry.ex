@@ -48,6 +48,9 @@ defmodule Vws.Telemetry do
   | `[:vws, :vws_status, :poll]` | `started_at, lateness, duration, handling` (µs) | `workstation, seq, result` |
   | `[:vws, :vws_status, :missed]` | `count` | `workstation, reason` |
   | `[:vws, :vws_status, :stale]` | `count` | `workstation, reason` |
+  | `[:vws, :interlock, :acquired]` | `wait_ms, tries` | `workstation, volume, holder, reason` |
+  | `[:vws, :interlock, :refused]` | `wait_ms, tries` | `workstation, volume, holder, reason, why` |
+  | `[:vws, :interlock, :released]` | `count` | `workstation, volume, holder, reason` (`:all` or one) |
 
   `workstation` is the id of the workstation the event belongs to (nil for a link or simulator
   that serves none). `attach_default_handler/0` logs all of them with `Logger`.
@@ -96,7 +99,10 @@ defmodule Vws.Telemetry do
     [:vws, :vws_status, :poll],
     [:vws, :vws_status, :missed],
     [:vws, :vws_status, :stale],
-    [:vws, :web, :request]
+    [:vws, :web, :request],
+    [:vws, :interlock, :acquired],
+    [:vws, :interlock, :refused],
+    [:vws, :interlock, :released]
   ]
 
   @doc "Every event name listed in the moduledoc."

@@ -62,6 +62,10 @@ defmodule Vws.MailboxTest do
     assert text =~ "0009 DO MOVE SAFE"
     assert text =~ "VISE IS UNLOCKED PART NOT IN VISE"
     assert text =~ "ok_to_proceed=0"
+    assert text =~ "INTERLOCKS: NONE"
+    :ok = Vws.Interlock.acquire(ws, :table, :robot, 0)
+    assert Mailbox.format(ws) =~ "INTERLOCKS: TABLE=ROBOT"
+    assert [%{volume: :table, holder: :robot}] = Mailbox.snapshot(ws).interlocks
     assert ExUnit.CaptureIO.capture_io(fn -> Mailbox.print(ws) end) =~ "COMMAND STATUS"
   end
 

@@ -22,13 +22,14 @@ defmodule Vws.Partitions.Monarch do
   select, the report names the program). Every status report read also refreshes the `MONARCH`
   device status (location 8). Option `verify: false` skips the extra report.
 
-  **Table interlock.** CYCLE_START first sets the table interlock flag — the mailbox key
-  `{:table_interlock, :monarch}` (record `{{:table_interlock, :monarch}, monotonic_ms}`) — so the
-  vise may not open nor the robot approach the table (`table_interlocked?/1`), then closes the
-  cycle-start relay of DAQ #1 through the `:cycle_start` option, a function
-  `(-> :ok | {:error, reason})` (the DAQ issue provides it; without it CYCLE_START ends
-  `ERROR NO LINK TO DAQ #1` and sets nothing). RELEASE_TABLE clears the flag once the machine
-  reports IDLE.
+  **Table interlock** (seed App. I A, §2.3.8 rules 1b and 3b). CYCLE_START first takes the
+  table's work volume for the machine (`Vws.Interlock`, holder `:monarch`) — re-tried four times a
+  second while the robot or the vise holds it, until `interlock: [timeout: ms]` (default
+  10 000) ends it `ERROR INTERLOCK TABLE HELD BY ROBOT` (or `FIXTURE`) — so the vise may not open
+  nor the robot approach the table, then closes the cycle-start relay of DAQ #1 through the
+  `:cycle_start` option, a function `(-> :ok | {:error, reason})` (without it CYCLE_START ends
+  `ERROR NO LINK TO DAQ #1` and takes nothing). The machine keeps the table, whatever became of
+  the start, until RELEASE_TABLE gives it up once the machine reports IDLE.
 
   **Following the machine.** The `MONARCH` status is kept current without the WC asking:
   `Vws.Partitions.Monarch.Monitor`, started with the DNC link by the workstation's `devices:`
@@ -46,27 +47,23 @@ defmodule Vws.Partitions.Monarch do
     * `:start_timeout` — ms for the machine to report ACTIVE after the relay (10 000)
     * `:poll_interval` — ms between status reports while waiting for it (100)
     * `:request_timeout` — bound on one DNC request (`:infinity`: the link's limits end it)
+    * `:interlock` — `timeout` (ms, default 10 000) and `retry_ms` (250) of the table's lease
   """
   @behaviour Vws.Partition
 
   alias Vws.DNC
   alias Vws.DNC.{Frame, LinkError, Program, Report}
   alias Vws.DNC.Frame.Command
-  alias Vws.Mailbox
+  alias Vws.{Interlock, Mailbox}
 
   @monarch_location 8
   @tli_location 6
-  @interlock {:table_interlock, :monarch}
 
   @impl true
   def device, do: "GE-2000"
 
   @impl true
   def parse(text), do: Vws.Commands.parse(:monarch, text)
-
-  @doc "True while MONARCH's table interlock flag is set (a cycle was started, not yet released)."
-  @spec table_interlocked?(Mailbox.workstation()) :: boolean
-  def table_interlocked?(ws), do: :ets.member(Mailbox.table(ws), @interlock)
 
   @impl true
   def execute(command, ctx)
@@ -134,15 +131,25 @@ defmodule Vws.Partitions.Monarch do
         {:error, "NO LINK TO DAQ #1"}
 
       relay when is_function(relay, 0) ->
-        set_interlock(ctx.workstation)
+        interlock = Keyword.get(ctx.options, :interlock, [])
 
-        case relay.() do
-          :ok ->
-            deadline = now() + Keyword.get(ctx.options, :start_timeout, 10_000)
-            await_active(ctx, deadline)
+        with :ok <-
+               Interlock.acquire(
+                 ctx.workstation,
+                 :table,
+                 :monarch,
+                 Keyword.get(interlock, :timeout, 10_000),
+                 as: :cycle,
+                 retry_ms: Keyword.get(interlock, :retry_ms, 250)
+               ) do
+          case relay.() do
+            :ok ->
+              deadline = now() + Keyword.get(ctx.options, :start_timeout, 10_000)
+              await_active(ctx, deadline)
 
-          {:error, reason} ->
-            {:error, "CYCLE START RELAY FAILED #{reason_text(reason)}"}
+            {:error, reason} ->
+              {:error, "CYCLE START RELAY FAILED #{reason_text(reason)}"}
+          end
         end
     end
   end
@@ -153,7 +160,7 @@ defmodule Vws.Partitions.Monarch do
         {:error, "MACHINE ACTIVE"}
 
       {:ok, %{state: :idle}} ->
-        :ets.delete(Mailbox.table(ctx.workstation), @interlock)
+        Interlock.release(ctx.workstation, :table, :monarch)
         :done
 
       error ->
@@ -279,8 +286,6 @@ defmodule Vws.Partitions.Monarch do
       [missing | _] -> {:error, "TOOL-OFFSET LINE #{missing} NOT IN TABLE"}
     end
   end
-
-  defp set_interlock(ws), do: :ets.insert(Mailbox.table(ws), {@interlock, now()})
 
   defp reason_text(reason) when is_binary(reason), do: String.upcase(reason)
   defp reason_text(reason), do: reason |> inspect() |> String.upcase()

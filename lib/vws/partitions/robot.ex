@@ -11,7 +11,7 @@ defmodule Vws.Partitions.Robot do
   | `DO APPRO loc/d`, `DO APPROS loc/d` | `DO APPRO loc, d` … | MOTION COMPLETE |
   | `DO DEPART d`, `DO DEPARTS d` | the same | MOTION COMPLETE |
   | `EXECUTE name` | monitor `EXECUTE name` | PROGRAM COMPLETE |
-  | `DISABLE_TRAYn`, `RELEASE_TRAYn`, `DISABLE_TABLE`, `RELEASE_TABLE` | interlock flags (below) | the flag is set / cleared |
+  | `DISABLE_TRAYn`, `RELEASE_TRAYn`, `DISABLE_TABLE`, `RELEASE_TABLE` | interlocks (below) | the lease is taken / given up |
 
   The WC writes the robot's commands with `/` between arguments; VAL II wants commas, so motion
   instructions are rewritten from the parsed command (`Vws.Commands`), never passed through.
@@ -22,29 +22,54 @@ defmodule Vws.Partitions.Robot do
   `BAD RESPONSE`, `COMMAND TOO LONG`. A command that ended in error is never sent again by the
   CEC: the WC decides.
 
-  ## Interlock flags (seed §2.3.8, Table 3)
+  ## Interlocks (seed §2.3.8, §4.4 Fig. 13)
 
-  In the workstation's mailbox table (`Vws.Mailbox.table/1`), key `{:interlock, {:tray, n}}` or
-  `{:interlock, :table}`, value the holder — `{{:interlock, {:tray, 1}}, :robot}`. DISABLE takes
-  the flag atomically (`:ets.insert_new`): it is DONE when the flag is free or already the
-  robot's, `ERROR TRAY n HELD BY <holder>` when another holder has it. RELEASE clears it when it
-  is the robot's (DONE also when nobody holds it), `ERROR … HELD BY <holder>` otherwise. The
-  retrying lease and the checks before each motion come with the safety work.
+  Through `Vws.Interlock`, with ROBOT as holder `:robot`:
+
+    * `DISABLE_TRAYn` takes tray n's volume (`:tray1`, `:tray2`; re-tried while the
+      material-handling system holds it — rule 2a) and then locks the tray through the
+      `:tray_lock` seam; a lock that fails gives the lease back. `RELEASE_TRAYn` unlocks the tray
+      and gives its lease up (rule 2b: the MHS may move it again).
+    * `DISABLE_TABLE` takes the table's volume, shared with FIXTURE but never with MONARCH's
+      cycle, on the conditions of rule 1a: the machine idle and the table parked, as read
+      (`Vws.Interlock.table_conditions/2`). `RELEASE_TABLE` gives it up (rule 1b: a cycle may
+      start).
+    * Every `DO MOVE`/`MOVES`/`APPRO`/`APPROS` into a volume first takes that volume for the arm
+      (reason `:inside`) by the same procedure and on the same conditions, unless it is held
+      already (then the conditions are read again) — the device lock-out of Fig. 13 before the
+      robot leaves SAFE for a work volume. Which volume a location lies in comes from
+      `priv/work_volumes.exs` (`Vws.Interlock.WorkVolumes`); `loc:TRANS(…)` lies in the volume
+      of `loc`; a location that is not listed is refused. `DEPART`/`DEPARTS` stays in the volume
+      the arm is in. `EXECUTE name` takes the volumes the program is listed to enter.
+    * When a motion completes, the arm's leases on the volumes it has left are given up; when
+      one fails (an error, a restart, a timeout) the arm may be anywhere between, so it keeps
+      every lease it had and took until a motion completes again. `RELEASE_TABLE` or
+      `RELEASE_TRAYn` while the arm is in that volume is refused:
+      `ERROR INTERLOCK ROBOT IN TABLE VOLUME`.
+
+  A request that times out ends `ERROR INTERLOCK <VOLUME> HELD BY <HOLDER>` or
+  `ERROR INTERLOCK TABLE <condition>` (`MACHINE ACTIVE`, `NOT IN PARK POSITION`,
+  `MACHINE STATUS STALE (n MS OLD)`, …). The leases live in the mailboxes: a restarted ROBOT
+  finds them.
 
   ## Options (`ctx.options`)
 
     * `:tray_lock` — `fun(n, :lock | :release) :: :ok | {:error, reason}`, the seam for the DAQ
       relay that physically locks tray `n` out of the material-handling system; called after
-      the flag is taken (a failure gives it back) and before it is cleared. Without it only the
-      flag is set.
+      the lease is taken (a failure gives it back) and before it is given up. Without it only
+      the lease is taken.
     * `:reinit` — `true`: re-initialise the DDCMP link after every command that went to the
       VAL II, as the seed's ROBOT program does (seed §4.3.2). Default `false`.
     * `:command_timeout` (default 10 s), `:motion_timeout` (120 s), `:program_timeout` (600 s),
       in ms.
+    * `:interlock` — `timeout` (ms a lease is tried for, default 10 000), `retry_ms` (250),
+      `machine_stale_ms`, `sensor_timeout_ms` (see `Vws.Interlock.table_conditions/2`).
+    * `:work_volumes` — a map or a path in the shape of `priv/work_volumes.exs` (the default).
   """
   @behaviour Vws.Partition
 
-  alias Vws.Mailbox
+  alias Vws.{Interlock, Mailbox}
+  alias Vws.Interlock.WorkVolumes
 
   @where_location 9
 
@@ -55,10 +80,10 @@ defmodule Vws.Partitions.Robot do
   def parse(text), do: Vws.Commands.parse(:robot, text)
 
   @impl true
-  def execute({:disable_tray, n}, ctx), do: disable(ctx, {:tray, n})
-  def execute({:release_tray, n}, ctx), do: release(ctx, {:tray, n})
-  def execute(:disable_table, ctx), do: disable(ctx, :table)
-  def execute(:release_table, ctx), do: release(ctx, :table)
+  def execute({:disable_tray, n}, ctx), do: disable_tray(ctx, n)
+  def execute({:release_tray, n}, ctx), do: release_volume(ctx, tray(n))
+  def execute(:disable_table, ctx), do: disable_table(ctx)
+  def execute(:release_table, ctx), do: release_volume(ctx, :table)
 
   def execute(command, ctx) do
     result = run(command, ctx)
@@ -88,16 +113,25 @@ defmodule Vws.Partitions.Robot do
   end
 
   defp run({:execute, name}, ctx) do
-    with {:ok, _} <- val(Vws.VAL.command(ctx.link, "EXECUTE " <> name, timeout(ctx, :program))),
-         do: :done
+    with {:ok, %{enters: volumes, ends: ends}} <- WorkVolumes.program(work_volumes(ctx), name),
+         :ok <- enter_all(ctx, volumes) do
+      text = "EXECUTE " <> name
+
+      with {:ok, _} <- val(Vws.VAL.command(ctx.link, text, timeout(ctx, :program))) do
+        arrived(ctx, ends)
+      end
+    end
   end
 
   defp run({:do, _, _} = motion, ctx), do: motion(motion, ctx)
   defp run({:do, _, _, _} = motion, ctx), do: motion(motion, ctx)
 
   defp motion(command, ctx) do
-    with {:ok, _} <- val(Vws.VAL.command(ctx.link, instruction(command), timeout(ctx, :motion))),
-         do: :done
+    with {:ok, target} <- target(command, ctx),
+         :ok <- enter(ctx, target),
+         {:ok, _} <- val(Vws.VAL.command(ctx.link, instruction(command), timeout(ctx, :motion))) do
+      arrived(ctx, target)
+    end
   end
 
   @doc """
@@ -171,63 +205,140 @@ defmodule Vws.Partitions.Robot do
   defp timeout(ctx, :motion), do: Keyword.get(ctx.options, :motion_timeout, 120_000)
   defp timeout(ctx, :program), do: Keyword.get(ctx.options, :program_timeout, 600_000)
 
-  ## Interlock flags
+  ## Interlocks
 
-  @doc "Who holds an interlock flag (`{:tray, n}` or `:table`) of a workstation, or nil."
-  @spec interlock_holder(term, {:tray, 1 | 2} | :table) :: atom | nil
-  def interlock_holder(ws, what) do
-    case :ets.lookup(Mailbox.table(ws), {:interlock, what}) do
-      [{_, holder}] -> holder
-      [] -> nil
+  # The volume a motion ends in: a location's, or :here for a DEPART.
+  defp target({:do, kind, _dist}, _ctx) when kind in [:depart, :departs], do: {:ok, :here}
+  defp target({:do, _kind, loc}, ctx), do: WorkVolumes.location(work_volumes(ctx), loc)
+  defp target({:do, _kind, loc, _dist}, ctx), do: WorkVolumes.location(work_volumes(ctx), loc)
+
+  # Fig. 13's device lock-out: the arm takes the volume before it moves into it.
+  defp enter(_ctx, target) when target in [:here, :safe], do: :ok
+
+  defp enter(ctx, volume) do
+    Interlock.acquire(ctx.workstation, volume, :robot, interlock_timeout(ctx),
+      as: :inside,
+      check: conditions(ctx, volume),
+      retry_ms: interlock(ctx, :retry_ms, 250)
+    )
+  end
+
+  # A program's volumes, all or none: those taken here are given back when one is refused.
+  defp enter_all(ctx, volumes) do
+    before = inside(ctx)
+
+    Enum.reduce_while(volumes, {:ok, []}, fn volume, {:ok, taken} ->
+      case enter(ctx, volume) do
+        :ok ->
+          {:cont, {:ok, [volume | taken]}}
+
+        error ->
+          for v <- taken,
+              v not in before,
+              do: Interlock.release(ctx.workstation, v, :robot, :inside)
+
+          {:halt, error}
+      end
+    end)
+    |> case do
+      {:ok, _} -> :ok
+      error -> error
     end
   end
 
-  defp disable(ctx, what) do
-    table = Mailbox.table(ctx.workstation)
-    key = {:interlock, what}
+  # The motion completed: the arm is in `target` (or where it was, for :here) and has left
+  # every other volume.
+  defp arrived(_ctx, :here), do: :done
 
-    if :ets.insert_new(table, {key, :robot}) do
-      case tray_lock(ctx, what, :lock) do
+  defp arrived(ctx, target) do
+    for volume <- inside(ctx),
+        volume != target,
+        do: Interlock.release(ctx.workstation, volume, :robot, :inside)
+
+    :done
+  end
+
+  defp inside(ctx) do
+    for %{holder: :robot, volume: v, reasons: reasons} <- Interlock.held(ctx.workstation),
+        :inside in reasons,
+        do: v
+  end
+
+  defp conditions(ctx, :table) do
+    Interlock.table_conditions(ctx.workstation, Keyword.get(ctx.options, :interlock, []))
+  end
+
+  defp conditions(_ctx, _volume), do: fn -> :ok end
+
+  defp disable_table(ctx) do
+    result =
+      Interlock.acquire(ctx.workstation, :table, :robot, interlock_timeout(ctx),
+        as: :disabled,
+        check: conditions(ctx, :table),
+        retry_ms: interlock(ctx, :retry_ms, 250)
+      )
+
+    with :ok <- result, do: :done
+  end
+
+  defp disable_tray(ctx, n) do
+    volume = tray(n)
+
+    result =
+      Interlock.acquire(ctx.workstation, volume, :robot, interlock_timeout(ctx),
+        as: :disabled,
+        retry_ms: interlock(ctx, :retry_ms, 250)
+      )
+
+    with :ok <- result do
+      case tray_lock(ctx, volume, :lock) do
         :ok ->
           :done
 
         {:error, reason} ->
-          :ets.delete_object(table, {key, :robot})
-          {:error, "#{name(what)} LOCK FAILED #{reason}"}
+          Interlock.release(ctx.workstation, volume, :robot, :disabled)
+          {:error, "TRAY #{n} LOCK FAILED #{reason}"}
       end
+    end
+  end
+
+  defp release_volume(ctx, volume) do
+    if Interlock.holds?(ctx.workstation, volume, :robot, :inside) do
+      {:error, "INTERLOCK ROBOT IN #{Interlock.name(volume)} VOLUME"}
     else
-      case interlock_holder(ctx.workstation, what) do
-        :robot -> :done
-        # released between the two calls: take it now
-        nil -> disable(ctx, what)
-        holder -> held(what, holder)
+      case tray_lock(ctx, volume, :release) do
+        :ok ->
+          Interlock.release(ctx.workstation, volume, :robot, :disabled)
+          :done
+
+        {:error, reason} ->
+          {:error, "#{display(volume)} RELEASE FAILED #{reason}"}
       end
     end
   end
 
-  defp release(ctx, what) do
-    table = Mailbox.table(ctx.workstation)
-
-    case interlock_holder(ctx.workstation, what) do
-      nil ->
-        :done
-
-      :robot ->
-        case tray_lock(ctx, what, :release) do
-          :ok ->
-            :ets.delete_object(table, {{:interlock, what}, :robot})
-            :done
-
-          {:error, reason} ->
-            {:error, "#{name(what)} RELEASE FAILED #{reason}"}
-        end
-
-      holder ->
-        held(what, holder)
+  defp work_volumes(ctx) do
+    case Keyword.get(ctx.options, :work_volumes) do
+      nil -> WorkVolumes.default()
+      source -> WorkVolumes.load(source)
     end
   end
 
-  defp tray_lock(ctx, {:tray, n}, action) do
+  defp interlock(ctx, key, default),
+    do: ctx.options |> Keyword.get(:interlock, []) |> Keyword.get(key, default)
+
+  defp interlock_timeout(ctx), do: interlock(ctx, :timeout, 10_000)
+
+  defp tray(1), do: :tray1
+  defp tray(2), do: :tray2
+
+  defp display(:tray1), do: "TRAY 1"
+  defp display(:tray2), do: "TRAY 2"
+  defp display(:table), do: "TABLE"
+
+  defp tray_lock(ctx, volume, action) when volume in [:tray1, :tray2] do
+    n = if volume == :tray1, do: 1, else: 2
+
     case Keyword.get(ctx.options, :tray_lock) do
       nil ->
         :ok
@@ -241,10 +352,4 @@ defmodule Vws.Partitions.Robot do
   end
 
   defp tray_lock(_ctx, :table, _action), do: :ok
-
-  defp held(what, holder),
-    do: {:error, "#{name(what)} HELD BY #{holder |> to_string() |> String.upcase()}"}
-
-  defp name({:tray, n}), do: "TRAY #{n}"
-  defp name(:table), do: "TABLE"
 end

@@ -1,22 +1,39 @@
 defmodule Vws.Sim.Floor do
   @moduledoc """
   The simulated shop floor of one workstation: the plant (`Vws.Sim.Plant`), the two
-  data-acquisition units on it (`Vws.Sim.DAQ`, each listening on its own endpoint) and,
-  optionally, the hydraulic controller (`Vws.HydraulicController`) on DAQ #2.
+  data-acquisition units on it (`Vws.Sim.DAQ`, each listening on its own endpoint) and — when
+  asked — the hydraulic controller (`Vws.HydraulicController`) on DAQ #2, the GE-2000
+  (`Vws.Sim.GE2000`), the VAL II robot (`Vws.Sim.VAL2`) and the material-handling system
+  (`Vws.Sim.MHS`), wired to the plant as the real equipment is to the workstation:
 
   ```
   Vws.Sim.Floor (rest_for_one)
-  ├── Vws.Sim.Plant        {ws, :sim_plant} in Vws.Registry — other simulators find it with plant/1
-  ├── Vws.Sim.DAQ (DAQ #1) {ws, :sim_daq1}  — on :daq1 (default tcp://127.0.0.1:0); `daq1: false`: none
-  ├── Vws.Sim.DAQ (DAQ #2) {ws, :sim_daq2}  — the pallet's channels, on :daq2 (default tcp://127.0.0.1:0)
-  └── Vws.HydraulicController  named {:sim_floor, ws}, on DAQ #2 — only with `hydraulic: true`
+  ├── Vws.Sim.Plant        {ws, :sim_plant}   — other simulators find it with plant/1
+  ├── Vws.Sim.DAQ (DAQ #1) {ws, :sim_daq1}    — on :daq1 (default tcp://127.0.0.1:0); `daq1: false`: none
+  ├── Vws.Sim.DAQ (DAQ #2) {ws, :sim_daq2}    — the pallet's channels, on :daq2 (default tcp://127.0.0.1:0)
+  ├── Vws.HydraulicController  named {:sim_floor, ws}, on DAQ #2 — option :hydraulic
+  ├── Vws.Sim.GE2000       {ws, :sim_ge2000}  — option :ge2000
+  ├── Vws.Sim.VAL2         {ws, :sim_val2}    — option :robot
+  └── Vws.Sim.MHS          {ws, :sim_mhs}     — option :mhs
   ```
 
   The hydraulic controller is not a simulator — it is the controller itself — but on the
   simulated floor it has nowhere else to run; it comes after DAQ #2, which it needs.
-  `mix vws.serve` and `Vws.Demo` start the floor before the workstation and give the workstation
-  `devices: [daq1: Vws.Sim.Floor.daq1_endpoint(ws), hydraulic: Vws.Sim.Floor.hydraulic_endpoint(ws)]`;
-  pointing `daq1` and `hydraulic` at real equipment instead needs no floor at all.
+
+  The wires, so that the plant's collision oracle (`Vws.Sim.Plant.collisions/1`) sees what the
+  equipment does without asking the CEC:
+
+    * the cycle-start relay of DAQ #1 drives the GE-2000's cycle-start input
+      (`Vws.Sim.GE2000.cycle_start_input/2`), and the GE-2000's cycle moves the table
+      (`Vws.Sim.Plant.set_cycle/2`);
+    * the robot's motions tell the plant where the gripper is (`on_move` →
+      `Vws.Sim.Plant.set_robot/2`, the work volumes of `priv/sims/robot_locations.exs`);
+    * the MHS moves the trays (`Vws.Sim.Plant.move_tray/3`) under the workstation's interlock.
+
+  `Vws.Demo` starts the whole floor before the workstation and gives the workstation
+  `devices: devices(ws)`; `mix vws.serve` starts the plant, the DAQs and the hydraulic
+  controller here (and the GE-2000 and VAL II simulators on their own). Pointing a device at
+  real equipment instead needs no simulator for it.
 
       iex> {:ok, _floor} = Vws.Sim.Floor.start_link(workstation: "floor-doc", time_scale: 100)
       iex> Vws.Sim.Floor.daq1_endpoint("floor-doc") =~ ~r"^tcp://127.0.0.1:\\d+$"
@@ -29,14 +46,22 @@ defmodule Vws.Sim.Floor do
   use Supervisor
 
   alias Vws.HydraulicController
-  alias Vws.Sim.{DAQ, Plant}
+  alias Vws.Sim.{DAQ, GE2000, MHS, Plant, VAL2}
 
   @doc """
-  Starts the floor of workstation `:workstation`. Options: `:time_scale` (default 1.0), `:seed`,
-  `:plant` (more `Vws.Sim.Plant` options, e.g. `config:`), `:daq1` (the endpoint DAQ #1 listens
-  on, default `"tcp://127.0.0.1:0"`; `false` for no DAQ #1), `:daq2` (the same for DAQ #2),
-  `:hydraulic` (`true`, or `Vws.HydraulicController.start_link/1` options, to run the hydraulic
-  controller on DAQ #2; default `false`).
+  Starts the floor of workstation `:workstation`. Options:
+
+    * `:time_scale` (default 1.0) — how many times faster than real time the plant runs; the
+      GE-2000's cycle and the robot's motions are scaled with it;
+    * `:seed`, `:plant` (more `Vws.Sim.Plant` options, e.g. `config:`);
+    * `:daq1` — the endpoint DAQ #1 listens on, default `"tcp://127.0.0.1:0"`; `false` for no
+      DAQ #1; `:daq2` the same for DAQ #2;
+    * `:hydraulic` — `true`, or `Vws.HydraulicController.start_link/1` options, to run the
+      hydraulic controller on DAQ #2 (default `false`);
+    * `:ge2000` — `true` or `Vws.Sim.GE2000` options (default `cycle_time` 5 s / time scale,
+      at least 1 s, so that MONARCH sees the machine run after it has let go of the button);
+    * `:robot` — `true` or `Vws.Sim.VAL2` options (default `time_scale` 1 / time scale);
+    * `:mhs` — `true` or `Vws.Sim.MHS` options.
   """
   @spec start_link(keyword) :: Supervisor.on_start()
   def start_link(opts) do
@@ -81,30 +106,67 @@ defmodule Vws.Sim.Floor do
   @spec hydraulic_endpoint(term) :: String.t()
   def hydraulic_endpoint(ws), do: HydraulicController.endpoint(hydraulic_controller(ws))
 
+  @doc "The GE-2000 simulator of a workstation's floor (a registered name)."
+  @spec ge2000(term) :: GenServer.name()
+  def ge2000(ws), do: name(ws, :sim_ge2000)
+
+  @doc "The VAL II simulator of a workstation's floor (a registered name)."
+  @spec robot(term) :: GenServer.name()
+  def robot(ws), do: name(ws, :sim_val2)
+
+  @doc "The material-handling system of a workstation's floor (a registered name)."
+  @spec mhs(term) :: GenServer.name()
+  def mhs(ws), do: name(ws, :sim_mhs)
+
   @doc """
-  For `Vws.Demo`'s shop floor: starts the floor with its hydraulic controller (linked to the
-  caller) with the demo's `:workstation` and `:time_scale`, and returns the workstation links
-  and partition options that reach it (`Vws.Partitions.VwsStatus.wiring/3` for DAQ #1,
-  `Vws.Partitions.Hydraulic.wiring/3` for the hydraulic controller).
+  The `devices:` option of a workstation reaching every device of the floor:
+  `[daq1: …, hydraulic: …, ge2000: …, robot: …]` (those started).
+  """
+  @spec devices(term) :: keyword(String.t())
+  def devices(ws) do
+    for {device, sim, endpoint} <- [
+          {:daq1, daq1(ws), &DAQ.endpoint/1},
+          {:hydraulic, hydraulic_controller(ws), &HydraulicController.endpoint/1},
+          {:ge2000, ge2000(ws), &GE2000.endpoint/1},
+          {:robot, robot(ws), &VAL2.endpoint/1}
+        ],
+        running?(sim),
+        do: {device, endpoint.(sim)}
+  end
+
+  defp running?({:sim_floor, _ws} = controller) do
+    HydraulicController.endpoint(controller) != nil
+  catch
+    :exit, _ -> false
+  end
+
+  defp running?(name), do: GenServer.whereis(name) != nil
+
+  @doc """
+  For `Vws.Demo`'s shop floor: starts the whole floor (linked to the caller) with the demo's
+  `:workstation` and `:time_scale` — hydraulic controller, GE-2000, VAL II, material handling —
+  and a blank in tray #1, and returns the workstation links and partition options that reach
+  it (`Vws.Workstation.device_links/3`).
   """
   @spec shop_floor(keyword) ::
           {:ok, %{name: String.t(), links: [Supervisor.child_spec()], partitions: keyword}}
           | {:error, term}
   def shop_floor(opts) do
     ws = Keyword.fetch!(opts, :workstation)
+    floor = Keyword.take(opts, [:workstation, :time_scale, :seed])
 
-    floor_opts = Keyword.take(opts, [:workstation, :time_scale, :seed]) ++ [hydraulic: true]
-
-    with {:ok, _pid} <- start_link(floor_opts),
-         :ok <- HydraulicController.await_ready(hydraulic_controller(ws), 10_000) do
-      daq1 = Vws.Partitions.VwsStatus.wiring(ws, daq1_endpoint(ws))
-      hydraulic = Vws.Partitions.Hydraulic.wiring(ws, hydraulic_endpoint(ws))
+    with {:ok, _pid} <-
+           start_link(floor ++ [hydraulic: true, ge2000: true, robot: true, mhs: true]),
+         :ok <- HydraulicController.await_ready(hydraulic_controller(ws), 10_000),
+         :ok <- Plant.set_part(plant(ws), :tray1, true) do
+      {links, partitions} = Vws.Workstation.device_links(ws, devices(ws), [])
 
       {:ok,
        %{
-         name: "plant + DAQ #1 + DAQ #2 + hydraulic controller",
-         links: daq1.links ++ hydraulic.links,
-         partitions: daq1.partitions ++ hydraulic.partitions
+         name:
+           "plant + DAQ #1 + DAQ #2 + hydraulic controller, GE-2000, VAL II, material handling",
+         links: links,
+         partitions: partitions
        }}
     else
       :timeout -> {:error, :hydraulic_controller_not_ready}
@@ -115,45 +177,103 @@ defmodule Vws.Sim.Floor do
   @impl true
   def init(opts) do
     ws = Keyword.fetch!(opts, :workstation)
+    scale = Keyword.get(opts, :time_scale, 1.0)
+    plant = plant(ws)
+
+    on_relay =
+      if opts[:ge2000] do
+        ge = ge2000(ws)
+
+        fn
+          :cycle_start_relay, closed? -> GE2000.cycle_start_input(ge, closed?)
+          _signal, _closed? -> :ok
+        end
+      end
 
     plant_opts =
-      [name: plant(ws), time_scale: Keyword.get(opts, :time_scale, 1.0)] ++
+      [name: plant, time_scale: scale, on_relay: on_relay] ++
         Keyword.take(opts, [:seed]) ++ Keyword.get(opts, :plant, [])
 
     daqs =
       for daq <- [:daq1, :daq2], Keyword.get(opts, daq) != false do
         endpoint = Keyword.get(opts, daq, "tcp://127.0.0.1:0")
-        {DAQ, plant: plant(ws), name: name(ws, :"sim_#{daq}"), daq: daq, endpoint: endpoint}
+        {DAQ, plant: plant, name: name(ws, :"sim_#{daq}"), daq: daq, endpoint: endpoint}
       end
 
-    hydraulic =
-      case Keyword.get(opts, :hydraulic, false) do
-        false ->
-          []
+    children =
+      [{Plant, plant_opts}] ++
+        daqs ++
+        hydraulic_child(ws, Keyword.get(opts, :hydraulic, false)) ++
+        ge2000_child(ws, opts[:ge2000], scale) ++
+        robot_child(ws, opts[:robot], scale) ++
+        mhs_child(ws, opts[:mhs])
 
-        hopts ->
-          hopts = if hopts == true, do: [], else: hopts
-          daq2 = daq2(ws)
+    Supervisor.init(children, strategy: :rest_for_one)
+  end
 
-          [
-            %{
-              id: HydraulicController,
-              type: :supervisor,
-              # DAQ #2 listens before the controller starts: its endpoint is known by then
-              start:
-                {__MODULE__, :start_hydraulic_controller,
-                 [[name: hydraulic_controller(ws)] ++ hopts, daq2]}
-            }
-          ]
-      end
+  defp hydraulic_child(_ws, false), do: []
 
-    Supervisor.init([{Plant, plant_opts}] ++ daqs ++ hydraulic, strategy: :rest_for_one)
+  defp hydraulic_child(ws, hopts) do
+    hopts = if hopts == true, do: [], else: hopts
+
+    [
+      %{
+        id: HydraulicController,
+        type: :supervisor,
+        # DAQ #2 listens before the controller starts: its endpoint is known by then
+        start:
+          {__MODULE__, :start_hydraulic_controller,
+           [[name: hydraulic_controller(ws)] ++ hopts, daq2(ws)]}
+      }
+    ]
   end
 
   @doc false
   def start_hydraulic_controller(opts, daq2) do
     HydraulicController.start_link(Keyword.put_new(opts, :daq2, DAQ.endpoint(daq2)))
   end
+
+  defp ge2000_child(_ws, falsy, _scale) when falsy in [nil, false], do: []
+
+  defp ge2000_child(ws, spec, scale) do
+    plant = plant(ws)
+    # at least a second: MONARCH looks for the cycle after letting go of the button (200 ms)
+    cycle = if scale > 0, do: max(round(5_000 / scale), 1_000), else: 5_000
+
+    defaults = [
+      id: GE2000,
+      name: ge2000(ws),
+      cycle_time: cycle,
+      plant: fn event -> Plant.set_cycle(plant, event == :table_out_of_park) end
+    ]
+
+    [{GE2000, Keyword.merge(defaults, options(spec))}]
+  end
+
+  defp robot_child(_ws, falsy, _scale) when falsy in [nil, false], do: []
+
+  defp robot_child(ws, spec, scale) do
+    plant = plant(ws)
+
+    defaults = [
+      id: VAL2,
+      name: robot(ws),
+      time_scale: if(scale > 0, do: 1 / scale, else: 1.0),
+      on_move: fn %{volume: volume} -> Plant.set_robot(plant, %{volume: volume}) end
+    ]
+
+    [{VAL2, Keyword.merge(defaults, options(spec))}]
+  end
+
+  defp mhs_child(_ws, falsy) when falsy in [nil, false], do: []
+
+  defp mhs_child(ws, spec) do
+    defaults = [name: mhs(ws), workstation: ws, plant: plant(ws)]
+    [{MHS, Keyword.merge(defaults, options(spec))}]
+  end
+
+  defp options(true), do: []
+  defp options(opts) when is_list(opts), do: opts
 
   defp name(ws, role), do: {:via, Registry, {Vws.Registry, {ws, role}}}
 end

@@ -23,7 +23,8 @@ defmodule Vws.Sim.GE2000 do
   machine is active, 4 cycle start without a selected program, 5 operation not supported,
   6 bad file name.
 
-  The cycle-start button (`cycle_start/1`, wired to a DAQ #1 relay on the real machine) runs the
+  The cycle-start button (`cycle_start/1`; `cycle_start_input/2` is the input the DAQ #1 relay
+  drives, as on the real machine) runs the
   selected program for `cycle_time` ms: the state is `ACTIVE`, and the optional `plant` function
   is called with `:table_out_of_park` at the start and `:table_in_park` at the end, so a plant
   simulator can move the table without this module depending on it.
@@ -119,25 +120,11 @@ defmodule Vws.Sim.GE2000 do
   def put_program(sim, name, text), do: GenServer.call(sim, {:put_program, name, text})
 
   @doc """
-  Puts a simulated GE-2000 on the demo's shop floor (`Vws.Demo`): started under the node's
-  workstation supervisor with a cycle of 5 s divided by `:time_scale`, linked to workstation
-  `:workstation` through `Vws.Workstation.device_links/3`; its cycle-start button stands in for
-  the DAQ #1 relay until a DAQ simulator closes that relay.
+  The cycle-start input, as the DAQ #1 relay wired to it drives it: a closing relay presses the
+  button. Asynchronous (a message), so a plant simulator can call it from its own process.
   """
-  @spec shop_floor(keyword) :: {:ok, map} | {:error, term}
-  def shop_floor(opts) do
-    ws = Keyword.fetch!(opts, :workstation)
-    scale = Keyword.get(opts, :time_scale, 1.0)
-    cycle = if scale > 0, do: round(5_000 / scale), else: 5_000
-    spec = Supervisor.child_spec({__MODULE__, cycle_time: cycle}, id: {__MODULE__, ws})
-
-    with {:ok, sim} <- DynamicSupervisor.start_child(Vws.WorkstationSupervisor, spec) do
-      {links, partitions} = Vws.Workstation.device_links(ws, [ge2000: endpoint(sim)], [])
-      relay = [cycle_start: fn -> cycle_start(sim) end]
-      partitions = Keyword.update!(partitions, :monarch, &Keyword.put(&1, :options, relay))
-      {:ok, %{name: "GE-2000", links: links, partitions: partitions}}
-    end
-  end
+  @spec cycle_start_input(GenServer.server(), boolean) :: :ok
+  def cycle_start_input(sim, closed?), do: GenServer.cast(sim, {:cycle_start_input, closed?})
 
   ## Server
 
@@ -250,6 +237,10 @@ defmodule Vws.Sim.GE2000 do
 
   def handle_call({:put_program, name, text}, _from, s),
     do: {:reply, :ok, %{s | programs: Map.put(s.programs, name, text)}}
+
+  @impl true
+  def handle_cast({:cycle_start_input, true}, s), do: {:noreply, start_cycle(s)}
+  def handle_cast({:cycle_start_input, false}, s), do: {:noreply, s}
 
   @impl true
   def handle_info({:dnc, link, {:received, command, blocks}}, %{link: link} = s) do

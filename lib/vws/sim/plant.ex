@@ -50,7 +50,11 @@ defmodule Vws.Sim.Plant do
     * `:name` — a GenServer name (any number of plants may run on a node);
     * `:time_scale` — simulated seconds per real second (default 1.0; 0 = only `advance/2`);
     * `:config` — a path, or a map merged over `priv/sims/plant.exs` (default: that file);
-    * `:seed` — seeds the sensor noise (default 0), so runs are repeatable.
+    * `:seed` — seeds the sensor noise (default 0), so runs are repeatable;
+    * `:on_relay` — `fun(signal, energised?)`, called when an actuator's device is switched on or
+      off (a relay, or a stuck valve coming free): the wire to equipment outside the plant, such
+      as the GE-2000's cycle-start input (`Vws.Sim.Floor`). It runs in the plant's process, so it
+      must not call the plant: send a message.
   """
   @spec start_link(keyword) :: GenServer.on_start()
   def start_link(opts \\ []) do
@@ -172,7 +176,8 @@ defmodule Vws.Sim.Plant do
      %{
        model: Model.new(config, Keyword.get(opts, :seed, 0)),
        time_scale: scale,
-       last: now()
+       last: now(),
+       on_relay: Keyword.get(opts, :on_relay)
      }}
   end
 
@@ -182,7 +187,19 @@ defmodule Vws.Sim.Plant do
     dt = (now - state.last) / 1_000_000 * state.time_scale
     state = %{state | model: Model.advance(state.model, dt), last: now}
     {reply, model} = handle(request, state.model)
+    notify_relays(state.on_relay, state.model, model)
     {:reply, reply, %{state | model: model}}
+  end
+
+  defp notify_relays(nil, _before, _after), do: :ok
+
+  defp notify_relays(fun, before, after_) do
+    was = Model.energised(before)
+    now = Model.energised(after_)
+
+    for signal <- MapSet.difference(now, was), do: fun.(signal, true)
+    for signal <- MapSet.difference(was, now), do: fun.(signal, false)
+    :ok
   end
 
   defp handle({:read_voltage, {daq, n}}, m), do: Model.read_voltage(m, daq, n)

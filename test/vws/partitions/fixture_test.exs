@@ -1,12 +1,14 @@
 defmodule Vws.Partitions.FixtureTest do
   use ExUnit.Case, async: true
 
-  alias Vws.Partitions.Fixture
+  alias Vws.Interlock
   alias Vws.Sim.{DAQ, Plant}
   alias Vws.Test.DAQFloor
 
   # The jaw potentiometer's noise is ±0.005 V = ±0.1 mm: a closed vise reads 0.0 or 0.1 mm.
-  @short [partitions: [fixture: [options: [timeout_ms: 300]]]]
+  @short [
+    partitions: [fixture: [options: [timeout_ms: 300, interlock: [timeout: 300, retry_ms: 50]]]]
+  ]
 
   defp number(text, regex) do
     [value] = Regex.run(regex, text, capture: :all_but_first)
@@ -109,35 +111,75 @@ defmodule Vws.Partitions.FixtureTest do
     assert_in_delta number(answer, ~r/JAWS (\S+) MM/), 150.0, 0.2
   end
 
-  test "a DAQ that stops answering: ERROR with the timeout" do
-    %{peer: peer, daq: daq} = DAQFloor.start([vws_status: [timeout_ms: 100]] ++ @short)
+  test "a DAQ that stops answering: the table's park switch cannot be read, the vise stays" do
+    %{peer: peer, daq: daq, plant: plant} =
+      DAQFloor.start([vws_status: [timeout_ms: 100]] ++ @short)
+
     :ok = DAQ.set_fault(daq, :mute)
 
-    # the poll ahead of it timed out first (the connection is being made again), or it did
+    # no fresh reading came (the poll timed out), or VWS_STATUS already says so
     assert DAQFloor.command(peer, "F", 1, "CLOSE") =~
-             ~r/^ERROR DAQ #1 NOT ANSWERING \((NO ANSWER IN 100 MS|TIMED OUT, RECONNECTING)\)$/
+             ~r/^ERROR INTERLOCK TABLE (PARK SWITCH NOT READ|NO DATA) \(DAQ #1 NOT ANSWERING\)$/
+
+    assert Plant.snapshot(plant).vise.jaw_mm == 150.0
   end
 
-  test "DISABLE_TABLE and RELEASE_TABLE set and clear the table interlock flag" do
-    %{peer: peer, ws: ws} = DAQFloor.start()
-    assert Fixture.table_interlock_holder(ws) == nil
+  test "DISABLE_TABLE and RELEASE_TABLE take and give up the table for the vise" do
+    %{peer: peer, ws: ws} =
+      DAQFloor.start(partitions: [fixture: [options: [interlock: [timeout: 300, retry_ms: 50]]]])
+
+    assert Interlock.holder(ws, :table) == nil
     assert DAQFloor.command(peer, "F", 1, "DISABLE_TABLE") == "DONE"
-    assert Fixture.table_interlock_holder(ws) == :fixture
-    # again by the same holder is fine
+    assert [%{holder: :fixture, reasons: [:disabled]}] = Interlock.held(ws)
+    # again is fine
     assert DAQFloor.command(peer, "F", 2, "DISABLE_TABLE") == "DONE"
     assert DAQFloor.command(peer, "F", 3, "RELEASE_TABLE") == "DONE"
-    assert Fixture.table_interlock_holder(ws) == nil
+    assert Interlock.holder(ws, :table) == nil
     assert DAQFloor.command(peer, "F", 4, "RELEASE_TABLE") == "DONE"
 
-    # another holder has it
-    assert Fixture.table_interlock(ws, :robot, :disable) == :ok
+    # the robot shares the table with the vise
+    :ok = Interlock.acquire(ws, :table, :robot, 0)
+    assert DAQFloor.command(peer, "F", 5, "DISABLE_TABLE") == "DONE"
+    assert Interlock.holders(ws, :table) == [:robot, :fixture]
+    assert DAQFloor.command(peer, "F", 6, "RELEASE_TABLE") == "DONE"
+    assert Interlock.holders(ws, :table) == [:robot]
+    :ok = Interlock.release(ws, :table, :robot)
 
-    assert DAQFloor.command(peer, "F", 5, "DISABLE_TABLE") ==
-             "ERROR TABLE HELD BY ROBOT"
+    # the machine's cycle does not
+    :ok = Interlock.acquire(ws, :table, :monarch, 0)
 
-    assert DAQFloor.command(peer, "F", 6, "RELEASE_TABLE") ==
-             "ERROR TABLE HELD BY ROBOT"
+    assert DAQFloor.command(peer, "F", 7, "DISABLE_TABLE") ==
+             "ERROR INTERLOCK TABLE HELD BY MONARCH"
 
-    assert Fixture.table_interlock_holder(ws) == :robot
+    assert DAQFloor.command(peer, "F", 8, "OPEN") == "ERROR INTERLOCK TABLE HELD BY MONARCH"
+    assert DAQFloor.command(peer, "F", 9, "RELEASE_TABLE") == "DONE"
+    assert Interlock.holders(ws, :table) == [:monarch]
+  end
+
+  test "a vise command that fails keeps the table until the vise is found at rest" do
+    %{peer: peer, ws: ws, plant: plant} = DAQFloor.start(@short)
+    :ok = Plant.inject_fault(plant, :stuck_valve, actuator: :vise_close_valve)
+    assert DAQFloor.command(peer, "F", 1, "CLOSE") =~ "ERROR VISE DID NOT CLOSE"
+    assert [%{holder: :fixture, reasons: [:vise]}] = Interlock.held(ws)
+    # both valves were switched off: nothing moves when the valve comes free
+    :ok = Plant.clear_fault(plant, :all)
+    refute Plant.snapshot(plant).vise.moving
+
+    assert {:error, "INTERLOCK TABLE HELD BY FIXTURE"} =
+             Interlock.acquire(ws, :table, :monarch, 0)
+
+    assert DAQFloor.command(peer, "F", 2, "RELEASE_TABLE") == "DONE"
+    assert Interlock.held(ws) == []
+  end
+
+  test "RELEASE_TABLE with the vise unreadable after a failure keeps the table" do
+    %{peer: peer, ws: ws, daq: daq, plant: plant} =
+      DAQFloor.start([vws_status: [timeout_ms: 100]] ++ @short)
+
+    :ok = Plant.inject_fault(plant, :stuck_valve, actuator: :vise_close_valve)
+    assert DAQFloor.command(peer, "F", 1, "CLOSE") =~ "ERROR VISE DID NOT CLOSE"
+    :ok = DAQ.set_fault(daq, :mute)
+    assert DAQFloor.command(peer, "F", 2, "RELEASE_TABLE") =~ "ERROR VISE NOT AT REST"
+    assert Interlock.holders(ws, :table) == [:fixture]
   end
 end

@@ -3,9 +3,8 @@ defmodule Vws.Partitions.MonarchTest do
   # GE-2000, and back.
   use ExUnit.Case, async: true
 
-  alias Vws.{DNC, Mailbox, Workstation}
+  alias Vws.{DNC, Interlock, Mailbox, Workstation}
   alias Vws.DNC.Program
-  alias Vws.Partitions.Monarch
   alias Vws.Sim.GE2000
   alias Vws.Test.WCPeer
   import Vws.Test.Eventually
@@ -157,22 +156,22 @@ defmodule Vws.Partitions.MonarchTest do
 
     assert monarch(peer, 2, "PROGRAM_SELECT(000100)") == "0002DONE"
     assert GE2000.state(sim).selected == "000100"
-    refute Monarch.table_interlocked?(ws)
+    refute Interlock.holds?(ws, :table, :monarch)
 
     assert monarch(peer, 3, "CYCLE_START") == "0003DONE"
-    assert Monarch.table_interlocked?(ws)
+    assert Interlock.holds?(ws, :table, :monarch)
     assert status(peer, "MONARCH") == "ACTIVE"
     assert_receive {:plant, :table_out_of_park}, 5_000
 
     assert monarch(peer, 4, "RELEASE_TABLE") == "0004ERROR MACHINE ACTIVE"
-    assert Monarch.table_interlocked?(ws)
+    assert Interlock.holds?(ws, :table, :monarch)
 
     GE2000.end_cycle(sim)
     assert_receive {:plant, :table_in_park}, 5_000
     assert monarch(peer, 5, "STATUS") == "0005DONE"
     assert status(peer, "MONARCH") == "IDLE"
     assert monarch(peer, 6, "RELEASE_TABLE") == "0006DONE"
-    refute Monarch.table_interlocked?(ws)
+    refute Interlock.holds?(ws, :table, :monarch)
   end
 
   test "selecting a program the GE-2000 does not have, and starting without one", ctx do
@@ -185,7 +184,7 @@ defmodule Vws.Partitions.MonarchTest do
   @tag :no_relay
   test "CYCLE_START without the DAQ #1 relay says so and sets nothing", ctx do
     assert monarch(ctx.peer, 1, "CYCLE_START") == "0001ERROR NO LINK TO DAQ #1"
-    refute Monarch.table_interlocked?(ctx.ws)
+    refute Interlock.holds?(ctx.ws, :table, :monarch)
   end
 
   test "TABLE picks the asked lines of the tool-offset table for TLI_TABLE", ctx do

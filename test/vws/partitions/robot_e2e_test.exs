@@ -20,7 +20,19 @@ defmodule Vws.Partitions.RobotE2ETest do
         devices: [
           robot: [endpoint: robot_endpoint, ddcmp: [rep_timeout: 200, start_timeout: 200]]
         ],
-        partitions: [robot: [options: [command_timeout: 5_000, motion_timeout: 10_000]]]
+        partitions: [
+          robot: [
+            options: [
+              command_timeout: 5_000,
+              motion_timeout: 10_000,
+              work_volumes: %{
+                # MV9: a location the CEC knows (clear of every work volume) that the robot
+                # controller was never taught, so that the controller's own error comes back
+                locations: %{"SAFE" => :safe, "TRAY1" => :tray1, "MV1" => :tray1, "MV9" => :safe}
+              }
+            ]
+          ]
+        ]
       )
 
     {:ok, peer} = WCPeer.connect(wc)
@@ -56,8 +68,10 @@ defmodule Vws.Partitions.RobotE2ETest do
     assert robot(peer, 61, 12, "DO APPRO TRAY1/100") == "0012DONE"
     assert VAL2.info(sim).world == [650.0, -450.0, 800.0, 0.0, 180.0, 0.0]
     assert robot(peer, 62, 13, "DO MOVE MV9") == "0013ERROR -301 UNDEFINED LOCATION MV9"
-    assert robot(peer, 63, 14, "RELEASE_TRAY1") == "0014DONE"
+    # the arm is still in the tray's volume: the tray stays locked against the MHS (rule 2b)
+    assert robot(peer, 63, 14, "RELEASE_TRAY1") == "0014ERROR INTERLOCK ROBOT IN TRAY1 VOLUME"
     assert robot(peer, 64, 15, "DO MOVES SAFE") == "0015DONE"
+    assert robot(peer, 65, 16, "RELEASE_TRAY1") == "0016DONE"
     assert %{violations: 0, stale: 0} = VAL2.info(sim)
   end
 
@@ -87,22 +101,22 @@ defmodule Vws.Partitions.RobotE2ETest do
       tap: tap,
       peer: peer
     } do
-      command? = fn _frame, val, _seen -> match?(%{lun: 2, text: "DO MOVE VISE"}, val) end
+      command? = fn _frame, val, _seen -> match?(%{lun: 2, text: "DO MOVE TRAY1"}, val) end
       LineTap.fault(tap, :to_val, command?, :corrupt)
 
-      assert robot(peer, 1, 1, "DO MOVE VISE") == "0001DONE"
+      assert robot(peer, 1, 1, "DO MOVE TRAY1") == "0001DONE"
       log = LineTap.log(tap)
 
       assert [:corrupted, :passed] ==
                for(
                  {:to_val, %Frame.Data{} = f, fate} <- log,
-                 val_text(f) == "DO MOVE VISE",
+                 val_text(f) == "DO MOVE TRAY1",
                  do: fate
                )
 
       assert Enum.any?(log, &match?({:to_cec, %Frame.Control{type: :nak, subtype: 2}, _}, &1))
-      assert VAL2.info(sim).commands == ["DO MOVE VISE"]
-      assert VAL2.info(sim).location == "VISE"
+      assert VAL2.info(sim).commands == ["DO MOVE TRAY1"]
+      assert VAL2.info(sim).location == "TRAY1"
     end
 
     test "a lost ACK: REP recovers and the link goes on", %{sim: sim, tap: tap, peer: peer} do
@@ -112,7 +126,7 @@ defmodule Vws.Partitions.RobotE2ETest do
 
       LineTap.fault(tap, :to_cec, LineTap.acks_val?(reply_to_complete?), :drop)
 
-      assert robot(peer, 1, 1, "DO MOVE VISE") == "0001DONE"
+      assert robot(peer, 1, 1, "DO MOVE TRAY1") == "0001DONE"
       assert Vws.Test.Eventually.eventually(fn -> LineTap.pending(tap) == 0 end)
 
       assert Vws.Test.Eventually.eventually(fn ->
@@ -121,7 +135,7 @@ defmodule Vws.Partitions.RobotE2ETest do
 
       assert robot(peer, 2, 2, "WHERE") == "0002DONE"
       assert robot(peer, 3, 3, "DO MOVE SAFE") == "0003DONE"
-      assert VAL2.info(sim).commands == ["DO MOVE VISE", "WHERE", "DO MOVE SAFE"]
+      assert VAL2.info(sim).commands == ["DO MOVE TRAY1", "WHERE", "DO MOVE SAFE"]
     end
   end
 
@@ -129,7 +143,7 @@ defmodule Vws.Partitions.RobotE2ETest do
     sim = start_sim(time_scale: 100.0)
     %{peer: peer} = start_workstation(VAL2.endpoint(sim))
 
-    WCPeer.send_string(peer, 1, [{"R", 1, "DO MOVE VISE"}])
+    WCPeer.send_string(peer, 1, [{"R", 1, "DO MOVE TRAY1"}])
     assert ack?(WCPeer.recv_line(peer), 1)
     assert Vws.Test.Eventually.eventually(fn -> VAL2.info(sim).moving end)
     assert WCPeer.status(peer, 2, 39, "ROBOT_CMD") == "0001EXECUTING"
@@ -140,7 +154,7 @@ defmodule Vws.Partitions.RobotE2ETest do
              "0001ERROR VAL II RESTARTED"
 
     assert robot(peer, 3, 2, "WHERE") == "0002DONE"
-    assert %{commands: ["DO MOVE VISE", "WHERE"], violations: 0} = VAL2.info(sim)
+    assert %{commands: ["DO MOVE TRAY1", "WHERE"], violations: 0} = VAL2.info(sim)
   end
 
   defp val_text(%Frame.Data{data: data}) do

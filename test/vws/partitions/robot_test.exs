@@ -1,7 +1,7 @@
 defmodule Vws.Partitions.RobotTest do
   use ExUnit.Case, async: true
 
-  alias Vws.{Events, Mailbox}
+  alias Vws.{Events, Interlock, Mailbox}
   alias Vws.Partitions.Robot
   alias Vws.Test.FakeDDCMP
   alias Vws.VAL.Message
@@ -16,7 +16,15 @@ defmodule Vws.Partitions.RobotTest do
 
     options =
       Map.get(context, :options, []) ++
-        [command_timeout: 2_000, motion_timeout: 2_000]
+        [
+          command_timeout: 2_000,
+          motion_timeout: 2_000,
+          interlock: [timeout: 300, retry_ms: 50],
+          # MV9: known to the CEC (clear of every work volume), never taught to the controller
+          work_volumes: %{
+            locations: %{"SAFE" => :safe, "TRAY1" => :tray1, "MV1" => :tray1, "MV9" => :safe}
+          }
+        ]
 
     options =
       if context[:tray_lock],
@@ -146,18 +154,14 @@ defmodule Vws.Partitions.RobotTest do
     refute_receive {:fake_ddcmp, ^link, {:sent, _}}, 100
   end
 
-  test "DISABLE/RELEASE set and clear the interlock flags in the mailbox", %{ws: ws} do
+  test "DISABLE_TRAYn/RELEASE_TRAYn take and give up the tray's lease in the mailbox", %{
+    ws: ws
+  } do
     run(ws, 20, "DISABLE_TRAY1")
     assert finished(ws, 20) == :done
-    assert Robot.interlock_holder(ws, {:tray, 1}) == :robot
+    assert Interlock.holder(ws, :tray1) == :robot
 
-    assert :ets.lookup(Mailbox.table(ws), {:interlock, {:tray, 1}}) == [
-             {{:interlock, {:tray, 1}}, :robot}
-           ]
-
-    run(ws, 21, "DISABLE_TABLE")
-    assert finished(ws, 21) == :done
-    assert Robot.interlock_holder(ws, :table) == :robot
+    assert [%{volume: :tray1, holder: :robot, reasons: [:disabled]}] = Interlock.held(ws)
 
     # taking it again is harmless
     run(ws, 22, "DISABLE_TRAY1")
@@ -165,38 +169,66 @@ defmodule Vws.Partitions.RobotTest do
 
     run(ws, 23, "RELEASE_TRAY1")
     assert finished(ws, 23) == :done
-    assert Robot.interlock_holder(ws, {:tray, 1}) == nil
-    run(ws, 24, "RELEASE_TABLE")
-    assert finished(ws, 24) == :done
-    assert Robot.interlock_holder(ws, :table) == nil
+    assert Interlock.holder(ws, :tray1) == nil
 
-    # a flag another holder has is neither taken nor cleared
-    :ets.insert(Mailbox.table(ws), {{:interlock, {:tray, 2}}, :mhs})
+    # a tray the material-handling system holds: re-tried, then refused; its lease is not ours
+    :ok = Interlock.acquire(ws, :tray2, :mhs, 0)
     run(ws, 25, "DISABLE_TRAY2")
-    assert finished(ws, 25) == {:error, "TRAY 2 HELD BY MHS"}
+    assert finished(ws, 25) == {:error, "INTERLOCK TRAY2 HELD BY MHS"}
     run(ws, 26, "RELEASE_TRAY2")
-    assert finished(ws, 26) == {:error, "TRAY 2 HELD BY MHS"}
-    assert Robot.interlock_holder(ws, {:tray, 2}) == :mhs
+    assert finished(ws, 26) == :done
+    assert Interlock.holder(ws, :tray2) == :mhs
+  end
+
+  test "a motion into a tray's volume takes it for the arm; leaving gives it up", %{
+    ws: ws,
+    link: link
+  } do
+    run(ws, 27, "DO APPROS TRAY1/50")
+    answer(link, "DO APPROS TRAY1, 50", "0")
+    assert Interlock.holds?(ws, :tray1, :robot, :inside)
+    motion_complete(link)
+    assert finished(ws, 27) == :done
+
+    # the arm is there: the tray may not be released to the MHS
+    run(ws, 28, "RELEASE_TRAY1")
+    assert finished(ws, 28) == {:error, "INTERLOCK ROBOT IN TRAY1 VOLUME"}
+    assert {:error, "INTERLOCK TRAY1 HELD BY ROBOT"} = Interlock.acquire(ws, :tray1, :mhs, 0)
+
+    run(ws, 29, "DO MOVE SAFE")
+    answer(link, "DO MOVE SAFE", "0")
+    motion_complete(link)
+    assert finished(ws, 29) == :done
+    assert Interlock.held(ws) == []
+  end
+
+  test "a location the CEC has no work volume for never reaches the robot", %{
+    ws: ws,
+    link: link
+  } do
+    run(ws, 31, "DO MOVE NOWHERE")
+    assert finished(ws, 31) == {:error, "INTERLOCK NO WORK VOLUME FOR NOWHERE"}
+    prompt(link)
+    refute_receive {:fake_ddcmp, ^link, {:sent, _}}, 100
   end
 
   @tag tray_lock: :ok
-  test "the tray-lock seam is called when the flag is taken and before it is cleared", %{ws: ws} do
+  test "the tray-lock seam is called when the lease is taken and before it is given up", %{
+    ws: ws
+  } do
     run(ws, 30, "DISABLE_TRAY2")
     assert finished(ws, 30) == :done
     assert_received {:tray_lock, 2, :lock}
     run(ws, 31, "RELEASE_TRAY2")
     assert finished(ws, 31) == :done
     assert_received {:tray_lock, 2, :release}
-    run(ws, 32, "DISABLE_TABLE")
-    assert finished(ws, 32) == :done
-    refute_received {:tray_lock, _, _}
   end
 
   @tag tray_lock: {:error, "relay stuck"}
-  test "a tray lock that fails gives the flag back", %{ws: ws} do
+  test "a tray lock that fails gives the lease back", %{ws: ws} do
     run(ws, 33, "DISABLE_TRAY1")
     assert finished(ws, 33) == {:error, "TRAY 1 LOCK FAILED RELAY STUCK"}
-    assert Robot.interlock_holder(ws, {:tray, 1}) == nil
+    assert Interlock.holder(ws, :tray1) == nil
   end
 
   @tag options: [reinit: true]

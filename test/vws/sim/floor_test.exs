@@ -8,7 +8,7 @@ defmodule Vws.Sim.FloorTest do
 
     {:ok,
      %{
-       name: "plant + DAQ #1 + DAQ #2 + hydraulic controller",
+       name: "plant + DAQ #1 + DAQ #2 + hydraulic controller, GE-2000, VAL II, material handling",
        links: links,
        partitions: partitions
      }} = Vws.Sim.Floor.shop_floor(workstation: ws, time_scale: 100)
@@ -49,5 +49,37 @@ defmodule Vws.Sim.FloorTest do
     assert Vws.HydraulicController.status(controller) == :done
     assert Vws.Sim.Floor.hydraulic_endpoint(ws) =~ "tcp://"
     assert Vws.Sim.Floor.daq1(ws) |> GenServer.whereis() == nil
+  end
+
+  test "the wires: the cycle-start relay starts the GE-2000, whose cycle moves the table" do
+    ws = "floor-#{System.unique_integer([:positive])}"
+
+    start_supervised!(
+      {Vws.Sim.Floor,
+       workstation: ws,
+       time_scale: 1000,
+       ge2000: [cycle_time: 200, programs: %{"000100.PRO" => "O100\nM30\n"}],
+       robot: true}
+    )
+
+    plant = Vws.Sim.Floor.plant(ws)
+    ge = Vws.Sim.Floor.ge2000(ws)
+
+    assert [daq1: "tcp://" <> _, ge2000: "tcp://" <> _, robot: "tcp://" <> _] =
+             Vws.Sim.Floor.devices(ws)
+
+    # no program selected: the press is refused by the machine (alarm 4), the table stays
+    :ok = Vws.Sim.Plant.close_channel(plant, 210)
+    :ok = Vws.Sim.Plant.open_channel(plant, 210)
+    assert Vws.Test.Eventually.eventually(fn -> Vws.Sim.GE2000.state(ge).alarm == 4 end)
+
+    :sys.replace_state(ge, &%{&1 | selected: "000100"})
+    :ok = Vws.Sim.Plant.close_channel(plant, 210)
+    assert Vws.Test.Eventually.eventually(fn -> Vws.Sim.GE2000.state(ge).state == :active end)
+    assert Vws.Sim.Plant.snapshot(plant).table.cycle
+    :ok = Vws.Sim.Plant.open_channel(plant, 210)
+    assert Vws.Test.Eventually.eventually(fn -> Vws.Sim.Plant.snapshot(plant).table.parked end)
+    assert Vws.Sim.GE2000.state(ge).cycles == 1
+    assert Vws.Sim.Plant.collisions(plant) == []
   end
 end

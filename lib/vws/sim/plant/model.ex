@@ -374,6 +374,18 @@ defmodule Vws.Sim.Plant.Model do
 
   ## Derived state
 
+  @doc """
+  The actuators whose device is energised (a stuck valve counts as it is stuck, not as its relay
+  says): what the equipment wired to the relays sees.
+  """
+  @spec energised(t) :: MapSet.t(atom)
+  def energised(m) do
+    for signal <- Map.fetch!(Config.signals(), :actuator),
+        actuator?(m, signal),
+        into: MapSet.new(),
+        do: signal
+  end
+
   defp actuator?(m, signal) do
     case Map.fetch(m.faults, {:stuck_valve, signal}) do
       {:ok, %{value: value}} -> value
