@@ -8,6 +8,8 @@ defmodule Vws.Application do
       [
         {Registry, keys: :unique, name: Vws.Registry},
         {Registry, keys: :duplicate, name: Vws.Events, partitions: System.schedulers_online()},
+        # the :pg scope every workstation joins: the cell across connected nodes (Vws.Cell)
+        Vws.Cell,
         {DynamicSupervisor, name: Vws.WorkstationSupervisor, strategy: :one_for_one},
         {DynamicSupervisor, name: Vws.WebSupervisor, strategy: :one_for_one}
       ] ++ configured_workstation() ++ configured_http()

@@ -69,6 +69,7 @@ defmodule Vws.DDCMP do
     * `:max_data` — longest data message sent or received, bytes, default 4096 (at most 16383);
       longer received messages are NAKed (reason 16);
     * `:name` — registers the link (`atom`, `{:global, term}` or `{:via, module, term}`);
+    * `:workstation` — the id of the workstation the link serves, for telemetry metadata;
     * `:backoff` — `{min, max}` reconnect delay for `:endpoint`, ms.
 
   ## States (DDCMP V4.1 §5)
@@ -119,7 +120,8 @@ defmodule Vws.DDCMP do
 
   ## Telemetry
 
-  `[:vws, :ddcmp, event]`, metadata always with `link` (the `:name`, else the pid):
+  `[:vws, :ddcmp, event]`, metadata always with `link` (the `:name`, else the pid) and
+  `workstation` (the `:workstation` option, nil without):
 
   | event | measurements | metadata |
   |-------|--------------|----------|
@@ -149,6 +151,7 @@ defmodule Vws.DDCMP do
           | {:max_data, 0..16383}
           | {:backoff, {pos_integer, pos_integer}}
           | {:id, term}
+          | {:workstation, term}
 
   @defaults [
     window: 7,

@@ -84,11 +84,13 @@ defmodule Vws.DNC do
 
   | event | measurements | metadata |
   |-------|--------------|----------|
-  | `[:vws, :dnc, :connected]` / `:disconnected` | `count` | `link, role, peer` (+ `reason`) |
-  | `[:vws, :dnc, :block_sent]` | `bytes` | `link, role, block, retransmission` |
-  | `[:vws, :dnc, :block_received]` | `bytes` | `link, role, block` |
-  | `[:vws, :dnc, :retry]` | `count` | `link, role, kind` (`:nak_received`, `:nak_sent`, `:wack_received`, `:no_reply`, `:lost_reply`, `:duplicate_received`), `block` |
-  | `[:vws, :dnc, :transmission]` | `duration` (native), `blocks`, `bytes` | `link, role, direction, result` (+ `kind`) |
+  | `[:vws, :dnc, :connected]` / `:disconnected` | `count` | `link, workstation, role, peer` (+ `reason`) |
+  | `[:vws, :dnc, :block_sent]` | `bytes` | `link, workstation, role, block, retransmission` |
+  | `[:vws, :dnc, :block_received]` | `bytes` | `link, workstation, role, block` |
+  | `[:vws, :dnc, :retry]` | `count` | `link, workstation, role, kind` (`:nak_received`, `:nak_sent`, `:wack_received`, `:no_reply`, `:lost_reply`, `:duplicate_received`), `block` |
+  | `[:vws, :dnc, :transmission]` | `duration` (native), `blocks`, `bytes` | `link, workstation, role, direction, result` (+ `kind`) |
+
+  `workstation` is the id in a `Vws.Workstation` name given as `:name` (`Vws.Workstation.id_of/1`), else nil.
 
   ## Example
 

@@ -10,7 +10,9 @@ defmodule Vws.Endpoint do
     * `tty:/dev/ttyS0?baud=9600&data_bits=8&parity=none&stop_bits=1` — a serial device. The query
       is optional; each setting defaults to 9600 baud, 8 data bits, no parity, 1 stop bit. A bare
       absolute path (`/dev/ttyUSB0`) means the same as `tty:/dev/ttyUSB0`;
-    * `loopback:name` — an in-memory pair inside this node (see `Vws.Transport.Loopback`).
+    * `loopback:name` — an in-memory pair inside this node (see `Vws.Transport.Loopback`);
+    * `cell:id` — the WC link of workstation `id`, wherever it runs in the cell of connected
+      nodes (see `Vws.Cell` and `Vws.Transport.Cell`); it can be connected to, not listened on.
 
   `to_string/1` gives the canonical form, which parses back to the same endpoint:
 
@@ -25,8 +27,8 @@ defmodule Vws.Endpoint do
       iex> Exception.message(error)
       ~s(invalid endpoint "tcp://vmc:70000": the port must be a number from 0 to 65535)
 
-  Endpoints built in code may use any term as a loopback `name`; only string names have a
-  string form that parses back to the same endpoint.
+  Endpoints built in code may use any term as a loopback `name` or a cell workstation id; only
+  string names have a string form that parses back to the same endpoint.
   """
 
   import Kernel, except: [to_string: 1]
@@ -36,7 +38,7 @@ defmodule Vws.Endpoint do
   @enforce_keys [:kind]
   defstruct kind: nil, host: nil, port: nil, path: nil, name: nil, serial: []
 
-  @type kind :: :tcp | :tty | :loopback
+  @type kind :: :tcp | :tty | :loopback | :cell
   @type parity :: :none | :even | :odd
   @type serial :: [
           baud: pos_integer(),
@@ -122,12 +124,16 @@ defmodule Vws.Endpoint do
 
   def to_string(%__MODULE__{kind: :loopback, name: name}), do: "loopback:#{inspect(name)}"
 
+  def to_string(%__MODULE__{kind: :cell, name: id}) when is_binary(id), do: "cell:#{id}"
+  def to_string(%__MODULE__{kind: :cell, name: id}), do: "cell:#{inspect(id)}"
+
   ## Parsing
 
   defp do_parse("tcp://" <> rest), do: parse_tcp(rest)
   defp do_parse("tty:" <> rest), do: parse_tty(rest)
   defp do_parse("/" <> _ = path), do: parse_tty(path)
   defp do_parse("loopback:" <> name), do: parse_loopback(name)
+  defp do_parse("cell:" <> id), do: parse_cell(id)
   defp do_parse(_), do: {:error, :unknown_scheme, nil}
 
   defp parse_tcp(rest) do
@@ -294,6 +300,13 @@ defmodule Vws.Endpoint do
 
       true ->
         {:ok, %__MODULE__{kind: :loopback, name: name}}
+    end
+  end
+
+  # A workstation id follows the rules of a loopback name.
+  defp parse_cell(id) do
+    with {:ok, %__MODULE__{name: id}} <- parse_loopback(id) do
+      {:ok, %__MODULE__{kind: :cell, name: id}}
     end
   end
 

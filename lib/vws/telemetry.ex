@@ -27,21 +27,21 @@ defmodule Vws.Telemetry do
   | `[:vws, :partition, :command, :start / :stop / :exception]` | span | `workstation, partition, command, text` (+ `result` on stop) |
   | `[:vws, :partition, :command_finished]` | `duration` (native) | `workstation, partition, command, status` |
   | `[:vws, :events, :caused]` | `count` | `workstation, event` |
-  | `[:vws, :val, :message]` | `bytes` | `name, direction, lun, function, qualifier` |
-  | `[:vws, :val, :request_finished]` | `duration` (native) | `name, text, result` |
-  | `[:vws, :val, :async]` | `count` | `name, code, text` (every LUN 3 message) |
-  | `[:vws, :ddcmp, :frame_sent]` / `:frame_received` | `count` | `link` + the frame's fields |
-  | `[:vws, :ddcmp, :nak]` | `count` | `link, direction, reason, resp` |
-  | `[:vws, :ddcmp, :rep]` | `count` | `link, direction, num` |
-  | `[:vws, :ddcmp, :retransmission]` | `count, bytes` | `link, num` |
-  | `[:vws, :ddcmp, :receive_error]` | `count` | `link, reason, num` |
-  | `[:vws, :ddcmp, :state_change]` | `count` | `link, from, to` |
-  | `[:vws, :ddcmp, :link_down]` | `count` | `link, reason` |
-  | `[:vws, :dnc, :connected]` / `:disconnected` | `count` | `link, role, peer` (+ `reason`) |
-  | `[:vws, :dnc, :block_sent]` | `bytes` | `link, role, block, retransmission` |
-  | `[:vws, :dnc, :block_received]` | `bytes` | `link, role, block` |
-  | `[:vws, :dnc, :retry]` | `count` | `link, role, kind, block` |
-  | `[:vws, :dnc, :transmission]` | `duration, blocks, bytes` | `link, role, direction, result` |
+  | `[:vws, :val, :message]` | `bytes` | `name, workstation, direction, lun, function, qualifier` |
+  | `[:vws, :val, :request_finished]` | `duration` (native) | `name, workstation, text, result` |
+  | `[:vws, :val, :async]` | `count` | `name, workstation, code, text` (every LUN 3 message) |
+  | `[:vws, :ddcmp, :frame_sent]` / `:frame_received` | `count` | `link, workstation` + the frame's fields |
+  | `[:vws, :ddcmp, :nak]` | `count` | `link, workstation, direction, reason, resp` |
+  | `[:vws, :ddcmp, :rep]` | `count` | `link, workstation, direction, num` |
+  | `[:vws, :ddcmp, :retransmission]` | `count, bytes` | `link, workstation, num` |
+  | `[:vws, :ddcmp, :receive_error]` | `count` | `link, workstation, reason, num` |
+  | `[:vws, :ddcmp, :state_change]` | `count` | `link, workstation, from, to` |
+  | `[:vws, :ddcmp, :link_down]` | `count` | `link, workstation, reason` |
+  | `[:vws, :dnc, :connected]` / `:disconnected` | `count` | `link, workstation, role, peer` (+ `reason`) |
+  | `[:vws, :dnc, :block_sent]` | `bytes` | `link, workstation, role, block, retransmission` |
+  | `[:vws, :dnc, :block_received]` | `bytes` | `link, workstation, role, block` |
+  | `[:vws, :dnc, :retry]` | `count` | `link, workstation, role, kind, block` |
+  | `[:vws, :dnc, :transmission]` | `duration, blocks, bytes` | `link, workstation, role, direction, result` |
   | `[:vws, :web, :request]` | `duration, bytes` | `method, path, status, port` |
   | `[:vws, :hpib, :connected]` / `:disconnected` | `count` | `bus, address, endpoint` (+ `reason`) |
   | `[:vws, :hpib, :timeout]` | `count` | `bus, address, endpoint, commands` |
@@ -52,7 +52,8 @@ defmodule Vws.Telemetry do
   | `[:vws, :interlock, :refused]` | `wait_ms, tries` | `workstation, volume, holder, reason, why` |
   | `[:vws, :interlock, :released]` | `count` | `workstation, volume, holder, reason` (`:all` or one) |
 
-  `attach_default_handler/0` logs all of them with `Logger`.
+  `workstation` is the id of the workstation the event belongs to (nil for a link or simulator
+  that serves none). `attach_default_handler/0` logs all of them with `Logger`.
   """
 
   require Logger

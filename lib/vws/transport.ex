@@ -1,6 +1,7 @@
 defmodule Vws.Transport do
   @moduledoc """
-  Byte links to equipment — TCP, a serial tty, or an in-memory loopback — behind one API.
+  Byte links to equipment — TCP, a serial tty, or an in-memory loopback — behind one API (and
+  `cell:` endpoints, which find a workstation's WC link anywhere in the cell, `Vws.Transport.Cell`).
 
   This module is both the behaviour every transport implements and the facade protocol code
   calls. The facade picks the transport from the endpoint (`Vws.Endpoint`), so a driver written
@@ -225,6 +226,7 @@ defmodule Vws.Transport do
   def module_for(%Endpoint{kind: :tcp}), do: Vws.Transport.TCP
   def module_for(%Endpoint{kind: :tty}), do: Vws.Transport.Serial
   def module_for(%Endpoint{kind: :loopback}), do: Vws.Transport.Loopback
+  def module_for(%Endpoint{kind: :cell}), do: Vws.Transport.Cell
 
   defp to_endpoint(%Endpoint{} = endpoint), do: {:ok, endpoint}
   defp to_endpoint(string), do: Endpoint.parse(string)

@@ -62,10 +62,12 @@ defmodule Vws.VAL do
 
   ## Telemetry
 
-    * `[:vws, :val, :message]` — `%{bytes}`, `%{name, direction: :in | :out, lun, function,
-      qualifier}`, every VAL data message
-    * `[:vws, :val, :request_finished]` — `%{duration}` (native), `%{name, text, result}`
-    * `[:vws, :val, :async]` — `%{count: 1}`, `%{name, code, text}`, every LUN 3 message
+    * `[:vws, :val, :message]` — `%{bytes}`, `%{name, workstation, direction: :in | :out, lun,
+      function, qualifier}`, every VAL data message
+    * `[:vws, :val, :request_finished]` — `%{duration}` (native), `%{name, workstation, text, result}`
+    * `[:vws, :val, :async]` — `%{count: 1}`, `%{name, workstation, code, text}`, every LUN 3 message
+
+  `workstation` is the id in a `Vws.Workstation` name (`Vws.Workstation.id_of/1`), else nil.
   """
 
   @type val :: GenServer.server()

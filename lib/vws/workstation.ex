@@ -13,7 +13,9 @@ defmodule Vws.Workstation do
   ```
 
   What others depend on starts first; a crashed link or partition restarts alone, and SUN_COMM
-  keeps its WC connection throughout.
+  keeps its WC connection throughout. The supervisor joins the cell (`Vws.Cell`) under its id
+  as it starts, so every node of the cell can find it. Its parts are registered in
+  `Vws.Registry` as `{id, role}` (`whereis/2`).
 
   ## Options
 
@@ -64,9 +66,24 @@ defmodule Vws.Workstation do
   @doc false
   def via(id, role), do: {:via, Registry, {Vws.Registry, {id, role}}}
 
+  @doc """
+  The workstation id inside a name made for one of its parts (a link's `{:via, Registry, …}`
+  name), or nil for any other name: telemetry metadata of links carries it.
+
+      iex> Vws.Workstation.id_of({:via, Registry, {Vws.Registry, {"VWS-1", :ge2000}}})
+      "VWS-1"
+      iex> Vws.Workstation.id_of(self())
+      nil
+  """
+  @spec id_of(term) :: term | nil
+  def id_of({:via, Registry, {Vws.Registry, {id, _role}}}), do: id
+  def id_of(_name), do: nil
+
   @impl true
   def init(opts) do
     ws = Keyword.fetch!(opts, :id)
+    # a member of the cell (Vws.Cell) for as long as this supervisor lives
+    :ok = Vws.Cell.join(ws)
 
     {device_links, partition_opts} =
       device_links(ws, Keyword.get(opts, :devices, []), Keyword.get(opts, :partitions, []))
@@ -174,7 +191,10 @@ defmodule Vws.Workstation do
 
       {:robot, spec}, {links, popts} ->
         spec = if is_binary(spec), do: [endpoint: spec], else: spec
-        ddcmp = Keyword.merge(Keyword.get(spec, :ddcmp, []), endpoint: spec[:endpoint])
+
+        ddcmp =
+          Keyword.merge(Keyword.get(spec, :ddcmp, []), endpoint: spec[:endpoint], workstation: ws)
+
         name = via(ws, :val)
 
         val =

@@ -47,6 +47,7 @@ defmodule Vws.DDCMP.Link do
     # configuration
     :owner,
     :name,
+    :workstation,
     :endpoint,
     :role,
     :window,
@@ -93,10 +94,12 @@ defmodule Vws.DDCMP.Link do
   @impl :gen_statem
   def init(opts) do
     {min_backoff, _max} = backoff = Keyword.fetch!(opts, :backoff)
+    if ws = Keyword.get(opts, :workstation), do: Logger.metadata(workstation: ws)
 
     data = %__MODULE__{
       owner: Keyword.fetch!(opts, :owner),
       name: Keyword.get(opts, :name),
+      workstation: Keyword.get(opts, :workstation),
       endpoint: Keyword.get(opts, :endpoint),
       role: Keyword.fetch!(opts, :role),
       startup: Keyword.fetch!(opts, :role),
@@ -740,7 +743,7 @@ defmodule Vws.DDCMP.Link do
     Vws.Telemetry.execute(
       [:vws, :ddcmp, event],
       measurements,
-      Map.put(metadata, :link, data.name || self())
+      Map.merge(metadata, %{link: data.name || self(), workstation: data.workstation})
     )
   end
 

@@ -102,7 +102,12 @@ defmodule Vws.DNC.Link do
     o = Keyword.merge(@defaults, opts)
     role = o[:role]
     unless role in [:cec, :ge], do: raise(ArgumentError, "role must be :cec or :ge")
-    Logger.metadata(dnc_link: o[:name] || self(), dnc_role: role)
+
+    Logger.metadata(
+      dnc_link: o[:name] || self(),
+      dnc_role: role,
+      workstation: Vws.Workstation.id_of(o[:name])
+    )
 
     pace = pace_ns(o[:pace], o[:char_bits])
 
@@ -1003,7 +1008,11 @@ defmodule Vws.DNC.Link do
     Vws.Telemetry.execute(
       [:vws, :dnc, event],
       measurements,
-      Map.merge(metadata, %{link: data.name, role: data.role})
+      Map.merge(metadata, %{
+        link: data.name,
+        role: data.role,
+        workstation: Vws.Workstation.id_of(data.name)
+      })
     )
   end
 

@@ -5,7 +5,7 @@ defmodule Vws.Endpoint.Error do
   `input` is the string as given and `detail` (possibly `nil`) the offending piece. Reasons:
 
     * `:not_a_string` — the endpoint was not a string at all;
-    * `:unknown_scheme` — it starts with none of `tcp://`, `tty:`, `loopback:` or `/`;
+    * `:unknown_scheme` — it starts with none of `tcp://`, `tty:`, `loopback:`, `cell:` or `/`;
     * `:missing_port` — a `tcp://` endpoint without `:port`;
     * `:bad_host` — the host is neither a host name nor a dotted IPv4 address (IPv6 is not supported);
     * `:bad_port` — the port is not a number from 0 to 65535;
@@ -17,7 +17,8 @@ defmodule Vws.Endpoint.Error do
     * `:bad_data_bits` — data bits other than 5, 6, 7 or 8;
     * `:bad_parity` — parity other than `none`, `even` or `odd`;
     * `:bad_stop_bits` — stop bits other than 1 or 2;
-    * `:bad_name` — the loopback name is empty, too long, or holds spaces or control characters.
+    * `:bad_name` — the loopback name (or cell workstation id) is empty, too long, or holds spaces or
+      control characters.
 
       iex> Exception.message(%Vws.Endpoint.Error{reason: :bad_parity, input: "tty:/dev/ttyS0?parity=mark", detail: "mark"})
       ~s[invalid endpoint "tty:/dev/ttyS0?parity=mark": parity must be none, even or odd (got "mark")]
@@ -52,7 +53,8 @@ defmodule Vws.Endpoint.Error do
   defp explain(:not_a_string), do: "an endpoint must be a string"
 
   defp explain(:unknown_scheme),
-    do: "expected tcp://host:port, tty:/dev/<device>, a /dev path, or loopback:<name>"
+    do:
+      "expected tcp://host:port, tty:/dev/<device>, a /dev path, loopback:<name> or cell:<workstation id>"
 
   defp explain(:missing_port), do: "a tcp endpoint needs a port, as in tcp://host:port"
   defp explain(:bad_host), do: "the host must be a host name or an IPv4 address"
@@ -68,7 +70,10 @@ defmodule Vws.Endpoint.Error do
   defp explain(:bad_data_bits), do: "data_bits must be 5, 6, 7 or 8"
   defp explain(:bad_parity), do: "parity must be none, even or odd"
   defp explain(:bad_stop_bits), do: "stop_bits must be 1 or 2"
-  defp explain(:bad_name), do: "the loopback name must be printable text without spaces"
+
+  defp explain(:bad_name),
+    do: "the loopback name or workstation id must be printable text without spaces"
+
   defp explain(other), do: inspect(other)
 
   # Reasons whose detail repeats a sentence are shown with it; value errors quote the value.

@@ -53,6 +53,43 @@ defmodule Vws.Transport.Loopback do
     end
   end
 
+  @doc """
+  Connects to the loopback listener `listener` (a pid, which may run on another node of the
+  cell) registered as `name`, as `connect/2` does, except that the connection's process runs on
+  the caller's node and watches the listener and, once accepted, the acceptor: if their node
+  goes away (or they exit) the caller receives the close, as from any peer that closed. Used by
+  `Vws.Transport.Cell` to carry a WC link over Erlang distribution.
+  """
+  @spec connect_listener(pid(), term(), keyword()) :: {:ok, t()} | {:error, term()}
+  def connect_listener(listener, name, opts \\ []) when is_pid(listener) do
+    client_ref = make_ref()
+    server_ref = make_ref()
+    {:ok, pair} = Pair.start(name, self(), listener, client_ref, server_ref)
+    server = %__MODULE__{pair: pair, side: :server, ref: server_ref, name: name}
+
+    result =
+      try do
+        GenServer.call(
+          listener,
+          {:connect_pair, server},
+          Keyword.get(opts, :timeout, @connect_timeout)
+        )
+      catch
+        :exit, {:timeout, _} -> {:error, :timeout}
+        :exit, _ -> {:error, :econnrefused}
+      end
+
+    case result do
+      :ok ->
+        {:ok, %__MODULE__{pair: pair, side: :client, ref: client_ref, name: name}}
+
+      {:error, _} = error ->
+        Pair.close(pair, :server)
+        Pair.close(pair, :client)
+        error
+    end
+  end
+
   @impl true
   def listen(%Endpoint{kind: :loopback, name: name} = endpoint, opts) do
     with {:ok, pid} <- Listener.start(name, self(), Keyword.get(opts, :backlog, @backlog)) do

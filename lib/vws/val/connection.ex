@@ -33,7 +33,7 @@ defmodule Vws.VAL.Connection do
   def init(opts) do
     Process.flag(:trap_exit, true)
     name = Keyword.get(opts, :name, self())
-    Logger.metadata(val: inspect(name))
+    Logger.metadata(val: inspect(name), workstation: Vws.Workstation.id_of(name))
 
     data = %{
       name: name,
@@ -265,6 +265,7 @@ defmodule Vws.VAL.Connection do
 
     Vws.Telemetry.execute([:vws, :val, :async], %{count: 1}, %{
       name: data.name,
+      workstation: Vws.Workstation.id_of(data.name),
       code: m.qualifier,
       text: m.text
     })
@@ -516,13 +517,19 @@ defmodule Vws.VAL.Connection do
     Vws.Telemetry.execute(
       [:vws, :val, :request_finished],
       %{duration: System.monotonic_time() - request.started},
-      %{name: data.name, text: request.text, result: result}
+      %{
+        name: data.name,
+        workstation: Vws.Workstation.id_of(data.name),
+        text: request.text,
+        result: result
+      }
     )
   end
 
   defp telemetry_message(data, direction, m, bytes) do
     Vws.Telemetry.execute([:vws, :val, :message], %{bytes: bytes}, %{
       name: data.name,
+      workstation: Vws.Workstation.id_of(data.name),
       direction: direction,
       lun: m.lun,
       function: m.function,

@@ -2,7 +2,8 @@ defmodule Vws.Web.Page do
   @moduledoc """
   The dashboard: one HTML page with plain JavaScript that asks `/api/state` every 400 ms and
   redraws the workstations — partitions and their command statuses, device statuses, interlocks,
-  link states and the recent WC dialogue. Text from the equipment is only ever put into the page
+  link states and the recent WC dialogue — and, on a node of a cell, the cell: every workstation
+  of every connected node with its state. Text from the equipment is only ever put into the page
   with `textContent`, never as HTML. The control form (a status query) appears only when the
   server has a control token, and sends the token the user types in the `x-vws-token` header.
   """
@@ -48,6 +49,7 @@ defmodule Vws.Web.Page do
   <span class="muted">updates: <span id="updates">0</span></span>
   <span id="conn"></span></header>
   <main>
+  <section class="ws" id="cell" hidden><h2>Cell</h2><div id="cell-table"></div></section>
   <div id="workstations"><p class="muted">loading…</p></div>
   <section class="ws" id="control" hidden>
   <h2>Control</h2>
@@ -154,8 +156,21 @@ defmodule Vws.Web.Page do
     return s;
   }
 
+  function renderCell(cell) {
+    const section = document.getElementById("cell");
+    section.hidden = !cell;
+    if (!cell) return;
+    const nodes = new Set(cell.map(w => w.node)).size;
+    document.getElementById("cell-table").replaceChildren(
+      el("div", cell.length + " workstation(s) on " + nodes + " node(s)", "muted"),
+      table(["workstation", "node", "state", "WC link", "commands in flight"],
+        cell.map(w => [w.id, w.node, {text: w.state, cls: w.state},
+          w.wc ? w.wc + (w.wc_connected ? " (WC on)" : "") : "-", w.in_flight.join(", ") || "-"])));
+  }
+
   function render(state) {
     noteChanges(state);
+    renderCell(state.cell);
     const root = document.getElementById("workstations");
     const scrolls = {};
     root.querySelectorAll(".dialogue:not(.changes)").forEach(d => {

@@ -2,7 +2,9 @@ defmodule Vws.Web.State do
   @moduledoc """
   What the dashboard shows, as JSON-ready data (`Vws.JSON`): for every workstation of the node
   (`Vws.Workstation.list/0`) its partitions and command statuses, device statuses, interlocks,
-  links and the recent WC dialogue, all read through `Vws.Inspect`. Every value is already text
+  links and the recent WC dialogue, all read through `Vws.Inspect`; and, when the node is
+  connected to others, `cell`: every workstation of the cell with its node and state
+  (`Vws.Cell.workstations/1`), else nil. Every value is already text
   or a number, the way a person reads it (`"0007"`, `"ERROR NO LINK TO VAL II"`).
   """
 
@@ -17,6 +19,7 @@ defmodule Vws.Web.State do
       time: DateTime.utc_now() |> DateTime.truncate(:millisecond) |> DateTime.to_iso8601(),
       node: to_string(node()),
       control: Keyword.get(opts, :control, false),
+      cell: cell(),
       workstations:
         Vws.Workstation.list()
         |> Task.async_stream(&workstation/1, timeout: 10_000, on_timeout: :kill_task)
@@ -25,6 +28,24 @@ defmodule Vws.Web.State do
           {:exit, _} -> []
         end)
     }
+  end
+
+  defp cell do
+    if Node.list() != [] do
+      for w <- Vws.Cell.workstations(2_000) do
+        %{
+          id: label(w.id),
+          node: to_string(w.node),
+          state: to_string(w.state),
+          wc: Map.get(w, :wc),
+          wc_connected: Map.get(w, :wc_connected, false),
+          in_flight:
+            for {p, {n, :executing}} <- Map.get(w, :commands, %{}) do
+              "#{String.upcase(to_string(p))} #{pad4(n)}"
+            end
+        }
+      end
+    end
   end
 
   defp workstation(ws) do

@@ -1,7 +1,8 @@
 defmodule Vws.Transport.Loopback.Listener do
   @moduledoc false
   # A loopback listener: registered in Vws.Registry under {:loopback, name}, it creates one
-  # Pair per connect and hands the server side to an acceptor. Until accepted, the listener
+  # Pair per connect (or takes one its client created, :connect_pair) and hands the server side
+  # to an acceptor. Until accepted, the listener
   # itself owns the server side (so a connect succeeds at once, like a TCP backlog, and a
   # listener that goes away takes its unaccepted connections with it). It stops when closed
   # or when the process that opened it exits.
@@ -54,6 +55,17 @@ defmodule Vws.Transport.Loopback.Listener do
       server_handle = %Loopback{pair: pair, side: :server, ref: server_ref, name: state.name}
       state = %{state | pending: :queue.in(server_handle, state.pending)}
       {:reply, {:ok, client_handle}, serve_waiters(state)}
+    end
+  end
+
+  # A pair started by the connecting side (possibly on another node, Vws.Transport.Cell): the
+  # listener owns its server side until an acceptor takes it, as for a pair it started itself.
+  def handle_call({:connect_pair, server_handle}, _from, state) do
+    if :queue.len(state.pending) >= state.backlog do
+      {:reply, {:error, :econnrefused}, state}
+    else
+      state = %{state | pending: :queue.in(server_handle, state.pending)}
+      {:reply, :ok, serve_waiters(state)}
     end
   end
 
