@@ -1,7 +1,7 @@
 defmodule Vws.Test.SafetyFloor do
   @moduledoc """
-  The whole simulated shop floor (`Vws.Sim.Floor`: plant, DAQ #1, GE-2000, VAL II, material
-  handling) and a workstation wired to it, tuned to run fast: the plant at time scale 1000, the
+  The whole simulated shop floor (`Vws.Sim.Floor`: plant, DAQ #1, DAQ #2 with the hydraulic
+  controller, GE-2000, VAL II, material handling) and a workstation wired to it, tuned to run fast: the plant at time scale 1000, the
   robot's motions a thousand times faster, short DNC/DDCMP/HPIB timers and short interlock
   timeouts. For the interlock rule tests, the stateful safety test and `bench/safety_soak.exs`,
   so it uses no ExUnit: `start/1` and `stop/1` are the caller's to pair.
@@ -71,10 +71,12 @@ defmodule Vws.Test.SafetyFloor do
           programs: %{"000100.PRO" => @program}
         ],
         robot: [ddcmp: t.ddcmp],
+        hydraulic: [hpib: t.hpib],
         mhs: [timeout: interlock[:timeout], retry_ms: interlock[:retry_ms], poll_ms: 2]
       )
 
     Process.unlink(floor)
+    :ok = Vws.HydraulicController.await_ready(Floor.hydraulic_controller(ws), 5_000)
     devices = Floor.devices(ws)
 
     {:ok, _} =
@@ -89,7 +91,8 @@ defmodule Vws.Test.SafetyFloor do
             hpib: t.hpib
           ],
           ge2000: [endpoint: devices[:ge2000], status_interval: 20] ++ t.dnc,
-          robot: [endpoint: devices[:robot], ddcmp: t.ddcmp]
+          robot: [endpoint: devices[:robot], ddcmp: t.ddcmp],
+          hydraulic: [endpoint: devices[:hydraulic], status_interval: 50, hpib: t.hpib]
         ],
         partitions: [
           robot: [
@@ -110,7 +113,8 @@ defmodule Vws.Test.SafetyFloor do
           ],
           fixture: [options: [timeout_ms: t.device_ms, interlock: interlock]],
           gripper: [options: [timeout_ms: t.device_ms]],
-          vacuum: [options: [timeout_ms: t.device_ms]]
+          vacuum: [options: [timeout_ms: t.device_ms]],
+          hydraulic: [options: [poll_ms: 5, timeout_ms: 4 * t.val_ms]]
         ]
       )
 
