@@ -9,12 +9,12 @@
 # a cycle failed (--all goes on anyway).
 #
 #   --floor sim (default): each workstation has its whole simulated shop floor — the plant and
-#     DAQ #1 (HPIB; VWS_STATUS polls it every 20 ms as in the seed), the GE-2000 (DNC) and the
-#     VAL II (DDCMP + VAL), time-scaled by --time-scale — and every partition linked to it but
-#     HYDRAULIC (the hydraulic controller's simulator is not built yet; its partition runs,
-#     without a link, and the script sends it nothing). The cycle (below) moves the robot,
-#     works the gripper, vise and vacuum on the DAQ's sensors, downloads an NC program, sends it
-#     to the GE-2000 and runs it.
+#     DAQ #1 (HPIB; VWS_STATUS polls it every 20 ms as in the seed), the hydraulic controller
+#     (HPIB) with its DAQ #2, the GE-2000 (DNC) and the VAL II (DDCMP + VAL), time-scaled by
+#     --time-scale — and every partition linked to its device. The cycle (below) moves the
+#     robot, works the gripper, vise and vacuum on DAQ #1's sensors, clamps and releases the
+#     pallet, downloads an NC program, sends it to the GE-2000 and runs it. (The robot simulator
+#     does not move parts in the plant yet, so the cycle carries no part.)
 #   --floor obedient: the six command partitions end every command DONE after --command-ms
 #     (default 300) and VWS_STATUS has no DAQ: the WC link, SUN_COMM, the mailboxes and the
 #     partitions' processes alone.
@@ -96,6 +96,8 @@ EXPECT VISE ~ UNLOCKED
 F RELEASE_TABLE
 V ON
 V OFF
+H CLAMP_PALLET
+EXPECT PALLET PALLET CLAMPED
 DOWNLOAD programs/001234.nc
 M DOWNLOAD_GE
 M PROGRAM_SELECT(001234)
@@ -103,6 +105,8 @@ M CYCLE_START
 WAIT MONARCH IDLE
 M RELEASE_TABLE
 EXPECT TABLE TABLE IN PARK POSITION
+H RELEASE_PALLET
+EXPECT PALLET PALLET NOT CLAMPED
 """
 
 obedient_cycle = """
@@ -190,6 +194,23 @@ start_floor = fn ws ->
       {Vws.Sim.Floor, workstation: ws, time_scale: scale, daq1: daq1}
     )
 
+  {:ok, _} =
+    DynamicSupervisor.start_child(
+      sims_sup,
+      Supervisor.child_spec(
+        {Vws.Sim.DAQ,
+         plant: Vws.Sim.Floor.plant(ws), daq: :daq2, endpoint: "loopback:daq2-#{ws}"},
+        id: {:daq2, ws}
+      )
+    )
+
+  {:ok, _} =
+    DynamicSupervisor.start_child(
+      sims_sup,
+      {Vws.HydraulicController,
+       name: {:hydraulic, ws}, daq2: "loopback:daq2-#{ws}", listen: "loopback:hyd-#{ws}"}
+    )
+
   {:ok, ge} =
     DynamicSupervisor.start_child(
       sims_sup,
@@ -208,12 +229,17 @@ start_floor = fn ws ->
       )
     )
 
+  :ok = Vws.HydraulicController.await_ready({:hydraulic, ws}, 30_000)
   wiring = VwsStatus.wiring(ws, daq1)
 
   {device_links, device_partitions} =
     Vws.Workstation.device_links(
       ws,
-      [ge2000: "loopback:ge-#{ws}", robot: "loopback:val-#{ws}"],
+      [
+        ge2000: "loopback:ge-#{ws}",
+        robot: "loopback:val-#{ws}",
+        hydraulic: "loopback:hyd-#{ws}"
+      ],
       []
     )
 
@@ -440,7 +466,7 @@ cec_1000 = Enum.find(results, &(&1.n == 1000))
 floor_text =
   if floor == "sim",
     do:
-      "each with its simulated floor (plant + DAQ #1 on HPIB, GE-2000 on DNC, VAL II on DDCMP; no hydraulic controller), time ×#{scale}",
+      "each with its simulated floor (plant, DAQ #1 and the hydraulic controller with DAQ #2 on HPIB, GE-2000 on DNC, VAL II on DDCMP), time ×#{scale}",
     else:
       "obedient partitions (every command DONE after #{command_ms} ms), no devices, no DAQ polling"
 
