@@ -1,5 +1,6 @@
 defmodule Vws.HPIBTest do
   use ExUnit.Case, async: true
+  doctest Vws.HPIB.Error
 
   alias Vws.{HPIB, Transport}
   alias Vws.HPIB.Error

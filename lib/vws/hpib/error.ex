@@ -51,4 +51,23 @@ defmodule Vws.HPIB.Error do
 
   defp because(nil), do: ""
   defp because(why), do: " (#{inspect(why)})"
+
+  @doc """
+  The error as a command status or device status shows it, naming the instrument:
+
+      iex> Vws.HPIB.Error.status_reason(%Vws.HPIB.Error{reason: :timeout, detail: 500}, "DAQ #1")
+      "DAQ #1 NOT ANSWERING (NO ANSWER IN 500 MS)"
+  """
+  @spec status_reason(t, String.t()) :: String.t()
+  def status_reason(%__MODULE__{reason: :timeout, detail: ms}, device),
+    do: "#{device} NOT ANSWERING (NO ANSWER IN #{ms} MS)"
+
+  # the connection was dropped because the instrument did not answer, and is being made again
+  def status_reason(%__MODULE__{reason: :not_connected, detail: :timeout}, device),
+    do: "#{device} NOT ANSWERING (TIMED OUT, RECONNECTING)"
+
+  def status_reason(%__MODULE__{reason: :bad_response}, device), do: "#{device} BAD ANSWER"
+  def status_reason(%__MODULE__{reason: :closed}, device), do: "#{device} CONNECTION LOST"
+  def status_reason(%__MODULE__{reason: :no_device}, device), do: "NO LINK TO #{device}"
+  def status_reason(%__MODULE__{}, device), do: "#{device} NOT CONNECTED"
 end

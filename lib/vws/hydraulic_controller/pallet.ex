@@ -273,14 +273,5 @@ defmodule Vws.HydraulicController.Pallet do
 
   @doc "An HPIB error on the link to DAQ #2, as a status reason."
   @spec hpib_reason(HPIB.Error.t()) :: String.t()
-  def hpib_reason(%HPIB.Error{reason: :timeout, detail: ms}),
-    do: "#{@device} NOT ANSWERING (NO ANSWER IN #{ms} MS)"
-
-  def hpib_reason(%HPIB.Error{reason: :not_connected, detail: :timeout}),
-    do: "#{@device} NOT ANSWERING (TIMED OUT, RECONNECTING)"
-
-  def hpib_reason(%HPIB.Error{reason: :bad_response}), do: "#{@device} BAD ANSWER"
-  def hpib_reason(%HPIB.Error{reason: :closed}), do: "#{@device} CONNECTION LOST"
-  def hpib_reason(%HPIB.Error{reason: :no_device}), do: "NO LINK TO #{@device}"
-  def hpib_reason(%HPIB.Error{}), do: "#{@device} NOT CONNECTED"
+  def hpib_reason(%HPIB.Error{} = error), do: HPIB.Error.status_reason(error, @device)
 end

@@ -195,17 +195,7 @@ defmodule Vws.Partitions.Hydraulic do
 
   @doc "An HPIB error on the link to the controller, as a status reason."
   @spec hpib_reason(HPIB.Error.t() | nil) :: String.t()
-  def hpib_reason(%HPIB.Error{reason: :timeout, detail: ms}),
-    do: "#{@device} NOT ANSWERING (NO ANSWER IN #{ms} MS)"
-
-  # the connection was dropped because the controller did not answer, and is being made again
-  def hpib_reason(%HPIB.Error{reason: :not_connected, detail: :timeout}),
-    do: "#{@device} NOT ANSWERING (TIMED OUT, RECONNECTING)"
-
-  def hpib_reason(%HPIB.Error{reason: :bad_response}), do: "#{@device} BAD ANSWER"
-  def hpib_reason(%HPIB.Error{reason: :closed}), do: "#{@device} CONNECTION LOST"
-  def hpib_reason(%HPIB.Error{reason: :no_device}), do: "NO LINK TO #{@device}"
-  def hpib_reason(%HPIB.Error{}), do: "#{@device} NOT CONNECTED"
+  def hpib_reason(%HPIB.Error{} = error), do: HPIB.Error.status_reason(error, @device)
   def hpib_reason(nil), do: "#{@device} NOT ANSWERING"
 
   @doc """

@@ -615,17 +615,7 @@ defmodule Vws.Partitions.VwsStatus do
 
   @doc false
   # An HPIB error as a command status shows it.
-  def hpib_reason(%HPIB.Error{reason: :timeout, detail: ms}),
-    do: "#{@device} NOT ANSWERING (NO ANSWER IN #{ms} MS)"
-
-  # the connection was dropped because the DAQ did not answer, and is being made again
-  def hpib_reason(%HPIB.Error{reason: :not_connected, detail: :timeout}),
-    do: "#{@device} NOT ANSWERING (TIMED OUT, RECONNECTING)"
-
-  def hpib_reason(%HPIB.Error{reason: :bad_response}), do: "#{@device} BAD ANSWER"
-  def hpib_reason(%HPIB.Error{reason: :closed}), do: "#{@device} CONNECTION LOST"
-  def hpib_reason(%HPIB.Error{reason: :no_device}), do: "NO LINK TO #{@device}"
-  def hpib_reason(%HPIB.Error{}), do: "#{@device} NOT CONNECTED"
+  def hpib_reason(%HPIB.Error{} = error), do: HPIB.Error.status_reason(error, @device)
 
   @doc false
   def daq_locations, do: @daq_locations
