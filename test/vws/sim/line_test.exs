@@ -74,8 +74,10 @@ defmodule Vws.Sim.LineTest do
       assert Line.info(line).closes == 1
     end
 
+    # Over loopback: over TCP the chatter into the closed client draws an RST, and Linux discards
+    # the line's unread receive data on a reset — a race of the kernel, not of the line.
     test "… also while the other direction is still sending to the end that closed" do
-      %{client: client, server: server} = through(:tcp, to_target: [delay: 50])
+      %{client: client, server: server} = through(:loopback, to_target: [delay: 50])
 
       chatter =
         Task.async(fn ->
