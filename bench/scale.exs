@@ -8,13 +8,14 @@
 # script again and again for --seconds; then it stops them all and goes on to the next N, unless
 # a cycle failed (--all goes on anyway).
 #
-#   --floor sim (default): each workstation has its whole simulated shop floor — the plant and
-#     DAQ #1 (HPIB; VWS_STATUS polls it every 20 ms as in the seed), the hydraulic controller
-#     (HPIB) with its DAQ #2, the GE-2000 (DNC) and the VAL II (DDCMP + VAL), time-scaled by
-#     --time-scale — and every partition linked to its device. The cycle (below) moves the
-#     robot, works the gripper, vise and vacuum on DAQ #1's sensors, clamps and releases the
-#     pallet, downloads an NC program, sends it to the GE-2000 and runs it. (The robot simulator
-#     does not move parts in the plant yet, so the cycle carries no part.)
+#   --floor sim (default): each workstation has its whole simulated shop floor, as `mix vws.demo`
+#     has (`Vws.Sim.Floor`): the plant with DAQ #1 (HPIB; VWS_STATUS polls it every 20 ms as in
+#     the seed), DAQ #2 and the hydraulic controller (HPIB), the GE-2000 (DNC), the VAL II
+#     (DDCMP + VAL) and the material-handling system, time-scaled by --time-scale, a blank in
+#     tray #1 — and every partition linked to its device. Each WC runs the shipped machining
+#     cycle (`priv/sims/machining_cycle.vws`: the blank into the vise, the NC program downloaded,
+#     sent to the GE-2000 and run, the part back into tray #1), which leaves the floor as it
+#     found it, so it can run again.
 #   --floor obedient: the six command partitions end every command DONE after --command-ms
 #     (default 300) and VWS_STATUS has no DAQ: the WC link, SUN_COMM, the mailboxes and the
 #     partitions' processes alone.
@@ -76,39 +77,6 @@ defmodule Bench.Obedient do
   end
 end
 
-sim_cycle = """
-TIMEOUT 60
-R DISABLE_TRAY1
-EXPECT TRAYS TRAY #1 IN POSITION
-R DO MOVE SAFE & G OPEN
-EXPECT GRIPPER GRIPPER IS OPEN
-R DO APPRO TRAY1/50
-R DO MOVES TRAY1
-G CLOSE
-R DO DEPARTS 50
-R DO MOVE SAFE
-R RELEASE_TRAY1
-WAIT MONARCH IDLE
-EXPECT TABLE TABLE IN PARK POSITION
-F DISABLE_TABLE
-F OPEN
-EXPECT VISE ~ UNLOCKED
-F RELEASE_TABLE
-V ON
-V OFF
-H CLAMP_PALLET
-EXPECT PALLET PALLET CLAMPED
-DOWNLOAD programs/001234.nc
-M DOWNLOAD_GE
-M PROGRAM_SELECT(001234)
-M CYCLE_START
-WAIT MONARCH IDLE
-M RELEASE_TABLE
-EXPECT TABLE TABLE IN PARK POSITION
-H RELEASE_PALLET
-EXPECT PALLET PALLET NOT CLAMPED
-"""
-
 obedient_cycle = """
 R DO MOVE SAFE & G OPEN
 F OPEN
@@ -123,7 +91,9 @@ R DO MOVE SAFE
 """
 
 {:ok, script} =
-  Script.parse(if(floor == "sim", do: sim_cycle, else: obedient_cycle), base_dir: "priv/sims")
+  if floor == "sim",
+    do: Script.parse_file("priv/sims/machining_cycle.vws"),
+    else: Script.parse(obedient_cycle)
 
 machine = Bench.machine()
 
@@ -184,74 +154,27 @@ ids = fn n -> for i <- 1..n, do: "S#{n}-#{String.pad_leading(Integer.to_string(i
 
 {:ok, sims_sup} = DynamicSupervisor.start_link(strategy: :one_for_one)
 
-# The simulated floor of one workstation; returns the workstation's links and partitions.
+# The simulated floor of one workstation, every device on a loopback endpoint; returns the
+# workstation's links and partitions.
 start_floor = fn ws ->
-  daq1 = "loopback:daq1-#{ws}"
-
   {:ok, _} =
     DynamicSupervisor.start_child(
       sims_sup,
-      {Vws.Sim.Floor, workstation: ws, time_scale: scale, daq1: daq1}
+      {Vws.Sim.Floor,
+       workstation: ws,
+       time_scale: scale,
+       daq1: "loopback:daq1-#{ws}",
+       daq2: "loopback:daq2-#{ws}",
+       hydraulic: [listen: "loopback:hyd-#{ws}"],
+       ge2000: [endpoint: "loopback:ge-#{ws}"],
+       robot: [endpoint: "loopback:val-#{ws}"],
+       mhs: true}
     )
 
-  {:ok, _} =
-    DynamicSupervisor.start_child(
-      sims_sup,
-      Supervisor.child_spec(
-        {Vws.Sim.DAQ,
-         plant: Vws.Sim.Floor.plant(ws), daq: :daq2, endpoint: "loopback:daq2-#{ws}"},
-        id: {:daq2, ws}
-      )
-    )
-
-  {:ok, _} =
-    DynamicSupervisor.start_child(
-      sims_sup,
-      {Vws.HydraulicController,
-       name: {:hydraulic, ws}, daq2: "loopback:daq2-#{ws}", listen: "loopback:hyd-#{ws}"}
-    )
-
-  {:ok, ge} =
-    DynamicSupervisor.start_child(
-      sims_sup,
-      Supervisor.child_spec(
-        {Vws.Sim.GE2000, endpoint: "loopback:ge-#{ws}", cycle_time: round(5_000 / scale)},
-        id: {:ge, ws}
-      )
-    )
-
-  {:ok, _} =
-    DynamicSupervisor.start_child(
-      sims_sup,
-      Supervisor.child_spec(
-        {Vws.Sim.VAL2, endpoint: "loopback:val-#{ws}", time_scale: 1 / scale},
-        id: {:val, ws}
-      )
-    )
-
-  :ok = Vws.HydraulicController.await_ready({:hydraulic, ws}, 30_000)
-  wiring = VwsStatus.wiring(ws, daq1)
-
-  {device_links, device_partitions} =
-    Vws.Workstation.device_links(
-      ws,
-      [
-        ge2000: "loopback:ge-#{ws}",
-        robot: "loopback:val-#{ws}",
-        hydraulic: "loopback:hyd-#{ws}"
-      ],
-      []
-    )
-
-  partitions =
-    wiring.partitions
-    |> Keyword.merge(device_partitions, fn _p, a, b -> Keyword.merge(a, b) end)
-    |> Keyword.update!(
-      :monarch,
-      &Keyword.put(&1, :options, cycle_start: fn -> Vws.Sim.GE2000.cycle_start(ge) end)
-    )
-
-  %{links: wiring.links ++ device_links, partitions: partitions}
+  :ok = Vws.HydraulicController.await_ready(Vws.Sim.Floor.hydraulic_controller(ws), 30_000)
+  :ok = Vws.Sim.Plant.set_part(Vws.Sim.Floor.plant(ws), :tray1, true)
+  {links, partitions} = Vws.Workstation.device_links(ws, Vws.Sim.Floor.devices(ws), [])
+  %{links: links, partitions: partitions}
 end
 
 obedient =
@@ -466,7 +389,7 @@ cec_1000 = Enum.find(results, &(&1.n == 1000))
 floor_text =
   if floor == "sim",
     do:
-      "each with its simulated floor (plant, DAQ #1 and the hydraulic controller with DAQ #2 on HPIB, GE-2000 on DNC, VAL II on DDCMP), time ×#{scale}",
+      "each with its whole simulated floor (plant, DAQ #1, DAQ #2 + hydraulic controller on HPIB, GE-2000 on DNC, VAL II on DDCMP, MHS), time ×#{scale}",
     else:
       "obedient partitions (every command DONE after #{command_ms} ms), no devices, no DAQ polling"
 
