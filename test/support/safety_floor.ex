@@ -204,16 +204,5 @@ defmodule Vws.Test.SafetyFloor do
   def collisions(f), do: Plant.collisions(f.plant)
 
   @doc "True as soon as `fun.()` is truthy; false when `timeout` ms pass first."
-  def wait_until(fun, timeout) do
-    deadline = System.monotonic_time(:millisecond) + timeout
-    poll(fun, deadline)
-  end
-
-  defp poll(fun, deadline) do
-    cond do
-      fun.() -> true
-      System.monotonic_time(:millisecond) > deadline -> false
-      true -> Process.sleep(2) && poll(fun, deadline)
-    end
-  end
+  def wait_until(fun, timeout), do: Vws.Test.Eventually.eventually(fun, timeout, 2)
 end
