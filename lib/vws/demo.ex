@@ -50,6 +50,7 @@ defmodule Vws.Demo do
           wc: String.t(),
           time_scale: number,
           simulated: [String.t()],
+          lines: [atom],
           unlinked: [{atom, String.t()}]
         }
 
@@ -57,15 +58,18 @@ defmodule Vws.Demo do
   Starts the shop floor: every simulator there is, then a workstation linked to them, whose
   SUN_COMM serves the WC at `:wc`. Options: `:id` (default `"VWS-DEMO"`), `:wc` (default
   `"tcp://127.0.0.1:0"`, a free port), `:time_scale` (default 1.0; the simulators run this many
-  times faster than real time), `:bcc`. Returns where SUN_COMM listens, what is simulated and
-  which partitions have no device link.
+  times faster than real time), `:bcc`, `:lines` (faulty cables on every link, the WC's included:
+  `[faults: [ber: 1.0e-4, …], seed: term]`, see `Vws.Sim.Floor`; `Vws.Sim.Floor.line(id, :wc)` is
+  the WC's). Returns where the WC reaches SUN_COMM (through its line, if any), what is
+  simulated, which links have a faulty line and which partitions have no device link.
   """
   @spec start_shop_floor(keyword) :: {:ok, shop_floor} | {:error, term}
   def start_shop_floor(opts \\ []) do
     id = Keyword.get(opts, :id, "VWS-DEMO")
     wc = Keyword.get(opts, :wc, "tcp://127.0.0.1:0")
     time_scale = Keyword.get(opts, :time_scale, 1.0)
-    sim_opts = [workstation: id, time_scale: time_scale]
+    lines = Keyword.get(opts, :lines, false)
+    sim_opts = [workstation: id, time_scale: time_scale, lines: lines]
 
     with {:ok, sims} <- start_simulators(sim_opts),
          {:ok, _pid} <-
@@ -76,7 +80,8 @@ defmodule Vws.Demo do
              links: Enum.flat_map(sims, & &1.links),
              partitions: merge_partitions(sims)
            ),
-         {:ok, listening} <- wait_listening(id, 100) do
+         {:ok, listening} <- wait_listening(id, 100),
+         {:ok, wc} <- wc_line(id, to_string(listening), lines) do
       unlinked =
         for {partition, module} <- @partition_devices,
             Vws.Partition.info(id, partition).link == nil,
@@ -85,8 +90,9 @@ defmodule Vws.Demo do
       {:ok,
        %{
          workstation: id,
-         wc: to_string(listening),
+         wc: wc,
          time_scale: time_scale,
+         lines: Keyword.keys(Vws.Sim.Floor.lines(id)),
          simulated: Enum.map(sims, & &1.name),
          unlinked: unlinked
        }}
@@ -106,6 +112,20 @@ defmodule Vws.Demo do
     Enum.reduce(sims, [], fn sim, acc ->
       Keyword.merge(acc, Map.get(sim, :partitions, []), fn _p, a, b -> Keyword.merge(a, b) end)
     end)
+  end
+
+  # with faulty lines on the floor, the WC reaches SUN_COMM through one too
+  defp wc_line(_id, sun_comm, false), do: {:ok, sun_comm}
+
+  defp wc_line(id, sun_comm, lines) do
+    with {:ok, line} <-
+           Vws.Sim.Line.start_link(
+             name: Vws.Sim.Floor.line(id, :wc),
+             target: sun_comm,
+             seed: {Keyword.get(lines, :seed, 0), :wc},
+             faults: Keyword.get(lines, :faults, [])
+           ),
+         do: {:ok, to_string(Vws.Sim.Line.endpoint(line))}
   end
 
   defp wait_listening(_id, 0), do: {:error, :sun_comm_not_listening}

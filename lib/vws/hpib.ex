@@ -37,6 +37,16 @@ defmodule Vws.HPIB do
   connection attempt is under way do they wait for its outcome): callers (VWS_STATUS's poll, a
   partition's command) decide what a missing answer means.
 
+  A request whose answer comes back damaged (a line that does not decode as the answer to its
+  query), does not come within its share of the time, or is cut off by a closed connection is
+  tried again — at most `:retries` times (default 2), within the request's own timeout, each try
+  waiting an equal share of the time left — if every command of it can be repeated with the
+  same effect (`Vws.SCPI.repeatable?/1`: the reading queries and the relay settings; never
+  `CLAMP_PALLET`, `*RST` or `SYST:ERR?`). Before each new try the connection is closed and
+  opened again, as a device clear: no late or shifted line of the lost try can then be taken for
+  the answer to another query. (Decision: SCPI lines carry no check of their own; on a line that
+  can damage bytes this is what the bus driver can do.) Each try again is counted in telemetry.
+
   `send_request/3` and `check_response/2` make the same request without blocking the caller
   (`:gen_statem.send_request/2` underneath), for a process that must keep its own schedule.
 
@@ -47,6 +57,7 @@ defmodule Vws.HPIB do
   | `[:vws, :hpib, :connected]`    | `count` | `bus, address, endpoint` |
   | `[:vws, :hpib, :disconnected]` | `count` | `bus, address, endpoint, reason` |
   | `[:vws, :hpib, :timeout]`      | `count` | `bus, address, endpoint, commands` |
+  | `[:vws, :hpib, :retry]`        | `count` | `bus, address, endpoint, commands, reason, try` |
   """
 
   alias Vws.HPIB.{Device, Error}
@@ -75,7 +86,8 @@ defmodule Vws.HPIB do
     * `:endpoint` — where the device is reached (`Vws.Endpoint` string or struct) — required;
     * `:timeout` — default request timeout in ms (1000);
     * `:connect_timeout` — ms allowed to open the endpoint (1000);
-    * `:backoff` — `{first_ms, max_ms}` between reconnection attempts, doubling (`{50, 2000}`).
+    * `:backoff` — `{first_ms, max_ms}` between reconnection attempts, doubling (`{50, 2000}`);
+    * `:retries` — how many times a repeatable request is tried again (2).
   """
   @spec start_link(keyword) :: :gen_statem.start_ret()
   def start_link(opts) do
@@ -151,8 +163,8 @@ defmodule Vws.HPIB do
   end
 
   @doc """
-  The device process's state: `%{state, address, endpoint, connects, timeouts, requests,
-  unsolicited, last_error}` (`state` is `:connecting`, `:disconnected`, `:ready` or `:busy`).
+  The device process's state: `%{state, address, endpoint, connects, timeouts, retried,
+  requests, queued, unsolicited, last_error}` (`retried`: requests tried again) (`state` is `:connecting`, `:disconnected`, `:ready` or `:busy`).
   """
   @spec info(device) :: map
   def info({bus, address}), do: :gen_statem.call(name(bus, address), :info)

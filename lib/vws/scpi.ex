@@ -375,6 +375,21 @@ defmodule Vws.SCPI do
   def response?({command, _}) when command in [:meas_volt_dc?, :meas_res?, :rout_clos?], do: true
   def response?(_command), do: false
 
+  @doc """
+  Whether a command may be sent again when its answer was lost or damaged, with the same
+  effect as once: the queries that only read (not `SYST:ERR?`, which takes an error off the
+  queue) and the relay settings (`ROUT:CLOS`/`ROUT:OPEN` set a state, they do not toggle it).
+  `*RST`, `*CLS` and the hydraulic controller's `CLAMP_PALLET`/`RELEASE_PALLET` are not.
+  """
+  @spec repeatable?(command) :: boolean
+  def repeatable?(command) when command in [:idn?, :status?, :pallet?], do: true
+
+  def repeatable?({command, _})
+      when command in [:meas_volt_dc?, :meas_res?, :rout_clos?, :rout_clos, :rout_open],
+      do: true
+
+  def repeatable?(_command), do: false
+
   @doc "Decodes the response line answering `query` (its CR LF / LF optional)."
   @spec decode_response(command, binary) :: {:ok, response} | {:error, Error.t()}
   def decode_response(query, line) when is_binary(line) do

@@ -42,6 +42,9 @@ defmodule Vws.SunComm do
     * `:upload_retries` — resends of one uploaded line before giving up (5)
     * `:max_program_bytes` — largest NC program accepted (4 MiB)
     * `:tty_retry` — ms between attempts to (re)open a tty (1 000)
+    * `:partial_line_timeout` — ms of silence after the start of a line before the unfinished
+      line is dropped and answered `E` (500; decision: a CR LF damaged on the line would
+      otherwise leave a program-line transfer waiting)
   """
   use GenServer
   require Logger
@@ -97,6 +100,8 @@ defmodule Vws.SunComm do
       upload_retries: Keyword.get(opts, :upload_retries, 5),
       max_program_bytes: Keyword.get(opts, :max_program_bytes, 4 * 1024 * 1024),
       tty_retry: Keyword.get(opts, :tty_retry, 1_000),
+      partial_line_timeout: Keyword.get(opts, :partial_line_timeout, 500),
+      partial: nil,
       ok_to_proceed: false,
       listener: nil,
       listening: nil,
@@ -183,13 +188,29 @@ defmodule Vws.SunComm do
 
   def handle_info({:EXIT, _pid, _reason}, s), do: {:noreply, s}
 
+  def handle_info({:partial_line, ref}, %{partial: {ref, _tref}} = s) do
+    # the end of a line never came: its CR LF was lost or damaged on the line
+    s = %{s | partial: nil, decoder: s.decoder && LineDecoder.new(max_line: s.max_line)}
+    s = record(s, :in, "<unfinished line dropped after #{s.partial_line_timeout} ms>")
+
+    s =
+      case s.mode do
+        {:upload, _} -> s
+        _ -> reject(s, :unfinished_line)
+      end
+
+    {:noreply, s}
+  end
+
+  def handle_info({:partial_line, _stale}, s), do: {:noreply, s}
+
   def handle_info(msg, %{conn: conn} = s) when conn != nil do
     case Transport.handle_message(conn, msg) do
       {:data, bytes} ->
         {lines, decoder} = LineDecoder.feed(s.decoder, bytes)
         s = Enum.reduce(lines, %{s | decoder: decoder}, &handle_line/2)
         if s.conn, do: Transport.activate(s.conn)
-        {:noreply, s}
+        {:noreply, watch_partial_line(s)}
 
       :closed ->
         {:noreply, link_lost(s, "closed")}
@@ -282,6 +303,22 @@ defmodule Vws.SunComm do
   end
 
   ## Lines in
+
+  # Bytes of an unfinished line start (or restart) the inter-character timer; a line whose end
+  # does not follow within `partial_line_timeout` is dropped and answered `E` (a WC waiting on
+  # the answer to a program line would otherwise wait for ever, and may not send it again
+  # unasked: a line whose `A` was lost would be stored twice).
+  defp watch_partial_line(%{partial: partial, decoder: decoder} = s) do
+    if partial, do: Process.cancel_timer(elem(partial, 1))
+
+    if decoder != nil and LineDecoder.buffered(decoder) > 0 do
+      ref = make_ref()
+      tref = Process.send_after(self(), {:partial_line, ref}, s.partial_line_timeout)
+      %{s | partial: {ref, tref}}
+    else
+      %{s | partial: nil}
+    end
+  end
 
   defp handle_line({:error, error}, s) do
     record(s, :in, "<#{Exception.message(error)}>")

@@ -45,9 +45,11 @@ defmodule Vws.Telemetry do
   | `[:vws, :web, :request]` | `duration, bytes` | `method, path, status, port` |
   | `[:vws, :hpib, :connected]` / `:disconnected` | `count` | `bus, address, endpoint` (+ `reason`) |
   | `[:vws, :hpib, :timeout]` | `count` | `bus, address, endpoint, commands` |
+  | `[:vws, :hpib, :retry]` | `count` | `bus, address, endpoint, commands, reason, try` |
   | `[:vws, :vws_status, :poll]` | `started_at, lateness, duration, handling` (µs) | `workstation, seq, result` |
   | `[:vws, :vws_status, :missed]` | `count` | `workstation, reason` |
   | `[:vws, :vws_status, :stale]` | `count` | `workstation, reason` |
+  | `[:vws, :vws_status, :actuation_retry]` | `count` | `workstation, reason, try` |
   | `[:vws, :interlock, :acquired]` | `wait_ms, tries` | `workstation, volume, holder, reason` |
   | `[:vws, :interlock, :refused]` | `wait_ms, tries` | `workstation, volume, holder, reason, why` |
   | `[:vws, :interlock, :released]` | `count` | `workstation, volume, holder, reason` (`:all` or one) |
@@ -96,9 +98,11 @@ defmodule Vws.Telemetry do
     [:vws, :hpib, :connected],
     [:vws, :hpib, :disconnected],
     [:vws, :hpib, :timeout],
+    [:vws, :hpib, :retry],
     [:vws, :vws_status, :poll],
     [:vws, :vws_status, :missed],
     [:vws, :vws_status, :stale],
+    [:vws, :vws_status, :actuation_retry],
     [:vws, :web, :request],
     [:vws, :interlock, :acquired],
     [:vws, :interlock, :refused],

@@ -140,7 +140,7 @@ defmodule Vws.HPIBTest do
 
   test "no answer in time: a timeout error, the connection is dropped and made again", ctx do
     listener = instrument(ctx)
-    dev = start_device(ctx)
+    dev = start_device(ctx, retries: 0)
     conn = accept(listener)
 
     assert {:error, %Error{reason: :timeout, detail: 50} = error} =
@@ -162,7 +162,7 @@ defmodule Vws.HPIBTest do
 
   test "an answer that does not answer the query is a bad_response; the next one works", ctx do
     listener = instrument(ctx)
-    dev = start_device(ctx)
+    dev = start_device(ctx, retries: 0)
     conn = accept(listener)
 
     task = Task.async(fn -> HPIB.query(dev, {:meas_volt_dc?, [101, 102]}) end)
@@ -180,7 +180,7 @@ defmodule Vws.HPIBTest do
 
   test "the connection lost while waiting ends the request :closed; it reconnects", ctx do
     listener = instrument(ctx)
-    dev = start_device(ctx)
+    dev = start_device(ctx, retries: 0)
     conn = accept(listener)
     task = Task.async(fn -> HPIB.query(dev, :idn?) end)
     assert recv_lines(conn, 1) == ["*IDN?"]
@@ -188,6 +188,98 @@ defmodule Vws.HPIBTest do
     assert {:error, %Error{reason: :closed}} = Task.await(task)
     _conn2 = accept(listener)
     assert HPIB.await_connected(dev, 2_000) == :ok
+  end
+
+  describe "a damaged, missing or cut-off answer to a repeatable request" do
+    setup ctx do
+      test_pid = self()
+      handler = "hpib-retry-#{ctx.bus}"
+      bus = ctx.bus
+
+      :ok =
+        Vws.Telemetry.attach(
+          handler,
+          [:vws, :hpib, :retry],
+          fn _, m, md, _ ->
+            if md.bus == bus, do: send(test_pid, {:retry, m.count, md.reason, md.try})
+          end,
+          nil
+        )
+
+      on_exit(fn -> Vws.Telemetry.detach(handler) end)
+      :ok
+    end
+
+    test "a damaged answer: asked again on a new connection, the good answer returned", ctx do
+      listener = instrument(ctx)
+      dev = start_device(ctx)
+      conn = accept(listener)
+
+      task = Task.async(fn -> HPIB.query(dev, {:meas_volt_dc?, [101, 102]}) end)
+      assert recv_lines(conn, 1) == ["MEAS:VOLT:DC? (@101,102)"]
+      # one reading where two were asked (a comma damaged on the line)
+      Transport.send(conn, "+5.0E+00+1.0E+00\n")
+      assert_receive {:retry, 1, :bad_response, 1}
+      # a device clear: the old connection closed, the request sent again on a new one
+      assert closed?(conn)
+      conn2 = accept(listener)
+      assert recv_lines(conn2, 1) == ["MEAS:VOLT:DC? (@101,102)"]
+      Transport.send(conn2, "+5.0E+00,+1.0E+00\n")
+      assert Task.await(task) == {:ok, [5.0, 1.0]}
+      assert %{retried: 1, connects: 2} = HPIB.info(dev)
+    end
+
+    test "no answer: each try waits its share of the time; the last one answers", ctx do
+      listener = instrument(ctx)
+      dev = start_device(ctx)
+      conn = accept(listener)
+
+      task =
+        Task.async(fn ->
+          HPIB.transaction(dev, [{:rout_clos, [201]}, {:rout_clos?, [201]}], 3_000)
+        end)
+
+      assert recv_lines(conn, 2) == ["ROUT:CLOS (@201)", "ROUT:CLOS? (@201)"]
+      # silence: the first try gives up after its third of the time
+      assert_receive {:retry, 1, :timeout, 1}, 2_500
+      conn2 = accept(listener)
+      assert recv_lines(conn2, 2) == ["ROUT:CLOS (@201)", "ROUT:CLOS? (@201)"]
+      Transport.close(conn2)
+      assert_receive {:retry, 1, :closed, 2}, 2_500
+      conn3 = accept(listener)
+      assert recv_lines(conn3, 2) == ["ROUT:CLOS (@201)", "ROUT:CLOS? (@201)"]
+      Transport.send(conn3, "1\n")
+      assert Task.await(task) == {:ok, [:ok, [true]]}
+      assert %{retried: 2, timeouts: 1} = HPIB.info(dev)
+    end
+
+    test "the tries run out: the last failure is returned", ctx do
+      listener = instrument(ctx)
+      dev = start_device(ctx, retries: 1)
+      conn = accept(listener)
+      task = Task.async(fn -> HPIB.query(dev, :idn?) end)
+      assert recv_lines(conn, 1) == ["*IDN?"]
+      Transport.send(conn, "garbage\n")
+      conn2 = accept(listener)
+      assert recv_lines(conn2, 1) == ["*IDN?"]
+      Transport.send(conn2, "more garbage\n")
+      assert {:error, %Error{reason: :bad_response}} = Task.await(task)
+      assert_received {:retry, 1, :bad_response, 1}
+      refute_received {:retry, _, _, 2}
+    end
+
+    test "a request that cannot be repeated is never sent twice", ctx do
+      listener = instrument(ctx)
+      dev = start_device(ctx)
+      conn = accept(listener)
+      # SYST:ERR? takes an error off the instrument's queue: asking again would lose one
+      task = Task.async(fn -> HPIB.transaction(dev, [:clamp_pallet, :syst_err?]) end)
+      assert recv_lines(conn, 2) == ["CLAMP_PALLET", "SYST:ERR?"]
+      Transport.send(conn, "damaged\n")
+      assert {:error, %Error{reason: :bad_response}} = Task.await(task)
+      refute_received {:retry, _, _, _}
+      assert HPIB.info(dev).retried == 0
+    end
   end
 
   test "requests from several callers are served one at a time, in arrival order", ctx do

@@ -201,6 +201,32 @@ defmodule Vws.SunCommTest do
       assert Mailbox.nc_file(ws) == ["%", "N10 G00X0", "%"]
     end
 
+    test "a program line whose end never comes is dropped after a silence and answered E", %{
+      peer: peer,
+      ws: ws
+    } do
+      WCPeer.send_string(peer, 62, [{"M", 6, "DOWNLOAD_HP"}])
+      assert ack?(WCPeer.recv_line(peer), 62)
+      WCPeer.send_raw(peer, Vws.WC.Reply.encode({:line, "%"}))
+      assert WCPeer.recv_line(peer) == "A"
+      # the line's LF damaged on the wire: SUN_COMM holds an unfinished line, the WC waits
+      [line, _crlf] =
+        Vws.WC.Reply.encode({:line, "N10 G00X0"}) |> IO.iodata_to_binary() |> String.split("\r")
+
+      WCPeer.send_raw(peer, line <> "\r\x1A")
+      t0 = System.monotonic_time(:millisecond)
+      assert WCPeer.recv_line(peer, 5_000) == "E"
+      # not before the inter-character silence (500 ms by default)
+      assert System.monotonic_time(:millisecond) - t0 >= 400
+      # the WC sends the line again; stored once
+      WCPeer.send_raw(peer, Vws.WC.Reply.encode({:line, "N10 G00X0"}))
+      assert WCPeer.recv_line(peer) == "A"
+      WCPeer.send_raw(peer, Vws.WC.Reply.encode({:line, "%"}))
+      assert WCPeer.recv_line(peer) == "A"
+      assert WCPeer.status(peer, 63, 35, "MONARCH_CMD") == "0006DONE"
+      assert Mailbox.nc_file(ws) == ["%", "N10 G00X0", "%"]
+    end
+
     test "UPLOAD_SUN sends NC_UP line by line and resends a line answered E", %{
       peer: peer,
       ws: ws

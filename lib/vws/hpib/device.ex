@@ -10,6 +10,12 @@ defmodule Vws.HPIB.Device do
   # answers requests :not_connected at once and retries after the back-off; `ready` sends a
   # request and goes `busy` until every query of it is answered or its deadline passes. Requests
   # that arrive while busy wait in `queue` (visible in `info`), in arrival order.
+  #
+  # A repeatable request (`Vws.SCPI.repeatable?/1`, every command of it) whose answer is damaged,
+  # missing or cut off is tried again, at most `retries` times within its own deadline, each
+  # try waiting its share of the request's time: the connection is closed and opened again
+  # first (`connecting`, the request at the head of the queue), so that no late or shifted
+  # answer line of the lost try can be taken for an answer to the next.
   @behaviour :gen_statem
 
   require Logger
@@ -20,6 +26,7 @@ defmodule Vws.HPIB.Device do
   @default_timeout 1_000
   @connect_timeout 1_000
   @backoff {50, 2_000}
+  @retries 2
 
   @impl true
   def callback_mode, do: [:state_functions, :state_enter]
@@ -37,6 +44,8 @@ defmodule Vws.HPIB.Device do
       address: address,
       endpoint: endpoint,
       timeout: Keyword.get(opts, :timeout, @default_timeout),
+      retries: Keyword.get(opts, :retries, @retries),
+      retried: 0,
       connect_timeout: Keyword.get(opts, :connect_timeout, @connect_timeout),
       backoff_first: first,
       backoff_max: max,
@@ -67,16 +76,19 @@ defmodule Vws.HPIB.Device do
         Logger.info("HPIB device #{data.address} connected to #{endpoint(data)}")
         telemetry(:connected, data, %{})
 
-        {:next_state, :ready,
-         %{
-           data
-           | conn: conn,
-             decoder: SCPI.new(),
-             backoff: data.backoff_first,
-             was_connected: true,
-             connects: data.connects + 1,
-             last_error: nil
-         }}
+        # a request being tried again waits at the head of the queue
+        serve(
+          %{
+            data
+            | conn: conn,
+              decoder: SCPI.new(),
+              backoff: data.backoff_first,
+              was_connected: true,
+              connects: data.connects + 1,
+              last_error: nil
+          },
+          []
+        )
 
       {:error, reason} ->
         if data.was_connected do
@@ -85,8 +97,13 @@ defmodule Vws.HPIB.Device do
           )
         end
 
-        {:next_state, :disconnected,
-         %{data | was_connected: false, last_error: {:connect, reason}}}
+        data = %{data | was_connected: false, last_error: {:connect, reason}}
+        error = not_connected(data)
+
+        queued =
+          for {from, _, _} <- :queue.to_list(data.queue), do: {:reply, from, {:error, error}}
+
+        {:next_state, :disconnected, %{data | queue: :queue.new()}, queued}
     end
   end
 
@@ -117,7 +134,7 @@ defmodule Vws.HPIB.Device do
 
   def ready({:call, from}, {:request, _, _, _} = request, data) do
     data = count_request(data)
-    serve(%{data | queue: :queue.in({from, request}, data.queue)}, [])
+    serve(%{data | queue: :queue.in({from, request, 0}, data.queue)}, [])
   end
 
   def ready(:info, msg, data), do: transport_message(msg, data)
@@ -129,17 +146,24 @@ defmodule Vws.HPIB.Device do
 
   def busy({:call, from}, {:request, _, _, _} = request, data) do
     data = count_request(data)
-    {:keep_state, %{data | queue: :queue.in({from, request}, data.queue)}}
+    {:keep_state, %{data | queue: :queue.in({from, request, 0}, data.queue)}}
   end
 
   def busy(:state_timeout, :answer, data) do
     %{from: from, commands: commands, timeout: timeout} = data.current
     error = %Error{reason: :timeout, address: data.address, detail: timeout}
-    Logger.warning("HPIB device #{data.address}: #{Exception.message(error)}; reconnecting")
     telemetry(:timeout, data, %{commands: commands})
-    data = %{data | current: nil, timeouts: data.timeouts + 1}
-    # reconnect at once: the device may only have been slow
-    lose_connection(%{data | backoff: 0}, :timeout, [{:reply, from, {:error, error}}])
+    data = %{data | timeouts: data.timeouts + 1}
+
+    try_again(data, error, fn data ->
+      Logger.warning("HPIB device #{data.address}: #{Exception.message(error)}; reconnecting")
+      # reconnect at once (the device may only have been slow); the requests queued behind this
+      # one wait for the new connection
+      telemetry(:disconnected, data, %{reason: :timeout})
+      if data.conn, do: Transport.close(data.conn)
+      data = %{data | current: nil, conn: nil, decoder: SCPI.new(), last_error: :timeout}
+      {:next_state, :connecting, data, [{:reply, from, {:error, error}}]}
+    end)
   end
 
   def busy(:info, msg, data), do: transport_message(msg, data)
@@ -154,7 +178,7 @@ defmodule Vws.HPIB.Device do
       {:empty, _} ->
         {:next_state, :ready, data, actions}
 
-      {{:value, {from, {:request, commands, deadline, timeout}}}, rest} ->
+      {{:value, {from, {:request, commands, deadline, timeout}, tries}}, rest} ->
         data = %{data | queue: rest}
         timeout = timeout || data.timeout
         deadline = deadline || now() + timeout
@@ -164,12 +188,12 @@ defmodule Vws.HPIB.Device do
           error = %Error{reason: :timeout, address: data.address, detail: timeout}
           serve(data, actions ++ [{:reply, from, {:error, error}}])
         else
-          send_request(data, actions, from, commands, deadline, timeout)
+          send_request(data, actions, from, commands, {deadline, timeout, tries})
         end
     end
   end
 
-  defp send_request(data, actions, from, commands, deadline, timeout) do
+  defp send_request(data, actions, from, commands, {deadline, timeout, tries}) do
     case Transport.send(data.conn, Enum.map(commands, &SCPI.encode_command/1)) do
       :ok ->
         case Enum.filter(commands, &SCPI.response?/1) do
@@ -183,11 +207,17 @@ defmodule Vws.HPIB.Device do
               waiting: queries,
               answers: [],
               error: nil,
-              timeout: timeout
+              timeout: timeout,
+              deadline: deadline,
+              tries: tries
             }
 
+            # a try that may be followed by another waits its share of the time left
+            tries_left = if repeatable?(commands), do: max(data.retries - tries, 0), else: 0
+            wait = div(max(deadline - now(), 0), tries_left + 1)
+
             {:next_state, :busy, %{data | current: current},
-             actions ++ [{:state_timeout, max(deadline - now(), 0), :answer}]}
+             actions ++ [{:state_timeout, wait, :answer}]}
         end
 
       {:error, reason} ->
@@ -239,31 +269,58 @@ defmodule Vws.HPIB.Device do
     %{data | unsolicited: data.unsolicited + 1}
   end
 
-  defp answered(%{current: %{waiting: []} = c} = data) do
-    reply =
-      if c.error,
-        do: {:error, %Error{reason: :bad_response, address: data.address, detail: c.error}},
-        else: {:ok, results(c.commands, Enum.reverse(c.answers))}
-
+  defp answered(%{current: %{waiting: [], error: nil} = c} = data) do
+    reply = {:ok, results(c.commands, Enum.reverse(c.answers))}
     serve(%{data | current: nil}, [{:reply, c.from, reply}])
+  end
+
+  defp answered(%{current: %{waiting: []} = c} = data) do
+    error = %Error{reason: :bad_response, address: data.address, detail: c.error}
+
+    try_again(data, error, fn data ->
+      serve(%{data | current: nil}, [{:reply, c.from, {:error, error}}])
+    end)
   end
 
   defp answered(data), do: {:keep_state, data}
 
-  defp connection_closed(data, reason) do
+  defp connection_closed(%{current: nil} = data, reason) do
     Logger.warning("HPIB device #{data.address}: connection lost (#{inspect(reason)})")
-
-    actions =
-      case data.current do
-        %{from: from} ->
-          [{:reply, from, {:error, %Error{reason: :closed, address: data.address}}}]
-
-        nil ->
-          []
-      end
-
-    lose_connection(%{data | current: nil}, reason, actions)
+    lose_connection(data, reason, [])
   end
+
+  defp connection_closed(%{current: %{from: from}} = data, reason) do
+    error = %Error{reason: :closed, address: data.address, detail: reason}
+
+    try_again(data, error, fn data ->
+      Logger.warning("HPIB device #{data.address}: connection lost (#{inspect(reason)})")
+      lose_connection(%{data | current: nil}, reason, [{:reply, from, {:error, error}}])
+    end)
+  end
+
+  # The request in progress failed with `error`: tried again on a new connection if it is
+  # repeatable and has tries and time left, else `give_up.(data)`.
+  defp try_again(%{current: c} = data, error, give_up) do
+    if c.tries < data.retries and repeatable?(c.commands) and now() < c.deadline do
+      telemetry(:retry, data, %{commands: c.commands, reason: error.reason, try: c.tries + 1})
+      if data.conn, do: Transport.close(data.conn)
+      request = {c.from, {:request, c.commands, c.deadline, c.timeout}, c.tries + 1}
+
+      {:next_state, :connecting,
+       %{
+         data
+         | current: nil,
+           conn: nil,
+           decoder: SCPI.new(),
+           retried: data.retried + 1,
+           queue: :queue.in_r(request, data.queue)
+       }}
+    else
+      give_up.(data)
+    end
+  end
+
+  defp repeatable?(commands), do: Enum.all?(commands, &SCPI.repeatable?/1)
 
   # Closes the connection; every request still queued fails :not_connected.
   defp lose_connection(data, reason, actions) do
@@ -273,7 +330,8 @@ defmodule Vws.HPIB.Device do
     error = not_connected(data)
 
     queued =
-      for {from, _request} <- :queue.to_list(data.queue), do: {:reply, from, {:error, error}}
+      for {from, _request, _tries} <- :queue.to_list(data.queue),
+          do: {:reply, from, {:error, error}}
 
     {:next_state, :disconnected, %{data | queue: :queue.new()}, actions ++ queued}
   end
@@ -287,6 +345,7 @@ defmodule Vws.HPIB.Device do
       endpoint: endpoint(data),
       connects: data.connects,
       timeouts: data.timeouts,
+      retried: data.retried,
       requests: data.requests,
       queued: :queue.len(data.queue),
       unsolicited: data.unsolicited,

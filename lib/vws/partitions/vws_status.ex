@@ -38,7 +38,9 @@ defmodule Vws.Partitions.VwsStatus do
 
   `actuate/3` is the seed's ACTUATOR/Hp_act: relay channels (or their signal names from the
   channel map) to open or close. VWS_STATUS sends them on the same HPIB device as its polls,
-  opens before it closes, and confirms the relays with `ROUT:CLOS?` before it answers `:ok`. A
+  opens before it closes, and confirms the relays with `ROUT:CLOS?` before it answers `:ok`; a
+  relay that does not read back as commanded is set and read again (at most twice, counted in
+  telemetry), as the command or its answer may have been damaged on the line. A
   reading taken after that has `requested_at` later than the moment `actuate/3` returned, which
   is what `await/4` waits for. `push_button/3` closes a relay briefly (the cycle-start button);
   `cycle_start_fun/2` and `tray_lock_fun/2` build the functions MONARCH and ROBOT are given.
@@ -57,6 +59,7 @@ defmodule Vws.Partitions.VwsStatus do
   | `[:vws, :vws_status, :poll]` | `started_at` (µs, monotonic), `lateness` (µs after its time), `duration` (µs until answered), `handling` (µs spent in VWS_STATUS) | `workstation, seq, result` |
   | `[:vws, :vws_status, :missed]` | `count` | `workstation, reason` (`:busy` or `:held_up`) |
   | `[:vws, :vws_status, :stale]` | `count` | `workstation, reason` |
+  | `[:vws, :vws_status, :actuation_retry]` | `count` | `workstation, reason, try` |
   """
   use GenServer
   require Logger
@@ -68,6 +71,8 @@ defmodule Vws.Partitions.VwsStatus do
   @daq_locations [1, 2, 3, 4, 5, 7, 11]
   @text_locations [1, 2, 3, 4, 5, 7]
   @sensors_location 11
+  # how many times an actuation whose relays are not as commanded is sent again
+  @actuation_retries 2
   # Locations written by another partition: {location, its device, the `devices:` key of its link}
   @other_locations [
     {6, "GE-2000", :ge2000},
@@ -400,9 +405,8 @@ defmodule Vws.Partitions.VwsStatus do
         {:reply, :ok, s}
 
       {:ok, commands, expected} ->
-        req = HPIB.send_request(s.link, commands, s.timeout_ms)
         s = update_in(s.stats.actuations, &(&1 + 1))
-        {:noreply, %{s | actuations: [{req, from, expected} | s.actuations]}}
+        {:noreply, send_actuation(s, {commands, expected, 1}, from)}
     end
   end
 
@@ -582,11 +586,16 @@ defmodule Vws.Partitions.VwsStatus do
 
   ## Actuations
 
+  defp send_actuation(s, {commands, _expected, _try} = act, from) do
+    req = HPIB.send_request(s.link, commands, s.timeout_ms)
+    %{s | actuations: [{req, from, act} | s.actuations]}
+  end
+
   defp actuation_reply(msg, s) do
-    Enum.reduce_while(s.actuations, :no_reply, fn {req, from, expected} = a, _ ->
+    Enum.reduce_while(s.actuations, :no_reply, fn {req, _from, {_, expected, _}} = a, _ ->
       case HPIB.check_response(msg, req) do
         :no_reply -> {:cont, :no_reply}
-        result -> {:halt, {a, from, actuation_result(result, expected)}}
+        result -> {:halt, {a, actuation_result(result, expected)}}
       end
     end)
     |> case do
@@ -594,7 +603,21 @@ defmodule Vws.Partitions.VwsStatus do
         Logger.debug("VWS_STATUS: unexpected message #{inspect(msg, limit: 10)}")
         s
 
-      {a, from, reply} ->
+      {{_req, from, {commands, expected, try}} = a, {:error, {:relays, why}}}
+      when try <= @actuation_retries ->
+        # a relay not as commanded: the command or the answer may have been damaged on the
+        # line; setting a relay again is harmless, so it is sent again and confirmed again
+        Vws.Telemetry.execute([:vws, :vws_status, :actuation_retry], %{count: 1}, %{
+          workstation: s.workstation,
+          reason: why,
+          try: try
+        })
+
+        s = %{s | actuations: List.delete(s.actuations, a)}
+        send_actuation(s, {commands, expected, try + 1}, from)
+
+      {{_req, from, _act} = a, reply} ->
+        reply = with {:error, {:relays, why}} <- reply, do: {:error, why}
         GenServer.reply(from, reply)
         %{s | actuations: List.delete(s.actuations, a)}
     end
@@ -607,7 +630,9 @@ defmodule Vws.Partitions.VwsStatus do
 
       {:error, [ch | _]} ->
         {_, want} = List.keyfind(expected, ch, 0)
-        {:error, "#{@device} RELAY #{ch} DID NOT #{if want, do: "CLOSE", else: "OPEN"}"}
+
+        {:error,
+         {:relays, "#{@device} RELAY #{ch} DID NOT #{if want, do: "CLOSE", else: "OPEN"}"}}
     end
   end
 

@@ -46,7 +46,7 @@ defmodule Vws.Sim.Floor do
   use Supervisor
 
   alias Vws.HydraulicController
-  alias Vws.Sim.{DAQ, GE2000, MHS, Plant, VAL2}
+  alias Vws.Sim.{DAQ, GE2000, Line, MHS, Plant, VAL2}
 
   @doc """
   Starts the floor of workstation `:workstation`. Options:
@@ -61,7 +61,13 @@ defmodule Vws.Sim.Floor do
     * `:ge2000` — `true` or `Vws.Sim.GE2000` options (default `cycle_time` 5 s / time scale,
       at least 1 s, so that MONARCH sees the machine run after it has let go of the button);
     * `:robot` — `true` or `Vws.Sim.VAL2` options (default `time_scale` 1 / time scale);
-    * `:mhs` — `true` or `Vws.Sim.MHS` options.
+    * `:mhs` — `true` or `Vws.Sim.MHS` options;
+    * `:lines` — faulty cables (`Vws.Sim.Line`) on every link the floor's equipment is reached
+      by: `[faults: [ber: 1.0e-4, …], seed: term]` puts one in front of DAQ #1, the hydraulic
+      controller, the GE-2000 and the VAL II (the CEC's links) and one between the hydraulic
+      controller and DAQ #2; `devices/1` then gives the lines' endpoints. Each line draws its
+      faults from `{seed, link}`. `line/2` finds one (for `Vws.Sim.Line.info/1`,
+      `set_faults/3`, `disconnect/1`). Default `false`: no lines.
   """
   @spec start_link(keyword) :: Supervisor.on_start()
   def start_link(opts) do
@@ -119,8 +125,25 @@ defmodule Vws.Sim.Floor do
   def mhs(ws), do: name(ws, :sim_mhs)
 
   @doc """
+  The faulty line of a link of the floor (`:daq1`, `:daq2`, `:hydraulic`, `:ge2000`, `:robot`),
+  a registered name; the floor has them when started with `:lines`. (`Vws.Demo` registers
+  the WC's line as `line(ws, :wc)`.)
+  """
+  @spec line(term, atom) :: GenServer.name()
+  def line(ws, link), do: name(ws, {:line, link})
+
+  @doc "The links of the floor that have a faulty line, with the line: `[{link, name}]`."
+  @spec lines(term) :: [{atom, GenServer.name()}]
+  def lines(ws) do
+    for link <- [:wc, :daq1, :daq2, :hydraulic, :ge2000, :robot],
+        running?(line(ws, link)),
+        do: {link, line(ws, link)}
+  end
+
+  @doc """
   The `devices:` option of a workstation reaching every device of the floor:
-  `[daq1: …, hydraulic: …, ge2000: …, robot: …]` (those started).
+  `[daq1: …, hydraulic: …, ge2000: …, robot: …]` (those started), through the floor's faulty
+  lines where it has them.
   """
   @spec devices(term) :: keyword(String.t())
   def devices(ws) do
@@ -130,8 +153,13 @@ defmodule Vws.Sim.Floor do
           {:ge2000, ge2000(ws), &GE2000.endpoint/1},
           {:robot, robot(ws), &VAL2.endpoint/1}
         ],
-        running?(sim),
-        do: {device, endpoint.(sim)}
+        running?(sim) do
+      line = line(ws, device)
+
+      if running?(line),
+        do: {device, to_string(Line.endpoint(line))},
+        else: {device, endpoint.(sim)}
+    end
   end
 
   defp running?({:sim_floor, _ws} = controller) do
@@ -153,7 +181,7 @@ defmodule Vws.Sim.Floor do
           | {:error, term}
   def shop_floor(opts) do
     ws = Keyword.fetch!(opts, :workstation)
-    floor = Keyword.take(opts, [:workstation, :time_scale, :seed])
+    floor = Keyword.take(opts, [:workstation, :time_scale, :seed, :lines])
 
     with {:ok, _pid} <-
            start_link(floor ++ [hydraulic: true, ge2000: true, robot: true, mhs: true]),
@@ -194,21 +222,52 @@ defmodule Vws.Sim.Floor do
       [name: plant, time_scale: scale, on_relay: on_relay] ++
         Keyword.take(opts, [:seed]) ++ Keyword.get(opts, :plant, [])
 
+    lines = Keyword.get(opts, :lines, false)
+
     daqs =
       for daq <- [:daq1, :daq2], Keyword.get(opts, daq) != false do
         endpoint = Keyword.get(opts, daq, "tcp://127.0.0.1:0")
         {DAQ, plant: plant, name: name(ws, :"sim_#{daq}"), daq: daq, endpoint: endpoint}
       end
 
+    # DAQ #2's line comes before the hydraulic controller, which dials through it; the CEC's
+    # lines come last, when every simulator listens (a restarted line restarts no equipment)
     children =
       [{Plant, plant_opts}] ++
         daqs ++
+        line_children(ws, lines, [{:daq2, daq2(ws), &DAQ.endpoint/1}]) ++
         hydraulic_child(ws, Keyword.get(opts, :hydraulic, false)) ++
         ge2000_child(ws, opts[:ge2000], scale) ++
         robot_child(ws, opts[:robot], scale) ++
-        mhs_child(ws, opts[:mhs])
+        mhs_child(ws, opts[:mhs]) ++
+        line_children(ws, lines, [
+          {:daq1, daq1(ws), &DAQ.endpoint/1},
+          {:hydraulic, hydraulic_controller(ws), &HydraulicController.endpoint/1},
+          {:ge2000, ge2000(ws), &GE2000.endpoint/1},
+          {:robot, robot(ws), &VAL2.endpoint/1}
+        ])
 
     Supervisor.init(children, strategy: :rest_for_one)
+  end
+
+  defp line_children(_ws, false, _links), do: []
+
+  defp line_children(ws, lines, links) do
+    for {link, sim, endpoint} <- links do
+      line_opts = [
+        name: line(ws, link),
+        seed: {Keyword.get(lines, :seed, 0), link},
+        faults: Keyword.get(lines, :faults, [])
+      ]
+
+      %{id: {Line, link}, start: {__MODULE__, :start_line, [line_opts, sim, endpoint]}}
+    end
+  end
+
+  @doc false
+  # A line to a simulator that is not on this floor is not started.
+  def start_line(opts, sim, endpoint) do
+    if running?(sim), do: Line.start_link([target: endpoint.(sim)] ++ opts), else: :ignore
   end
 
   defp hydraulic_child(_ws, false), do: []
@@ -223,14 +282,19 @@ defmodule Vws.Sim.Floor do
         # DAQ #2 listens before the controller starts: its endpoint is known by then
         start:
           {__MODULE__, :start_hydraulic_controller,
-           [[name: hydraulic_controller(ws)] ++ hopts, daq2(ws)]}
+           [[name: hydraulic_controller(ws)] ++ hopts, ws]}
       }
     ]
   end
 
   @doc false
-  def start_hydraulic_controller(opts, daq2) do
-    HydraulicController.start_link(Keyword.put_new(opts, :daq2, DAQ.endpoint(daq2)))
+  def start_hydraulic_controller(opts, ws) do
+    daq2 =
+      if running?(line(ws, :daq2)),
+        do: to_string(Line.endpoint(line(ws, :daq2))),
+        else: DAQ.endpoint(daq2(ws))
+
+    HydraulicController.start_link(Keyword.put_new(opts, :daq2, daq2))
   end
 
   defp ge2000_child(_ws, falsy, _scale) when falsy in [nil, false], do: []

@@ -15,6 +15,9 @@ defmodule Vws.WC.Runner do
     * `:expect_grace` — ms an `EXPECT` keeps asking before it fails (default 2 000), as device
       readings follow a command by a scan or two
     * `:poll_interval` — ms between status queries (default 100)
+    * `:transfer_retries` — how many times a program transfer (`DOWNLOAD`, `UPLOAD`) that broke
+      off on the link is made again, from the start and as a new command (default 2): the CEC
+      ends the broken one `ERROR` and keeps nothing of it, and a transfer moves nothing
 
       summary = Vws.WC.Runner.run(client, script)
       summary.result     #=> :completed | :stopped
@@ -33,7 +36,8 @@ defmodule Vws.WC.Runner do
     settings = %{
       timeout: Keyword.get(opts, :timeout, 60_000),
       grace: Keyword.get(opts, :expect_grace, 2_000),
-      poll: Keyword.get(opts, :poll_interval, 100)
+      poll: Keyword.get(opts, :poll_interval, 100),
+      transfer_retries: Keyword.get(opts, :transfer_retries, 2)
     }
 
     {outcome, done, uploads, _settings} =
@@ -86,6 +90,7 @@ defmodule Vws.WC.Runner do
       timeouts: delta.(:timeouts),
       program_lines_sent: delta.(:lines_sent),
       program_lines_received: delta.(:lines_received),
+      transfers_broken: delta.(:transfers_broken),
       uploads: Enum.reverse(uploads),
       elapsed_ms: now() - started
     }
@@ -109,20 +114,36 @@ defmodule Vws.WC.Runner do
     do: until_match(client, name, matcher, set.timeout, set, :wait)
 
   defp run_step({:download, _path, lines}, client, set) do
-    with {:ok, command} <- Client.download_program(client, lines),
+    with {:ok, command} <-
+           transfer(client, set, fn -> Client.download_program(client, lines) end),
          :ok <- await_all(client, [command], set) do
       {:ok, set}
     end
   end
 
   defp run_step(:upload, client, set) do
-    with {:ok, command, lines} <- Client.upload_program(client),
+    with {:ok, command, lines} <- transfer(client, set, fn -> Client.upload_program(client) end),
          :ok <- await_all(client, [command], set) do
       {:uploaded, lines}
     end
   end
 
   defp run_step({:timeout, ms}, _client, set), do: {:ok, %{set | timeout: ms}}
+
+  # A program transfer that broke off on the link (the CEC ended its command ERROR and kept
+  # nothing of it) is made again from the start, as a new command, at most `transfer_retries`
+  # times. A transfer stores or sends a program and moves nothing, so this re-runs nothing
+  # physical.
+  defp transfer(client, set, fun, try \\ 1) do
+    case fun.() do
+      {:error, %ClientError{reason: :transfer_failed} = error} when try <= set.transfer_retries ->
+        :ok = Client.note(client, "#{Exception.message(error)}: the transfer is made again")
+        transfer(client, set, fun, try + 1)
+
+      result ->
+        result
+    end
+  end
 
   defp await_all(client, numbered, set) do
     Enum.reduce_while(numbered, :ok, fn {letter, number}, :ok ->

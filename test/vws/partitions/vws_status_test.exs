@@ -201,6 +201,77 @@ defmodule Vws.Partitions.VwsStatusTest do
     end
   end
 
+  describe "a relay that does not read back as commanded (a command or answer damaged)" do
+    # the test plays DAQ #1 on a loopback endpoint; VWS_STATUS does not poll in the meantime
+    defp fake_daq1 do
+      name = "fake-daq1-#{System.unique_integer([:positive])}"
+      {:ok, listener} = Vws.Transport.listen("loopback:" <> name)
+      handler = "actuation-retry-#{name}"
+      test_pid = self()
+
+      :ok =
+        Vws.Telemetry.attach(
+          handler,
+          [:vws, :vws_status, :actuation_retry],
+          fn _, _, md, _ -> send(test_pid, {:actuation_retry, md.reason, md.try}) end,
+          nil
+        )
+
+      on_exit(fn -> Vws.Telemetry.detach(handler) end)
+
+      %{ws: ws} =
+        Workstation.start(
+          devices: [
+            daq1: [endpoint: "loopback:" <> name, vws_status: [poll_ms: 600_000]]
+          ]
+        )
+
+      {:ok, conn} = Vws.Transport.accept(listener, 2_000)
+      :ok = Vws.Transport.activate(conn)
+      {ws, conn}
+    end
+
+    defp expect_lines(conn, expected, acc \\ "") do
+      if acc == Enum.map_join(expected, &(&1 <> "\n")) do
+        :ok
+      else
+        receive do
+          msg ->
+            {:data, bytes} = Vws.Transport.handle_message(conn, msg)
+            :ok = Vws.Transport.activate(conn)
+            expect_lines(conn, expected, acc <> bytes)
+        after
+          2_000 -> flunk("DAQ #1 received #{inspect(acc)}")
+        end
+      end
+    end
+
+    test "it is set and read again, and the retry counted" do
+      {ws, conn} = fake_daq1()
+      task = Task.async(fn -> VwsStatus.actuate(ws, vacuum_motor: :close) end)
+      expect_lines(conn, ["ROUT:CLOS (@207)", "ROUT:CLOS? (@207)"])
+      :ok = Vws.Transport.send(conn, "0\n")
+      assert_receive {:actuation_retry, "DAQ #1 RELAY 207 DID NOT CLOSE", 1}
+      expect_lines(conn, ["ROUT:CLOS (@207)", "ROUT:CLOS? (@207)"])
+      :ok = Vws.Transport.send(conn, "1\n")
+      assert Task.await(task) == :ok
+    end
+
+    test "after two tries again the relay's state is the error" do
+      {ws, conn} = fake_daq1()
+      task = Task.async(fn -> VwsStatus.actuate(ws, vacuum_motor: :open) end)
+
+      for try <- 1..3 do
+        expect_lines(conn, ["ROUT:OPEN (@207)", "ROUT:CLOS? (@207)"])
+        :ok = Vws.Transport.send(conn, "1\n")
+        if try < 3, do: assert_receive({:actuation_retry, _, ^try})
+      end
+
+      assert Task.await(task) == {:error, "DAQ #1 RELAY 207 DID NOT OPEN"}
+      refute_received {:actuation_retry, _, 3}
+    end
+  end
+
   describe "wiring" do
     test "devices: [daq1: …] links the partitions, gives MONARCH and ROBOT their functions" do
       %{ws: ws} = DAQFloor.start(partitions: [vacuum: [options: [timeout_ms: 1]]])

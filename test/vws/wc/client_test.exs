@@ -318,6 +318,26 @@ defmodule Vws.WC.ClientTest do
       assert Exception.message(e) == "MONARCH command 0001 ended ERROR NO UPLOADED PROGRAM"
     end
 
+    test "a damaged answer to a program line breaks the download off at once", %{
+      ws: ws,
+      client: client,
+      relay: relay
+    } do
+      # "A" or "E"? Lines carry no number: neither sending it again nor going on is safe
+      :ok = LineRelay.arm(relay, :to_wc, :corrupt, &(&1 == "A"))
+
+      assert {:error, %ClientError{reason: :transfer_failed, data: %{line: 1, why: why}}} =
+               Client.download_program(client, @program)
+
+      assert why == "the answer to it arrived damaged"
+      assert %{transfers_broken: 1, resends: 0} = Client.info(client).counters
+
+      assert {:error, %ClientError{reason: :command_failed}} =
+               Client.await_command(client, "M", 1, 5_000)
+
+      assert Mailbox.nc_file(ws) == []
+    end
+
     test "a download that breaks off drops the link, so the CEC ends the command ERROR", %{
       client: client,
       relay: relay

@@ -94,6 +94,37 @@ defmodule Vws.WC.RunnerTest do
     assert Mailbox.nc_file(ws) == ["%", "O000042", "N10 G00 X0", "%"]
   end
 
+  @tag :tmp_dir
+  test "a program transfer that broke off on the link is made again as a new command",
+       %{tmp_dir: dir} do
+    %{ws: ws, wc: wc} = Workstation.start()
+    name = "runner-relay-#{System.unique_integer([:positive])}"
+    {:ok, relay} = Vws.Test.LineRelay.start_link(wc, name)
+    {:ok, client} = Client.connect("loopback:" <> name)
+    File.write!(Path.join(dir, "p.nc"), "%\nO000042\nN10 G00 X0\n%\n")
+    # the A to the second program line arrives damaged, once
+    :ok = Vws.Test.LineRelay.arm(relay, :to_wc, :corrupt, &(&1 == "A"), 1)
+    summary = Runner.run(client, script!("DOWNLOAD p.nc\n", base_dir: dir), poll_interval: 5)
+
+    assert %Summary{result: :completed, transfers_broken: 1} = summary
+    assert Mailbox.nc_file(ws) == ["%", "O000042", "N10 G00 X0", "%"]
+    # the broken one ended ERROR, the new one (number 2) DONE
+    assert Mailbox.command_status(ws, :monarch) == {2, :done}
+    assert Enum.any?(Summary.format(summary), &(&1 =~ "1 transfers broke off"))
+
+    # with no retries allowed, the script stops at the broken transfer
+    :ok = Vws.Test.LineRelay.arm(relay, :to_wc, :corrupt, &(&1 == "A"), 1)
+
+    summary =
+      Runner.run(client, script!("DOWNLOAD p.nc\n", base_dir: dir),
+        poll_interval: 5,
+        transfer_retries: 0
+      )
+
+    assert %Summary{result: :stopped, transfers_broken: 1} = summary
+    assert summary.stopped.reason =~ "broke off"
+  end
+
   test "a device that did not do it stops the script at its EXPECT" do
     %{wc: wc} = Workstation.start(partitions: ObedientPartition.partitions())
     {:ok, client} = Client.connect(wc)

@@ -48,7 +48,8 @@ defmodule Vws.WC.Client.Connection do
         lines_received: 0,
         naks_sent: 0,
         stray: 0,
-        reconnects: 0
+        reconnects: 0,
+        transfers_broken: 0
       },
       subscribers: %{},
       log: :queue.new(),
@@ -142,7 +143,10 @@ defmodule Vws.WC.Client.Connection do
         end
 
       _other ->
-        {:keep_state, stray(data, line)}
+        # neither A nor E: a damaged answer. It may have been either, and lines carry no
+        # number, so the line can be neither sent again nor taken as stored: give up at once
+        data = stray(data, line)
+        transfer_failed(data, :download, n, "the answer to it arrived damaged")
     end
   end
 
@@ -412,7 +416,7 @@ defmodule Vws.WC.Client.Connection do
 
     data =
       emit(
-        %{data | req: nil},
+        bump(%{data | req: nil}, :transfers_broken),
         :note,
         :link,
         nil,

@@ -12,6 +12,8 @@ defmodule Vws.WC.Runner.Summary do
     * `resends`, `naks`, `timeouts` — strings or lines sent again, `E` answers received, replies
       that did not come in time
     * `program_lines_sent`, `program_lines_received`, `uploads` (the programs received)
+    * `transfers_broken` — program transfers that broke off on the link (each made again while
+      `:transfer_retries` allowed)
     * `elapsed_ms`
   """
 
@@ -29,6 +31,7 @@ defmodule Vws.WC.Runner.Summary do
             timeouts: 0,
             program_lines_sent: 0,
             program_lines_received: 0,
+            transfers_broken: 0,
             uploads: [],
             elapsed_ms: 0
 
@@ -54,6 +57,7 @@ defmodule Vws.WC.Runner.Summary do
           timeouts: non_neg_integer,
           program_lines_sent: non_neg_integer,
           program_lines_received: non_neg_integer,
+          transfers_broken: non_neg_integer,
           uploads: [[String.t()]],
           elapsed_ms: non_neg_integer
         }
@@ -79,7 +83,11 @@ defmodule Vws.WC.Runner.Summary do
         "WC commands:     #{s.commands}",
         "strings sent:    #{s.strings} (#{s.status_queries} #{if s.status_queries == 1, do: "status query", else: "status queries"})",
         "resends:         #{s.resends} (E received: #{s.naks}, no reply in time: #{s.timeouts})",
-        "program lines:   #{s.program_lines_sent} sent, #{s.program_lines_received} received",
+        "program lines:   #{s.program_lines_sent} sent, #{s.program_lines_received} received" <>
+          if(s.transfers_broken > 0,
+            do: " (#{s.transfers_broken} transfers broke off and were made again)",
+            else: ""
+          ),
         "elapsed:         #{:erlang.float_to_binary(s.elapsed_ms / 1000, decimals: 2)} s"
       ]
   end
