@@ -1,0 +1,240 @@
+defmodule Vws.Sim.Soak do
+  @moduledoc """
+  The machining cycle run over and over on a simulated floor whose every link — the WC's, the
+  VAL II's (DDCMP), the GE-2000's (DNC), DAQ #1's and the hydraulic controller's (HPIB), and the
+  hydraulic controller's own to DAQ #2 — goes through a faulty line (`Vws.Sim.Line`, seeded), and
+  each cycle audited:
+
+    * **completed** — the WC's script ran to its end (`Vws.WC.Runner`);
+    * **retries** — every try again, from telemetry, by kind: WC strings and program lines sent
+      again, program transfers made again, strings SUN_COMM recognised as retransmissions,
+      DDCMP retransmissions, DNC retries (NAK, ENQ, …), HPIB requests tried again, relays set
+      again;
+    * **commands** — the commands the WC numbered under the faults (status queries apart);
+    * **lost** — commands the WC numbered that never ended (no `DONE`/`ERROR` in the CEC);
+    * **duplicated** — commands that started (or ended) more than once in the CEC, and equipment
+      that did more than a clean cycle does: VAL II commands received and GE-2000 machining
+      cycles per cycle, against the first cycle run without faults.
+
+  `bench/soak.exs` prints the figures of a long run; the reliability tests run a short one.
+
+      report = Vws.Sim.Soak.run(cycles: 3, ber: 1.0e-4, seed: 1, time_scale: 20)
+      report.completed  #=> 3
+      report.lost       #=> 0
+  """
+
+  alias Vws.Sim.{Floor, GE2000, Line, VAL2}
+  alias Vws.WC.{Client, Runner, Script}
+
+  @links [:wc, :robot, :ge2000, :daq1, :hydraulic, :daq2]
+  @retry_events [
+    {[:vws, :sun_comm, :retransmission], :sun_comm_retransmissions},
+    {[:vws, :ddcmp, :retransmission], :ddcmp_retransmissions},
+    {[:vws, :dnc, :retry], :dnc_retries},
+    {[:vws, :hpib, :retry], :hpib_retries},
+    {[:vws, :vws_status, :actuation_retry], :relays_set_again}
+  ]
+  @command_events [
+    {[:vws, :partition, :command, :start], :started},
+    {[:vws, :partition, :command_finished], :finished}
+  ]
+
+  @type report :: %{
+          workstation: String.t(),
+          cycles: non_neg_integer,
+          completed: non_neg_integer,
+          commands: non_neg_integer,
+          stopped: [{pos_integer, String.t()}],
+          retries: %{atom => non_neg_integer},
+          lost: non_neg_integer,
+          duplicated: non_neg_integer,
+          bits_flipped: %{atom => non_neg_integer},
+          elapsed_ms: non_neg_integer
+        }
+
+  @doc """
+  Starts the floor and the workstation (linked to the caller), runs one clean cycle as the
+  reference, then `:cycles` cycles under the faults, and returns the report. Options: `:cycles`
+  (default 100), `:ber` (1.0e-4), `:faults` (more `Vws.Sim.Line` faults for every link),
+  `:links` (the links that get the faults, default all: `#{inspect(@links)}`), `:seed` (0),
+  `:time_scale` (20), `:id`, `:script` (default the shipped machining cycle),
+  `:timeout` (ms a command may take, 60 000), `:on_cycle` — called with `(n, summary)` after each.
+  The floor and the workstation are stopped at the end.
+  """
+  @spec run(keyword) :: report
+  def run(opts \\ []) do
+    id = Keyword.get(opts, :id, "SOAK-#{System.unique_integer([:positive])}")
+    cycles = Keyword.get(opts, :cycles, 100)
+    faults = [ber: Keyword.get(opts, :ber, 1.0e-4)] ++ Keyword.get(opts, :faults, [])
+    {:ok, script} = Script.parse_file(Keyword.get_lazy(opts, :script, &Vws.Demo.default_script/0))
+    runner_opts = [timeout: Keyword.get(opts, :timeout, 60_000)]
+    on_cycle = Keyword.get(opts, :on_cycle, fn _n, _summary -> :ok end)
+    links = Keyword.get(opts, :links, @links)
+
+    counts = :ets.new(:soak_counts, [:public, :set])
+    handler = {__MODULE__, id}
+    :ok = attach(handler, id, counts)
+
+    {:ok, floor} =
+      Vws.Demo.start_shop_floor(
+        id: id,
+        time_scale: Keyword.get(opts, :time_scale, 20),
+        lines: [faults: [], seed: Keyword.get(opts, :seed, 0)]
+      )
+
+    try do
+      {:ok, client} = Client.connect(floor.wc)
+      clean = run_cycle(client, script, runner_opts, id)
+
+      if clean.summary.result != :completed,
+        do: raise("the clean reference cycle stopped: #{clean.summary.stopped.reason}")
+
+      # the numbers the WC gives out from here on are the audited ones
+      clean = Map.put(clean, :next_numbers, Client.info(client).next_numbers)
+      :ets.delete_all_objects(counts)
+
+      for {link, line} <- Floor.lines(id),
+          link in links,
+          do: :ok = Line.set_faults(line, :both, faults)
+
+      t0 = System.monotonic_time(:millisecond)
+
+      results =
+        for n <- 1..cycles//1 do
+          result = run_cycle(client, script, runner_opts, id)
+          on_cycle.(n, result.summary)
+          result
+        end
+
+      report(id, client, clean, results, counts, System.monotonic_time(:millisecond) - t0)
+    after
+      Vws.Telemetry.detach(handler)
+      Vws.Workstation.stop(id)
+      stop_floor(id)
+    end
+  end
+
+  # the floor's supervisor (its lines are its children), then the WC's line of Vws.Demo
+  defp stop_floor(id) do
+    for name <- [{:via, Registry, {Vws.Registry, {id, :sim_floor}}}, Floor.line(id, :wc)],
+        pid = GenServer.whereis(name),
+        do: GenServer.stop(pid)
+  end
+
+  defp run_cycle(client, script, runner_opts, id) do
+    robot0 = length(VAL2.info(Floor.robot(id)).commands)
+    machined0 = GE2000.state(Floor.ge2000(id)).cycles
+    summary = Runner.run(client, script, runner_opts)
+
+    %{
+      summary: summary,
+      robot_commands: length(VAL2.info(Floor.robot(id)).commands) - robot0,
+      machined: GE2000.state(Floor.ge2000(id)).cycles - machined0
+    }
+  end
+
+  defp report(id, client, clean, results, counts, elapsed) do
+    completed = Enum.filter(results, &(&1.summary.result == :completed))
+    rows = :ets.tab2list(counts)
+    count = fn key -> Enum.sum(for {{^key, _, _}, n} <- rows, do: n) end
+
+    # every command number the WC gave out under the faults (status queries apart) must have
+    # ended exactly once
+    used =
+      for {letter, next} <- Client.info(client).next_numbers,
+          letter != "S",
+          number <- Map.get(clean.next_numbers, letter, 1)..(next - 1)//1,
+          do: {partition(letter), number}
+
+    finished = for {{:finished, p, n}, c} <- rows, into: %{}, do: {{p, n}, c}
+    started = for {{:started, p, n}, c} <- rows, into: %{}, do: {{p, n}, c}
+    lost = Enum.count(used, &(Map.get(finished, &1, 0) == 0))
+
+    twice =
+      Enum.count(finished, fn {_, c} -> c > 1 end) + Enum.count(started, fn {_, c} -> c > 1 end)
+
+    # equipment that did more than a clean cycle does, in a completed cycle
+    extra =
+      Enum.sum(
+        for r <- completed,
+            do:
+              max(r.robot_commands - clean.robot_commands, 0) +
+                max(r.machined - clean.machined, 0)
+      )
+
+    summaries = Enum.map(results, & &1.summary)
+
+    stopped =
+      for {r, n} <- Enum.with_index(results, 1),
+          r.summary.result != :completed,
+          do: {n, r.summary.stopped.reason}
+
+    %{
+      workstation: id,
+      cycles: length(results),
+      completed: length(completed),
+      commands: length(used),
+      stopped: stopped,
+      retries:
+        Map.merge(
+          Map.new(@retry_events, fn {_event, key} -> {key, count.(key)} end),
+          %{
+            wc_resends: Enum.sum(Enum.map(summaries, & &1.resends)),
+            transfers_made_again: Enum.sum(Enum.map(summaries, & &1.transfers_broken))
+          }
+        ),
+      lost: lost,
+      duplicated: twice + extra,
+      bits_flipped:
+        Map.new(Floor.lines(id), fn {link, line} ->
+          info = Line.info(line)
+          {link, info.to_target.bits_flipped + info.to_client.bits_flipped}
+        end),
+      elapsed_ms: elapsed
+    }
+  end
+
+  defp partition("R"), do: :robot
+  defp partition("M"), do: :monarch
+  defp partition("G"), do: :gripper
+  defp partition("F"), do: :fixture
+  defp partition("V"), do: :vacuum
+  defp partition("H"), do: :hydraulic
+
+  defp attach(handler, id, counts) do
+    events = Enum.map(@retry_events ++ @command_events, &elem(&1, 0))
+    keys = Map.new(@retry_events ++ @command_events)
+
+    Vws.Telemetry.attach_many(
+      handler,
+      events,
+      fn event, measurements, metadata, _ ->
+        if ours?(metadata, id) do
+          case keys[event] do
+            key when key in [:started, :finished] ->
+              :ets.update_counter(
+                counts,
+                {key, metadata.partition, metadata.command},
+                1,
+                {nil, 0}
+              )
+
+            key ->
+              n = Map.get(measurements, :count, 1)
+              :ets.update_counter(counts, {key, nil, nil}, n, {nil, 0})
+          end
+        end
+      end,
+      nil
+    )
+  end
+
+  # The CEC's side of the floor: the workstation's own events, its HPIB bus, and the hydraulic
+  # controller's bus to DAQ #2.
+  defp ours?(%{workstation: ws}, id), do: ws == id
+
+  defp ours?(%{bus: bus}, id),
+    do: bus == id or bus == {:hydraulic_controller, Floor.hydraulic_controller(id)}
+
+  defp ours?(_metadata, _id), do: false
+end
