@@ -56,6 +56,11 @@ defmodule Vws.Journal do
   @doc """
   Appends `record` to the workstation's journal and syncs it to disk. Does nothing when the
   workstation has no journal. Returns `{:error, reason}` when the record could not be made durable.
+
+  A journal whose process has ended records nothing (`{:error, :journal_down}`): the workstation
+  is going down, and what its parts still do on the way — a command ended `ERROR VAL II LINK
+  DOWN` because the VAL II's link is being stopped with them — is not what the equipment did.
+  The command stays in flight in the journal and answers `ERROR INTERRUPTED BY RESTART`.
   """
   @spec record(:ets.tid(), tuple) :: :ok | {:error, term}
   def record(table, record) do
@@ -63,21 +68,27 @@ defmodule Vws.Journal do
       [] ->
         :ok
 
-      [{:journal, log, every}] ->
-        # A snapshot goes before the record: the table does not show the record's change yet.
-        if :ets.update_counter(table, :journal_records, 1, {:journal_records, 0}) >= every do
-          :ets.insert(table, {:journal_records, 0})
-          :disk_log.log(log, {:snapshot, state_of(table)})
-        end
+      [{:journal, log, every, journal}] ->
+        # The journal is linked to the workstation's supervisor and does not trap exits: it is
+        # gone before anything its supervisor's death sets off further down reaches this point.
+        if Process.alive?(journal) do
+          # A snapshot goes before the record: the table does not show the record's change yet.
+          if :ets.update_counter(table, :journal_records, 1, {:journal_records, 0}) >= every do
+            :ets.insert(table, {:journal_records, 0})
+            :disk_log.log(log, {:snapshot, state_of(table)})
+          end
 
-        with :ok <- :disk_log.log(log, record), do: :disk_log.sync(log)
+          with :ok <- :disk_log.log(log, record), do: :disk_log.sync(log)
+        else
+          {:error, :journal_down}
+        end
     end
   end
 
   @doc "Every record in the journal, oldest first (for inspection and tests)."
   @spec records(term) :: [tuple]
   def records(ws) do
-    [{:journal, log, _}] = :ets.lookup(Mailbox.table(ws), :journal)
+    [{:journal, log, _, _}] = :ets.lookup(Mailbox.table(ws), :journal)
     read_all(log)
   end
 
@@ -119,7 +130,7 @@ defmodule Vws.Journal do
     :ok = :disk_log.truncate(log)
     :ok = :disk_log.log(log, {:snapshot, state_of(table)})
     :ok = :disk_log.sync(log)
-    :ets.insert(table, {:journal, log, Keyword.get(opts, :snapshot_every, 500)})
+    :ets.insert(table, {:journal, log, Keyword.get(opts, :snapshot_every, 500), self()})
     {:ok, %{workstation: ws, log: log}}
   end
 
