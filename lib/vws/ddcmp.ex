@@ -220,6 +220,7 @@ defmodule Vws.DDCMP do
 
   With `hold: false` a message is refused with `{:error, :not_running}` unless the link is RUNNING:
   a command meant for this session must never be delivered in the next one (after a restart).
+  A link process that has ended refuses it the same way (with `hold: false` or `session:`).
 
   With `session: n` (the owner's count of `:up` messages, see "Owner messages") a message is
   refused with `{:error, :not_running}` unless the link is RUNNING **in session `n`**: what the
@@ -233,13 +234,22 @@ defmodule Vws.DDCMP do
 
     case Keyword.fetch(opts, :session) do
       {:ok, session} when is_integer(session) ->
-        :gen_statem.call(link, {:send_in, session, bytes})
+        refusable_call(link, {:send_in, session, bytes})
 
       :error ->
         if Keyword.get(opts, :hold, true),
           do: :gen_statem.call(link, {:send, bytes}),
-          else: :gen_statem.call(link, {:send_now, bytes})
+          else: refusable_call(link, {:send_now, bytes})
     end
+  end
+
+  # A link that has ended is RUNNING in no session: the refusal the caller is ready for, not an
+  # exit. Its owner traps exits, and the link's end may still wait in the owner's mailbox behind
+  # the message it is answering (a peer whose connection just died).
+  defp refusable_call(link, request) do
+    :gen_statem.call(link, request)
+  catch
+    :exit, {_reason, {:gen_statem, :call, _}} -> {:error, :not_running}
   end
 
   @doc """

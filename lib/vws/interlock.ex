@@ -64,10 +64,15 @@ defmodule Vws.Interlock do
   ## Durability and visibility
 
   The leases live in the mailbox table, owned by `Vws.Mailbox.Owner`: a partition that crashes
-  and restarts finds its leases where it left them (the arm is still in the volume). A request
+  and restarts finds its leases where it left them (the arm is still in the volume). With a
+  journal (`Vws.Journal`) every lease and every change of its reasons is written to disk before
+  it counts, and a workstation — or node — that restarts holds what it held: the arm that was in
+  the vise when the node died is still there, and no cycle may start. A request
   left posted by a process that died in the middle of `acquire/5` is recognised as dead and
   cleared by the next requester. `held/1` lists the leases for iex and the dashboard.
   """
+
+  require Logger
 
   alias Vws.Mailbox
   alias Vws.DAQ.DeviceStatus
@@ -129,8 +134,11 @@ defmodule Vws.Interlock do
       case :ets.lookup(c.table, key) do
         [{^key, %{state: :held} = lease}] ->
           # ours already: only the conditions of this use are read
-          with :ok <- check(c) do
-            :ets.insert(c.table, {key, %{lease | reasons: add(lease.reasons, c.as)}})
+          reasons = add(lease.reasons, c.as)
+
+          with :ok <- check(c),
+               :ok <- if(reasons == lease.reasons, do: :ok, else: journal(c, reasons)) do
+            :ets.insert(c.table, {key, %{lease | reasons: reasons}})
             :ok
           end
 
@@ -150,8 +158,11 @@ defmodule Vws.Interlock do
             # … then M2, and the conditions, with F1 still posted
             outcome =
               case in_the_way(c.table, c.volume, c.holder) do
-                [] -> check(c)
-                [other | _] -> {:error, "HELD BY " <> name(other)}
+                [] ->
+                  with :ok <- check(c), do: journal(c, request.reasons)
+
+                [other | _] ->
+                  {:error, "HELD BY " <> name(other)}
               end
 
             if outcome == :ok do
@@ -252,7 +263,11 @@ defmodule Vws.Interlock do
 
     case :ets.lookup(table, key) do
       [{^key, %{state: :held} = lease}] ->
-        case if(reason == :all, do: [], else: List.delete(lease.reasons, reason)) do
+        reasons = if(reason == :all, do: [], else: List.delete(lease.reasons, reason))
+        # not durable: the restarted workstation holds the lease still, which is the safe side
+        _ = journal(%{table: table, volume: volume, holder: holder}, reasons)
+
+        case reasons do
           [] -> :ets.delete_object(table, {key, lease})
           reasons -> :ets.insert(table, {key, %{lease | reasons: reasons}})
         end
@@ -391,6 +406,33 @@ defmodule Vws.Interlock do
   def name(atom), do: atom |> to_string() |> String.upcase()
 
   defp key(volume, holder), do: {:interlock, volume, holder}
+
+  # Durable before it counts (`Vws.Journal`, when the workstation has one): a lease written
+  # with its reasons, `[]` when it ends. A lease that cannot be made durable is not granted.
+  defp journal(%{table: table, volume: volume, holder: holder}, reasons) do
+    case Vws.Journal.record(table, {:lease, volume, holder, reasons}) do
+      :ok ->
+        :ok
+
+      {:error, reason} ->
+        Logger.error("journal write failed (#{inspect(reason)}): lease #{volume} #{holder}")
+        {:error, "NOT DURABLE (JOURNAL WRITE FAILED)"}
+    end
+  end
+
+  @doc false
+  # A lease the journal restored after a restart (`Vws.Journal`): held, for `reasons`, by no
+  # process of this life of the workstation.
+  def restored_lease(volume, holder, reasons) do
+    {key(volume, holder),
+     %{
+       state: :held,
+       pid: nil,
+       since: now(),
+       order: System.unique_integer([:monotonic]),
+       reasons: reasons
+     }}
+  end
 
   defp add(reasons, reason), do: if(reason in reasons, do: reasons, else: reasons ++ [reason])
 

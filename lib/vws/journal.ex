@@ -13,15 +13,19 @@ defmodule Vws.Journal do
     * `{:status, partition, number, status}` — a command status written outright (dispatch, a rule)
     * `{:finish, partition, number, status}` — a command ended: applied only while the status
       location still shows `number`, exactly as `Vws.Mailbox.finish/4` does
+    * `{:lease, volume, holder, reasons}` — a work-volume lease (`Vws.Interlock`) taken or
+      changed, `reasons` `[]` when it ended: written before the lease counts
     * `{:snapshot, state}` — the whole restorable state, written when the journal opens and every
       `:snapshot_every` records, so the newest state survives the wrap of old files
 
   ## Restart
 
-  When the journal opens on a fresh mailbox table it replays the log: command statuses, CMD_IN and
-  the last sequence number come back as they were. A command that was `EXECUTING` — or acknowledged
-  but not yet dispatched — when the workstation went down answers `ERROR INTERRUPTED BY RESTART`
-  and is never run again by itself: a robot move is physical.
+  When the journal opens on a fresh mailbox table it replays the log: command statuses, CMD_IN,
+  the last sequence number and the work-volume leases come back as they were. A command that was
+  `EXECUTING` — or acknowledged but not yet dispatched — when the workstation went down answers
+  `ERROR INTERRUPTED BY RESTART` and is never run again by itself: a robot move is physical. The
+  leases are kept because what they stand for outlived the workstation: the arm that was moving
+  into the vise is in the table's volume still, and no cycle may start until it has left.
 
   The log is a wrap log (`:max_bytes` × `:max_files`, bounded) opened with `repair: true`; it is
   read record by record, so a torn last record (power lost in the middle of a write) is cut off and
@@ -52,6 +56,11 @@ defmodule Vws.Journal do
   @doc """
   Appends `record` to the workstation's journal and syncs it to disk. Does nothing when the
   workstation has no journal. Returns `{:error, reason}` when the record could not be made durable.
+
+  A journal whose process has ended records nothing (`{:error, :journal_down}`): the workstation
+  is going down, and what its parts still do on the way — a command ended `ERROR VAL II LINK
+  DOWN` because the VAL II's link is being stopped with them — is not what the equipment did.
+  The command stays in flight in the journal and answers `ERROR INTERRUPTED BY RESTART`.
   """
   @spec record(:ets.tid(), tuple) :: :ok | {:error, term}
   def record(table, record) do
@@ -59,21 +68,27 @@ defmodule Vws.Journal do
       [] ->
         :ok
 
-      [{:journal, log, every}] ->
-        # A snapshot goes before the record: the table does not show the record's change yet.
-        if :ets.update_counter(table, :journal_records, 1, {:journal_records, 0}) >= every do
-          :ets.insert(table, {:journal_records, 0})
-          :disk_log.log(log, {:snapshot, state_of(table)})
-        end
+      [{:journal, log, every, journal}] ->
+        # The journal is linked to the workstation's supervisor and does not trap exits: it is
+        # gone before anything its supervisor's death sets off further down reaches this point.
+        if Process.alive?(journal) do
+          # A snapshot goes before the record: the table does not show the record's change yet.
+          if :ets.update_counter(table, :journal_records, 1, {:journal_records, 0}) >= every do
+            :ets.insert(table, {:journal_records, 0})
+            :disk_log.log(log, {:snapshot, state_of(table)})
+          end
 
-        with :ok <- :disk_log.log(log, record), do: :disk_log.sync(log)
+          with :ok <- :disk_log.log(log, record), do: :disk_log.sync(log)
+        else
+          {:error, :journal_down}
+        end
     end
   end
 
   @doc "Every record in the journal, oldest first (for inspection and tests)."
   @spec records(term) :: [tuple]
   def records(ws) do
-    [{:journal, log, _}] = :ets.lookup(Mailbox.table(ws), :journal)
+    [{:journal, log, _, _}] = :ets.lookup(Mailbox.table(ws), :journal)
     read_all(log)
   end
 
@@ -115,7 +130,7 @@ defmodule Vws.Journal do
     :ok = :disk_log.truncate(log)
     :ok = :disk_log.log(log, {:snapshot, state_of(table)})
     :ok = :disk_log.sync(log)
-    :ets.insert(table, {:journal, log, Keyword.get(opts, :snapshot_every, 500)})
+    :ets.insert(table, {:journal, log, Keyword.get(opts, :snapshot_every, 500), self()})
     {:ok, %{workstation: ws, log: log}}
   end
 
@@ -162,7 +177,17 @@ defmodule Vws.Journal do
       end)
 
     [{_, seq, line}] = :ets.lookup(table, :last_string)
-    %{partitions: partitions, last_string: {seq, line}}
+
+    # the leases, the earliest first: `[{volume, holder, reasons}]`
+    leases =
+      for {{:interlock, volume, holder}, %{state: :held} = lease} <-
+            :ets.match_object(table, {{:interlock, :_, :_}, :_}) do
+        {lease.order, {volume, holder, lease.reasons}}
+      end
+      |> Enum.sort()
+      |> Enum.map(&elem(&1, 1))
+
+    %{partitions: partitions, last_string: {seq, line}, leases: leases}
   end
 
   defp restore(_table, []), do: :ok
@@ -179,6 +204,9 @@ defmodule Vws.Journal do
     {seq, line} = state.last_string
     :ets.insert(table, {:last_string, seq, line})
 
+    for {volume, holder, reasons} <- state.leases,
+        do: :ets.insert(table, Vws.Interlock.restored_lease(volume, holder, reasons))
+
     interrupted = for {p, %{status: :executing, number: n}} <- state.partitions, do: {p, n}
 
     if interrupted != [] do
@@ -187,10 +215,37 @@ defmodule Vws.Journal do
       )
     end
 
+    if state.leases != [] do
+      Logger.warning(
+        "restored from the journal; leases still held: " <>
+          Enum.map_join(state.leases, ", ", fn {v, h, r} -> "#{v} #{h} #{inspect(r)}" end)
+      )
+    end
+
     :ok
   end
 
-  defp apply_record({:snapshot, snapshot}, _state), do: snapshot
+  # a snapshot written before leases were journaled has none
+  defp apply_record({:snapshot, snapshot}, _state), do: Map.put_new(snapshot, :leases, [])
+
+  # a lease keeps its place among the others (the earliest first) while it is held
+  defp apply_record({:lease, volume, holder, reasons}, state) do
+    held? = &match?({^volume, ^holder, _}, &1)
+
+    leases =
+      cond do
+        reasons == [] ->
+          Enum.reject(state.leases, held?)
+
+        Enum.any?(state.leases, held?) ->
+          Enum.map(state.leases, &if(held?.(&1), do: {volume, holder, reasons}, else: &1))
+
+        true ->
+          state.leases ++ [{volume, holder, reasons}]
+      end
+
+    %{state | leases: leases}
+  end
 
   defp apply_record({:string, seq, line, commands}, state) do
     # acknowledged: until a later record says otherwise, each command counts as under way

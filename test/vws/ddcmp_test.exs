@@ -161,6 +161,22 @@ defmodule Vws.DDCMPTest do
     assert DDCMP.info(link).state != :running
   end
 
+  test "a link that has ended refuses send_data with hold: false or session: n; it does not exit the caller" do
+    Process.flag(:trap_exit, true)
+
+    {:ok, link} =
+      DDCMP.start_link(
+        endpoint: "loopback:nobody-#{System.unique_integer([:positive])}",
+        owner: self()
+      )
+
+    :ok = DDCMP.stop(link)
+    # its end reaches this (trapping) owner as a message, after the calls below
+    assert DDCMP.send_data(link, "answer", session: 1) == {:error, :not_running}
+    assert DDCMP.send_data(link, "DO MOVE SAFE", hold: false) == {:error, :not_running}
+    assert_receive {:EXIT, ^link, _}
+  end
+
   test "send_data with session: n goes only into session n, never into a later one the link has begun" do
     {_relay, a, b} = pair([], [])
     assert DDCMP.info(a).session == 1

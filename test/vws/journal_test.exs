@@ -64,6 +64,33 @@ defmodule Vws.JournalTest do
     assert WCPeer.status(peer, 45, 4, "ROBOT_CMD") == "0009ERROR INTERRUPTED BY RESTART"
   end
 
+  test "the work-volume leases come back after a kill, through the compacted journal too",
+       %{tmp_dir: dir} do
+    id = "leases-#{System.unique_integer([:positive])}"
+    sup = start_ws(id, dir)
+
+    :ok = Vws.Interlock.acquire(id, :table, :robot, 0, as: :disabled)
+    :ok = Vws.Interlock.acquire(id, :table, :robot, 0, as: :inside)
+    :ok = Vws.Interlock.acquire(id, :table, :fixture, 0, as: :vise)
+    :ok = Vws.Interlock.acquire(id, :tray1, :robot, 0)
+    :ok = Vws.Interlock.release(id, :tray1, :robot)
+    :ok = Vws.Interlock.release(id, :table, :robot, :inside)
+
+    Process.exit(sup, :kill)
+    assert Eventually.eventually(fn -> Workstation.whereis(id) not in [nil, sup] end)
+
+    held = fn -> Enum.map(Vws.Interlock.held(id), &{&1.volume, &1.holder, &1.reasons}) end
+    assert held.() == [{:table, :robot, [:disabled]}, {:table, :fixture, [:vise]}]
+
+    assert Vws.Interlock.acquire(id, :table, :monarch, 0) ==
+             {:error, "INTERLOCK TABLE HELD BY ROBOT"}
+
+    # the journal was compacted to a snapshot when it opened: the next restart reads that
+    :ok = stop_supervised(id)
+    start_ws(id, dir)
+    assert held.() == [{:table, :robot, [:disabled]}, {:table, :fixture, [:vise]}]
+  end
+
   test "a torn last record is cut off and the records before it are kept", %{tmp_dir: dir} do
     id = "torn-#{System.unique_integer([:positive])}"
     start_ws(id, dir)

@@ -54,6 +54,9 @@ defmodule Vws.Sim.Floor do
     * `:time_scale` (default 1.0) — how many times faster than real time the plant runs; the
       GE-2000's cycle and the robot's motions are scaled with it;
     * `:seed`, `:plant` (more `Vws.Sim.Plant` options, e.g. `config:`);
+    * `:on_relay` — `fun(signal, energised?)`, told of every actuator switched on or off after
+      the floor's own wires (the plant's `:on_relay`; it runs in the plant's process and must
+      not call the plant) — to watch the equipment, as a test does;
     * `:daq1` — the endpoint DAQ #1 listens on, default `"tcp://127.0.0.1:0"`; `false` for no
       DAQ #1; `:daq2` the same for DAQ #2;
     * `:hydraulic` — `true`, or `Vws.HydraulicController.start_link/1` options, to run the
@@ -208,7 +211,7 @@ defmodule Vws.Sim.Floor do
     scale = Keyword.get(opts, :time_scale, 1.0)
     plant = plant(ws)
 
-    on_relay =
+    wire =
       if opts[:ge2000] do
         ge = ge2000(ws)
 
@@ -216,6 +219,21 @@ defmodule Vws.Sim.Floor do
           :cycle_start_relay, closed? -> GE2000.cycle_start_input(ge, closed?)
           _signal, _closed? -> :ok
         end
+      end
+
+    on_relay =
+      case {wire, opts[:on_relay]} do
+        {wire, nil} ->
+          wire
+
+        {nil, watcher} ->
+          watcher
+
+        {wire, watcher} ->
+          fn signal, closed? ->
+            wire.(signal, closed?)
+            watcher.(signal, closed?)
+          end
       end
 
     plant_opts =

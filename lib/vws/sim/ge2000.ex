@@ -103,7 +103,11 @@ defmodule Vws.Sim.GE2000 do
   @spec end_cycle(GenServer.server()) :: :ok
   def end_cycle(sim), do: GenServer.call(sim, :end_cycle)
 
-  @doc "The machine's state: `%{state, selected, alarm, directory, cycles}`."
+  @doc """
+  The machine's state: `%{state, selected, alarm, directory, cycles, downloads}` — `cycles` the
+  cycles started, `downloads` the part programs received and filed (`SNS`/`SCS`), so a test can
+  count what the machine was made to do.
+  """
   @spec state(GenServer.server()) :: map
   def state(sim), do: GenServer.call(sim, :state)
 
@@ -156,6 +160,7 @@ defmodule Vws.Sim.GE2000 do
       active: false,
       alarm: 0,
       cycles: 0,
+      downloads: 0,
       cycle_time: Keyword.get(opts, :cycle_time, 5_000),
       plant: Keyword.get(opts, :plant)
     }
@@ -229,7 +234,8 @@ defmodule Vws.Sim.GE2000 do
        selected: s.selected,
        alarm: s.alarm,
        directory: s.programs |> Map.keys() |> Enum.sort(),
-       cycles: s.cycles
+       cycles: s.cycles,
+       downloads: s.downloads
      }, s}
   end
 
@@ -303,7 +309,7 @@ defmodule Vws.Sim.GE2000 do
 
       {:ok, name} ->
         Logger.info("GE-2000 simulator stored #{name} (#{byte_size(text)} bytes)")
-        %{alarm(s, :none) | programs: Map.put(s.programs, name, text)}
+        %{alarm(s, :none) | programs: Map.put(s.programs, name, text), downloads: s.downloads + 1}
 
       {:error, :bad_name} ->
         alarm(s, :bad_name)

@@ -152,6 +152,17 @@ defmodule Vws.Sim.Plant do
   @spec collisions(plant) :: [Model.collision()]
   def collisions(plant), do: call(plant, :collisions)
 
+  @doc """
+  Every relay write the plant obeyed so far (`ROUT:CLOS`/`ROUT:OPEN`, and each relay an `*RST`
+  opened), per channel: `%{{daq, channel} => %{close: n, open: n}}`. A write counts even when
+  the relay was already where it was told to go: it is what the equipment was commanded to do,
+  so a test can tell that a command did not run twice.
+  """
+  @spec writes(plant) :: %{
+          {Config.daq(), pos_integer} => %{close: non_neg_integer, open: non_neg_integer}
+        }
+  def writes(plant), do: call(plant, :writes)
+
   @doc "The loaded channel map and constants."
   @spec config(plant) :: Config.t()
   def config(plant), do: call(plant, :config)
@@ -177,18 +188,45 @@ defmodule Vws.Sim.Plant do
        model: Model.new(config, Keyword.get(opts, :seed, 0)),
        time_scale: scale,
        last: now(),
-       on_relay: Keyword.get(opts, :on_relay)
+       on_relay: Keyword.get(opts, :on_relay),
+       writes: %{}
      }}
   end
 
   @impl true
+  def handle_call(:writes, _from, state), do: {:reply, state.writes, state}
+
   def handle_call(request, _from, state) do
     now = now()
     dt = (now - state.last) / 1_000_000 * state.time_scale
     state = %{state | model: Model.advance(state.model, dt), last: now}
     {reply, model} = handle(request, state.model)
     notify_relays(state.on_relay, state.model, model)
-    {:reply, reply, %{state | model: model}}
+
+    {:reply, reply,
+     %{state | model: model, writes: count_writes(state.writes, request, reply, model)}}
+  end
+
+  defp count_writes(writes, {route, address}, :ok, _model)
+       when route in [:close_channel, :open_channel] do
+    count_write(writes, address, if(route == :close_channel, do: :close, else: :open))
+  end
+
+  defp count_writes(writes, {:open_all, daq}, :ok, model) do
+    for {{^daq, _} = address, %{kind: :actuator}} <- model.config.channels,
+        reduce: writes,
+        do: (acc -> count_write(acc, address, :open))
+  end
+
+  defp count_writes(writes, _request, _reply, _model), do: writes
+
+  defp count_write(writes, address, kind) do
+    Map.update(
+      writes,
+      address,
+      Map.put(%{close: 0, open: 0}, kind, 1),
+      &Map.update!(&1, kind, fn n -> n + 1 end)
+    )
   end
 
   defp notify_relays(nil, _before, _after), do: :ok
