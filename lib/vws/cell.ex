@@ -13,7 +13,9 @@ defmodule Vws.Cell do
   ## The cell view
 
   `workstations/0` lists every workstation of the cell, each with its node and its state,
-  asking each node once (`:erpc`) about its own workstations; `print/0` shows it from iex:
+  asking each node once (`:erpc`) about its own workstations; `print/0` shows it from iex, the
+  dashboard (`Vws.Web`) shows it too, and the MTConnect agent (`Vws.MTConnect.Agent`) serves
+  every workstation of the cell (`locations/0`) as a device:
 
       iex> {:ok, _} = Vws.Workstation.start(id: "doc-cell", wc: "loopback:doc-cell")
       iex> Vws.Cell.whereis("doc-cell") == Vws.Workstation.whereis("doc-cell")
@@ -86,9 +88,26 @@ defmodule Vws.Cell do
   def whereis(id) do
     case :pg.get_members(@scope, group(id)) do
       [] -> nil
-      pids -> Enum.find(pids, &(node(&1) == node())) || Enum.min(pids)
+      pids -> pick(pids)
     end
   end
+
+  @doc """
+  Where each workstation of the cell runs: `{id, node}`, one per id (the node `whereis/1` finds),
+  sorted by id.
+  """
+  @spec locations() :: [{term, node}]
+  def locations do
+    for {:workstation, id} = group <- :pg.which_groups(@scope),
+        pids = :pg.get_members(@scope, group),
+        pids != [] do
+      {id, node(pick(pids))}
+    end
+    |> Enum.sort()
+  end
+
+  # The member `whereis/1` means when two nodes run a workstation with the same id.
+  defp pick(pids), do: Enum.find(pids, &(node(&1) == node())) || Enum.min(pids)
 
   @doc "The ids and supervisor pids of every workstation of the cell, sorted by id and node."
   @spec members() :: [{term, pid}]

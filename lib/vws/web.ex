@@ -1,7 +1,9 @@
 defmodule Vws.Web do
   @moduledoc """
   The node's web server, on OTP's own `:inets` httpd (no hex packages): the live dashboard and
-  the MTConnect agent, for every workstation of the node.
+  the MTConnect agent: the dashboard details every workstation of the node and lists every
+  workstation of the cell with its node and state; the agent serves every workstation of the cell
+  (`Vws.Cell`), each read on its own node.
 
   | path | what |
   |------|------|
@@ -25,7 +27,8 @@ defmodule Vws.Web do
     * `:port` — TCP port (default 4000; 0 picks a free one, see `port/1`)
     * `:bind` — address to listen on (default `"127.0.0.1"`)
     * `:token` — the token control actions need (default none: read-only)
-    * `:buffer_size`, `:interval` — the MTConnect agent's (see `Vws.MTConnect.Agent`)
+    * `:buffer_size`, `:interval`, `:node_timeout` — the MTConnect agent's (see
+      `Vws.MTConnect.Agent`)
     * `:name` — a name for the server's supervisor
   """
   use Supervisor
@@ -83,7 +86,8 @@ defmodule Vws.Web do
 
     children = [
       {Vws.MTConnect.Agent,
-       [name: agent] ++ Keyword.take(opts, [:buffer_size, :interval, :workstations])},
+       [name: agent] ++
+         Keyword.take(opts, [:buffer_size, :interval, :node_timeout, :workstations])},
       {Vws.Web.Server, [ref: ref, agent: agent] ++ opts}
     ]
 

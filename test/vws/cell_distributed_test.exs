@@ -7,13 +7,14 @@ defmodule Vws.CellDistributedTest do
   @moduletag timeout: 60_000
 
   alias Vws.Cell
+  alias Vws.Test.CellPeers
   alias Vws.WC.{Client, Runner, Script}
   import Vws.Test.Eventually
 
   @peers 3
 
   setup_all do
-    started_distribution? = ensure_distributed!()
+    started_distribution? = CellPeers.ensure_distributed!()
     tag = System.unique_integer([:positive])
 
     peers =
@@ -21,79 +22,18 @@ defmodule Vws.CellDistributedTest do
       |> Enum.map(fn i -> Task.async(fn -> start_peer(i, tag) end) end)
       |> Task.await_many(30_000)
 
-    mesh!(Enum.map(peers, & &1.node))
+    CellPeers.mesh!(Enum.map(peers, & &1.node))
 
     on_exit(fn ->
-      for %{peer: peer} <- peers do
-        try do
-          :peer.stop(peer)
-        catch
-          :exit, _ -> :already_stopped
-        end
-      end
-
+      for %{peer: peer} <- peers, do: CellPeers.stop(peer)
       if started_distribution?, do: :net_kernel.stop()
     end)
 
     %{peers: peers}
   end
 
-  defp ensure_distributed! do
-    if Node.alive?() do
-      false
-    else
-      # distribution needs epmd; start it when none answers (it stays, as epmd does)
-      if match?({:error, _}, :erl_epmd.names(~c"127.0.0.1")) do
-        epmd =
-          System.find_executable("epmd") ||
-            Path.join([:code.root_dir(), "erts-#{:erlang.system_info(:version)}", "bin", "epmd"])
-
-        {_, 0} = System.cmd(epmd, ["-daemon"])
-        true = eventually(fn -> match?({:ok, _}, :erl_epmd.names(~c"127.0.0.1")) end, 5_000)
-      end
-
-      name = :"vws_test_#{System.unique_integer([:positive])}_#{System.pid()}@127.0.0.1"
-      {:ok, _} = :net_kernel.start([name, :longnames])
-      true
-    end
-  end
-
-  # Every node connected to every other before the test, as in a deployment: connections that
-  # form while the test runs make `global` drop some of them ("to prevent overlapping
-  # partitions"), and :pg with them.
-  defp mesh!(nodes) do
-    for a <- nodes, b <- nodes, a < b, do: true = :erpc.call(a, Node, :connect, [b])
-
-    all = [node() | nodes]
-
-    true =
-      eventually(
-        fn ->
-          Enum.all?(nodes, &(Enum.sort([&1 | :erpc.call(&1, Node, :list, [])]) == Enum.sort(all)))
-        end,
-        10_000
-      )
-
-    for n <- nodes, do: :ok = :erpc.call(n, :global, :sync, [], 10_000)
-    :ok = :global.sync()
-  end
-
   defp start_peer(i, tag) do
-    # not linked to the starting task, which ends at once; on_exit stops it, and a peer halts
-    # by itself when it loses this node
-    {:ok, peer, node} =
-      :peer.start(%{
-        name: ~c"vws_cell_#{tag}_#{i}",
-        host: ~c"127.0.0.1",
-        longnames: true,
-        args: [~c"-pa" | :code.get_path()],
-        wait_boot: 30_000
-      })
-
-    :ok = :erpc.call(node, Application, :put_env, [:logger, :level, :warning])
-    {:ok, _} = :erpc.call(node, Application, :ensure_all_started, [:vws], 30_000)
-    :ok = :erpc.call(node, Logger, :configure, [[level: :warning]])
-
+    %{node: node} = peer = CellPeers.start!("vws_cell_#{tag}_#{i}")
     id = "cell-#{tag}-#{i}"
 
     {:ok, _} =
@@ -105,7 +45,7 @@ defmodule Vws.CellDistributedTest do
         ]
       ])
 
-    %{peer: peer, node: node, id: id}
+    Map.put(peer, :id, id)
   end
 
   @cycle """

@@ -1,15 +1,21 @@
 defmodule Vws.MTConnect.Agent do
   @moduledoc """
-  An MTConnect agent for every workstation on the node: it reads their mailboxes, gives each
-  change of a data item a sequence number and keeps the observations in a circular buffer, and
-  answers the three requests of the standard as MTConnect 2.5 documents:
+  An MTConnect agent for every workstation of the cell (`Vws.Cell`: this node and every node
+  connected to it): it reads their mailboxes, gives each change of a data item a sequence number
+  and keeps the observations in a circular buffer, and answers the three requests of the standard
+  as MTConnect 2.5 documents:
 
     * `probe/2` — `MTConnectDevices`, one `Device` per workstation (see `Vws.MTConnect.Model`);
     * `current/2` — `MTConnectStreams` with the latest observation of every data item;
     * `sample/4` — `MTConnectStreams` with the observations from sequence `from`, at most `count`.
 
   The mailboxes are read every `:interval` ms (default 250) and again before each answer, so a
-  document is never older than the request. The buffer holds the last `:buffer_size`
+  document is never older than the request. Each node reads its own workstations' mailboxes, all
+  in one call per node (`:erpc`), the nodes in parallel. A node that does not answer within
+  `:node_timeout` ms (default 1000) has every data item of its workstations made `UNAVAILABLE`
+  — never its last values shown as if fresh — and the answer goes out without it; such a node is
+  asked again by the periodic read, not before each answer, so that a node that hangs delays no
+  request by more than one `:node_timeout`. The buffer holds the last `:buffer_size`
   observations (default 8192); `firstSequence` moves on as older ones fall out. A `from` outside
   `firstSequence..nextSequence` or a `count` outside `1..bufferSize` is answered with an
   `MTConnectError` document (`OUT_OF_RANGE`), an unknown device with `NO_DEVICE`.
@@ -33,8 +39,9 @@ defmodule Vws.MTConnect.Agent do
 
   @doc """
   Starts an agent. Options: `:name`, `:buffer_size` (8192), `:interval` (ms, 250),
-  `:workstations` (a function returning the workstation ids to serve; default all of the node's,
-  `Vws.Workstation.list/0`), `:sender` (default the host name).
+  `:node_timeout` (ms, 1000), `:workstations` (a function returning the ids of the workstations
+  to serve, wherever in the cell they run; default every workstation of the cell), `:sender`
+  (default the host name).
   """
   @spec start_link(keyword) :: GenServer.on_start()
   def start_link(opts \\ []) do
@@ -83,7 +90,9 @@ defmodule Vws.MTConnect.Agent do
     s = %{
       buffer_size: Keyword.get(opts, :buffer_size, @default_buffer),
       interval: Keyword.get(opts, :interval, 250),
-      workstations: Keyword.get(opts, :workstations, &Vws.Workstation.list/0),
+      node_timeout: Keyword.get(opts, :node_timeout, 1_000),
+      workstations: Keyword.get(opts, :workstations),
+      unresponsive: MapSet.new(),
       sender: sender,
       instance_id: div(now, 1_000_000),
       model_change_time: XML.timestamp(now),
@@ -113,8 +122,11 @@ defmodule Vws.MTConnect.Agent do
   @impl true
   def handle_info(:tick, s) do
     Process.send_after(self(), :tick, s.interval)
-    {:noreply, refresh(s)}
+    {:noreply, refresh(s, :ask_all)}
   end
+
+  # (a late answer of a node is dropped by :erpc; nothing else is expected)
+  def handle_info(_other, s), do: {:noreply, s}
 
   @impl true
   def handle_call({:probe, device}, _from, s) do
@@ -222,15 +234,101 @@ defmodule Vws.MTConnect.Agent do
 
   ## Reading the mailboxes
 
-  defp refresh(s) do
+  # `ask` is :ask_all on the periodic read, :skip_unresponsive before an answer.
+  defp refresh(s, ask \\ :skip_unresponsive) do
     now = System.system_time(:microsecond)
-    live = Enum.filter(s.workstations.(), &Mailbox.exists?/1)
-    gone = Enum.reject(s.order, &(&1 in live or MapSet.member?(s.gone, &1)))
+    {running, s} = read_cell(s, ask)
+    ids = MapSet.new(running, &elem(&1, 0))
+    gone = Enum.reject(s.order, &(MapSet.member?(ids, &1) or MapSet.member?(s.gone, &1)))
     s = Enum.reduce(gone, s, &remove(&2, &1, now))
-    Enum.reduce(live, s, &observe(&2, &1, now))
+    Enum.reduce(running, s, fn {ws, facts}, s -> observe(s, ws, facts, now) end)
   end
 
-  defp observe(s, ws, now) do
+  # What every workstation served that runs now says: `[{id, facts | :unreachable}]` in the
+  # cell's order, read on each one's node.
+  defp read_cell(s, ask) do
+    located = Vws.Cell.locations()
+
+    located =
+      case s.workstations do
+        nil ->
+          located
+
+        served ->
+          served = MapSet.new(served.())
+          Enum.filter(located, &MapSet.member?(served, elem(&1, 0)))
+      end
+
+    by_node = Enum.group_by(located, &elem(&1, 1), &elem(&1, 0))
+    {here, remote} = Map.pop(by_node, node(), [])
+
+    {asked, skipped} =
+      Enum.split_with(remote, fn {n, _} -> ask == :ask_all or n not in s.unresponsive end)
+
+    deadline = System.monotonic_time(:millisecond) + s.node_timeout
+
+    requests =
+      for {n, ids} <- asked, do: {n, :erpc.send_request(n, __MODULE__, :read_local, [ids])}
+
+    # this node's own while the others read theirs
+    here = read_local(here)
+    answered = for {n, req} <- requests, do: {n, receive_answer(req, deadline)}
+
+    answers =
+      for {_n, {:ok, theirs}} <- answered, reduce: here, do: (acc -> Map.merge(acc, theirs))
+
+    unresponsive =
+      MapSet.new(for({n, :error} <- answered, do: n) ++ Enum.map(skipped, &elem(&1, 0)))
+
+    facts =
+      for {ws, n} <- located,
+          fact = if(n in unresponsive, do: :unreachable, else: Map.get(answers, ws, :absent)),
+          fact != :absent,
+          do: {ws, fact}
+
+    {facts, %{s | unresponsive: unresponsive}}
+  end
+
+  defp receive_answer(req, deadline) do
+    timeout = max(deadline - System.monotonic_time(:millisecond), 0)
+
+    case :erpc.receive_response(req, timeout) do
+      %{} = answers -> {:ok, answers}
+      _ -> :error
+    end
+  catch
+    # timeout (the request is abandoned: a late answer is never delivered), noconnection, an
+    # exception on that node (e.g. another version of this module)
+    _, _ -> :error
+  end
+
+  @doc false
+  # Runs on the workstations' node: what the mailboxes of each of `ids` say, or :absent for one
+  # that does not run here (any more).
+  @spec read_local([term]) :: %{term => map | :absent}
+  def read_local(ids), do: Map.new(ids, &{&1, read(&1)})
+
+  defp read(ws) do
+    if Mailbox.exists?(ws) do
+      devices =
+        for loc <- 1..11, into: %{} do
+          {value, _age} = Mailbox.get_device(ws, loc)
+          {Mailbox.device_name(loc), value}
+        end
+
+      commands = for p <- Mailbox.partitions(), into: %{}, do: {p, Mailbox.command_status(ws, p)}
+
+      {_n, monarch_text} = Mailbox.cmd_in(ws, :monarch)
+      %{devices: devices, commands: commands, monarch_cmd: monarch_text}
+    else
+      :absent
+    end
+  rescue
+    # the workstation stopped while we read it
+    ArgumentError -> :absent
+  end
+
+  defp observe(s, ws, facts, now) do
     {device, s} =
       case s.devices do
         %{^ws => d} ->
@@ -258,9 +356,16 @@ defmodule Vws.MTConnect.Agent do
           {d, record(s, agent_item(s, "DEVICE_ADDED"), d.uuid, now)}
       end
 
-    {facts, program} = read(ws, Map.get(s.programs, ws))
-    values = Model.observe(device, facts)
-    s = %{s | programs: Map.put(s.programs, ws, program)}
+    {values, s} =
+      case facts do
+        :unreachable ->
+          {Model.observe(device, nil), s}
+
+        %{} ->
+          program = Model.program(facts.monarch_cmd, Map.get(s.programs, ws))
+          facts = %{devices: facts.devices, commands: facts.commands, program: program}
+          {Model.observe(device, facts), %{s | programs: Map.put(s.programs, ws, program)}}
+      end
 
     Enum.reduce(Model.items(device), s, fn item, s ->
       record(s, item, Map.fetch!(values, item.id), now)
@@ -275,22 +380,6 @@ defmodule Vws.MTConnect.Agent do
   end
 
   defp agent_item(s, type), do: Enum.find(Model.items(s.agent_device), &(&1.type == type))
-
-  defp read(ws, program) do
-    devices =
-      for loc <- 1..11, into: %{} do
-        {value, _age} = Mailbox.get_device(ws, loc)
-        {Mailbox.device_name(loc), value}
-      end
-
-    commands = for p <- Mailbox.partitions(), into: %{}, do: {p, Mailbox.command_status(ws, p)}
-    {_n, monarch_text} = Mailbox.cmd_in(ws, :monarch)
-    program = Model.program(monarch_text, program)
-    {%{devices: devices, commands: commands, program: program}, program}
-  rescue
-    # the workstation stopped while we read it
-    ArgumentError -> {nil, program}
-  end
 
   defp record(s, item, value, now) do
     case s.current[item.id] do
