@@ -80,6 +80,12 @@ defmodule Vws.Cell do
   @spec join(term) :: :ok
   def join(id), do: :pg.join(@scope, group(id), self())
 
+  @doc false
+  # Called by `Vws.Workstation.stop/1` before the supervisor is stopped: `:pg` would only drop it
+  # when it sees it die, after `stop/1` has returned, and `whereis/1` would name a dead process.
+  @spec leave(term, pid) :: :ok | :not_joined
+  def leave(id, pid), do: :pg.leave(@scope, group(id), pid)
+
   @doc """
   The pid of workstation `id`'s supervisor, on whichever node of the cell it runs (the local
   one first), or nil.

@@ -250,8 +250,12 @@ defmodule Vws.Workstation do
   @spec stop(term) :: :ok | {:error, :not_found}
   def stop(id) do
     case Registry.lookup(Vws.Registry, {id, :workstation}) do
-      [{pid, _}] -> DynamicSupervisor.terminate_child(Vws.WorkstationSupervisor, pid)
-      [] -> {:error, :not_found}
+      [{pid, _}] ->
+        _ = Vws.Cell.leave(id, pid)
+        DynamicSupervisor.terminate_child(Vws.WorkstationSupervisor, pid)
+
+      [] ->
+        {:error, :not_found}
     end
   end
 
