@@ -77,7 +77,15 @@ defmodule Vws.JournalTest do
     :ok = Vws.Interlock.release(id, :table, :robot, :inside)
 
     Process.exit(sup, :kill)
-    assert Eventually.eventually(fn -> Workstation.whereis(id) not in [nil, sup] end)
+    # the new supervisor is registered before its children start: wait for the whole workstation
+    assert Eventually.eventually(fn ->
+             Workstation.whereis(id) not in [nil, sup] and
+               try do
+                 Vws.SunComm.listening(id) != nil
+               catch
+                 :exit, _ -> false
+               end
+           end)
 
     held = fn -> Enum.map(Vws.Interlock.held(id), &{&1.volume, &1.holder, &1.reasons}) end
     assert held.() == [{:table, :robot, [:disabled]}, {:table, :fixture, [:vise]}]
