@@ -12,6 +12,7 @@ import Config
 #   VWS_GE2000        the GE-2000's DNC port (tty:/dev/ttyS2?baud=4800 or tcp://…)
 #   VWS_DAQ1, VWS_DAQ2, VWS_HYDRAULIC
 #                     the HPIB instruments' endpoints (tcp://gpib-gateway:1234 …)
+#   VWS_STATUS_WAKE_EARLY_US  µs VWS_STATUS waits on the CPU before each DAQ #1 poll (2000; 0: none)
 #   VWS_HTTP_PORT     the dashboard and MTConnect agent (default 4000 in a release; "off": none)
 #   VWS_HTTP_BIND     the address they listen on (default 127.0.0.1)
 #   VWS_HTTP_TOKEN    enables the dashboard's control actions for requests carrying it
@@ -33,6 +34,16 @@ if wc = env.("VWS_WC") do
         ],
         endpoint = env.(var),
         do: {device, endpoint}
+
+  # VWS_STATUS polls DAQ #1 on time to within microseconds by waiting the last 2 ms before each
+  # poll on the CPU (Vws.Partitions.VwsStatus, :wake_early_us); VWS_STATUS_WAKE_EARLY_US=0 sleeps
+  wake_early_us = String.to_integer(env.("VWS_STATUS_WAKE_EARLY_US") || "2000")
+
+  devices =
+    Enum.map(devices, fn
+      {:daq1, endpoint} -> {:daq1, endpoint: endpoint, vws_status: [wake_early_us: wake_early_us]}
+      other -> other
+    end)
 
   bcc =
     case env.("VWS_BCC") do

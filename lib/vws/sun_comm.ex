@@ -328,10 +328,40 @@ defmodule Vws.SunComm do
   defp handle_line(line, s) do
     s = record(s, :in, line)
 
-    case s.mode do
-      :command -> command_line(line, s)
-      {:download, _} -> download_line(line, s)
-      {:upload, _} -> upload_answer(line, s)
+    case {s.mode, string_during_transfer(line, s)} do
+      {:command, _} -> command_line(line, s)
+      {_transfer, {:ok, cs}} -> command_string_in_transfer(cs, line, s)
+      {{:download, _}, _} -> download_line(line, s)
+      {{:upload, _}, _} -> upload_answer(line, s)
+    end
+  end
+
+  # An intact command string during a program transfer: the WC is not in the transfer.
+  defp string_during_transfer("*" <> _ = line, %{mode: {_, _}} = s),
+    do: CommandString.decode(line, bcc: s.bcc)
+
+  defp string_during_transfer(_line, _s), do: :no
+
+  # The string that began the transfer, again: its acknowledgement was lost and the WC is
+  # still waiting for it, so it is acknowledged again and the transfer begins afresh from its
+  # first line (the WC sends or takes the program only after the acknowledgement). Any other
+  # string: the WC gave the transfer up; it ends ERROR and the string is handled as usual.
+  defp command_string_in_transfer(cs, line, %{mode: {kind, t}} = s) do
+    if Mailbox.last_string(s.workstation) == {cs.sequence, line} do
+      Logger.info(
+        "string #{cs.sequence} again during #{kind}: acknowledged again, transfer restarted"
+      )
+
+      telemetry(s, :retransmission, %{count: 1}, %{sequence: cs.sequence})
+      s = reply(%{s | counters: bump(s.counters, :retransmissions)}, {:ack, cs.sequence})
+
+      case kind do
+        :download -> start_download(s, t.number)
+        :upload -> start_upload(s, t.number)
+      end
+    else
+      Logger.warning("string #{cs.sequence} during #{kind}: the WC left the transfer")
+      command_line(line, abort_transfer(s, "COMMAND STRING FROM THE WC"))
     end
   end
 

@@ -227,6 +227,68 @@ defmodule Vws.SunCommTest do
       assert Mailbox.nc_file(ws) == ["%", "N10 G00X0", "%"]
     end
 
+    test "DOWNLOAD_HP whose acknowledgement was lost: the string again is acknowledged again",
+         %{peer: peer, ws: ws} do
+      line = WCPeer.send_string(peer, 64, [{"M", 7, "DOWNLOAD_HP"}])
+      assert ack?(WCPeer.recv_line(peer), 64)
+      # the 05A never reached the WC, which sends the string again: SUN_COMM is reading
+      # program lines by now, and must not take the string for one
+      WCPeer.send_raw(peer, line)
+      assert ack?(WCPeer.recv_line(peer), 64)
+
+      for text <- ["%", "N10 G00X0", "%"] do
+        WCPeer.send_raw(peer, Vws.WC.Reply.encode({:line, text}))
+        assert WCPeer.recv_line(peer) == "A"
+      end
+
+      assert WCPeer.status(peer, 65, 35, "MONARCH_CMD") == "0007DONE"
+      assert Mailbox.nc_file(ws) == ["%", "N10 G00X0", "%"]
+    end
+
+    test "another command string during a download: the WC left it; it ends ERROR", %{
+      peer: peer,
+      ws: ws
+    } do
+      WCPeer.send_string(peer, 66, [{"M", 8, "DOWNLOAD_HP"}])
+      assert ack?(WCPeer.recv_line(peer), 66)
+      WCPeer.send_raw(peer, Vws.WC.Reply.encode({:line, "%"}))
+      assert WCPeer.recv_line(peer) == "A"
+
+      # the WC gave the transfer up: its next string is a string, answered as one
+      assert WCPeer.status(peer, 67, 35, "MONARCH_CMD") ==
+               "0008ERROR COMMAND STRING FROM THE WC DURING DOWNLOAD AFTER 1 LINES"
+
+      assert Mailbox.nc_file(ws) == []
+      WCPeer.send_string(peer, 68, [{"V", 1, "ON"}])
+      assert ack?(WCPeer.recv_line(peer), 68)
+    end
+
+    test "UPLOAD_SUN whose acknowledgement was lost: acknowledged again, sent from line 1", %{
+      peer: peer,
+      ws: ws
+    } do
+      program = ["%", "O000777", "%"]
+      Mailbox.put_nc_up(ws, program)
+      line = WCPeer.send_string(peer, 72, [{"M", 9, "UPLOAD_SUN"}])
+      assert ack?(WCPeer.recv_line(peer), 72)
+      first = WCPeer.recv_line(peer)
+      assert {:ok, {:line, "%"}} = Vws.WC.Reply.decode_line(first)
+      # the WC saw neither: it sends the string again
+      WCPeer.send_raw(peer, line)
+      assert ack?(WCPeer.recv_line(peer), 72)
+
+      received =
+        for _ <- program do
+          l = WCPeer.recv_line(peer)
+          WCPeer.send_line(peer, "A")
+          {:ok, {:line, text}} = Vws.WC.Reply.decode_line(l)
+          text
+        end
+
+      assert received == program
+      assert WCPeer.status(peer, 73, 35, "MONARCH_CMD") == "0009DONE"
+    end
+
     test "UPLOAD_SUN sends NC_UP line by line and resends a line answered E", %{
       peer: peer,
       ws: ws

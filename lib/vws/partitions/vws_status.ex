@@ -50,6 +50,12 @@ defmodule Vws.Partitions.VwsStatus do
   `:workstation`; `:link` — the HPIB device `{bus, address}` of DAQ #1, or nil; `:poll_ms`;
   `:timeout_ms` — how long one poll or actuation may take on the HPIB (default 500);
   `:stale_after_ms`; `:late_after_us`; `:min_force_n` (VISE "LOCKED" threshold, default 800);
+  `:wake_early_us` — wake this long (rounded up to ms) before each slot and wait for it on the
+  CPU (default 0: sleep until the slot). An OS wakes a sleeping thread late by up to a few ms
+  (on the 2-core VM of `bench/vws_status_poll.exs`, p99 0.4–2.5 ms for the BEAM's own timers);
+  2000 µs takes that out of the poll period for about 8 % of one core per workstation — the
+  setting for a workstation alone on its host (`config/runtime.exs`), not for hundreds on one
+  node;
   `:daq` — `Vws.DAQ.new/1` options (`:channel_map`, `:switches`).
 
   ## Telemetry
@@ -86,7 +92,8 @@ defmodule Vws.Partitions.VwsStatus do
     timeout_ms: 500,
     stale_after_ms: 200,
     late_after_us: 1_000,
-    min_force_n: 800
+    min_force_n: 800,
+    wake_early_us: 0
   ]
 
   @type workstation :: term
@@ -369,6 +376,7 @@ defmodule Vws.Partitions.VwsStatus do
         stale_after_ms: Keyword.fetch!(opts, :stale_after_ms),
         late_after_us: Keyword.fetch!(opts, :late_after_us),
         min_force_n: Keyword.fetch!(opts, :min_force_n),
+        wake_early_ms: div(Keyword.fetch!(opts, :wake_early_us) + 999, 1000),
         next_slot: now + poll_ms,
         poll: nil,
         actuations: [],
@@ -435,11 +443,26 @@ defmodule Vws.Partitions.VwsStatus do
   ## Polling
 
   defp schedule(s) do
-    :erlang.start_timer(s.next_slot, self(), :tick, abs: true)
+    :erlang.start_timer(s.next_slot - s.wake_early_ms, self(), :tick, abs: true)
     s
   end
 
+  # Woken `wake_early_ms` before the slot, the process waits for it on the CPU (yielding to
+  # every other runnable process): the OS wakes a sleeping thread up to a few ms late, a running
+  # one needs no waking.
+  defp wait_for_slot(%{wake_early_ms: 0}), do: :ok
+
+  defp wait_for_slot(s) do
+    if System.monotonic_time(:microsecond) < s.next_slot * 1000 do
+      :erlang.yield()
+      wait_for_slot(s)
+    else
+      :ok
+    end
+  end
+
   defp tick(s) do
+    wait_for_slot(s)
     started = System.monotonic_time(:microsecond)
     lateness = started - s.next_slot * 1000
 

@@ -30,6 +30,36 @@ defmodule Vws.Partitions.VwsStatusTest do
   end
 
   describe "polling" do
+    test "woken early, it waits for each slot on the CPU: never a poll before its time" do
+      test_pid = self()
+      handler = "wake-early-#{System.unique_integer([:positive])}"
+
+      %{ws: ws} = DAQFloor.start(vws_status: [poll_ms: 10, wake_early_us: 3_000])
+
+      :ok =
+        Vws.Telemetry.attach(
+          handler,
+          [:vws, :vws_status, :poll],
+          fn _, m, md, _ -> if md.workstation == ws, do: send(test_pid, {:poll, m}) end,
+          nil
+        )
+
+      on_exit(fn -> Vws.Telemetry.detach(handler) end)
+
+      polls = for _ <- 1..10, do: assert_receive({:poll, m}, 2_000) && m
+      # woken 3 ms ahead, every poll still starts at or after its slot, on its slot
+      assert Enum.all?(polls, &(&1.lateness >= 0)), inspect(Enum.map(polls, & &1.lateness))
+      # and the slots stay on the 10 ms grid
+      slots = Enum.map(polls, &(&1.started_at - &1.lateness))
+
+      assert Enum.all?(Enum.zip(slots, tl(slots)), fn {a, b} ->
+               b > a and rem(b - a, 10_000) == 0
+             end)
+
+      assert %{polls: polls, ok: ok} = VwsStatus.stats(ws)
+      assert ok >= 10 and polls >= ok
+    end
+
     test "writes the device texts and the readings, over and over" do
       %{ws: ws, peer: peer} = DAQFloor.start()
 
