@@ -3,7 +3,11 @@
 # the 17 readings into engineering units and writes the device-status mailbox, as in production.
 #
 #     mix run bench/vws_status_poll.exs [--seconds 10] [--poll-ms 20] [--workstations 1,100,1000]
-#                                       [--transport tcp|loopback]
+#                                       [--transport tcp|loopback] [--wake-early-us 2000]
+#
+# One workstation is measured twice: sleeping until each slot (VWS_STATUS's default) and woken
+# --wake-early-us before it to wait for the slot on the CPU (`:wake_early_us`, the setting of the
+# release's workstation: the OS wakes a sleeping thread up to a few ms late).
 #
 # For each count of workstations (each with its own floor: plant + DAQ #1 simulator) it prints
 # the achieved poll period, its error against the schedule (|period - poll_ms|) and the
@@ -32,11 +36,18 @@ alias Vws.Partitions.VwsStatus
 
 {opts, _, _} =
   OptionParser.parse(System.argv(),
-    strict: [seconds: :integer, poll_ms: :integer, workstations: :string, transport: :string]
+    strict: [
+      seconds: :integer,
+      poll_ms: :integer,
+      workstations: :string,
+      transport: :string,
+      wake_early_us: :integer
+    ]
   )
 
 seconds = Keyword.get(opts, :seconds, 10)
 poll_ms = Keyword.get(opts, :poll_ms, 20)
+wake_early_us = Keyword.get(opts, :wake_early_us, 2_000)
 
 counts =
   opts
@@ -88,21 +99,24 @@ stop_floors = fn ->
       do: DynamicSupervisor.terminate_child(floors, pid)
 end
 
-start_workstations = fn ids ->
+start_workstations = fn ids, wake ->
   for ws <- ids do
     {:ok, _} =
       Vws.Workstation.start(
         id: ws,
         wc: nil,
         devices: [
-          daq1: [endpoint: Vws.Sim.Floor.daq1_endpoint(ws), vws_status: [poll_ms: poll_ms]]
+          daq1: [
+            endpoint: Vws.Sim.Floor.daq1_endpoint(ws),
+            vws_status: [poll_ms: poll_ms, wake_early_us: wake]
+          ]
         ]
       )
   end
 end
 
 # One run with `n` workstations: the figures of their polls over `seconds`.
-run = fn n ->
+run = fn n, wake ->
   ids = if n == 1, do: ["BENCH"], else: for(i <- 1..n, do: "BENCH-#{i}")
   via = transport.(n)
   start_floors.(ids, via)
@@ -123,7 +137,7 @@ run = fn n ->
       samples
     )
 
-  start_workstations.(ids)
+  start_workstations.(ids, wake)
 
   # warm up (code loading, the first connections), then measure
   Process.sleep(1_000 + n * 2)
@@ -155,6 +169,7 @@ run = fn n ->
 
   %{
     n: n,
+    wake: wake,
     ids: ids,
     via: via,
     idle: idle,
@@ -207,12 +222,14 @@ back_to_back = fn ws ->
   %{n: n, cpu_us: (cpu1 - cpu0) * 1_000 / n, wall_us: wall_us / n}
 end
 
+# One workstation is measured twice: sleeping until each slot (the default) and woken
+# `wake_early_us` before it to wait on the CPU (the setting of a workstation alone on its host).
 results =
-  for n <- counts do
-    r = run.(n)
-    r = if n == 1, do: Map.put(r, :b2b, back_to_back.("BENCH")), else: r
+  for n <- counts, wake <- if(n == 1, do: [0, wake_early_us], else: [0]) do
+    r = run.(n, wake)
+    r = if n == 1 and wake == 0, do: Map.put(r, :b2b, back_to_back.("BENCH")), else: r
     teardown.(r)
-    IO.puts(:stderr, "  … #{n} workstation(s) measured")
+    IO.puts(:stderr, "  … #{n} workstation(s), woken #{wake} µs early, measured")
     r
   end
 
@@ -238,24 +255,31 @@ block =
               else: ""
       end
 
+    per_poll =
+      (r.run.cpu_ms * 1_000 - r.idle.cpu_ms * 1_000 / r.idle.wall_s * r.run.wall_s) /
+        max(r.polls, 1)
+
+    at_period =
+      "#{round(per_poll)} at #{poll_ms} ms: OS CPU time of the BEAM above idle, with its schedulers' busy-waiting" <>
+        if r.wake > 0, do: " and the wait for the slot", else: ""
+
     cpu =
       case r do
         %{b2b: b} ->
-          per_poll =
-            (r.run.cpu_ms * 1_000 - r.idle.cpu_ms * 1_000 / r.idle.wall_s * r.run.wall_s) /
-              max(r.polls, 1)
-
           [
             "    CPU per poll  µs   #{round(b.cpu_us)} back to back (#{b.n} polls, #{round(b.wall_us)} µs each): VWS_STATUS's work, HPIB, simulator, plant, #{String.upcase(r.via)}",
-            "                       #{round(per_poll)} at #{poll_ms} ms: OS CPU time of the BEAM above idle, with its schedulers' busy-waiting"
+            "                       " <> at_period
           ]
+
+        %{n: 1} ->
+          ["    CPU per poll  µs   " <> at_period]
 
         _ ->
           []
       end
 
     [
-      "  #{r.n} workstation#{if r.n > 1, do: "s", else: ""} (DAQ #1 over #{r.via}), #{Float.round(r.run.wall_s, 1)} s measured",
+      "  #{r.n} workstation#{if r.n > 1, do: "s", else: ""} (DAQ #1 over #{r.via}), #{if r.wake > 0, do: "woken #{r.wake} µs early to wait for each slot on the CPU", else: "sleeping until each slot"}, #{Float.round(r.run.wall_s, 1)} s measured",
       "    polls              #{Bench.thousands(r.polls / r.run.wall_s)}/s of #{Bench.thousands(r.n * 1_000 / poll_ms)}/s due (#{r.ok} answered), missed #{r.missed}, late #{r.late} (> 1000 µs after their slot)",
       "    achieved period    mean #{if r.periods == [], do: "-", else: Float.round(mean.(r.periods) / 1_000, 3)} ms",
       "    period error  µs   #{if r.errors == [], do: "-", else: summary.(r.errors)}    (|period - #{poll_ms} ms|)",

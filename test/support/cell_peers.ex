@@ -79,6 +79,32 @@ defmodule Vws.Test.CellPeers do
     :ok = :global.sync()
   end
 
+  @doc """
+  Called on a peer (`:erpc.call(node, CellPeers, :start_shop_floor, [opts])`): starts
+  `Vws.Demo.start_shop_floor/1` there under a process of its own that lives as long as the node
+  (the erpc process that calls this one ends at once, and the floor is linked to its starter).
+  Returns the shop floor's map.
+  """
+  def start_shop_floor(opts) do
+    caller = self()
+
+    holder =
+      spawn(fn ->
+        send(caller, {:shop_floor, self(), Vws.Demo.start_shop_floor(opts)})
+        Process.sleep(:infinity)
+      end)
+
+    receive do
+      {:shop_floor, ^holder, {:ok, floor}} ->
+        floor
+
+      {:shop_floor, ^holder, {:error, reason}} ->
+        raise "shop floor not started: #{inspect(reason)}"
+    after
+      30_000 -> raise "shop floor not started in 30 s"
+    end
+  end
+
   @doc "Stops a peer; one already stopped is fine."
   def stop(peer) do
     :peer.stop(peer)

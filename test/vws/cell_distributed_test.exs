@@ -36,26 +36,20 @@ defmodule Vws.CellDistributedTest do
     %{node: node} = peer = CellPeers.start!("vws_cell_#{tag}_#{i}")
     id = "cell-#{tag}-#{i}"
 
-    {:ok, _} =
-      :erpc.call(node, Vws.Workstation, :start, [
-        [
-          id: id,
-          wc: "loopback:wc-#{id}",
-          partitions: Vws.Test.ObedientPartition.partitions()
-        ]
-      ])
+    # each peer runs a workstation with its whole simulated shop floor, time-scaled
+    _floor =
+      :erpc.call(
+        node,
+        CellPeers,
+        :start_shop_floor,
+        [[id: id, wc: "loopback:wc-#{id}", time_scale: 40]],
+        60_000
+      )
 
     Map.put(peer, :id, id)
   end
 
-  @cycle """
-  # a short cycle: two strings, a status, a pair of commands in one string
-  R DO MOVE SAFE
-  F CLOSE
-  STATUS VISE
-  R DO MOVE MV1 & G OPEN
-  """
-
+  @tag timeout: 300_000
   test "one client node drives a cycle on every workstation of the cell, and sees them all",
        %{peers: peers} do
     ids = Enum.map(peers, & &1.id)
@@ -68,7 +62,8 @@ defmodule Vws.CellDistributedTest do
 
     for %{id: id, node: node} <- peers, do: assert(node(Cell.whereis(id)) == node)
 
-    {:ok, script} = Script.parse(@cycle)
+    # the shipped machining cycle, all of it, on each workstation at once
+    {:ok, script} = Script.parse_file(Vws.Demo.default_script())
 
     summaries =
       peers
@@ -76,22 +71,27 @@ defmodule Vws.CellDistributedTest do
         Task.async(fn ->
           {:ok, endpoint} = Cell.wc_endpoint(id)
           {:ok, wc} = Client.connect(endpoint, connect_timeout: 10_000)
-          summary = Runner.run(wc, script, poll_interval: 10)
+          summary = Runner.run(wc, script, timeout: 60_000)
           {id, summary, wc}
         end)
       end)
-      |> Task.await_many(30_000)
+      |> Task.await_many(180_000)
 
     for {id, summary, _wc} <- summaries do
       assert summary.result == :completed, "#{id}: #{inspect(summary.stopped)}"
-      assert summary.steps_done == 4
+      assert summary.steps_done == length(script.steps)
     end
 
-    # the commands ran on the workstations' own nodes
+    # the commands ran on the workstations' own nodes, on their own equipment: each GE-2000
+    # machined the part once, and every robot command ended DONE there
+    robot_commands = Enum.count(script.steps, &match?({:commands, [{"R", _} | _]}, &1.op))
+
     for %{id: id, node: node} <- peers do
-      assert :erpc.call(node, Vws.Mailbox, :command_status, [id, :robot]) == {2, :done}
-      assert :erpc.call(node, Vws.Mailbox, :command_status, [id, :gripper]) == {1, :done}
-      assert :erpc.call(node, Vws.Mailbox, :command_status, [id, :fixture]) == {1, :done}
+      ge2000 = :erpc.call(node, Vws.Sim.Floor, :ge2000, [id])
+      assert :erpc.call(node, Vws.Sim.GE2000, :state, [ge2000]).cycles == 1
+
+      assert :erpc.call(node, Vws.Mailbox, :command_status, [id, :robot]) ==
+               {robot_commands, :done}
     end
 
     # the cell view, here and from any peer, lists the three with their state and WC link
