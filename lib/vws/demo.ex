@@ -172,12 +172,21 @@ defmodule Vws.Demo do
   end
 
   defp print_floor(floor, path, script) do
-    IO.puts("VWS demo — workstation #{floor.workstation}, SUN_COMM serves the WC on #{floor.wc}")
+    IO.puts(
+      "VWS demo — workstation #{floor.workstation}, " <>
+        if(floor.lines == [],
+          do: "SUN_COMM serves the WC on #{floor.wc}",
+          else: "the WC reaches SUN_COMM through a faulty line on #{floor.wc}"
+        )
+    )
 
     simulated =
       if floor.simulated == [], do: "nothing yet", else: Enum.join(floor.simulated, ", ")
 
     IO.puts("simulated equipment: #{simulated} (time scale ×#{scale(floor.time_scale)})")
+
+    if floor.lines != [],
+      do: IO.puts("faulty lines (Vws.Sim.Line) on the links: #{Enum.join(floor.lines, ", ")}")
 
     for {partition, device} <- floor.unlinked do
       IO.puts(

@@ -9,6 +9,7 @@ defmodule Mix.Tasks.Vws.Demo do
       mix vws.demo --once                   # exit at the end: status 0 only if the cycle completed
       mix vws.demo --script priv/sims/table1.vws
       mix vws.demo --time-scale 10          # simulated equipment ten times faster
+      mix vws.demo --ber 1e-4 --seed 3      # a noisy line in every link, WC link included
 
   Options:
 
@@ -21,6 +22,9 @@ defmodule Mix.Tasks.Vws.Demo do
     * `--http-port N` — the dashboard and MTConnect agent (`Vws.Web`) on port N (default 4000;
       0 picks a free port)
     * `--http-bind ADDR`, `--http-token TOKEN` — as for `mix vws.serve`
+    * `--ber RATE`, `--seed N` — put a faulty line (`Vws.Sim.Line`) in every link of the floor,
+      the WC's included, flipping each bit with probability RATE, drawn from seed N (default 0):
+      the dialogue shows the resends, the summary counts them
     * `--id ID` — the workstation id (default `VWS-DEMO`)
     * `--verbose` — keep the application's info logs (by default only warnings interleave with
       the dialogue)
@@ -38,6 +42,8 @@ defmodule Mix.Tasks.Vws.Demo do
     http_bind: :string,
     http_token: :string,
     id: :string,
+    ber: :float,
+    seed: :integer,
     verbose: :boolean
   ]
 
@@ -53,8 +59,15 @@ defmodule Mix.Tasks.Vws.Demo do
     Mix.Task.run("app.start")
     unless opts[:verbose], do: Logger.configure(level: :warning)
 
+    lines =
+      case opts[:ber] do
+        nil -> false
+        ber when ber >= 0 and ber <= 1 -> [faults: [ber: ber], seed: opts[:seed] || 0]
+        _ -> Mix.raise("--ber must be between 0 and 1")
+      end
+
     demo_opts =
-      [time_scale: time_scale, wc: "tcp://127.0.0.1:#{opts[:wc_port] || 0}"] ++
+      [time_scale: time_scale, wc: "tcp://127.0.0.1:#{opts[:wc_port] || 0}", lines: lines] ++
         Keyword.take(opts, [:script, :id])
 
     IO.puts("dashboard and MTConnect agent: #{start_web(opts)}")
