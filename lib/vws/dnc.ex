@@ -17,7 +17,9 @@ defmodule Vws.DNC do
 
   A request whose command is `R…` (RNS, RNO, RNL) continues: after our EOT the GE-2000 bids with
   `ENQ DEL`, we answer `DLE 0` and acknowledge its text blocks `DLE 1`, `DLE 0`, … until its
-  `EOT DEL`; `request/4` then returns those blocks.
+  `EOT DEL`; `request/4` then returns those blocks. (Decision: when no bid comes within
+  `reply_timeout`, our EOT may have been lost on the line and the GE-2000 still waits for it: EOT
+  is sent again, at most `max_enqs` times, until `response_timeout`.)
 
     * **Contention**: when our bid meets the peer's ENQ, the `:cec` role yields (answers ACK0,
       receives the peer's transmission, then bids again); the `:ge` role keeps the line.
@@ -87,7 +89,7 @@ defmodule Vws.DNC do
   | `[:vws, :dnc, :connected]` / `:disconnected` | `count` | `link, workstation, role, peer` (+ `reason`) |
   | `[:vws, :dnc, :block_sent]` | `bytes` | `link, workstation, role, block, retransmission` |
   | `[:vws, :dnc, :block_received]` | `bytes` | `link, workstation, role, block` |
-  | `[:vws, :dnc, :retry]` | `count` | `link, workstation, role, kind` (`:nak_received`, `:nak_sent`, `:wack_received`, `:no_reply`, `:lost_reply`, `:duplicate_received`), `block` |
+  | `[:vws, :dnc, :retry]` | `count` | `link, workstation, role, kind` (`:nak_received`, `:nak_sent`, `:wack_received`, `:no_reply`, `:lost_reply`, `:duplicate_received`, `:eot_again`), `block` |
   | `[:vws, :dnc, :transmission]` | `duration` (native), `blocks`, `bytes` | `link, workstation, role, direction, result` (+ `kind`) |
 
   `workstation` is the id in a `Vws.Workstation` name given as `:name` (`Vws.Workstation.id_of/1`), else nil.

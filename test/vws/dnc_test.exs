@@ -283,6 +283,25 @@ defmodule Vws.DNCTest do
       assert Task.await(task) == {:ok, ["ABCD"]}
     end
 
+    test "our EOT after an R command lost on the line: EOT again until the peer bids", ctx do
+      {link, peer} = connected(ctx, reply_timeout: 100, response_timeout: 10_000)
+      task = request(link, @rnl, [])
+      expect(peer, @enq)
+      DNCPeer.send_raw(peer, @ack0)
+      expect(peer, @rnl_bytes)
+      DNCPeer.send_raw(peer, @ack1)
+      # the first EOT is taken as lost: the peer waits; the link sends it again, and again
+      expect(peer, @eot)
+      expect(peer, @eot)
+      expect(peer, @eot)
+      DNCPeer.send_raw(peer, @enq_del)
+      expect(peer, @ack0)
+      DNCPeer.send_raw(peer, text("STATE=IDLE;"))
+      expect(peer, @ack1)
+      DNCPeer.send_raw(peer, @eot_del)
+      assert Task.await(task) == {:ok, ["STATE=IDLE;"]}
+    end
+
     test "a peer that never bids after our R command: :no_response", ctx do
       {link, peer} = connected(ctx, response_timeout: 100)
       task = request(link, @rnl, [])

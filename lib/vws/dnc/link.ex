@@ -59,6 +59,7 @@ defmodule Vws.DNC.Link do
     :tx,
     :rx,
     :line,
+    :turnaround,
     fault: :none,
     connect_failures: 0,
     counters: %{}
@@ -301,16 +302,40 @@ defmodule Vws.DNC.Link do
 
   ## :turnaround — our R command sent and EOT given; waiting for the peer to bid
 
-  def turnaround(:enter, _old, data),
-    do: {:keep_state_and_data, [{:state_timeout, data.limits.response_timeout, :response}]}
+  # No bid within `reply_timeout`: our EOT may have been lost on the line, and the peer waits
+  # for it to take the line. EOT again (at most `max_enqs` times; an EOT turns nothing round
+  # twice for a peer that did get the first), until `response_timeout` from the first.
+  def turnaround(:enter, _old, data) do
+    deadline = now_ms() + data.limits.response_timeout
+    data = %{data | turnaround: %{deadline: deadline, eots: 0}}
+    {:keep_state, data, [{:state_timeout, turnaround_wait(data), :response}]}
+  end
 
-  def turnaround(:internal, {:frame, :enq}, data), do: start_receiving(data, :reply)
+  def turnaround(:internal, {:frame, :enq}, data),
+    do: start_receiving(%{data | turnaround: nil}, :reply)
 
-  def turnaround(:state_timeout, :response, data) do
-    {:next_state, :idle, fail(data, :no_response, nil, nil)}
+  def turnaround(:state_timeout, :response, %{turnaround: t} = data) do
+    cond do
+      now_ms() >= t.deadline ->
+        {:next_state, :idle, fail(%{data | turnaround: nil}, :no_response, nil, nil)}
+
+      t.eots < data.limits.max_enqs ->
+        data = send_control(data, :eot)
+        emit(data, :retry, %{kind: :eot_again, block: nil})
+        data = %{data | turnaround: %{t | eots: t.eots + 1}}
+        {:keep_state, data, [{:state_timeout, turnaround_wait(data), :response}]}
+
+      true ->
+        {:keep_state_and_data, [{:state_timeout, turnaround_wait(data), :response}]}
+    end
   end
 
   def turnaround(type, content, data), do: common(type, content, :turnaround, data)
+
+  defp turnaround_wait(%{turnaround: t, limits: limits}),
+    do: max(min(limits.reply_timeout, t.deadline - now_ms()), 0)
+
+  defp now_ms, do: System.monotonic_time(:millisecond)
 
   ## :receiving — the peer is master; we acknowledge its blocks ACK1, ACK0, …
   #

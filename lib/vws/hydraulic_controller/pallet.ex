@@ -5,8 +5,9 @@ defmodule Vws.HydraulicController.Pallet do
   checked on its X/Y microswitches and clamp-force gauges (channel map: the `daq2` unit of
   `priv/sims/plant.exs`, read with `Vws.DAQ`).
 
-  Each operation is a list of steps run in order, every one confirmed by the sensors before the
-  next starts (seed §6, hardware handshaking); the first step that is not confirmed within
+  Each operation is a list of steps run in order, every one confirmed by the sensors — on two
+  readings in a row, as one may be damaged on the line — before the next starts (seed §6,
+  hardware handshaking); the first step that is not confirmed within
   `:step_timeout_ms` ends it with what was measured:
 
     * `clamp_pallet/1` — X ram out, until the pallet is against its X stop
@@ -21,8 +22,9 @@ defmodule Vws.HydraulicController.Pallet do
 
   A step that fails leaves the valves as they are, so `PALLET?` shows the real state and the
   CEC decides the recovery (usually RELEASE_PALLET). Relays are confirmed with `ROUT:CLOS?`
-  (`DAQ #2 RELAY 203 DID NOT CLOSE`); a DAQ #2 that does not answer ends the operation at once
-  (`DAQ #2 NOT ANSWERING (NO ANSWER IN 500 MS)`); a sensor that reads open circuit is waited
+  and set again (twice at most) when they do not read back (`DAQ #2 RELAY 203 DID NOT CLOSE`);
+  a DAQ #2 reading that cannot be had is asked again until the step's time is up, then it is the
+  reason (`DAQ #2 NOT ANSWERING (NO ANSWER IN 500 MS)`); a sensor that reads open circuit is waited
   for and reported (`CLAMP 1 FORCE GAUGE OPEN CIRCUIT (DAQ #2 CH 103)`).
 
   The functions block (each step polls DAQ #2 every `:poll_ms`): the controller runs them in a
@@ -163,12 +165,17 @@ defmodule Vws.HydraulicController.Pallet do
     end)
   end
 
-  defp actuate(p, actions) do
+  # A relay that does not read back as commanded is set and read again, at most twice (the
+  # command or its answer may have been damaged on the line; setting a relay again is harmless).
+  defp actuate(p, actions, tries \\ 3) do
     with {:ok, commands, expected} <- actuation(p, actions),
          {:ok, results} <- transaction(p, commands) do
       case DAQ.check_relays(expected, List.last(results)) do
         :ok ->
           :ok
+
+        {:error, _} when tries > 1 ->
+          actuate(p, actions, tries - 1)
 
         {:error, [ch | _]} ->
           {_, want} = List.keyfind(expected, ch, 0)
@@ -196,25 +203,35 @@ defmodule Vws.HydraulicController.Pallet do
 
   # Polls DAQ #2 until every check holds; at the deadline, the first one that did not is the
   # reason, with what it read.
+  # A step is confirmed by two readings in a row (one damaged on the line confirms nothing); a
+  # reading that cannot be had is tried again until the deadline, then it is the reason.
   defp await(p, checks) do
     deadline = System.monotonic_time(:millisecond) + p.step_timeout_ms
-    do_await(p, checks, deadline)
+    do_await(p, checks, deadline, false)
   end
 
-  defp do_await(p, checks, deadline) do
-    with {:ok, r} <- readings(p) do
-      case Enum.find_value(checks, &failing(p, &1, r)) do
-        nil ->
-          :ok
-
-        why ->
-          if System.monotonic_time(:millisecond) >= deadline do
-            {:error, why}
-          else
-            Process.sleep(p.poll_ms)
-            do_await(p, checks, deadline)
-          end
+  defp do_await(p, checks, deadline, held_once?) do
+    verdict =
+      case readings(p) do
+        {:ok, r} -> Enum.find_value(checks, &failing(p, &1, r))
+        {:error, why} -> {:unread, why}
       end
+
+    cond do
+      verdict == nil and held_once? ->
+        :ok
+
+      verdict == nil ->
+        # held: one more reading to confirm it, the deadline notwithstanding
+        Process.sleep(p.poll_ms)
+        do_await(p, checks, deadline, true)
+
+      System.monotonic_time(:millisecond) >= deadline ->
+        {:error, with({:unread, why} <- verdict, do: why)}
+
+      true ->
+        Process.sleep(p.poll_ms)
+        do_await(p, checks, deadline, false)
     end
   end
 

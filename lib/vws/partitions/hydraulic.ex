@@ -121,11 +121,26 @@ defmodule Vws.Partitions.Hydraulic do
     end
   end
 
-  # Positive verification (seed §6): the pallet as the controller reads it after DONE.
-  defp confirm(ws, link, command, timeout) do
+  # Positive verification (seed §6): the pallet as the controller reads it after DONE — the
+  # same verdict twice in a row (at most four readings), so that one reading damaged on a line
+  # (a switch bit, a digit) decides nothing either way.
+  defp confirm(ws, link, command, timeout), do: confirm(ws, link, command, timeout, 4, nil)
+
+  defp confirm(ws, link, command, timeout, reads, previous) do
+    read = refresh_pallet(ws, link, timeout)
+
+    if reads > 1 and not same_verdict?(read, previous),
+      do: confirm(ws, link, command, timeout, reads - 1, read),
+      else: verdict(read, command)
+  end
+
+  defp same_verdict?({:ok, %{clamped: a}}, {:ok, %{clamped: b}}), do: a == b
+  defp same_verdict?(_read, _previous), do: false
+
+  defp verdict(read, command) do
     want = command == :clamp_pallet
 
-    case refresh_pallet(ws, link, timeout) do
+    case read do
       {:ok, %{clamped: ^want}} ->
         :done
 

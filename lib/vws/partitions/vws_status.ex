@@ -143,7 +143,9 @@ defmodule Vws.Partitions.VwsStatus do
   (or nil) if it takes two arguments, to see whether something still moves — and returns `:ok`,
   `{:wait, what_was_read}` (not yet), or `{:fail, what_was_read}` (it never will: stop now).
 
-  Returns `:ok`, or `{:error, what_was_read}`: at a `:fail`, or after `timeout_ms` with the last
+  `:ok` counts when two fresh readings in a row give it (a reading damaged on the line must not
+  confirm anything). Returns `:ok`, or `{:error, what_was_read}`: at a `:fail`, or after
+  `timeout_ms` with the last
   fresh reading's `what` — or, when no fresh reading came at all, the stale reason or
   `DAQ #1 NOT ANSWERING (NO FRESH READING IN n MS)`.
   """
@@ -153,7 +155,8 @@ defmodule Vws.Partitions.VwsStatus do
   def await(ws, since, timeout_ms, check) do
     check = if is_function(check, 1), do: fn r, _prev -> check.(r) end, else: check
     deadline = System.monotonic_time(:millisecond) + timeout_ms
-    do_await(ws, since, deadline, timeout_ms, check, %{prev: nil, read: nil, no_data: nil})
+    acc = %{prev: nil, read: nil, no_data: nil, confirming: false}
+    do_await(ws, since, deadline, timeout_ms, check, acc)
   end
 
   defp do_await(ws, since, deadline, timeout_ms, check, acc) do
@@ -164,8 +167,10 @@ defmodule Vws.Partitions.VwsStatus do
             {:wait, acc}
           else
             case check.(r, acc.prev) do
-              :ok -> {:ok, acc}
-              {:wait, what} -> {:wait, %{acc | prev: r, read: what}}
+              # one reading may have been damaged on the line: the next fresh one must agree
+              :ok when acc.confirming -> {:ok, acc}
+              :ok -> {:wait, %{acc | prev: r, confirming: true}}
+              {:wait, what} -> {:wait, %{acc | prev: r, read: what, confirming: false}}
               {:fail, what} -> {{:fail, what}, acc}
             end
           end
