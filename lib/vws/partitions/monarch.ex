@@ -170,21 +170,21 @@ defmodule Vws.Partitions.Monarch do
 
   ## Steps
 
+  # The button was pressed: the machine's reports are read until one says ACTIVE. One that
+  # cannot be read is read again while there is time (the table stays MONARCH's if none can).
   defp await_active(ctx, deadline) do
     case status_report(ctx) do
       {:ok, %{state: :active}} ->
         :done
 
-      {:ok, report} ->
+      other ->
         if now() >= deadline do
-          {:error, "MACHINE DID NOT START (ALARM #{report.alarm})"}
+          with {:ok, report} <- other,
+               do: {:error, "MACHINE DID NOT START (ALARM #{report.alarm})"}
         else
           Process.sleep(Keyword.get(ctx.options, :poll_interval, 100))
           await_active(ctx, deadline)
         end
-
-      error ->
-        error
     end
   end
 
@@ -214,8 +214,17 @@ defmodule Vws.Partitions.Monarch do
     status_report(%{workstation: ws, link: link, options: options})
   end
 
-  # RNL → the report; every report read refreshes the MONARCH device status.
-  defp status_report(ctx) do
+  # RNL → the report; every report read refreshes the MONARCH device status. A report only
+  # reads, so a request the line broke off (the link's own retries used up) is made again, at
+  # most twice more.
+  defp status_report(ctx, tries \\ 3) do
+    case read_status_report(ctx) do
+      {:error, _} when tries > 1 -> status_report(ctx, tries - 1)
+      result -> result
+    end
+  end
+
+  defp read_status_report(ctx) do
     with {:ok, blocks} <- request(ctx, :receive, :status, "", []) do
       case Report.parse_status(IO.iodata_to_binary(blocks)) do
         {:ok, report} ->
