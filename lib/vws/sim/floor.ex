@@ -62,7 +62,8 @@ defmodule Vws.Sim.Floor do
     * `:hydraulic` — `true`, or `Vws.HydraulicController.start_link/1` options, to run the
       hydraulic controller on DAQ #2 (default `false`);
     * `:ge2000` — `true` or `Vws.Sim.GE2000` options (default `cycle_time` 5 s / time scale,
-      at least 1 s, so that MONARCH sees the machine run after it has let go of the button);
+      at least 4 s, so that MONARCH sees the machine run after it has let go of the button, even
+      when a DNC reply is lost on the way);
     * `:robot` — `true` or `Vws.Sim.VAL2` options (default `time_scale` 1 / time scale);
     * `:mhs` — `true` or `Vws.Sim.MHS` options;
     * `:lines` — faulty cables (`Vws.Sim.Line`) on every link the floor's equipment is reached
@@ -319,8 +320,10 @@ defmodule Vws.Sim.Floor do
 
   defp ge2000_child(ws, spec, scale) do
     plant = plant(ws)
-    # at least a second: MONARCH looks for the cycle after letting go of the button (200 ms)
-    cycle = if scale > 0, do: max(round(5_000 / scale), 1_000), else: 5_000
+    # at least 4 s, however fast the floor runs: MONARCH looks for the cycle after letting go of
+    # the button (200 ms) by reading the machine's status over the DNC link, and one reply lost
+    # on a noisy line costs it 3 s (`reply_timeout`) — a shorter cycle could be over unseen
+    cycle = if scale > 0, do: max(round(5_000 / scale), 4_000), else: 5_000
 
     defaults = [
       id: GE2000,
