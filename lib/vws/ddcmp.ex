@@ -132,6 +132,7 @@ defmodule Vws.DDCMP do
   | `:receive_error` | `count` | `reason`, `num` |
   | `:state_change` | `count` | `from, to` |
   | `:link_down` | `count` | `reason` |
+  | `:connect_failed` | `count`, `retry_in` (ms to the next attempt) | `endpoint`, `reason` (`:endpoint` links) |
   """
 
   alias Vws.DDCMP.Link

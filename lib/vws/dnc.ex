@@ -85,6 +85,7 @@ defmodule Vws.DNC do
   | event | measurements | metadata |
   |-------|--------------|----------|
   | `[:vws, :dnc, :connected]` / `:disconnected` | `count` | `link, workstation, role, peer` (+ `reason`) |
+  | `[:vws, :dnc, :connect_failed]` | `count`, `retry_in` (ms to the next attempt) | `link, workstation, role, endpoint, reason` |
   | `[:vws, :dnc, :block_sent]` | `bytes` | `link, workstation, role, block, retransmission` |
   | `[:vws, :dnc, :block_received]` | `bytes` | `link, workstation, role, block` |
   | `[:vws, :dnc, :retry]` | `count` | `link, workstation, role, kind` (`:nak_received`, `:nak_sent`, `:wack_received`, `:no_reply`, `:lost_reply`, `:duplicate_received`), `block` |

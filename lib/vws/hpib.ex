@@ -46,6 +46,7 @@ defmodule Vws.HPIB do
   |-------|--------------|----------|
   | `[:vws, :hpib, :connected]`    | `count` | `bus, address, endpoint` |
   | `[:vws, :hpib, :disconnected]` | `count` | `bus, address, endpoint, reason` |
+  | `[:vws, :hpib, :connect_failed]` | `count`, `retry_in` (ms to the next attempt) | `bus, address, endpoint, reason` |
   | `[:vws, :hpib, :timeout]`      | `count` | `bus, address, endpoint, commands` |
   """
 

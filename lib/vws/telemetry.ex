@@ -37,7 +37,9 @@ defmodule Vws.Telemetry do
   | `[:vws, :ddcmp, :receive_error]` | `count` | `link, workstation, reason, num` |
   | `[:vws, :ddcmp, :state_change]` | `count` | `link, workstation, from, to` |
   | `[:vws, :ddcmp, :link_down]` | `count` | `link, workstation, reason` |
+  | `[:vws, :ddcmp, :connect_failed]` | `count, retry_in` (ms) | `link, workstation, endpoint, reason` |
   | `[:vws, :dnc, :connected]` / `:disconnected` | `count` | `link, workstation, role, peer` (+ `reason`) |
+  | `[:vws, :dnc, :connect_failed]` | `count, retry_in` (ms) | `link, workstation, role, endpoint, reason` |
   | `[:vws, :dnc, :block_sent]` | `bytes` | `link, workstation, role, block, retransmission` |
   | `[:vws, :dnc, :block_received]` | `bytes` | `link, workstation, role, block` |
   | `[:vws, :dnc, :retry]` | `count` | `link, workstation, role, kind, block` |
@@ -45,6 +47,7 @@ defmodule Vws.Telemetry do
   | `[:vws, :web, :request]` | `duration, bytes` | `method, path, status, port` |
   | `[:vws, :hpib, :connected]` / `:disconnected` | `count` | `bus, address, endpoint` (+ `reason`) |
   | `[:vws, :hpib, :timeout]` | `count` | `bus, address, endpoint, commands` |
+  | `[:vws, :hpib, :connect_failed]` | `count, retry_in` (ms) | `bus, address, endpoint, reason` |
   | `[:vws, :vws_status, :poll]` | `started_at, lateness, duration, handling` (µs) | `workstation, seq, result` |
   | `[:vws, :vws_status, :missed]` | `count` | `workstation, reason` |
   | `[:vws, :vws_status, :stale]` | `count` | `workstation, reason` |
@@ -87,8 +90,10 @@ defmodule Vws.Telemetry do
     [:vws, :ddcmp, :receive_error],
     [:vws, :ddcmp, :state_change],
     [:vws, :ddcmp, :link_down],
+    [:vws, :ddcmp, :connect_failed],
     [:vws, :dnc, :connected],
     [:vws, :dnc, :disconnected],
+    [:vws, :dnc, :connect_failed],
     [:vws, :dnc, :block_sent],
     [:vws, :dnc, :block_received],
     [:vws, :dnc, :retry],
@@ -96,6 +101,7 @@ defmodule Vws.Telemetry do
     [:vws, :hpib, :connected],
     [:vws, :hpib, :disconnected],
     [:vws, :hpib, :timeout],
+    [:vws, :hpib, :connect_failed],
     [:vws, :vws_status, :poll],
     [:vws, :vws_status, :missed],
     [:vws, :vws_status, :stale],

@@ -149,6 +149,11 @@ defmodule Vws.DDCMP.Link do
         {min, max} = data.backoff
         delay = data.reconnect_delay || min
 
+        telemetry(data, :connect_failed, %{count: 1, retry_in: delay}, %{
+          endpoint: to_string(data.endpoint),
+          reason: reason
+        })
+
         {:keep_state,
          %__MODULE__{data | last_error: {:connect, reason}, reconnect_delay: min(delay * 2, max)},
          [{:state_timeout, delay, :connect}]}

@@ -162,6 +162,12 @@ defmodule Vws.DNC.Link do
         Logger.log(level, "DNC link cannot reach #{data.endpoint}: #{inspect(reason)}; retrying")
         backoff = min(max(data.backoff * 2, data.limits.backoff_min), data.limits.backoff_max)
         data = %{data | backoff: backoff, connect_failures: failures}
+
+        emit(data, :connect_failed, %{endpoint: to_string(data.endpoint), reason: reason}, %{
+          count: 1,
+          retry_in: backoff
+        })
+
         {:keep_state, data, [{:state_timeout, backoff, :connect}]}
     end
   end

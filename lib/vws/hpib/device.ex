@@ -85,6 +85,9 @@ defmodule Vws.HPIB.Device do
           )
         end
 
+        # the next attempt comes after data.backoff (see disconnected/3)
+        telemetry(:connect_failed, data, %{reason: reason}, %{retry_in: data.backoff})
+
         {:next_state, :disconnected,
          %{data | was_connected: false, last_error: {:connect, reason}}}
     end
@@ -326,10 +329,10 @@ defmodule Vws.HPIB.Device do
 
   defp count_request(data), do: %{data | requests: data.requests + 1}
 
-  defp telemetry(what, data, extra) do
+  defp telemetry(what, data, extra, measurements \\ %{}) do
     Vws.Telemetry.execute(
       [:vws, :hpib, what],
-      %{count: 1},
+      Map.put(measurements, :count, 1),
       Map.merge(%{bus: data.bus, address: data.address, endpoint: endpoint(data)}, extra)
     )
   end
