@@ -47,7 +47,8 @@ defmodule Vws.DNC do
 
     * `:name` — a registered name (`{:via, Registry, …}` welcome)
     * `:endpoint` — connect to this endpoint (`tcp://h:p`, `tty:/dev/x?baud=4800`, `loopback:n`)
-      and reconnect with backoff (`backoff_min` 100 ms doubling to `backoff_max` 5 000 ms,
+      and reconnect with backoff (`backoff_min` 100 ms doubling to `backoff_max` 5 000 ms, back
+      to the minimum only once the peer has sent a frame on a connection — `Vws.Backoff`;
       `connect_timeout` 2 000 ms) whenever the peer goes away. Without it the link waits to be
       given a connection with `attach/2` (a listener's accepted connections, say).
     * `:conn` — an open `Vws.Transport` connection of the caller's, handed to the link at start

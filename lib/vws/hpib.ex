@@ -76,7 +76,8 @@ defmodule Vws.HPIB do
     * `:endpoint` — where the device is reached (`Vws.Endpoint` string or struct) — required;
     * `:timeout` — default request timeout in ms (1000);
     * `:connect_timeout` — ms allowed to open the endpoint (1000);
-    * `:backoff` — `{first_ms, max_ms}` between reconnection attempts, doubling (`{50, 2000}`).
+    * `:backoff` — `{first_ms, max_ms}` between reconnection attempts, doubling (`{50, 2000}`),
+      back to `first_ms` only once the device has answered on a connection (`Vws.Backoff`).
   """
   @spec start_link(keyword) :: :gen_statem.start_ret()
   def start_link(opts) do

@@ -6,6 +6,10 @@ defmodule Vws.HPIB.Device do
   #       ▲  └─failed─▶ disconnected ◀──timeout / closed──────┘ ──┘
   #       └──backoff───────┘
   #
+  # The back-off (`Vws.Backoff`) doubles with every wait in `disconnected` and is reset only by a
+  # line from the device: a connection that is dropped before the device said anything counts
+  # as a failed attempt. After a request's timeout the device is dialled again at once.
+  #
   # `connecting` opens the endpoint (requests are postponed until it knows); `disconnected`
   # answers requests :not_connected at once and retries after the back-off; `ready` sends a
   # request and goes `busy` until every query of it is answered or its deadline passes. Requests
@@ -38,9 +42,9 @@ defmodule Vws.HPIB.Device do
       endpoint: endpoint,
       timeout: Keyword.get(opts, :timeout, @default_timeout),
       connect_timeout: Keyword.get(opts, :connect_timeout, @connect_timeout),
-      backoff_first: first,
-      backoff_max: max,
-      backoff: first,
+      backoff: Vws.Backoff.new(first, max),
+      # dial again without waiting (after a timeout: the device may only have been slow)
+      at_once: false,
       conn: nil,
       decoder: SCPI.new(),
       current: nil,
@@ -72,7 +76,6 @@ defmodule Vws.HPIB.Device do
            data
            | conn: conn,
              decoder: SCPI.new(),
-             backoff: data.backoff_first,
              was_connected: true,
              connects: data.connects + 1,
              last_error: nil
@@ -85,8 +88,10 @@ defmodule Vws.HPIB.Device do
           )
         end
 
-        # the next attempt comes after data.backoff (see disconnected/3)
-        telemetry(:connect_failed, data, %{reason: reason}, %{retry_in: data.backoff})
+        # the next attempt comes after the back-off's next wait (see disconnected/3)
+        telemetry(:connect_failed, data, %{reason: reason}, %{
+          retry_in: Vws.Backoff.peek(data.backoff)
+        })
 
         {:next_state, :disconnected,
          %{data | was_connected: false, last_error: {:connect, reason}}}
@@ -100,10 +105,12 @@ defmodule Vws.HPIB.Device do
 
   ## disconnected
 
+  def disconnected(:enter, _old, %{at_once: true} = data),
+    do: {:keep_state, %{data | at_once: false}, [{:state_timeout, 0, :retry}]}
+
   def disconnected(:enter, _old, data) do
-    backoff = data.backoff
-    next = backoff |> Kernel.*(2) |> max(data.backoff_first) |> min(data.backoff_max)
-    {:keep_state, %{data | backoff: next}, [{:state_timeout, backoff, :retry}]}
+    {wait, backoff} = Vws.Backoff.next(data.backoff)
+    {:keep_state, %{data | backoff: backoff}, [{:state_timeout, wait, :retry}]}
   end
 
   def disconnected(:state_timeout, :retry, data), do: {:next_state, :connecting, data}
@@ -142,7 +149,7 @@ defmodule Vws.HPIB.Device do
     telemetry(:timeout, data, %{commands: commands})
     data = %{data | current: nil, timeouts: data.timeouts + 1}
     # reconnect at once: the device may only have been slow
-    lose_connection(%{data | backoff: 0}, :timeout, [{:reply, from, {:error, error}}])
+    lose_connection(%{data | at_once: true}, :timeout, [{:reply, from, {:error, error}}])
   end
 
   def busy(:info, msg, data), do: transport_message(msg, data)
@@ -206,6 +213,8 @@ defmodule Vws.HPIB.Device do
       {:data, bytes} ->
         Transport.activate(data.conn)
         {lines, decoder} = SCPI.feed(data.decoder, bytes)
+        # the device answers: this connection works, a later loss is dialled again soon
+        data = if lines == [], do: data, else: %{data | backoff: Vws.Backoff.reset(data.backoff)}
         lines |> Enum.reduce(%{data | decoder: decoder}, &line/2) |> answered()
 
       :closed ->
