@@ -228,7 +228,7 @@ defmodule Vws.Sim.VAL2 do
         Logger.info("VAL II simulator: a new connection takes over")
         old = s.link
         Process.unlink(old)
-        Vws.DDCMP.stop(old)
+        stop_link(old)
         %{s | link: nil, up: false}
       else
         s
@@ -318,6 +318,14 @@ defmodule Vws.Sim.VAL2 do
     :ok
   end
 
+  # The old link may have ended by itself already — its connection closed when the CEC's
+  # went away — with its exit still on the way to us: stopping it is then nothing to do.
+  defp stop_link(link) do
+    Vws.DDCMP.stop(link)
+  catch
+    :exit, _ -> :ok
+  end
+
   defp start_link_on(s, transport) do
     opts = s.ddcmp |> Keyword.merge(transport) |> Keyword.merge(owner: self(), role: :passive)
     {:ok, link} = Vws.DDCMP.start_link(opts)
@@ -340,6 +348,7 @@ defmodule Vws.Sim.VAL2 do
     case s.waiting[@lun_monitor] do
       {:input, ^q} ->
         s = %{s | waiting: Map.put(s.waiting, @lun_monitor, nil), commands: [m.text | s.commands]}
+
         monitor_command(s, m.text)
 
       _ ->
