@@ -499,7 +499,7 @@ defmodule Vws.Sim.VAL2 do
         {q, sent} = number(s, lun, qualifier)
         {:ok, message} = Message.new(lun, function, q, text)
 
-        case Vws.DDCMP.send_data(s.link, Message.encode(message), session: s.link_session) do
+        case send_data(s.link, Message.encode(message), s.link_session) do
           :ok ->
             wait = if function == :read, do: :input, else: :reply
             q = message.qualifier
@@ -521,6 +521,14 @@ defmodule Vws.Sim.VAL2 do
   end
 
   defp pump(s, _lun), do: s
+
+  # A link that has ended by itself (its connection closed) with its exit still on the way to
+  # us is not running either.
+  defp send_data(link, bytes, session) do
+    Vws.DDCMP.send_data(link, bytes, session: session)
+  catch
+    :exit, _ -> {:error, :not_running}
+  end
 
   defp violation(s), do: %{s | violations: s.violations + 1}
 
