@@ -54,9 +54,15 @@ defmodule Vws.Telemetry do
   | `[:vws, :interlock, :acquired]` | `wait_ms, tries` | `workstation, volume, holder, reason` |
   | `[:vws, :interlock, :refused]` | `wait_ms, tries` | `workstation, volume, holder, reason, why` |
   | `[:vws, :interlock, :released]` | `count` | `workstation, volume, holder, reason` (`:all` or one) |
+  | `[:vws, :sim, :plant, :actuator]` | `count` | `workstation, daq, channel, signal, action` (`:close`/`:open`): every relay a simulated DAQ wrote |
+  | `[:vws, :sim, :val2, :command]` | `count` | `workstation, text`: every monitor command the simulated VAL II obeyed |
+  | `[:vws, :sim, :ge2000, :command]` | `bytes` | `workstation, operation, name, alarm`: every S command the simulated GE-2000 took |
+  | `[:vws, :sim, :ge2000, :cycle_start]` | `count` | `workstation, program`: every cycle the simulated GE-2000 started |
 
   `workstation` is the id of the workstation the event belongs to (nil for a link or simulator
-  that serves none). `attach_default_handler/0` logs all of them with `Logger`.
+  that serves none). The `[:vws, :sim, …]` events come from the simulators: what the simulated
+  equipment physically did, for tests that count executions. `attach_default_handler/0` logs
+  all of them with `Logger`.
   """
 
   require Logger
@@ -108,7 +114,11 @@ defmodule Vws.Telemetry do
     [:vws, :web, :request],
     [:vws, :interlock, :acquired],
     [:vws, :interlock, :refused],
-    [:vws, :interlock, :released]
+    [:vws, :interlock, :released],
+    [:vws, :sim, :plant, :actuator],
+    [:vws, :sim, :val2, :command],
+    [:vws, :sim, :ge2000, :command],
+    [:vws, :sim, :ge2000, :cycle_start]
   ]
 
   @doc "Every event name listed in the moduledoc."

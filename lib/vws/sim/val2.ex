@@ -154,6 +154,7 @@ defmodule Vws.Sim.VAL2 do
       motion: nil,
       fault: nil,
       commands: [],
+      workstation: Vws.Workstation.id_of(Keyword.get(opts, :name)),
       violations: 0,
       restarts: 0
     }
@@ -348,6 +349,11 @@ defmodule Vws.Sim.VAL2 do
     case s.waiting[@lun_monitor] do
       {:input, ^q} ->
         s = %{s | waiting: Map.put(s.waiting, @lun_monitor, nil), commands: [m.text | s.commands]}
+
+        Vws.Telemetry.execute([:vws, :sim, :val2, :command], %{count: 1}, %{
+          workstation: s.workstation,
+          text: m.text
+        })
 
         monitor_command(s, m.text)
 
