@@ -70,7 +70,9 @@ defmodule Vws.DDCMP do
       longer received messages are NAKed (reason 16);
     * `:name` — registers the link (`atom`, `{:global, term}` or `{:via, module, term}`);
     * `:workstation` — the id of the workstation the link serves, for telemetry metadata;
-    * `:backoff` — `{min, max}` reconnect delay for `:endpoint`, ms.
+    * `:backoff` — `{min, max}` reconnect delay for `:endpoint`, ms, doubling with every wait and
+      back to `min` only once the link has run (`Vws.Backoff`): a peer that accepts and drops
+      the connection before start-up completes is dialled less and less often.
 
   ## States (DDCMP V4.1 §5)
 
@@ -132,6 +134,7 @@ defmodule Vws.DDCMP do
   | `:receive_error` | `count` | `reason`, `num` |
   | `:state_change` | `count` | `from, to` |
   | `:link_down` | `count` | `reason` |
+  | `:connect_failed` | `count`, `retry_in` (ms to the next attempt) | `endpoint`, `reason` (`:endpoint` links) |
   """
 
   alias Vws.DDCMP.Link

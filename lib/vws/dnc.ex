@@ -49,7 +49,8 @@ defmodule Vws.DNC do
 
     * `:name` — a registered name (`{:via, Registry, …}` welcome)
     * `:endpoint` — connect to this endpoint (`tcp://h:p`, `tty:/dev/x?baud=4800`, `loopback:n`)
-      and reconnect with backoff (`backoff_min` 100 ms doubling to `backoff_max` 5 000 ms,
+      and reconnect with backoff (`backoff_min` 100 ms doubling to `backoff_max` 5 000 ms, back
+      to the minimum only once the peer has sent a frame on a connection — `Vws.Backoff`;
       `connect_timeout` 2 000 ms) whenever the peer goes away. Without it the link waits to be
       given a connection with `attach/2` (a listener's accepted connections, say).
     * `:conn` — an open `Vws.Transport` connection of the caller's, handed to the link at start
@@ -87,6 +88,7 @@ defmodule Vws.DNC do
   | event | measurements | metadata |
   |-------|--------------|----------|
   | `[:vws, :dnc, :connected]` / `:disconnected` | `count` | `link, workstation, role, peer` (+ `reason`) |
+  | `[:vws, :dnc, :connect_failed]` | `count`, `retry_in` (ms to the next attempt) | `link, workstation, role, endpoint, reason` |
   | `[:vws, :dnc, :block_sent]` | `bytes` | `link, workstation, role, block, retransmission` |
   | `[:vws, :dnc, :block_received]` | `bytes` | `link, workstation, role, block` |
   | `[:vws, :dnc, :retry]` | `count` | `link, workstation, role, kind` (`:nak_received`, `:nak_sent`, `:wack_received`, `:no_reply`, `:lost_reply`, `:duplicate_received`, `:eot_again`), `block` |

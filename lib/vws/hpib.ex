@@ -56,6 +56,7 @@ defmodule Vws.HPIB do
   |-------|--------------|----------|
   | `[:vws, :hpib, :connected]`    | `count` | `bus, address, endpoint` |
   | `[:vws, :hpib, :disconnected]` | `count` | `bus, address, endpoint, reason` |
+  | `[:vws, :hpib, :connect_failed]` | `count`, `retry_in` (ms to the next attempt) | `bus, address, endpoint, reason` |
   | `[:vws, :hpib, :timeout]`      | `count` | `bus, address, endpoint, commands` |
   | `[:vws, :hpib, :retry]`        | `count` | `bus, address, endpoint, commands, reason, try` |
   """
@@ -86,7 +87,8 @@ defmodule Vws.HPIB do
     * `:endpoint` — where the device is reached (`Vws.Endpoint` string or struct) — required;
     * `:timeout` — default request timeout in ms (1000);
     * `:connect_timeout` — ms allowed to open the endpoint (1000);
-    * `:backoff` — `{first_ms, max_ms}` between reconnection attempts, doubling (`{50, 2000}`);
+    * `:backoff` — `{first_ms, max_ms}` between reconnection attempts, doubling (`{50, 2000}`),
+      back to `first_ms` only once the device has answered on a connection (`Vws.Backoff`);
     * `:retries` — how many times a repeatable request is tried again (2).
   """
   @spec start_link(keyword) :: :gen_statem.start_ret()

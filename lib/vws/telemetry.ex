@@ -37,7 +37,9 @@ defmodule Vws.Telemetry do
   | `[:vws, :ddcmp, :receive_error]` | `count` | `link, workstation, reason, num` |
   | `[:vws, :ddcmp, :state_change]` | `count` | `link, workstation, from, to` |
   | `[:vws, :ddcmp, :link_down]` | `count` | `link, workstation, reason` |
+  | `[:vws, :ddcmp, :connect_failed]` | `count, retry_in` (ms) | `link, workstation, endpoint, reason` |
   | `[:vws, :dnc, :connected]` / `:disconnected` | `count` | `link, workstation, role, peer` (+ `reason`) |
+  | `[:vws, :dnc, :connect_failed]` | `count, retry_in` (ms) | `link, workstation, role, endpoint, reason` |
   | `[:vws, :dnc, :block_sent]` | `bytes` | `link, workstation, role, block, retransmission` |
   | `[:vws, :dnc, :block_received]` | `bytes` | `link, workstation, role, block` |
   | `[:vws, :dnc, :retry]` | `count` | `link, workstation, role, kind, block` |
@@ -46,6 +48,7 @@ defmodule Vws.Telemetry do
   | `[:vws, :hpib, :connected]` / `:disconnected` | `count` | `bus, address, endpoint` (+ `reason`) |
   | `[:vws, :hpib, :timeout]` | `count` | `bus, address, endpoint, commands` |
   | `[:vws, :hpib, :retry]` | `count` | `bus, address, endpoint, commands, reason, try` |
+  | `[:vws, :hpib, :connect_failed]` | `count, retry_in` (ms) | `bus, address, endpoint, reason` |
   | `[:vws, :vws_status, :poll]` | `started_at, lateness, duration, handling` (µs) | `workstation, seq, result` |
   | `[:vws, :vws_status, :missed]` | `count` | `workstation, reason` |
   | `[:vws, :vws_status, :stale]` | `count` | `workstation, reason` |
@@ -53,9 +56,15 @@ defmodule Vws.Telemetry do
   | `[:vws, :interlock, :acquired]` | `wait_ms, tries` | `workstation, volume, holder, reason` |
   | `[:vws, :interlock, :refused]` | `wait_ms, tries` | `workstation, volume, holder, reason, why` |
   | `[:vws, :interlock, :released]` | `count` | `workstation, volume, holder, reason` (`:all` or one) |
+  | `[:vws, :sim, :plant, :actuator]` | `count` | `workstation, daq, channel, signal, action` (`:close`/`:open`): every relay a simulated DAQ wrote |
+  | `[:vws, :sim, :val2, :command]` | `count` | `workstation, text`: every monitor command the simulated VAL II obeyed |
+  | `[:vws, :sim, :ge2000, :command]` | `bytes` | `workstation, operation, name, alarm`: every S command the simulated GE-2000 took |
+  | `[:vws, :sim, :ge2000, :cycle_start]` | `count` | `workstation, program`: every cycle the simulated GE-2000 started |
 
   `workstation` is the id of the workstation the event belongs to (nil for a link or simulator
-  that serves none). `attach_default_handler/0` logs all of them with `Logger`.
+  that serves none). The `[:vws, :sim, …]` events come from the simulators: what the simulated
+  equipment physically did, for tests that count executions. `attach_default_handler/0` logs
+  all of them with `Logger`.
   """
 
   require Logger
@@ -89,8 +98,10 @@ defmodule Vws.Telemetry do
     [:vws, :ddcmp, :receive_error],
     [:vws, :ddcmp, :state_change],
     [:vws, :ddcmp, :link_down],
+    [:vws, :ddcmp, :connect_failed],
     [:vws, :dnc, :connected],
     [:vws, :dnc, :disconnected],
+    [:vws, :dnc, :connect_failed],
     [:vws, :dnc, :block_sent],
     [:vws, :dnc, :block_received],
     [:vws, :dnc, :retry],
@@ -99,6 +110,7 @@ defmodule Vws.Telemetry do
     [:vws, :hpib, :disconnected],
     [:vws, :hpib, :timeout],
     [:vws, :hpib, :retry],
+    [:vws, :hpib, :connect_failed],
     [:vws, :vws_status, :poll],
     [:vws, :vws_status, :missed],
     [:vws, :vws_status, :stale],
@@ -106,7 +118,11 @@ defmodule Vws.Telemetry do
     [:vws, :web, :request],
     [:vws, :interlock, :acquired],
     [:vws, :interlock, :refused],
-    [:vws, :interlock, :released]
+    [:vws, :interlock, :released],
+    [:vws, :sim, :plant, :actuator],
+    [:vws, :sim, :val2, :command],
+    [:vws, :sim, :ge2000, :command],
+    [:vws, :sim, :ge2000, :cycle_start]
   ]
 
   @doc "Every event name listed in the moduledoc."

@@ -42,11 +42,14 @@ defmodule Vws.VAL do
     * `EXECUTE name` also for PROGRAM COMPLETE.
 
   A negative response, or a LUN 3 ERROR while the motion or program runs, ends the request
-  `{:error, {code, text}}`. Requests wait (without being sent) while the link is down or the
-  prompt has not come; one whose time runs out while waiting is never sent, and one whose caller
-  has gone is dropped. A request already sent when the link goes down or the controller restarts
-  ends `{:error, {:link_down, reason}}` or `{:error, :peer_restarted}` and is **never re-sent**: a
-  robot move is physical.
+  `{:error, {code, text}}`. Requests wait (without being sent) while the link starts up or
+  restarts by itself, or the prompt has not come; one whose time runs out while waiting is never
+  sent, and one whose caller has gone is dropped. A request already sent when the link goes down
+  or the controller restarts ends `{:error, {:link_down, reason}}` or `{:error, :peer_restarted}`
+  and is **never re-sent**: a robot move is physical. When the link's transport is gone (the
+  link is down `:closed` or `{:transport, _}`, and dials again), the requests waiting end
+  `{:error, {:link_down, reason}}`, and so does every request made until the link is up again:
+  a move is never held back to go whenever the robot is reachable again.
 
       {:ok, val} = Vws.VAL.start_link(ddcmp: [endpoint: "tcp://robot:2000"])
       :ok = Vws.VAL.motion(val, "DO MOVE SAFE", 60_000)

@@ -220,6 +220,27 @@ defmodule Vws.VALTest do
     assert Task.await(where) == {:ok, "W"}
   end
 
+  test "the transport gone: waiting and new requests end :link_down at once, until it is up", %{
+    val: val,
+    link: link
+  } do
+    waiting = run(fn -> VAL.command(val, "DO MOVE SAFE", 5_000) end)
+    assert Vws.Test.Eventually.eventually(fn -> VAL.info(val).queued == 1 end)
+    FakeDDCMP.down(link, :closed)
+    assert Task.await(waiting) == {:error, {:link_down, :closed}}
+    assert VAL.command(val, "WHERE", 5_000) == {:error, {:link_down, :closed}}
+
+    # back: nothing of the above was kept to be sent, the next request goes
+    FakeDDCMP.up(link)
+    prompt(link)
+    nothing_sent(link)
+    task = run(fn -> VAL.command(val, "WHERE", 2_000) end)
+    assert sent(link) == {2, :write, 0, "WHERE"}
+    respond(link, "0 W")
+    assert sent(link) == {2, :reply, 0, ""}
+    assert Task.await(task) == {:ok, "W"}
+  end
+
   test "a request whose time runs out before the prompt is never sent", %{val: val, link: link} do
     assert VAL.command(val, "DO MOVE SAFE", 50) == {:error, :timeout}
     prompt(link)

@@ -59,7 +59,6 @@ defmodule Vws.DDCMP.Link do
     # transport
     :conn,
     :decoder,
-    reconnect_delay: nil,
     halt_reason: :disconnected,
     # start-up: does entering ISTRT send STRT (:active) or wait for the peer's (:passive)
     startup: :active,
@@ -93,7 +92,7 @@ defmodule Vws.DDCMP.Link do
 
   @impl :gen_statem
   def init(opts) do
-    {min_backoff, _max} = backoff = Keyword.fetch!(opts, :backoff)
+    {min_backoff, max_backoff} = Keyword.fetch!(opts, :backoff)
     if ws = Keyword.get(opts, :workstation), do: Logger.metadata(workstation: ws)
 
     data = %__MODULE__{
@@ -108,8 +107,8 @@ defmodule Vws.DDCMP.Link do
       start_timeout: Keyword.fetch!(opts, :start_timeout),
       max_failures: Keyword.fetch!(opts, :max_failures),
       max_data: Keyword.fetch!(opts, :max_data),
-      backoff: backoff,
-      reconnect_delay: min_backoff,
+      # doubles with every wait, back to the minimum when the link runs (Vws.Backoff)
+      backoff: Vws.Backoff.new(min_backoff, max_backoff),
       decoder: Frame.new(max_data: Keyword.fetch!(opts, :max_data)),
       halt_reason: if(Keyword.has_key?(opts, :endpoint), do: :disconnected, else: :attaching)
     }
@@ -132,7 +131,8 @@ defmodule Vws.DDCMP.Link do
     changed(old_state, :halted, data)
 
     if data.conn == nil and data.endpoint != nil do
-      {:keep_state, data, [cancel_rep_timer(), {:state_timeout, connect_delay(data), :connect}]}
+      {delay, data} = connect_delay(data)
+      {:keep_state, data, [cancel_rep_timer(), {:state_timeout, delay, :connect}]}
     else
       {:keep_state, data, [cancel_rep_timer()]}
     end
@@ -146,11 +146,14 @@ defmodule Vws.DDCMP.Link do
         {:next_state, :istrt, %__MODULE__{data | startup: data.role}}
 
       {:error, reason} ->
-        {min, max} = data.backoff
-        delay = data.reconnect_delay || min
+        {delay, backoff} = Vws.Backoff.next(data.backoff)
 
-        {:keep_state,
-         %__MODULE__{data | last_error: {:connect, reason}, reconnect_delay: min(delay * 2, max)},
+        telemetry(data, :connect_failed, %{count: 1, retry_in: delay}, %{
+          endpoint: to_string(data.endpoint),
+          reason: reason
+        })
+
+        {:keep_state, %__MODULE__{data | last_error: {:connect, reason}, backoff: backoff},
          [{:state_timeout, delay, :connect}]}
     end
   end
@@ -275,11 +278,15 @@ defmodule Vws.DDCMP.Link do
   @doc false
   def running(:enter, old_state, data) do
     changed(old_state, :running, data)
-    {min_backoff, _} = data.backoff
     notify(data, :up)
 
     {:keep_state,
-     %__MODULE__{data | failures: 0, reconnect_delay: min_backoff, session: data.session + 1}}
+     %__MODULE__{
+       data
+       | failures: 0,
+         backoff: Vws.Backoff.reset(data.backoff),
+         session: data.session + 1
+     }}
   end
 
   def running(:internal, {:send, bytes}, data) do
@@ -523,8 +530,14 @@ defmodule Vws.DDCMP.Link do
     notify(data, {:down, reason})
   end
 
-  defp connect_delay(%__MODULE__{started_once: false}), do: 0
-  defp connect_delay(%__MODULE__{reconnect_delay: delay}), do: delay
+  # The first dial goes at once; later ones after the back-off's next wait. A connection that
+  # never reached RUNNING proved nothing: the wait goes on doubling (Vws.Backoff).
+  defp connect_delay(%__MODULE__{started_once: false} = data), do: {0, data}
+
+  defp connect_delay(data) do
+    {delay, backoff} = Vws.Backoff.next(data.backoff)
+    {delay, %__MODULE__{data | backoff: backoff}}
+  end
 
   defp reset_variables(data) do
     %__MODULE__{

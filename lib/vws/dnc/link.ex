@@ -120,7 +120,7 @@ defmodule Vws.DNC.Link do
       pad: Keyword.get(o, :pad, role == :ge),
       win_contention: Keyword.get(o, :win_contention, role == :ge),
       limits: Map.new(Keyword.drop(o, [:name, :owner, :endpoint, :role, :pad, :win_contention])),
-      backoff: 0,
+      backoff: Vws.Backoff.new(o[:backoff_min], o[:backoff_max]),
       # (monotonic time may be negative: the line is free "now", not at 0)
       line: %{
         char: pace,
@@ -149,8 +149,15 @@ defmodule Vws.DNC.Link do
 
   def disconnected(:enter, _old, %{endpoint: nil}), do: :keep_state_and_data
 
-  def disconnected(:enter, _old, data),
-    do: {:keep_state_and_data, [{:state_timeout, data.backoff, :connect}]}
+  # The first dial goes at once; after a lost connection the back-off's next wait (it doubles
+  # until the peer has sent a frame on a connection, see Vws.Backoff).
+  def disconnected(:enter, _old, %{counters: %{connections: 0}, connect_failures: 0}),
+    do: {:keep_state_and_data, [{:state_timeout, 0, :connect}]}
+
+  def disconnected(:enter, _old, data) do
+    {wait, backoff} = Vws.Backoff.next(data.backoff)
+    {:keep_state, %{data | backoff: backoff}, [{:state_timeout, wait, :connect}]}
+  end
 
   def disconnected(:state_timeout, :connect, data) do
     case Transport.connect(data.endpoint, timeout: data.limits.connect_timeout) do
@@ -161,9 +168,15 @@ defmodule Vws.DNC.Link do
         failures = data.connect_failures + 1
         level = if failures == 1, do: :warning, else: :debug
         Logger.log(level, "DNC link cannot reach #{data.endpoint}: #{inspect(reason)}; retrying")
-        backoff = min(max(data.backoff * 2, data.limits.backoff_min), data.limits.backoff_max)
+        {wait, backoff} = Vws.Backoff.next(data.backoff)
         data = %{data | backoff: backoff, connect_failures: failures}
-        {:keep_state, data, [{:state_timeout, backoff, :connect}]}
+
+        emit(data, :connect_failed, %{endpoint: to_string(data.endpoint), reason: reason}, %{
+          count: 1,
+          retry_in: wait
+        })
+
+        {:keep_state, data, [{:state_timeout, wait, :connect}]}
     end
   end
 
@@ -526,7 +539,6 @@ defmodule Vws.DNC.Link do
       | conn: conn,
         peer: peer,
         decoder: decoder,
-        backoff: data.limits.backoff_min,
         connect_failures: 0
     }
   end
@@ -534,7 +546,7 @@ defmodule Vws.DNC.Link do
   defp connection_lost(_state, data, reason) do
     Logger.warning("DNC link to #{data.peer} lost: #{inspect(reason)}")
     data = lose_connection(data, reason)
-    {:next_state, :disconnected, %{data | backoff: data.limits.backoff_min}}
+    {:next_state, :disconnected, data}
   end
 
   # Everything in progress ends :link_down; the connection and line queues are dropped.
@@ -949,7 +961,7 @@ defmodule Vws.DNC.Link do
   defp received(bytes, %{line: %{char: nil}} = data) do
     {frames, decoder} = Frame.feed(data.decoder, bytes)
     :ok = Transport.activate(data.conn)
-    {:keep_state, %{data | decoder: decoder}, frame_events(frames)}
+    {:keep_state, proved(%{data | decoder: decoder}, frames), frame_events(frames)}
   end
 
   defp received(bytes, %{line: line} = data) do
@@ -976,7 +988,14 @@ defmodule Vws.DNC.Link do
     line = arm(line, :rx)
     {frames, decoder} = Frame.feed(data.decoder, IO.iodata_to_binary(ready))
     if :queue.is_empty(rest) and data.conn, do: :ok = Transport.activate(data.conn)
-    {:keep_state, %{data | decoder: decoder, line: line}, frame_events(frames)}
+    {:keep_state, proved(%{data | decoder: decoder, line: line}, frames), frame_events(frames)}
+  end
+
+  # A frame from the peer: the connection works, so a later loss is dialled again soon.
+  defp proved(data, frames) do
+    if Enum.any?(frames, &(not match?({:error, _}, &1))),
+      do: %{data | backoff: Vws.Backoff.reset(data.backoff)},
+      else: data
   end
 
   defp flush_tx(%{line: line} = data) do

@@ -6,6 +6,10 @@ defmodule Vws.HPIB.Device do
   #       ▲  └─failed─▶ disconnected ◀──timeout / closed──────┘ ──┘
   #       └──backoff───────┘
   #
+  # The back-off (`Vws.Backoff`) doubles with every wait in `disconnected` and is reset only by a
+  # line from the device: a connection that is dropped before the device said anything counts
+  # as a failed attempt. After a request's timeout the device is dialled again at once.
+  #
   # `connecting` opens the endpoint (requests are postponed until it knows); `disconnected`
   # answers requests :not_connected at once and retries after the back-off; `ready` sends a
   # request and goes `busy` until every query of it is answered or its deadline passes. Requests
@@ -47,9 +51,8 @@ defmodule Vws.HPIB.Device do
       retries: Keyword.get(opts, :retries, @retries),
       retried: 0,
       connect_timeout: Keyword.get(opts, :connect_timeout, @connect_timeout),
-      backoff_first: first,
-      backoff_max: max,
-      backoff: first,
+      backoff: Vws.Backoff.new(first, max),
+      # dial again without waiting (after a timeout: the device may only have been slow)
       conn: nil,
       decoder: SCPI.new(),
       current: nil,
@@ -82,7 +85,6 @@ defmodule Vws.HPIB.Device do
             data
             | conn: conn,
               decoder: SCPI.new(),
-              backoff: data.backoff_first,
               was_connected: true,
               connects: data.connects + 1,
               last_error: nil
@@ -96,6 +98,11 @@ defmodule Vws.HPIB.Device do
             "HPIB device #{data.address}: cannot connect to #{endpoint(data)}: #{inspect(reason)}"
           )
         end
+
+        # the next attempt comes after the back-off's next wait (see disconnected/3)
+        telemetry(:connect_failed, data, %{reason: reason}, %{
+          retry_in: Vws.Backoff.peek(data.backoff)
+        })
 
         data = %{data | was_connected: false, last_error: {:connect, reason}}
         error = not_connected(data)
@@ -115,9 +122,8 @@ defmodule Vws.HPIB.Device do
   ## disconnected
 
   def disconnected(:enter, _old, data) do
-    backoff = data.backoff
-    next = backoff |> Kernel.*(2) |> max(data.backoff_first) |> min(data.backoff_max)
-    {:keep_state, %{data | backoff: next}, [{:state_timeout, backoff, :retry}]}
+    {wait, backoff} = Vws.Backoff.next(data.backoff)
+    {:keep_state, %{data | backoff: backoff}, [{:state_timeout, wait, :retry}]}
   end
 
   def disconnected(:state_timeout, :retry, data), do: {:next_state, :connecting, data}
@@ -233,6 +239,8 @@ defmodule Vws.HPIB.Device do
       {:data, bytes} ->
         Transport.activate(data.conn)
         {lines, decoder} = SCPI.feed(data.decoder, bytes)
+        # the device answers: this connection works, a later loss is dialled again soon
+        data = if lines == [], do: data, else: %{data | backoff: Vws.Backoff.reset(data.backoff)}
         lines |> Enum.reduce(%{data | decoder: decoder}, &line/2) |> answered()
 
       :closed ->
@@ -385,10 +393,10 @@ defmodule Vws.HPIB.Device do
 
   defp count_request(data), do: %{data | requests: data.requests + 1}
 
-  defp telemetry(what, data, extra) do
+  defp telemetry(what, data, extra, measurements \\ %{}) do
     Vws.Telemetry.execute(
       [:vws, :hpib, what],
-      %{count: 1},
+      Map.put(measurements, :count, 1),
       Map.merge(%{bus: data.bus, address: data.address, endpoint: endpoint(data)}, extra)
     )
   end

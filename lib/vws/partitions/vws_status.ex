@@ -45,6 +45,12 @@ defmodule Vws.Partitions.VwsStatus do
   is what `await/4` waits for. `push_button/3` closes a relay briefly (the cycle-start button);
   `cycle_start_fun/2` and `tray_lock_fun/2` build the functions MONARCH and ROBOT are given.
 
+  A button is never left pressed: VWS_STATUS holds the press and lets it go itself, so a press
+  outlives the command that asked for it (a MONARCH killed mid-press); a release that fails (the
+  DAQ gone) is tried again at every poll until a release is confirmed; and VWS_STATUS starts by
+  letting go of every button (`:cycle_start_relay`), which a predecessor killed mid-press may
+  have left held.
+
   ## Options
 
   `:workstation`; `:link` — the HPIB device `{bus, address}` of DAQ #1, or nil; `:poll_ms`;
@@ -74,6 +80,8 @@ defmodule Vws.Partitions.VwsStatus do
   alias Vws.DAQ.{DeviceStatus, Readings}
 
   @device "DAQ #1"
+  # relays wired as push buttons: pressed briefly, never to stay closed
+  @buttons [:cycle_start_relay]
   @daq_locations [1, 2, 3, 4, 5, 7, 11]
   @text_locations [1, 2, 3, 4, 5, 7]
   @sensors_location 11
@@ -246,17 +254,16 @@ defmodule Vws.Partitions.VwsStatus do
   """
   @spec push_button(workstation, DAQ.signal() | pos_integer, non_neg_integer) ::
           :ok | {:error, String.t()}
-  def push_button(ws, relay, pulse_ms) do
-    pressed = actuate(ws, [{relay, :close}])
-    if pressed == :ok, do: Process.sleep(pulse_ms)
-    # release it whatever happened: a button must never stay pressed
-    released = actuate(ws, [{relay, :open}])
-
-    case {pressed, released} do
-      {:ok, :ok} -> :ok
-      {{:error, _} = error, _} -> error
-      {:ok, {:error, why}} -> {:error, "RELAY #{relay_name(relay)} NOT RELEASED: " <> why}
-    end
+  def push_button(ws, relay, pulse_ms, timeout \\ 5_000) do
+    # VWS_STATUS holds the press and lets it go, whatever becomes of the caller
+    GenServer.call(
+      Vws.Partition.via(ws, :vws_status),
+      {:push, relay, pulse_ms},
+      pulse_ms + 2 * timeout
+    )
+  catch
+    :exit, {:timeout, _} -> {:error, "#{@device} NOT ANSWERING (NO ANSWER IN #{timeout} MS)"}
+    :exit, _ -> {:error, "VWS_STATUS NOT RUNNING"}
   end
 
   defp relay_name(relay) when is_atom(relay), do: relay |> to_string() |> String.upcase()
@@ -309,7 +316,9 @@ defmodule Vws.Partitions.VwsStatus do
 
   @doc """
   Poll statistics: `%{polls, ok, failed, missed, late, stale, last_error, poll_ms,
-  consecutive_failures, max_lateness_us, actuations}`; `stale` is nil or the reason shown.
+  consecutive_failures, max_lateness_us, actuations, releases}`; `stale` is nil or the reason
+  shown, `actuations` the requests of other partitions (a button's press counts, its release
+  not), `releases` the buttons VWS_STATUS let go of itself.
   """
   @spec stats(workstation) :: map
   def stats(ws), do: GenServer.call(Vws.Partition.via(ws, :vws_status), :stats)
@@ -385,6 +394,10 @@ defmodule Vws.Partitions.VwsStatus do
         next_slot: now + poll_ms,
         poll: nil,
         actuations: [],
+        # buttons whose release is not confirmed (a predecessor may have held one: all of
+        # them at start), and how many releases are on their way
+        unreleased: buttons(Keyword.get(opts, :daq, [])),
+        releasing: 0,
         seq: 0,
         last_good_at: now,
         stale: "#{@device} NOT READ YET",
@@ -397,7 +410,8 @@ defmodule Vws.Partitions.VwsStatus do
           max_lateness_us: 0,
           consecutive_failures: 0,
           last_error: nil,
-          actuations: 0
+          actuations: 0,
+          releases: 0
         }
       }
 
@@ -418,8 +432,22 @@ defmodule Vws.Partitions.VwsStatus do
         {:reply, :ok, s}
 
       {:ok, commands, expected} ->
-        s = update_in(s.stats.actuations, &(&1 + 1))
-        {:noreply, send_actuation(s, {commands, expected, 1}, from)}
+        {:noreply, request(s, commands, expected, from)}
+    end
+  end
+
+  def handle_call({:push, _relay, _pulse_ms}, _from, %{link: nil} = s),
+    do: {:reply, {:error, "NO LINK TO #{@device}"}, s}
+
+  def handle_call({:push, relay, pulse_ms}, from, s) do
+    case DAQ.actuation(s.daq, [{relay, :close}]) do
+      {:error, {:unknown_actuator, who}} ->
+        {:reply, {:error, "UNKNOWN ACTUATOR #{inspect(who)}"}, s}
+
+      {:ok, commands, expected} ->
+        # this press is let go at its own time: an earlier release must not cut it short
+        s = %{s | unreleased: MapSet.delete(s.unreleased, relay)}
+        {:noreply, request(s, commands, expected, {:pressed, relay, pulse_ms, from})}
     end
   end
 
@@ -432,6 +460,11 @@ defmodule Vws.Partitions.VwsStatus do
 
   @impl true
   def handle_info({:timeout, _ref, :tick}, s), do: {:noreply, tick(s)}
+
+  def handle_info({:let_go, relay, caller}, s) do
+    s = %{s | unreleased: MapSet.put(s.unreleased, relay)}
+    {:noreply, release(s, [relay], caller)}
+  end
 
   def handle_info(msg, %{link: link} = s) when link != nil do
     case s.poll && HPIB.check_response(msg, s.poll.req) do
@@ -489,6 +522,12 @@ defmodule Vws.Partitions.VwsStatus do
       end
 
     s = check_stale(s, div(started, 1000))
+
+    # a button still held: try again to let it go
+    s =
+      if s.releasing == 0 and MapSet.size(s.unreleased) > 0,
+        do: release(s, MapSet.to_list(s.unreleased), nil),
+        else: s
 
     # the next slot still ahead of us; the ones already gone are missed
     now = System.monotonic_time(:millisecond)
@@ -646,9 +685,62 @@ defmodule Vws.Partitions.VwsStatus do
 
       {{_req, from, _act} = a, reply} ->
         reply = with {:error, {:relays, why}} <- reply, do: {:error, why}
-        GenServer.reply(from, reply)
-        %{s | actuations: List.delete(s.actuations, a)}
+        actuated(from, reply, %{s | actuations: List.delete(s.actuations, a)})
     end
+  end
+
+  defp request(s, commands, expected, from, counter \\ :actuations) do
+    s = update_in(s.stats[counter], &(&1 + 1))
+    send_actuation(s, {commands, expected, 1}, from)
+  end
+
+  # The relays to let go: `caller` (or nil) is told how it went.
+  defp release(s, relays, caller) do
+    {:ok, commands, expected} = DAQ.actuation(s.daq, Enum.map(relays, &{&1, :open}))
+    s = request(s, commands, expected, {:released, relays, caller}, :releases)
+    %{s | releasing: s.releasing + 1}
+  end
+
+  # A press confirmed is let go after its pulse; one that failed may have half-happened.
+  defp actuated({:pressed, relay, pulse_ms, caller}, :ok, s) do
+    Process.send_after(self(), {:let_go, relay, caller}, pulse_ms)
+    s
+  end
+
+  defp actuated({:pressed, relay, _pulse_ms, caller}, error, s) do
+    GenServer.reply(caller, error)
+    %{s | unreleased: MapSet.put(s.unreleased, relay)}
+  end
+
+  defp actuated({:released, relays, caller}, reply, s) do
+    s = %{s | releasing: s.releasing - 1}
+
+    case reply do
+      :ok ->
+        if caller, do: GenServer.reply(caller, :ok)
+        %{s | unreleased: MapSet.difference(s.unreleased, MapSet.new(relays))}
+
+      {:error, why} ->
+        Logger.warning("VWS_STATUS: #{inspect(relays)} not let go (#{why}); trying again")
+        names = Enum.map_join(relays, ", ", &relay_name/1)
+        if caller, do: GenServer.reply(caller, {:error, "RELAY #{names} NOT RELEASED: " <> why})
+        s
+    end
+  end
+
+  defp actuated(from, reply, s) do
+    GenServer.reply(from, reply)
+    s
+  end
+
+  # The buttons this DAQ's channel map has.
+  defp buttons(daq_opts) do
+    daq = DAQ.new(daq_opts)
+
+    for b <- @buttons,
+        match?({:ok, _, _}, DAQ.actuation(daq, [{b, :open}])),
+        into: MapSet.new(),
+        do: b
   end
 
   defp actuation_result({:ok, results}, expected) do

@@ -162,7 +162,8 @@ defmodule Vws.Sim.GE2000 do
       cycles: 0,
       downloads: 0,
       cycle_time: Keyword.get(opts, :cycle_time, 5_000),
-      plant: Keyword.get(opts, :plant)
+      plant: Keyword.get(opts, :plant),
+      workstation: Vws.Workstation.id_of(Keyword.get(opts, :name))
     }
 
     {:ok, s, {:continue, :open}}
@@ -250,7 +251,18 @@ defmodule Vws.Sim.GE2000 do
 
   @impl true
   def handle_info({:dnc, link, {:received, command, blocks}}, %{link: link} = s) do
-    {:noreply, received(command, IO.iodata_to_binary(blocks), s)}
+    text = IO.iodata_to_binary(blocks)
+    s = received(command, text, s)
+
+    # every S command the machine took (a program stored, selected, deleted), and its outcome
+    Vws.Telemetry.execute([:vws, :sim, :ge2000, :command], %{bytes: byte_size(text)}, %{
+      workstation: s.workstation,
+      operation: command.operation,
+      name: String.trim(command.text),
+      alarm: s.alarm
+    })
+
+    {:noreply, s}
   end
 
   def handle_info({:dnc, link, {:request, ref, command, _blocks}}, %{link: link} = s) do
@@ -397,6 +409,12 @@ defmodule Vws.Sim.GE2000 do
   defp start_cycle(s) do
     if s.selected && Map.has_key?(s.programs, "#{s.selected}.PRO") do
       Logger.info("GE-2000 simulator: cycle start, running #{s.selected}")
+
+      Vws.Telemetry.execute([:vws, :sim, :ge2000, :cycle_start], %{count: 1}, %{
+        workstation: s.workstation,
+        program: s.selected
+      })
+
       plant(s, :table_out_of_park)
       Process.send_after(self(), {:cycle_end, s.cycles + 1}, s.cycle_time)
       %{alarm(s, :none) | active: true, cycles: s.cycles + 1}

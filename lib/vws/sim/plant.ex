@@ -58,8 +58,7 @@ defmodule Vws.Sim.Plant do
   """
   @spec start_link(keyword) :: GenServer.on_start()
   def start_link(opts \\ []) do
-    {name, opts} = Keyword.pop(opts, :name)
-    gen_opts = if name, do: [name: name], else: []
+    gen_opts = if name = opts[:name], do: [name: name], else: []
     GenServer.start_link(__MODULE__, opts, gen_opts)
   end
 
@@ -186,6 +185,8 @@ defmodule Vws.Sim.Plant do
     {:ok,
      %{
        model: Model.new(config, Keyword.get(opts, :seed, 0)),
+       # the workstation in a {:via, Registry, {Vws.Registry, {ws, role}}} name, for telemetry
+       workstation: Vws.Workstation.id_of(Keyword.get(opts, :name)),
        time_scale: scale,
        last: now(),
        on_relay: Keyword.get(opts, :on_relay),
@@ -202,6 +203,7 @@ defmodule Vws.Sim.Plant do
     state = %{state | model: Model.advance(state.model, dt), last: now}
     {reply, model} = handle(request, state.model)
     notify_relays(state.on_relay, state.model, model)
+    written(request, reply, state)
 
     {:reply, reply,
      %{state | model: model, writes: count_writes(state.writes, request, reply, model)}}
@@ -228,6 +230,26 @@ defmodule Vws.Sim.Plant do
       &Map.update!(&1, kind, fn n -> n + 1 end)
     )
   end
+
+  # Every relay written, whether or not it changes anything: what the equipment was told to do.
+  defp written({action, {daq, channel}}, :ok, state)
+       when action in [:close_channel, :open_channel] do
+    signal =
+      case Config.entry(state.model.config, {daq, channel}) do
+        %{signal: signal} -> signal
+        _ -> nil
+      end
+
+    Vws.Telemetry.execute([:vws, :sim, :plant, :actuator], %{count: 1}, %{
+      workstation: state.workstation,
+      daq: daq,
+      channel: channel,
+      signal: signal,
+      action: if(action == :close_channel, do: :close, else: :open)
+    })
+  end
+
+  defp written(_request, _reply, _state), do: :ok
 
   defp notify_relays(nil, _before, _after), do: :ok
 

@@ -154,6 +154,7 @@ defmodule Vws.Sim.VAL2 do
       motion: nil,
       fault: nil,
       commands: [],
+      workstation: Vws.Workstation.id_of(Keyword.get(opts, :name)),
       violations: 0,
       restarts: 0
     }
@@ -228,7 +229,7 @@ defmodule Vws.Sim.VAL2 do
         Logger.info("VAL II simulator: a new connection takes over")
         old = s.link
         Process.unlink(old)
-        Vws.DDCMP.stop(old)
+        stop_link(old)
         %{s | link: nil, up: false}
       else
         s
@@ -318,6 +319,14 @@ defmodule Vws.Sim.VAL2 do
     :ok
   end
 
+  # The old link may have ended by itself already — its connection closed when the CEC's
+  # went away — with its exit still on the way to us: stopping it is then nothing to do.
+  defp stop_link(link) do
+    Vws.DDCMP.stop(link)
+  catch
+    :exit, _ -> :ok
+  end
+
   defp start_link_on(s, transport) do
     opts = s.ddcmp |> Keyword.merge(transport) |> Keyword.merge(owner: self(), role: :passive)
     {:ok, link} = Vws.DDCMP.start_link(opts)
@@ -340,6 +349,12 @@ defmodule Vws.Sim.VAL2 do
     case s.waiting[@lun_monitor] do
       {:input, ^q} ->
         s = %{s | waiting: Map.put(s.waiting, @lun_monitor, nil), commands: [m.text | s.commands]}
+
+        Vws.Telemetry.execute([:vws, :sim, :val2, :command], %{count: 1}, %{
+          workstation: s.workstation,
+          text: m.text
+        })
+
         monitor_command(s, m.text)
 
       _ ->
@@ -490,7 +505,7 @@ defmodule Vws.Sim.VAL2 do
         {q, sent} = number(s, lun, qualifier)
         {:ok, message} = Message.new(lun, function, q, text)
 
-        case Vws.DDCMP.send_data(s.link, Message.encode(message), session: s.link_session) do
+        case send_data(s.link, Message.encode(message), s.link_session) do
           :ok ->
             wait = if function == :read, do: :input, else: :reply
             q = message.qualifier
@@ -512,6 +527,14 @@ defmodule Vws.Sim.VAL2 do
   end
 
   defp pump(s, _lun), do: s
+
+  # A link that has ended by itself (its connection closed) with its exit still on the way to
+  # us is not running either.
+  defp send_data(link, bytes, session) do
+    Vws.DDCMP.send_data(link, bytes, session: session)
+  catch
+    :exit, _ -> {:error, :not_running}
+  end
 
   defp violation(s), do: %{s | violations: s.violations + 1}
 

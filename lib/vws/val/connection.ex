@@ -47,6 +47,8 @@ defmodule Vws.VAL.Connection do
       activity_request: nil,
       requests: %{},
       prompt: nil,
+      # why the link's transport is gone (the peer closed it, or it failed), until it is up again
+      gone: nil,
       short_status: nil,
       last_async: [],
       counts: %{in: 0, out: 0, bad: 0, stale: 0, unexpected: 0, requests: 0, errors: 0}
@@ -70,6 +72,13 @@ defmodule Vws.VAL.Connection do
   end
 
   # Requests -----------------------------------------------------------------------------------
+
+  # The controller cannot be reached (the transport is gone and is being dialled again): the
+  # request fails now rather than wait to be sent whenever the robot is back.
+  def handle_event({:call, from}, {:request, _, _, _}, _state, %{gone: reason} = data)
+      when reason != nil do
+    {:keep_state, count(data, :errors), [{:reply, from, {:error, {:link_down, reason}}}]}
+  end
 
   def handle_event({:call, from}, {:request, text, wait, deadline}, state, data) do
     case Message.new(@lun_monitor, :write, 0, text) do
@@ -161,13 +170,22 @@ defmodule Vws.VAL.Connection do
   def handle_event(:info, {:ddcmp, link, :up}, {lun2, activity}, %{link: link} = data) do
     Logger.info("VAL II link up")
     lun2 = if lun2 == :down, do: :idle, else: lun2
-    {:next_state, {lun2, activity}, %{data | session: data.session + 1}}
+    {:next_state, {lun2, activity}, %{data | session: data.session + 1, gone: nil}}
   end
 
   def handle_event(:info, {:ddcmp, link, {:down, reason}}, _state, %{link: link} = data) do
     Logger.warning("VAL II link down: #{inspect(reason)}")
     {data, actions} = fail_in_flight(data, {:link_down, reason})
-    dispatch({:down, :still}, %{data | prompt: nil}, actions)
+
+    # A link that restarts by itself (too many failures, a restart asked for) is up again after
+    # one start-up exchange: what waits goes then. A transport that is gone may stay gone: what
+    # waits fails now, and so does every request until the link is up again.
+    {data, more} =
+      if transport_gone?(reason),
+        do: fail_queued(%{data | gone: reason}, {:link_down, reason}),
+        else: {data, []}
+
+    dispatch({:down, :still}, %{data | prompt: nil}, actions ++ more)
   end
 
   def handle_event(:info, {:ddcmp, link, :peer_restarted}, _state, %{link: link} = data) do
@@ -476,6 +494,10 @@ defmodule Vws.VAL.Connection do
       {data, actions ++ more}
     end)
   end
+
+  defp transport_gone?(:closed), do: true
+  defp transport_gone?({:transport, _}), do: true
+  defp transport_gone?(_reason), do: false
 
   defp fail_queued(data, reason) do
     Enum.reduce(data.queue, {%{data | queue: []}, []}, fn ref, {data, actions} ->

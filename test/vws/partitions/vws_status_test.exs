@@ -185,6 +185,42 @@ defmodule Vws.Partitions.VwsStatusTest do
       refute Plant.snapshot(plant).cycle_start_relay
     end
 
+    test "a press outlives the process that asked for it: the button is let go" do
+      %{ws: ws, plant: plant} = DAQFloor.start()
+      press = VwsStatus.cycle_start_fun(ws, pulse_ms: 300)
+      # the MONARCH command that pressed it is killed while it holds the button
+      presser = spawn(fn -> press.() end)
+      assert eventually(fn -> Plant.snapshot(plant).cycle_start_relay end)
+      Process.exit(presser, :kill)
+      assert eventually(fn -> not Plant.snapshot(plant).cycle_start_relay end)
+    end
+
+    test "a restarted VWS_STATUS lets go of a button its predecessor may have held" do
+      %{ws: ws, plant: plant} = DAQFloor.start()
+      assert VwsStatus.actuate(ws, cycle_start_relay: :close) == :ok
+      old = Partition.whereis(ws, :vws_status)
+      Process.exit(old, :kill)
+      assert eventually(fn -> Partition.whereis(ws, :vws_status) not in [nil, old] end)
+      assert eventually(fn -> not Plant.snapshot(plant).cycle_start_relay end)
+    end
+
+    test "a release that fails is tried again until the button is let go" do
+      %{ws: ws, plant: plant, daq: daq} = DAQFloor.start(vws_status: [timeout_ms: 100])
+      me = self()
+      press = VwsStatus.cycle_start_fun(ws, pulse_ms: 300)
+      spawn_link(fn -> send(me, {:pressed, press.()}) end)
+      assert eventually(fn -> Plant.snapshot(plant).cycle_start_relay end)
+      # the DAQ goes mute while the button is held: the release gets no answer
+      :ok = DAQ.set_fault(daq, :mute)
+
+      assert_receive {:pressed, {:error, "RELAY CYCLE_START_RELAY NOT RELEASED: DAQ #1 " <> _}},
+                     5_000
+
+      assert Plant.snapshot(plant).cycle_start_relay
+      :ok = DAQ.set_fault(daq, :none)
+      assert eventually(fn -> not Plant.snapshot(plant).cycle_start_relay end)
+    end
+
     test "the tray-lock function locks a tray against the material-handling system" do
       %{ws: ws, plant: plant} = DAQFloor.start()
       lock = VwsStatus.tray_lock_fun(ws)

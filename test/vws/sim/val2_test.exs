@@ -22,6 +22,50 @@ defmodule Vws.Sim.VAL2Test do
     %{sim: sim, val: val}
   end
 
+  test "a new connection while the old link is ending by itself takes over; nothing crashes", %{
+    sim: sim
+  } do
+    ref = Process.monitor(sim)
+    endpoint = VAL2.endpoint(sim)
+    # The new connection is accepted while the simulator is busy; the old one then closes and
+    # its link ends, its exit queued behind the new connection.
+    :ok = :sys.suspend(sim)
+    {:ok, conn} = Vws.Transport.connect(endpoint)
+    :ok = stop_supervised(:val)
+    Process.sleep(100)
+    :ok = :sys.resume(sim)
+
+    refute_receive {:DOWN, ^ref, _, _, _}, 200
+    Vws.Transport.close(conn)
+    val = start_supervised!({VAL, ddcmp: [endpoint: endpoint]}, id: :val)
+    assert eventually(fn -> VAL.ready?(val) end)
+    assert {:ok, _} = VAL.command(val, "WHERE")
+  end
+
+  @tag time_scale: 0.05
+  test "the CEC's connection gone as a motion ends: the simulator carries on", %{
+    sim: sim,
+    val: val
+  } do
+    ref = Process.monitor(sim)
+    endpoint = VAL2.endpoint(sim)
+    motion = Task.async(fn -> VAL.motion(val, "DO MOVE VISE", 5_000) end)
+    assert eventually(fn -> VAL2.info(sim).moving end)
+
+    # the motion ends while the simulator is busy, and then its link ends, in that order
+    :ok = :sys.suspend(sim)
+    Process.sleep(500)
+    :ok = stop_supervised(:val)
+    assert {:error, _} = Task.await(motion)
+    Process.sleep(100)
+    :ok = :sys.resume(sim)
+
+    refute_receive {:DOWN, ^ref, _, _, _}, 200
+    val = start_supervised!({VAL, ddcmp: [endpoint: endpoint]}, id: :val)
+    assert eventually(fn -> VAL.ready?(val) end)
+    assert {:ok, _} = VAL.command(val, "WHERE")
+  end
+
   test "WHERE answers SAFE's world coordinates and joints", %{val: val} do
     {:ok, text} = VAL.command(val, "WHERE")
     {:ok, %{world: world, joints: [j1, j2, j3 | _]}} = VAL.parse_where(text)
