@@ -49,7 +49,7 @@ IO.puts("""
   commands       #{report.commands} numbered by the WC: lost #{report.lost}, duplicated #{report.duplicated}
   retries        #{Enum.sum(Map.values(r))} in all: WC strings/lines sent again #{r.wc_resends}, transfers made again #{r.transfers_made_again},
                  retransmissions recognised by SUN_COMM #{r.sun_comm_retransmissions}, DDCMP retransmissions #{r.ddcmp_retransmissions},
-                 DNC retries #{r.dnc_retries}, HPIB requests tried again #{r.hpib_retries}, relays set again #{r.relays_set_again}
+                 DNC retries #{r.dnc_retries}, DNC requests made again #{r.dnc_requests_made_again}, HPIB requests tried again #{r.hpib_retries}, relays set again #{r.relays_set_again}
 """)
 
 if report.completed != report.cycles or report.lost != 0 or report.duplicated != 0,

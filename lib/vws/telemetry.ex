@@ -42,6 +42,7 @@ defmodule Vws.Telemetry do
   | `[:vws, :dnc, :connect_failed]` | `count, retry_in` (ms) | `link, workstation, role, endpoint, reason` |
   | `[:vws, :dnc, :block_sent]` | `bytes` | `link, workstation, role, block, retransmission` |
   | `[:vws, :dnc, :block_received]` | `bytes` | `link, workstation, role, block` |
+  | `[:vws, :monarch, :request_again]` | `count` | `workstation, operation, reason` |
   | `[:vws, :dnc, :retry]` | `count` | `link, workstation, role, kind, block` |
   | `[:vws, :dnc, :transmission]` | `duration, blocks, bytes` | `link, workstation, role, direction, result` |
   | `[:vws, :web, :request]` | `duration, bytes` | `method, path, status, port` |
@@ -104,6 +105,7 @@ defmodule Vws.Telemetry do
     [:vws, :dnc, :connect_failed],
     [:vws, :dnc, :block_sent],
     [:vws, :dnc, :block_received],
+    [:vws, :monarch, :request_again],
     [:vws, :dnc, :retry],
     [:vws, :dnc, :transmission],
     [:vws, :hpib, :connected],

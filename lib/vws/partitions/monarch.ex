@@ -36,6 +36,15 @@ defmodule Vws.Partitions.Monarch do
   option, reads the status report every second (as VWS_STATUS reads DAQ #1), so the WC follows a
   cycle — and finds the machine IDLE before its first Monarch command — with `S MONARCH` alone.
 
+  ## A transmission the line broke off
+
+  The DNC link resends a block at most three times (PROTOCOLS.md §2); a transmission that still
+  fails leaves nothing behind on either side. A request that has the same effect once or twice —
+  reading a report, a table or a program, storing a whole program (it replaces the file),
+  selecting one — is then made again, at most twice more (`[:vws, :monarch, :request_again]`);
+  a delete is not, nor a request refused for good (link down, peer busy, bad text). After the
+  cycle-start button, the machine's reports are read until one says ACTIVE or the time is up.
+
   ## Options (`partitions: [monarch: [options: …]]`)
 
     * `:cycle_start` — the relay function above
@@ -49,6 +58,10 @@ defmodule Vws.Partitions.Monarch do
     * `:request_timeout` — bound on one DNC request (`:infinity`: the link's limits end it)
     * `:interlock` — `timeout` (ms, default 10 000) and `retry_ms` (250) of the table's lease
   """
+  # a request the line broke off is made again (see send_request/5): this many tries in all
+  @request_tries 3
+  @broken_off [:nak_limit, :no_reply, :aborted, :no_response, :receive_timeout, :no_answer_to_bid]
+
   @behaviour Vws.Partition
 
   alias Vws.DNC
@@ -214,17 +227,8 @@ defmodule Vws.Partitions.Monarch do
     status_report(%{workstation: ws, link: link, options: options})
   end
 
-  # RNL → the report; every report read refreshes the MONARCH device status. A report only
-  # reads, so a request the line broke off (the link's own retries used up) is made again, at
-  # most twice more.
-  defp status_report(ctx, tries \\ 3) do
-    case read_status_report(ctx) do
-      {:error, _} when tries > 1 -> status_report(ctx, tries - 1)
-      result -> result
-    end
-  end
-
-  defp read_status_report(ctx) do
+  # RNL → the report; every report read refreshes the MONARCH device status.
+  defp status_report(ctx) do
     with {:ok, blocks} <- request(ctx, :receive, :status, "", []) do
       case Report.parse_status(IO.iodata_to_binary(blocks)) do
         {:ok, report} ->
@@ -247,10 +251,31 @@ defmodule Vws.Partitions.Monarch do
     }
 
     timeout = Keyword.get(ctx.options, :request_timeout, :infinity)
+    send_request(ctx, command, blocks, timeout, @request_tries)
+  end
 
+  # A transmission the line broke off left nothing behind (a DNC receiver never keeps part of
+  # one), so a request that has the same effect once or twice — reading a report, a table or a
+  # program, storing a whole program (it replaces the file), selecting one — is made again, at
+  # most twice more. A delete is not (the second would find no file), nor a request refused
+  # for good (a link down, the peer busy, a bad text).
+  defp send_request(ctx, command, blocks, timeout, tries) do
     case DNC.request(ctx.link, command, blocks, timeout) do
-      {:ok, blocks} -> {:ok, blocks}
-      {:error, %LinkError{} = e} -> {:error, LinkError.status_text(e)}
+      {:ok, blocks} ->
+        {:ok, blocks}
+
+      {:error, %LinkError{reason: reason}}
+      when tries > 1 and reason in @broken_off and command.operation != :delete ->
+        Vws.Telemetry.execute([:vws, :monarch, :request_again], %{count: 1}, %{
+          workstation: ctx.workstation,
+          operation: command.operation,
+          reason: reason
+        })
+
+        send_request(ctx, command, blocks, timeout, tries - 1)
+
+      {:error, %LinkError{} = e} ->
+        {:error, LinkError.status_text(e)}
     end
   end
 

@@ -31,6 +31,7 @@ defmodule Vws.Sim.Soak do
     {[:vws, :sun_comm, :retransmission], :sun_comm_retransmissions},
     {[:vws, :ddcmp, :retransmission], :ddcmp_retransmissions},
     {[:vws, :dnc, :retry], :dnc_retries},
+    {[:vws, :monarch, :request_again], :dnc_requests_made_again},
     {[:vws, :hpib, :retry], :hpib_retries},
     {[:vws, :vws_status, :actuation_retry], :relays_set_again}
   ]

@@ -234,6 +234,30 @@ defmodule Vws.Partitions.MonarchTest do
     assert counters.retransmissions >= counters.naks_received
   end
 
+  test "a download the line broke off (the GE-2000 silent) is made again, once the GE answers",
+       ctx do
+    program = with_program(ctx, 1_000)
+    test_pid = self()
+    handler = "request-again-#{System.unique_integer([:positive])}"
+
+    :ok =
+      Vws.Telemetry.attach(
+        handler,
+        [:vws, :monarch, :request_again],
+        fn _, _, md, _ -> send(test_pid, {:request_again, md.operation, md.reason}) end,
+        nil
+      )
+
+    on_exit(fn -> Vws.Telemetry.detach(handler) end)
+    GE2000.set_fault(ctx.sim, :silent)
+    task = Task.async(fn -> monarch(ctx.peer, 2, "DOWNLOAD_GE", 30_000) end)
+    # the first transmission ends unanswered; the second one finds the GE-2000 back
+    assert_receive {:request_again, :part_program, :no_answer_to_bid}, 10_000
+    GE2000.set_fault(ctx.sim, :none)
+    assert Task.await(task, 30_000) == "0002DONE"
+    assert GE2000.program(ctx.sim, "004711.PRO") == Program.to_text(program)
+  end
+
   test "lost ACKs: the CEC asks again with ENQ and the download completes", ctx do
     program = with_program(ctx, 1_000)
     GE2000.set_fault(ctx.sim, :drop_replies)
