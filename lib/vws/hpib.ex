@@ -38,14 +38,15 @@ defmodule Vws.HPIB do
   partition's command) decide what a missing answer means.
 
   A request whose answer comes back damaged (a line that does not decode as the answer to its
-  query), does not come within its share of the time, or is cut off by a closed connection is
-  tried again — at most `:retries` times (default 2), within the request's own timeout, each try
+  query) or does not come within its share of the time is tried again — at most `:retries` times (default 2), within the request's own timeout, each try
   waiting an equal share of the time left — if every command of it can be repeated with the
   same effect (`Vws.SCPI.repeatable?/1`: the reading queries and the relay settings; never
   `CLAMP_PALLET`, `*RST` or `SYST:ERR?`). Before each new try the connection is closed and
   opened again, as a device clear: no late or shifted line of the lost try can then be taken for
   the answer to another query. (Decision: SCPI lines carry no check of their own; on a line that
   can damage bytes this is what the bus driver can do.) Each try again is counted in telemetry.
+  A connection the device closes ends the request `:closed` without a try again: the back-off
+  (`Vws.Backoff`) decides when to dial a peer that drops connections.
 
   `send_request/3` and `check_response/2` make the same request without blocking the caller
   (`:gen_statem.send_request/2` underneath), for a process that must keep its own schedule.

@@ -179,8 +179,9 @@ defmodule Vws.HPIBTest do
   end
 
   test "the connection lost while waiting ends the request :closed; it reconnects", ctx do
+    # (not tried again, repeatable as it is: a peer that closes is not a damaged line)
     listener = instrument(ctx)
-    dev = start_device(ctx, retries: 0)
+    dev = start_device(ctx)
     conn = accept(listener)
     task = Task.async(fn -> HPIB.query(dev, :idn?) end)
     assert recv_lines(conn, 1) == ["*IDN?"]
@@ -190,7 +191,7 @@ defmodule Vws.HPIBTest do
     assert HPIB.await_connected(dev, 2_000) == :ok
   end
 
-  describe "a damaged, missing or cut-off answer to a repeatable request" do
+  describe "a damaged or missing answer to a repeatable request" do
     setup ctx do
       test_pid = self()
       handler = "hpib-retry-#{ctx.bus}"
@@ -229,7 +230,8 @@ defmodule Vws.HPIBTest do
       assert %{retried: 1, connects: 2} = HPIB.info(dev)
     end
 
-    test "no answer: each try waits its share of the time; the last one answers", ctx do
+    test "no answer, then a damaged one: each try waits its share of the time; the last answers",
+         ctx do
       listener = instrument(ctx)
       dev = start_device(ctx)
       conn = accept(listener)
@@ -244,8 +246,8 @@ defmodule Vws.HPIBTest do
       assert_receive {:retry, 1, :timeout, 1}, 2_500
       conn2 = accept(listener)
       assert recv_lines(conn2, 2) == ["ROUT:CLOS (@201)", "ROUT:CLOS? (@201)"]
-      Transport.close(conn2)
-      assert_receive {:retry, 1, :closed, 2}, 2_500
+      Transport.send(conn2, "2\n")
+      assert_receive {:retry, 1, :bad_response, 2}, 2_500
       conn3 = accept(listener)
       assert recv_lines(conn3, 2) == ["ROUT:CLOS (@201)", "ROUT:CLOS? (@201)"]
       Transport.send(conn3, "1\n")

@@ -15,8 +15,8 @@ defmodule Vws.HPIB.Device do
   # request and goes `busy` until every query of it is answered or its deadline passes. Requests
   # that arrive while busy wait in `queue` (visible in `info`), in arrival order.
   #
-  # A repeatable request (`Vws.SCPI.repeatable?/1`, every command of it) whose answer is damaged,
-  # missing or cut off is tried again, at most `retries` times within its own deadline, each
+  # A repeatable request (`Vws.SCPI.repeatable?/1`, every command of it) whose answer is damaged
+  # or missing is tried again, at most `retries` times within its own deadline, each
   # try waiting its share of the request's time: the connection is closed and opened again
   # first (`connecting`, the request at the head of the queue), so that no late or shifted
   # answer line of the lost try can be taken for an answer to the next.
@@ -292,18 +292,23 @@ defmodule Vws.HPIB.Device do
 
   defp answered(data), do: {:keep_state, data}
 
-  defp connection_closed(%{current: nil} = data, reason) do
+  defp connection_closed(data, reason) do
     Logger.warning("HPIB device #{data.address}: connection lost (#{inspect(reason)})")
-    lose_connection(data, reason, [])
-  end
 
-  defp connection_closed(%{current: %{from: from}} = data, reason) do
-    error = %Error{reason: :closed, address: data.address, detail: reason}
+    actions =
+      case data.current do
+        %{from: from} ->
+          [
+            {:reply, from,
+             {:error, %Error{reason: :closed, address: data.address, detail: reason}}}
+          ]
 
-    try_again(data, error, fn data ->
-      Logger.warning("HPIB device #{data.address}: connection lost (#{inspect(reason)})")
-      lose_connection(%{data | current: nil}, reason, [{:reply, from, {:error, error}}])
-    end)
+        nil ->
+          []
+      end
+
+    # a peer that closes is not a damaged line: no try again, the back-off decides when to dial
+    lose_connection(%{data | current: nil}, reason, actions)
   end
 
   # The request in progress failed with `error`: tried again on a new connection if it is

@@ -257,9 +257,13 @@ defmodule Vws.Reliability.CrashTest do
         Process.sleep(gap)
         window = wait_window(window)
         pid = alive(ws, target, last[target])
+        # the kill's time is its death's: what the process finished while the signal was on its
+        # way was finished before the kill
+        ref = Process.monitor(pid)
+        Process.exit(pid, :kill)
+        assert_receive {:DOWN, ^ref, :process, ^pid, _}, 5_000
         at = System.monotonic_time()
         :ets.insert(events, {{at, System.unique_integer([:monotonic])}, :kill, target, pid})
-        Process.exit(pid, :kill)
         {[{at, target, pid} | kills], [now() | window], Map.put(last, target, pid)}
       end)
 
