@@ -202,4 +202,27 @@ defmodule Vws.DAQ do
 
     if wrong == [] and length(states) == length(expected), do: :ok, else: {:error, wrong}
   end
+
+  @doc """
+  `check_relays/2` as a command status says it, for the DAQ named `device`: `:ok`, or
+  `{:error, "DAQ #1 RELAY 206 DID NOT CLOSE"}` (the first channel not as commanded).
+
+      iex> Vws.DAQ.confirm_relays([{205, false}, {206, true}], [false, false], "DAQ #1")
+      {:error, "DAQ #1 RELAY 206 DID NOT CLOSE"}
+  """
+  @spec confirm_relays([{pos_integer, boolean}], [boolean], String.t()) ::
+          :ok | {:error, String.t()}
+  def confirm_relays(expected, states, device) do
+    case check_relays(expected, states) do
+      :ok ->
+        :ok
+
+      {:error, [ch | _]} ->
+        {_, want} = List.keyfind(expected, ch, 0)
+        {:error, "#{device} RELAY #{ch} DID NOT #{if want, do: "CLOSE", else: "OPEN"}"}
+
+      {:error, []} ->
+        {:error, "#{device} RELAYS NOT ALL READ BACK"}
+    end
+  end
 end

@@ -170,16 +170,9 @@ defmodule Vws.HydraulicController.Pallet do
   defp actuate(p, actions, tries \\ 3) do
     with {:ok, commands, expected} <- actuation(p, actions),
          {:ok, results} <- transaction(p, commands) do
-      case DAQ.check_relays(expected, List.last(results)) do
-        :ok ->
-          :ok
-
-        {:error, _} when tries > 1 ->
-          actuate(p, actions, tries - 1)
-
-        {:error, [ch | _]} ->
-          {_, want} = List.keyfind(expected, ch, 0)
-          {:error, "#{@device} RELAY #{ch} DID NOT #{if want, do: "CLOSE", else: "OPEN"}"}
+      case DAQ.confirm_relays(expected, List.last(results), @device) do
+        {:error, _} when tries > 1 -> actuate(p, actions, tries - 1)
+        result -> result
       end
     end
   end

@@ -744,16 +744,8 @@ defmodule Vws.Partitions.VwsStatus do
   end
 
   defp actuation_result({:ok, results}, expected) do
-    case DAQ.check_relays(expected, List.last(results)) do
-      :ok ->
-        :ok
-
-      {:error, [ch | _]} ->
-        {_, want} = List.keyfind(expected, ch, 0)
-
-        {:error,
-         {:relays, "#{@device} RELAY #{ch} DID NOT #{if want, do: "CLOSE", else: "OPEN"}"}}
-    end
+    with {:error, why} <- DAQ.confirm_relays(expected, List.last(results), @device),
+         do: {:error, {:relays, why}}
   end
 
   defp actuation_result({:error, error}, _expected), do: {:error, hpib_reason(error)}
