@@ -162,7 +162,7 @@ defmodule Vws.Demo do
          {:client, {:ok, client}} <- {:client, Client.connect(floor.wc, subscribe: self())} do
       print_floor(floor, path, script)
       summary = run_printing(client, script, opts)
-      Enum.each(Summary.format(summary), &IO.puts/1)
+      Enum.each(Summary.format(summary), &IO.puts(readable(&1)))
       {:ok, summary, floor, client}
     else
       {:script, {:error, error}} -> {:error, Exception.message(error)}
@@ -288,12 +288,56 @@ defmodule Vws.Demo do
   end
 
   defp row(%{direction: :note, meaning: meaning, at: at}),
-    do: IO.puts("#{time(at)}  ── #{meaning}")
+    do: IO.puts("#{time(at)}  ── #{readable(meaning)}")
 
   defp row(%{direction: direction, line: line, meaning: meaning, at: at}) do
     arrow = if direction == :sent, do: "→", else: "←"
-    IO.puts("#{time(at)}  #{arrow} #{String.pad_trailing(line || "", 52)}  #{meaning}")
+
+    IO.puts(
+      "#{time(at)}  #{arrow} #{String.pad_trailing(printable(line || ""), 52)}  #{readable(meaning)}"
+    )
   end
+
+  @doc ~S"""
+  A line as it was on the wire, readable on a terminal: printable ASCII as it is, every other
+  byte (a bit flipped by a noisy line, a control character) as `\xNN`, and `\` itself as `\\`.
+  Wire text is bytes, not UTF-8: a damaged byte must not reach the terminal, nor stop the
+  printing (`IO.puts/1` raises on a binary that is not valid UTF-8).
+
+      iex> Vws.Demo.printable("11S0090ACTI" <> <<0xD6>> <> "E058")
+      "11S0090ACTI\\xD6E058"
+      iex> Vws.Demo.printable("a\tb\\c")
+      "a\\x09b\\\\c"
+  """
+  @spec printable(binary) :: String.t()
+  def printable(bytes) when is_binary(bytes) do
+    for <<byte <- bytes>>, into: "" do
+      cond do
+        byte == ?\\ -> "\\\\"
+        byte in 0x20..0x7E -> <<byte>>
+        true -> hex(byte)
+      end
+    end
+  end
+
+  @doc ~S"""
+  Text for a person (a meaning, a script step, the summary's reason) made safe to print: valid
+  UTF-8 that prints stays as it is; a byte that is not valid UTF-8 (a damaged byte quoted from
+  the wire) or a control character becomes `\xNN`.
+
+      iex> Vws.Demo.readable("MONARCH: ACTI" <> <<0xD6>> <> "E — ×20")
+      "MONARCH: ACTI\\xD6E — ×20"
+  """
+  @spec readable(binary) :: String.t()
+  def readable(text) when is_binary(text), do: readable(text, "")
+
+  defp readable(<<c::utf8, rest::binary>>, acc) when c >= 0x20 and c not in 0x7F..0x9F,
+    do: readable(rest, <<acc::binary, c::utf8>>)
+
+  defp readable(<<byte, rest::binary>>, acc), do: readable(rest, acc <> hex(byte))
+  defp readable(<<>>, acc), do: acc
+
+  defp hex(byte), do: "\\x" <> String.pad_leading(Integer.to_string(byte, 16), 2, "0")
 
   defp scale(x) when is_float(x) and x == trunc(x), do: trunc(x)
   defp scale(x), do: x

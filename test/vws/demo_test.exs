@@ -5,6 +5,39 @@ defmodule Vws.DemoTest do
   alias Vws.WC.Client.Event
   alias Vws.WC.Runner.Summary
 
+  doctest Vws.Demo, only: [printable: 1, readable: 1]
+
+  # `mix vws.demo --ber 1e-4 --seed 3` stopped at its step 34: a reply with a flipped bit
+  # (0xD6, not UTF-8) reached IO.puts, which raised
+  test "a line damaged on the wire is printed with its damaged bytes as \\xNN, not a crash" do
+    damaged = "11S0090ACTI" <> <<0xD6>> <> "E058"
+
+    query = %Event{
+      at: 5874,
+      direction: :sent,
+      kind: :status_query,
+      line: "*0114*S0090MONARCH*104",
+      meaning: "ask MONARCH"
+    }
+
+    answer = %Event{
+      at: 5876,
+      direction: :received,
+      kind: :status,
+      line: damaged,
+      meaning: "MONARCH: ACTI" <> <<0xD6>> <> "E"
+    }
+
+    output =
+      capture_io(fn ->
+        printer = Vws.Demo.print_event(query, Vws.Demo.new_printer())
+        Vws.Demo.print_event(answer, printer)
+      end)
+
+    assert output =~ ~r/^ +5\.876s  ← 11S0090ACTI\\xD6E058 +MONARCH: ACTI\\xD6E$/m
+    assert String.valid?(output)
+  end
+
   test "the demo starts the shop floor, runs the cycle and prints the dialogue and the summary" do
     id = "demo-#{System.unique_integer([:positive])}"
     on_exit(fn -> Vws.Workstation.stop(id) end)
