@@ -4,18 +4,28 @@ defmodule Vws.Application do
 
   @impl true
   def start(_type, _args) do
+    # SIGTERM and SIGQUIT stop the node in order (Vws.Signals)
+    :ok = Vws.Signals.install()
+
     children =
       [
         {Registry, keys: :unique, name: Vws.Registry},
         {Registry, keys: :duplicate, name: Vws.Events, partitions: System.schedulers_online()},
         # the :pg scope every workstation joins: the cell across connected nodes (Vws.Cell)
         Vws.Cell,
+        # equipment started beside the workstations on this node — a simulated floor
+        # (`mix vws.serve`, `mix vws.demo`), a hydraulic controller of its own: it stops after
+        # them, and before the registry its processes are named in
+        {DynamicSupervisor, name: Vws.EquipmentSupervisor, strategy: :one_for_one},
         {DynamicSupervisor, name: Vws.WorkstationSupervisor, strategy: :one_for_one},
         {DynamicSupervisor, name: Vws.WebSupervisor, strategy: :one_for_one}
       ] ++ configured_workstation() ++ configured_http()
 
     Supervisor.start_link(children, strategy: :one_for_one, name: Vws.Supervisor)
   end
+
+  @impl true
+  def stop(_state), do: Vws.Signals.uninstall()
 
   # The workstation of config/runtime.exs (a deployment), started under the workstation supervisor.
   defp configured_workstation do

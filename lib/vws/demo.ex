@@ -60,7 +60,8 @@ defmodule Vws.Demo do
   `"tcp://127.0.0.1:0"`, a free port), `:time_scale` (default 1.0; the simulators run this many
   times faster than real time), `:bcc`, `:lines` (faulty cables on every link, the WC's included:
   `[faults: [ber: 1.0e-4, …], seed: term]`, see `Vws.Sim.Floor`; `Vws.Sim.Floor.line(id, :wc)` is
-  the WC's). Returns where the WC reaches SUN_COMM (through its line, if any), what is
+  the WC's), `:supervisor` (a `DynamicSupervisor` to start the floor and the WC's line under;
+  by default they are linked to the caller). Returns where the WC reaches SUN_COMM (through its line, if any), what is
   simulated, which links have a faulty line and which partitions have no device link.
   """
   @spec start_shop_floor(keyword) :: {:ok, shop_floor} | {:error, term}
@@ -69,7 +70,10 @@ defmodule Vws.Demo do
     wc = Keyword.get(opts, :wc, "tcp://127.0.0.1:0")
     time_scale = Keyword.get(opts, :time_scale, 1.0)
     lines = Keyword.get(opts, :lines, false)
-    sim_opts = [workstation: id, time_scale: time_scale, lines: lines]
+
+    sim_opts =
+      [workstation: id, time_scale: time_scale, lines: lines] ++
+        Keyword.take(opts, [:supervisor])
 
     with {:ok, sims} <- start_simulators(sim_opts),
          {:ok, _pid} <-
@@ -81,7 +85,7 @@ defmodule Vws.Demo do
              partitions: merge_partitions(sims)
            ),
          {:ok, listening} <- wait_listening(id, 100),
-         {:ok, wc} <- wc_line(id, to_string(listening), lines) do
+         {:ok, wc} <- wc_line(id, to_string(listening), lines, opts[:supervisor]) do
       unlinked =
         for {partition, module} <- @partition_devices,
             Vws.Partition.info(id, partition).link == nil,
@@ -115,17 +119,22 @@ defmodule Vws.Demo do
   end
 
   # with faulty lines on the floor, the WC reaches SUN_COMM through one too
-  defp wc_line(_id, sun_comm, false), do: {:ok, sun_comm}
+  defp wc_line(_id, sun_comm, false, _supervisor), do: {:ok, sun_comm}
 
-  defp wc_line(id, sun_comm, lines) do
-    with {:ok, line} <-
-           Vws.Sim.Line.start_link(
-             name: Vws.Sim.Floor.line(id, :wc),
-             target: sun_comm,
-             seed: {Keyword.get(lines, :seed, 0), :wc},
-             faults: Keyword.get(lines, :faults, [])
-           ),
-         do: {:ok, to_string(Vws.Sim.Line.endpoint(line))}
+  defp wc_line(id, sun_comm, lines, supervisor) do
+    line_opts = [
+      name: Vws.Sim.Floor.line(id, :wc),
+      target: sun_comm,
+      seed: {Keyword.get(lines, :seed, 0), :wc},
+      faults: Keyword.get(lines, :faults, [])
+    ]
+
+    started =
+      if supervisor,
+        do: DynamicSupervisor.start_child(supervisor, {Vws.Sim.Line, line_opts}),
+        else: Vws.Sim.Line.start_link(line_opts)
+
+    with {:ok, line} <- started, do: {:ok, to_string(Vws.Sim.Line.endpoint(line))}
   end
 
   defp wait_listening(_id, 0), do: {:error, :sun_comm_not_listening}

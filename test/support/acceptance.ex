@@ -32,6 +32,8 @@ defmodule Vws.Test.Acceptance do
       Acceptance.tmux_await(t, ~r/iex\(1\)>/)
       Acceptance.tmux_send(t, ~s|Vws.Inspect.overview("VWS")|)   # typed, then Enter
       Acceptance.tmux_capture(t)                                 # the pane's text (with history)
+      Acceptance.tmux_keys(t, ["C-\\"])                          # keys by tmux name (Ctrl-\)
+      0 = Acceptance.tmux_await_exit(t)                          # the pane stays after the exit
       Acceptance.tmux_stop(t)
 
   Each tmux session runs on a tmux server of its own (`tmux -L <socket>`), killed by
@@ -208,6 +210,8 @@ defmodule Vws.Test.Acceptance do
 
     if status != 0, do: flunk("tmux new-session failed: #{out}")
     {_, 0} = tmux(socket, ["set-option", "-t", "main", "history-limit", "20000"])
+    # the pane stays when its program exits, for tmux_capture/1 and tmux_await_exit/2
+    {_, 0} = tmux(socket, ["set-option", "-t", "main", "remain-on-exit", "on"])
     %{socket: socket}
   end
 
@@ -215,6 +219,12 @@ defmodule Vws.Test.Acceptance do
   def tmux_send(%{socket: socket}, text) do
     {_, 0} = tmux(socket, ["send-keys", "-t", "main", "-l", text])
     {_, 0} = tmux(socket, ["send-keys", "-t", "main", "Enter"])
+    :ok
+  end
+
+  @doc "Sends keys by their tmux names (`\"C-c\"`, `\"C-\\\\\"`, `\"Enter\"`)."
+  def tmux_keys(%{socket: socket}, keys) do
+    {_, 0} = tmux(socket, ["send-keys", "-t", "main" | keys])
     :ok
   end
 
@@ -246,6 +256,29 @@ defmodule Vws.Test.Acceptance do
         Process.sleep(100)
         tmux_await_loop(t, regex, deadline)
     end
+  end
+
+  @doc "Waits until the pane's program has exited; returns its exit status (fails after `timeout`)."
+  def tmux_await_exit(%{socket: socket} = t, timeout \\ 30_000) do
+    deadline = System.monotonic_time(:millisecond) + timeout
+
+    Stream.repeatedly(fn ->
+      {out, 0} =
+        tmux(socket, ["list-panes", "-t", "main", "-F", "\#{pane_dead} \#{pane_dead_status}"])
+
+      out
+    end)
+    |> Enum.find_value(fn out ->
+      case String.split(out) do
+        ["1", status] ->
+          String.to_integer(status)
+
+        _ ->
+          if System.monotonic_time(:millisecond) > deadline,
+            do: flunk("the pane's program did not exit in time; pane:\n#{tmux_capture(t)}"),
+            else: Process.sleep(100) && nil
+      end
+    end)
   end
 
   @doc "The OS pid of the program in the session's pane."

@@ -29,7 +29,8 @@ defmodule Mix.Tasks.Vws.Demo do
     * `--verbose` — keep the application's info logs (by default only warnings interleave with
       the dialogue)
 
-  Without `--once` the shop floor keeps running after the script, until Ctrl-C.
+  Without `--once` the shop floor keeps running after the script, until stopped: Ctrl-\\ or
+  `kill PID` stop it in order (`Vws.Signals`), Ctrl-C twice aborts at once.
   """
   use Mix.Task
 
@@ -66,9 +67,15 @@ defmodule Mix.Tasks.Vws.Demo do
         _ -> Mix.raise("--ber must be between 0 and 1")
       end
 
+    # the floor under the application's equipment supervisor, not linked to this task's process
+    # (which ends under `iex -S mix vws.demo`): it stops in order with the application
     demo_opts =
-      [time_scale: time_scale, wc: "tcp://127.0.0.1:#{opts[:wc_port] || 0}", lines: lines] ++
-        Keyword.take(opts, [:script, :id])
+      [
+        time_scale: time_scale,
+        wc: "tcp://127.0.0.1:#{opts[:wc_port] || 0}",
+        lines: lines,
+        supervisor: Vws.EquipmentSupervisor
+      ] ++ Keyword.take(opts, [:script, :id])
 
     IO.puts("dashboard and MTConnect agent: #{start_web(opts)}")
 
@@ -85,12 +92,14 @@ defmodule Mix.Tasks.Vws.Demo do
             exit({:shutdown, 1})
 
           true ->
+            iex? = Code.ensure_loaded?(IEx) and IEx.started?()
+
             IO.puts(
               "The shop floor keeps running: SUN_COMM serves the WC on #{floor.wc}. " <>
-                "Ctrl-C to stop."
+                Mix.Tasks.Vws.Serve.stop_hint(iex?)
             )
 
-            unless Code.ensure_loaded?(IEx) and IEx.started?(), do: Process.sleep(:infinity)
+            unless iex?, do: Process.sleep(:infinity)
         end
 
       {:error, message} ->

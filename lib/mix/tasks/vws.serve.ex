@@ -82,8 +82,8 @@ defmodule Mix.Tasks.Vws.Serve do
         other -> Mix.raise("--bcc must be sum or xor, not #{other}")
       end
 
-    robot = robot(opts)
-    {ge2000, monarch} = ge2000(opts)
+    robot = robot(id, opts)
+    {ge2000, monarch} = ge2000(id, opts)
     devices = [ge2000: ge2000, robot: robot] ++ floor_devices(id, opts)
 
     # a simulated GE-2000's own button is MONARCH's cycle start; else the DAQ #1 relay is
@@ -100,7 +100,8 @@ defmodule Mix.Tasks.Vws.Serve do
     Mix.shell().info("VWS workstation #{id}: SUN_COMM waits for the WC on #{listening || wc}")
     Mix.shell().info("GE-2000 DNC link: #{ge2000}")
     Mix.shell().info("Dashboard and MTConnect agent: #{start_web(opts)}")
-    Mix.shell().info("Inspect it: Vws.Inspect.overview(#{inspect(id)})   Stop: Ctrl-C twice")
+    Mix.shell().info("Inspect it: Vws.Inspect.overview(#{inspect(id)})")
+    Mix.shell().info(stop_hint(iex_running?()))
 
     unless iex_running?(), do: Process.sleep(:infinity)
   end
@@ -117,12 +118,13 @@ defmodule Mix.Tasks.Vws.Serve do
       daq1 = sim_daq1 && "tcp://127.0.0.1:#{opts[:daq1_port] || 0}"
 
       {:ok, _} =
-        Vws.Sim.Floor.start_link(
-          workstation: id,
-          time_scale: scale,
-          daq1: daq1,
-          daq2: sim_hydraulic && "tcp://127.0.0.1:0",
-          hydraulic: sim_hydraulic
+        start_equipment(
+          {Vws.Sim.Floor,
+           workstation: id,
+           time_scale: scale,
+           daq1: daq1,
+           daq2: sim_hydraulic && "tcp://127.0.0.1:0",
+           hydraulic: sim_hydraulic}
         )
 
       Mix.shell().info("simulated plant (time scale ×#{scale})")
@@ -157,12 +159,15 @@ defmodule Mix.Tasks.Vws.Serve do
   end
 
   # the real VAL II, or a simulated one started here (outside the workstation: it is equipment)
-  defp robot(opts) do
+  defp robot(id, opts) do
     case opts[:robot] do
       nil ->
-        {:ok, sim} = Vws.Sim.VAL2.start_link(time_scale: opts[:robot_time_scale] || 1.0)
-        Process.unlink(sim)
-        endpoint = Vws.Sim.VAL2.endpoint(sim)
+        name = Vws.Sim.Floor.robot(id)
+
+        {:ok, _} =
+          start_equipment({Vws.Sim.VAL2, name: name, time_scale: opts[:robot_time_scale] || 1.0})
+
+        endpoint = Vws.Sim.VAL2.endpoint(name)
         Mix.shell().info("Simulated VAL II robot controller on #{endpoint}")
         endpoint
 
@@ -173,10 +178,11 @@ defmodule Mix.Tasks.Vws.Serve do
   end
 
   # The real machine's endpoint, or a simulator started here (its button stands in for the relay).
-  defp ge2000(opts) do
+  defp ge2000(id, opts) do
     case opts[:ge2000] do
       nil ->
-        {:ok, sim} = Vws.Sim.GE2000.start_link(pace: opts[:ge2000_baud] || false)
+        sim = Vws.Sim.Floor.ge2000(id)
+        {:ok, _} = start_equipment({Vws.Sim.GE2000, name: sim, pace: opts[:ge2000_baud] || false})
         Mix.shell().info("Simulated GE-2000 on #{Vws.Sim.GE2000.endpoint(sim)}")
         {Vws.Sim.GE2000.endpoint(sim), [cycle_start: fn -> Vws.Sim.GE2000.cycle_start(sim) end]}
 
@@ -184,6 +190,13 @@ defmodule Mix.Tasks.Vws.Serve do
         {endpoint, []}
     end
   end
+
+  # Simulators run under the application's equipment supervisor, not linked to this task's
+  # process: under `iex -S mix vws.serve` that process ends once the task has run (and took the
+  # floor with it), and the application stops them in order — after the workstation, before
+  # the registry they are named in.
+  defp start_equipment(child_spec),
+    do: DynamicSupervisor.start_child(Vws.EquipmentSupervisor, child_spec)
 
   defp wait_listening(_id, 0), do: nil
 
@@ -195,6 +208,15 @@ defmodule Mix.Tasks.Vws.Serve do
   end
 
   defp iex_running?, do: Code.ensure_loaded?(IEx) and IEx.started?()
+
+  @doc false
+  # How to stop it cleanly (Vws.Signals): Ctrl-C is the BEAM's BREAK menu, which stops nothing
+  # in order; Ctrl-\\ (SIGQUIT) and SIGTERM do.
+  def stop_hint(true = _iex?),
+    do: "Stop: System.stop() or Ctrl-\\ (in order); Ctrl-C twice aborts at once"
+
+  def stop_hint(false),
+    do: "Stop: Ctrl-\\ or kill #{System.pid()} (in order); Ctrl-C twice aborts at once"
 
   defp start_web(opts) do
     case Vws.Web.start_from_cli(opts) do

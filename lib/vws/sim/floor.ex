@@ -175,8 +175,9 @@ defmodule Vws.Sim.Floor do
   defp running?(name), do: GenServer.whereis(name) != nil
 
   @doc """
-  For `Vws.Demo`'s shop floor: starts the whole floor (linked to the caller) with the demo's
-  `:workstation` and `:time_scale` — hydraulic controller, GE-2000, VAL II, material handling —
+  For `Vws.Demo`'s shop floor: starts the whole floor (linked to the caller, or under the
+  `DynamicSupervisor` given as `:supervisor`) with the demo's `:workstation` and `:time_scale`
+  — hydraulic controller, GE-2000, VAL II, material handling —
   and a blank in tray #1, and returns the workstation links and partition options that reach
   it (`Vws.Workstation.device_links/3`).
   """
@@ -185,10 +186,18 @@ defmodule Vws.Sim.Floor do
           | {:error, term}
   def shop_floor(opts) do
     ws = Keyword.fetch!(opts, :workstation)
-    floor = Keyword.take(opts, [:workstation, :time_scale, :seed, :lines])
 
-    with {:ok, _pid} <-
-           start_link(floor ++ [hydraulic: true, ge2000: true, robot: true, mhs: true]),
+    floor =
+      Keyword.take(opts, [:workstation, :time_scale, :seed, :lines]) ++
+        [hydraulic: true, ge2000: true, robot: true, mhs: true]
+
+    started =
+      case opts[:supervisor] do
+        nil -> start_link(floor)
+        supervisor -> DynamicSupervisor.start_child(supervisor, {__MODULE__, floor})
+      end
+
+    with {:ok, _pid} <- started,
          :ok <- HydraulicController.await_ready(hydraulic_controller(ws), 10_000),
          :ok <- Plant.set_part(plant(ws), :tray1, true) do
       {links, partitions} = Vws.Workstation.device_links(ws, devices(ws), [])
