@@ -141,16 +141,22 @@ defmodule Vws.Workstation do
                  ]
                ]}
           },
-          %{
-            id: :ok_to_proceed,
-            restart: :transient,
-            start: {Task, :start_link, [fn -> :ok = Vws.Events.cause(ws, :ok_to_proceed) end]}
-          },
+          # caused here, in the start sequence, before SUN_COMM starts: a process started to
+          # cause it could run after SUN_COMM, and start/1 return before SUN_COMM had it
+          %{id: :ok_to_proceed, restart: :transient, start: {__MODULE__, :ok_to_proceed, [ws]}},
           {Vws.SunComm,
            [workstation: ws, wc: Keyword.get(opts, :wc)] ++ Keyword.get(opts, :sun_comm, [])}
         ]
 
     Supervisor.init(children, strategy: :rest_for_one, max_restarts: 10, max_seconds: 5)
+  end
+
+  @doc false
+  # OK_TO_PROCEED, caused as a step of the supervisor's start sequence (a child that starts no
+  # process): everything above it is up, SUN_COMM below it finds the event already caused.
+  def ok_to_proceed(ws) do
+    :ok = Vws.Events.cause(ws, :ok_to_proceed)
+    :ignore
   end
 
   @doc """
