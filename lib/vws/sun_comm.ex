@@ -156,11 +156,18 @@ defmodule Vws.SunComm do
   defp open_tty(s) do
     case Transport.connect(s.endpoint) do
       {:ok, conn} ->
+        Vws.LogLimit.clear(:wc_tty, "WC tty #{s.endpoint} open")
         s = take_link(s, conn)
         %{s | listening: conn.endpoint}
 
       {:error, reason} ->
-        Logger.error("cannot open the WC tty #{s.endpoint}: #{inspect(reason)}; retrying")
+        # once, not at every try (once a second)
+        Vws.LogLimit.warning(
+          :wc_tty,
+          "cannot open the WC tty #{s.endpoint}: #{inspect(reason)}; retrying",
+          :error
+        )
+
         Process.send_after(self(), :reopen_tty, s.tty_retry)
         s
     end

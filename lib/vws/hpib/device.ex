@@ -76,7 +76,11 @@ defmodule Vws.HPIB.Device do
     case Transport.connect(data.endpoint, timeout: data.connect_timeout) do
       {:ok, conn} ->
         :ok = Transport.activate(conn)
-        Logger.info("HPIB device #{data.address} connected to #{endpoint(data)}")
+        # reconnecting during trouble already told (a device that times out or drops every
+        # connection) is part of that trouble, not news
+        unless Vws.LogLimit.on?(:timeout) or Vws.LogLimit.on?(:lost),
+          do: Logger.info("HPIB device #{data.address} connected to #{endpoint(data)}")
+
         telemetry(:connected, data, %{})
 
         # a request being tried again waits at the head of the queue
@@ -162,7 +166,11 @@ defmodule Vws.HPIB.Device do
     data = %{data | timeouts: data.timeouts + 1}
 
     try_again(data, error, fn data ->
-      Logger.warning("HPIB device #{data.address}: #{Exception.message(error)}; reconnecting")
+      Vws.LogLimit.warning(
+        :timeout,
+        "HPIB device #{data.address}: #{Exception.message(error)}; reconnecting"
+      )
+
       # reconnect at once (the device may only have been slow); the requests queued behind this
       # one wait for the new connection
       telemetry(:disconnected, data, %{reason: :timeout})
@@ -273,12 +281,19 @@ defmodule Vws.HPIB.Device do
   end
 
   defp line(line, data) do
-    Logger.warning("HPIB device #{data.address}: unsolicited line #{inspect(line, limit: 10)}")
+    Vws.LogLimit.warning(:unsolicited, fn ->
+      "HPIB device #{data.address}: unsolicited line #{inspect(line, limit: 10)}"
+    end)
+
     %{data | unsolicited: data.unsolicited + 1}
   end
 
   defp answered(%{current: %{waiting: [], error: nil} = c} = data) do
     reply = {:ok, results(c.commands, Enum.reverse(c.answers))}
+    # a good answer ends the troubles logged once each (Vws.LogLimit)
+    Vws.LogLimit.clear(:timeout, "HPIB device #{data.address} answers again")
+    Vws.LogLimit.clear(:lost, "HPIB device #{data.address} keeps its connection again")
+    Vws.LogLimit.clear(:unsolicited, "HPIB device #{data.address}: unsolicited lines")
     serve(%{data | current: nil}, [{:reply, c.from, reply}])
   end
 
@@ -293,7 +308,10 @@ defmodule Vws.HPIB.Device do
   defp answered(data), do: {:keep_state, data}
 
   defp connection_closed(data, reason) do
-    Logger.warning("HPIB device #{data.address}: connection lost (#{inspect(reason)})")
+    Vws.LogLimit.warning(
+      :lost,
+      "HPIB device #{data.address}: connection lost (#{inspect(reason)})"
+    )
 
     actions =
       case data.current do

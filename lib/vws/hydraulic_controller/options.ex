@@ -73,10 +73,12 @@ defmodule Vws.HydraulicController.Options do
   defp command(:pallet?, s) do
     case Pallet.read(s.pallet) do
       {:ok, pallet} ->
+        Vws.LogLimit.clear(:pallet, "hydraulic controller: PALLET? reads DAQ #2 again")
         answer(s, pallet)
 
       {:error, why} ->
-        Logger.warning("hydraulic controller: PALLET? cannot read DAQ #2: #{why}")
+        # once while DAQ #2 cannot be read, not at every PALLET? the CEC asks
+        Vws.LogLimit.warning(:pallet, "hydraulic controller: PALLET? cannot read DAQ #2: #{why}")
         answer(s, Pallet.unknown())
     end
   end

@@ -359,6 +359,8 @@ defmodule Vws.Partitions.VwsStatus do
   @impl true
   def init(opts) do
     ws = Keyword.fetch!(opts, :workstation)
+    # its log lines say which workstation they are about, as the other partitions' do
+    Logger.metadata(workstation: ws, partition: :vws_status)
     opts = Keyword.merge(@defaults, opts)
     link = Keyword.get(opts, :link)
 
@@ -563,7 +565,8 @@ defmodule Vws.Partitions.VwsStatus do
           Enum.each(texts, fn {loc, text} -> Mailbox.put_device(s.workstation, loc, text) end)
           Mailbox.put_device(s.workstation, @sensors_location, readings)
 
-          if s.stale && s.stats.ok > 0, do: Logger.info("VWS_STATUS: #{@device} answers again")
+          # the stale readings' warning ends here, with how often it was repeated
+          Vws.LogLimit.clear(:stale, "VWS_STATUS: #{@device} answers again")
 
           %{s | last_good_at: div(t0, 1000), stale: nil}
           |> update_stats(ok: 1)
@@ -618,7 +621,9 @@ defmodule Vws.Partitions.VwsStatus do
       why = stale_reason(s)
 
       if why != s.stale do
-        Logger.warning("VWS_STATUS: readings are stale: #{why}")
+        # once per outage, not per reason it gives (NOT CONNECTED, NOT ANSWERING alternate at
+        # every poll of a DAQ that is gone: 150 lines a second)
+        Vws.LogLimit.warning(:stale, "VWS_STATUS: readings are stale: #{why}")
 
         Vws.Telemetry.execute([:vws, :vws_status, :stale], %{count: 1}, %{
           workstation: s.workstation,
@@ -718,10 +723,19 @@ defmodule Vws.Partitions.VwsStatus do
     case reply do
       :ok ->
         if caller, do: GenServer.reply(caller, :ok)
+        names = Enum.map_join(relays, ", ", &relay_name/1)
+        Vws.LogLimit.clear({:not_released, relays}, "VWS_STATUS: #{names} let go")
         %{s | unreleased: MapSet.difference(s.unreleased, MapSet.new(relays))}
 
       {:error, why} ->
-        Logger.warning("VWS_STATUS: #{inspect(relays)} not let go (#{why}); trying again")
+        names = Enum.map_join(relays, ", ", &relay_name/1)
+
+        # once until it is let go, not at every try
+        Vws.LogLimit.warning(
+          {:not_released, relays},
+          "VWS_STATUS: #{names} not let go (#{why}); trying again until it is"
+        )
+
         names = Enum.map_join(relays, ", ", &relay_name/1)
         if caller, do: GenServer.reply(caller, {:error, "RELAY #{names} NOT RELEASED: " <> why})
         s

@@ -147,6 +147,23 @@ defmodule Vws.Partitions.VwsStatusTest do
       assert DAQFloor.status(peer, "GRIPPER") == "NO DATA (DAQ #1 NOT CONNECTED)"
     end
 
+    # a DAQ that is gone gave two reasons in turn (NOT CONNECTED, NOT ANSWERING), each logged:
+    # 150 warning lines a second; now the outage is one line
+    test "a DAQ that is gone is logged once, however many polls fail" do
+      %{ws: ws, daq: daq} = DAQFloor.start(vws_status: [poll_ms: 10, stale_after_ms: 50])
+
+      log =
+        ExUnit.CaptureLog.capture_log(fn ->
+          GenServer.stop(daq)
+          failed = VwsStatus.stats(ws).failed
+          assert eventually(fn -> VwsStatus.stats(ws).failed >= failed + 40 end, 20_000)
+        end)
+
+      lines = for line <- String.split(log, "\n"), line =~ "workstation=#{ws} ", do: line
+      stale = Enum.filter(lines, &(&1 =~ "VWS_STATUS: readings are stale"))
+      assert [_] = stale, Enum.join(lines, "\n")
+    end
+
     test "an answer slower than the poll period: polls are missed and counted, not stacked" do
       %{ws: ws, daq: daq} = DAQFloor.start(vws_status: [poll_ms: 10, stale_after_ms: 1_000])
       :ok = DAQ.set_fault(daq, {:delay_ms, 35})
