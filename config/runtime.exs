@@ -16,6 +16,9 @@ import Config
 #   VWS_HTTP_PORT     the dashboard and MTConnect agent (default 4000 in a release; "off": none)
 #   VWS_HTTP_BIND     the address they listen on (default 127.0.0.1)
 #   VWS_HTTP_TOKEN    enables the dashboard's control actions for requests carrying it
+#   VWS_LOG_DIR       the log also goes to DIR/vws.log, rotated at 10 MB, 10 old files kept
+#                     (Vws.LogFile); a release's default is its own log/ directory; "off": none
+#   VWS_LOG_LEVEL     debug, info (a release's default), notice, warning or error
 env = fn name ->
   case System.get_env(name) do
     nil -> nil
@@ -75,4 +78,28 @@ if http_port do
     port: http_port,
     bind: env.("VWS_HTTP_BIND") || "127.0.0.1",
     token: env.("VWS_HTTP_TOKEN")
+end
+
+# The log: to rotating files as well as the console (Vws.LogFile), at the level asked.
+if config_env() != :test do
+  log_dir =
+    case {env.("VWS_LOG_DIR"), System.get_env("RELEASE_ROOT")} do
+      {"off", _} -> nil
+      {nil, nil} -> nil
+      {nil, release_root} -> Path.join(release_root, "log")
+      {dir, _} -> Path.expand(dir)
+    end
+
+  if log_dir, do: config(:vws, :log_file, dir: log_dir)
+
+  case env.("VWS_LOG_LEVEL") do
+    nil ->
+      :ok
+
+    level when level in ~w(debug info notice warning error) ->
+      config :logger, level: String.to_atom(level)
+
+    other ->
+      raise "VWS_LOG_LEVEL must be debug, info, notice, warning or error, not #{other}"
+  end
 end

@@ -6,6 +6,8 @@ defmodule Vws.Application do
   def start(_type, _args) do
     # SIGTERM and SIGQUIT stop the node in order (Vws.Signals)
     :ok = Vws.Signals.install()
+    # the log in rotating files too, where configured (VWS_LOG_DIR)
+    :ok = Vws.LogFile.start_configured()
 
     children =
       [
@@ -25,7 +27,10 @@ defmodule Vws.Application do
   end
 
   @impl true
-  def stop(_state), do: Vws.Signals.uninstall()
+  def stop(_state) do
+    :ok = Vws.LogFile.stop()
+    Vws.Signals.uninstall()
+  end
 
   # The workstation of config/runtime.exs (a deployment), started under the workstation supervisor.
   defp configured_workstation do
