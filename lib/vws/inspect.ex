@@ -320,8 +320,11 @@ defmodule Vws.Inspect do
 
   @doc """
   Prints a workstation's traffic as it happens: for a partition (`:robot`, `:monarch`, …) every
-  telemetry event about it (commands dispatched, started, finished, and whatever its link
-  reports), for `:wc` every line of the WC dialogue and SUN_COMM's events, for `:all` both.
+  telemetry event about it (commands dispatched, started, finished) and its device's traffic —
+  for `:robot` every VAL II message both ways (`VAL II → LUN 1 write: DO MOVE …`) and the
+  DDCMP link's events (NAKs, REPs, retransmissions, state changes; not each frame), for
+  `:monarch` the GE-2000's DNC link — for `:wc` every line of the WC dialogue and SUN_COMM's
+  events, for `:all` everything.
 
   It prints until Enter is pressed (in iex) or for `:timeout` ms (when given, or 30 s outside
   iex; a message `:stop_watch` to the watching process ends it sooner), then returns the number
@@ -405,7 +408,18 @@ defmodule Vws.Inspect do
   defp about?(_event, _meta, :all), do: true
   defp about?([:vws, :sun_comm | _], _meta, :wc), do: true
   defp about?(_event, _meta, :wc), do: false
-  defp about?(event, meta, target), do: Map.get(meta, :partition) == target or target in event
+
+  defp about?(event, meta, target),
+    do: Map.get(meta, :partition) == target or target in event or device_traffic?(event, target)
+
+  # The device a partition drives: its link's events (the workstation is in their metadata).
+  defp device_traffic?([:vws, :ddcmp, frame], :robot)
+       when frame in [:frame_sent, :frame_received],
+       do: false
+
+  defp device_traffic?([:vws, link | _], :robot), do: link in [:val, :ddcmp]
+  defp device_traffic?([:vws, link | _], :monarch), do: link == :dnc
+  defp device_traffic?(_event, _target), do: false
 
   defp watch_loop(ws, device, n) do
     receive do
@@ -427,6 +441,14 @@ defmodule Vws.Inspect do
   end
 
   @doc false
+  def telemetry_line([:vws, :val, :message], _measurements, %{direction: dir} = m) do
+    arrow = if dir == :out, do: "→", else: "←"
+    qualifier = if m.function == :write, do: "", else: " #{short(m.qualifier)}"
+
+    "VAL II #{arrow} LUN #{m.lun} #{m.function}#{qualifier}: " <>
+      printable(to_string(Map.get(m, :text, "")))
+  end
+
   def telemetry_line(event, measurements, metadata) do
     name = event |> Enum.drop(1) |> Enum.join(".")
 

@@ -27,7 +27,7 @@ defmodule Vws.Telemetry do
   | `[:vws, :partition, :command, :start / :stop / :exception]` | span | `workstation, partition, command, text` (+ `result` on stop) |
   | `[:vws, :partition, :command_finished]` | `duration` (native) | `workstation, partition, command, status` |
   | `[:vws, :events, :caused]` | `count` | `workstation, event` |
-  | `[:vws, :val, :message]` | `bytes` | `name, workstation, direction, lun, function, qualifier` |
+  | `[:vws, :val, :message]` | `bytes` | `name, workstation, direction, lun, function, qualifier, text` |
   | `[:vws, :val, :request_finished]` | `duration` (native) | `name, workstation, text, result` |
   | `[:vws, :val, :async]` | `count` | `name, workstation, code, text` (every LUN 3 message) |
   | `[:vws, :ddcmp, :frame_sent]` / `:frame_received` | `count` | `link, workstation` + the frame's fields |

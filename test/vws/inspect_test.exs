@@ -152,6 +152,37 @@ defmodule Vws.InspectTest do
     refute out =~ "partition=gripper"
   end
 
+  # README: `watch("VWS", :robot)` shows ROBOT's traffic live — the VAL II messages, not only
+  # the partition's own events (they were all it showed)
+  test "watch the robot: the VAL II messages both ways" do
+    sim = start_supervised!({Vws.Sim.VAL2, time_scale: 0.001}, id: :val2_sim)
+
+    %{ws: ws, wc: wc} = Vws.Test.Workstation.start(devices: [robot: Vws.Sim.VAL2.endpoint(sim)])
+
+    val = Vws.Workstation.via(ws, :val)
+    assert Vws.Test.Eventually.eventually(fn -> Vws.VAL.ready?(val) end, 10_000)
+    {:ok, peer} = WCPeer.connect(wc)
+    {:ok, device} = StringIO.open("")
+    watcher = Task.async(fn -> Inspect.watch(ws, :robot, timeout: 30_000, device: device) end)
+
+    assert Vws.Test.Eventually.eventually(fn ->
+             StringIO.contents(device) |> elem(1) =~ "watching"
+           end)
+
+    WCPeer.send_string(peer, 1, [{"R", 1, "WHERE"}])
+
+    assert Vws.Test.Eventually.eventually(
+             fn -> StringIO.contents(device) |> elem(1) =~ "command_finished" end,
+             10_000
+           )
+
+    send(watcher.pid, :stop_watch)
+    Task.await(watcher, 5_000)
+    {_, out} = StringIO.contents(device)
+    assert out =~ ~r/VAL II → LUN \d+ write: WHERE/
+    assert out =~ ~r/VAL II ← LUN \d+ /
+  end
+
   test "watch the WC: the dialogue both ways", %{ws: ws, wc: wc} do
     {:ok, peer} = WCPeer.connect(wc)
     {:ok, device} = StringIO.open("")

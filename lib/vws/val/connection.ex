@@ -555,7 +555,8 @@ defmodule Vws.VAL.Connection do
       direction: direction,
       lun: m.lun,
       function: m.function,
-      qualifier: m.qualifier
+      qualifier: m.qualifier,
+      text: m.text
     })
   end
 
