@@ -69,6 +69,16 @@ defmodule Vws.Acceptance.ServeTest do
     deadline = System.monotonic_time(:millisecond) + 30_000
     assert await_fixture(wc, 3, 1, deadline) =~ ~r/^\d\dS\d{4}0001DONE\d{3}$/
 
+    # the integrator's command line (README): a command to its end, exit status 0
+    cli =
+      Acceptance.start(
+        ["mix", "vws.wc", "--endpoint", "tcp://127.0.0.1:#{wc}", "--command", "F OPEN"],
+        env: [{"MIX_ENV", "dev"}]
+      )
+
+    assert Acceptance.await_exit(cli, 60_000) == 0, Acceptance.output(cli)
+    assert Acceptance.output(cli) =~ ~r/F0002 OPEN: DONE/
+
     assert {200, state} = Acceptance.http_get(http, "/api/state")
     assert state =~ ~s("workstations")
     assert {200, current} = Acceptance.http_get(http, "/current")
