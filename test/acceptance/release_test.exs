@@ -1,0 +1,108 @@
+defmodule Vws.Acceptance.ReleaseTest do
+  # The release as the README deploys it: `MIX_ENV=prod mix release`, started with its
+  # environment (VWS_WC, VWS_DAQ1, VWS_HTTP_PORT, VWS_LOG_DIR), driven over the real WC TCP link
+  # and HTTP, by bin/vws-wc too, and stopped with SIGTERM. DAQ #1 is a simulated one in this
+  # test's VM (with the GE-2000 the FIXTURE interlock reads), reached over TCP as real ones are.
+  use ExUnit.Case, async: true
+
+  alias Vws.Test.Acceptance
+
+  @moduletag :acceptance
+  @moduletag :release
+  @moduletag timeout: 600_000
+
+  setup_all do
+    path =
+      Path.join(System.tmp_dir!(), "vws-acceptance-release-#{System.unique_integer([:positive])}")
+
+    {out, status} =
+      System.cmd("mix", ["release", "--path", path, "--overwrite"],
+        env: [{"MIX_ENV", "prod"}],
+        cd: Acceptance.root(),
+        stderr_to_stdout: true
+      )
+
+    if status != 0, do: flunk("MIX_ENV=prod mix release failed:\n#{out}")
+    on_exit(fn -> File.rm_rf!(path) end)
+    %{release: path}
+  end
+
+  @tag :tmp_dir
+  test "the release: started from its environment, a WC command to DONE on DAQ #1, HTTP, bin/vws-wc, logs to a file at info, SIGTERM stops it cleanly",
+       %{release: release, tmp_dir: tmp} do
+    ws = "REL#{System.unique_integer([:positive])}"
+
+    start_supervised!(
+      {Vws.Sim.Floor,
+       workstation: ws, time_scale: 20, daq1: "tcp://127.0.0.1:0", daq2: false, ge2000: true}
+    )
+
+    daq1 = Vws.Sim.Floor.daq1_endpoint(ws)
+    wc = Acceptance.free_port()
+    http = Acceptance.free_port()
+    log_dir = Path.join(tmp, "log")
+
+    proc =
+      Acceptance.start([Path.join(release, "bin/vws"), "start"],
+        env: [
+          {"VWS_ID", "VWS1"},
+          {"VWS_WC", "tcp://127.0.0.1:#{wc}"},
+          {"VWS_DAQ1", daq1},
+          {"VWS_GE2000", Vws.Sim.GE2000.endpoint(Vws.Sim.Floor.ge2000(ws))},
+          {"VWS_HTTP_PORT", "#{http}"},
+          {"VWS_LOG_DIR", log_dir},
+          {"RELEASE_DISTRIBUTION", "none"},
+          {"RELEASE_COOKIE", "acceptance-#{System.unique_integer([:positive])}"}
+        ]
+      )
+
+    on_exit(fn -> Acceptance.stop(proc) end)
+
+    Acceptance.await(
+      proc,
+      ~r/SUN_COMM listening for the WC on tcp:\/\/127\.0\.0\.1:#{wc}/,
+      60_000
+    )
+
+    assert Acceptance.wc_request(wc, "*0001*S0001FIXTURE_CMD*") =~ ~r/^\d\dS00010000NONE\d{3}$/
+
+    # the integrator's command line of the release: a command verified on DAQ #1's sensors
+    cli =
+      Acceptance.start(
+        [
+          Path.join(release, "bin/vws-wc"),
+          "--endpoint",
+          "tcp://127.0.0.1:#{wc}",
+          "--command",
+          "F OPEN"
+        ],
+        env: [{"VWS_LOG_DIR", "off"}]
+      )
+
+    assert Acceptance.await_exit(cli, 60_000) == 0, Acceptance.output(cli)
+    assert Acceptance.output(cli) =~ "F0001 OPEN: DONE"
+    assert Acceptance.wc_request(wc, "*0002*S0002FIXTURE_CMD*") =~ ~r/^\d\dS00020001DONE\d{3}$/
+
+    assert {200, current} = Acceptance.http_get(http, "/current")
+    assert current =~ ~s(name="VWS1")
+    assert {200, _state} = Acceptance.http_get(http, "/api/state")
+
+    Acceptance.signal(proc, "TERM")
+    status = Acceptance.await_exit(proc, 30_000)
+    output = Acceptance.output(proc)
+    assert [_, stop] = String.split(output, "SIGTERM received", parts: 2), output
+
+    refute stop =~ ~r/\*\* \(EXIT|SUPERVISOR REPORT|CRASH REPORT|unknown registry|\[error\]/,
+           output
+
+    refute output =~ ~r/\*\* \(EXIT|SUPERVISOR REPORT|CRASH REPORT|unknown registry/, output
+    assert status == 0, output
+
+    # production logging: info, not debug, to the console and to VWS_LOG_DIR/vws.log
+    refute output =~ "[debug]"
+    log = File.read!(Path.join(log_dir, "vws.log"))
+    assert log =~ ~r/workstation=VWS1 partition=sun_comm \[info\] SUN_COMM listening for the WC/
+    assert log =~ "SIGTERM received"
+    refute log =~ "[debug]"
+  end
+end
