@@ -2,6 +2,8 @@ defmodule Vws.Application do
   @moduledoc false
   use Application
 
+  require Logger
+
   @impl true
   def start(_type, _args) do
     # SIGTERM and SIGQUIT stop the node in order (Vws.Signals)
@@ -43,12 +45,44 @@ defmodule Vws.Application do
 
         [
           Supervisor.child_spec(
-            {Task, fn -> {:ok, _} = Vws.Workstation.start(opts) end},
+            {Task, fn -> {:ok, _} = start_configured(opts) end},
             id: :configured_workstation,
             restart: :temporary
           )
         ]
     end
+  end
+
+  @doc false
+  # The configured workstation. `devices: [daq2: endpoint]` (VWS_DAQ2) runs the hydraulic
+  # controller in this node, on DAQ #2, under the equipment supervisor, and gives the
+  # workstation its endpoint — unless the workstation has one elsewhere (VWS_HYDRAULIC).
+  def start_configured(opts) do
+    {daq2, devices} = Keyword.pop(Keyword.get(opts, :devices, []), :daq2)
+
+    devices =
+      cond do
+        daq2 == nil ->
+          devices
+
+        Keyword.has_key?(devices, :hydraulic) ->
+          Logger.warning("VWS_DAQ2 not used: the hydraulic controller is at VWS_HYDRAULIC")
+          devices
+
+        true ->
+          name = {:configured, Keyword.fetch!(opts, :id)}
+
+          {:ok, _} =
+            DynamicSupervisor.start_child(
+              Vws.EquipmentSupervisor,
+              {Vws.HydraulicController, name: name, daq2: daq2}
+            )
+
+          :ok = Vws.HydraulicController.await_ready(name, 30_000)
+          devices ++ [hydraulic: Vws.HydraulicController.endpoint(name)]
+      end
+
+    Vws.Workstation.start(Keyword.put(opts, :devices, devices))
   end
 
   # The dashboard and MTConnect agent of config/runtime.exs (`config :vws, :http, port: …`).
