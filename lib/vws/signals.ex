@@ -48,8 +48,14 @@ defmodule Vws.Signals do
   @impl :gen_event
   def handle_event(signal, state) when signal in [:sigterm, :sigquit] do
     name = signal |> Atom.to_string() |> String.upcase()
-    Logger.notice("#{name} received: stopping (workstations, then their equipment)")
-    :ok = :init.stop()
+
+    # not in the signal server's process: it must stay free for the next signal (SIGUSR1's
+    # crash dump, a second SIGTERM) whatever the logger or the stop does
+    spawn(fn ->
+      Logger.notice("#{name} received: stopping (workstations, then their equipment)")
+      :init.stop()
+    end)
+
     {:ok, state}
   end
 

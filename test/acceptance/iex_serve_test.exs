@@ -31,15 +31,60 @@ defmodule Vws.Acceptance.IexServeTest do
     end
   end
 
+  # The exit status; if the node does not stop in time, the failure message says what the pane's
+  # process is doing (ps) and, from a crash dump (SIGUSR1), where its Erlang processes wait.
+  defp exit_or_dump(t, dump) do
+    Acceptance.tmux_await_exit(t, 60_000)
+  rescue
+    error in ExUnit.AssertionError ->
+      pid = Acceptance.tmux_pid(t)
+
+      {ps, _} =
+        System.cmd(
+          "sh",
+          [
+            "-c",
+            "ps -o pid,pgid,stat,wchan:24,cmd -s #{pid}; grep -E 'State|Sig' /proc/#{pid}/status"
+          ],
+          stderr_to_stdout: true
+        )
+
+      System.cmd("kill", ["-s", "USR1", "--", "#{Acceptance.tmux_pid(t)}"], stderr_to_stdout: true)
+
+      Vws.Test.Eventually.eventually(fn -> File.exists?(dump) end, 30_000, 200)
+      Process.sleep(2_000)
+
+      waiting =
+        case File.read(dump) do
+          {:ok, text} ->
+            text
+            |> String.split("\n=proc:")
+            |> Enum.filter(&(&1 =~ ~r/^State: Waiting/m and not (&1 =~ "gen_server:loop")))
+            |> Enum.map_join(
+              "\n",
+              &(&1 |> String.split("\n") |> Enum.take(12) |> Enum.join(" | "))
+            )
+
+          {:error, reason} ->
+            "no crash dump: #{inspect(reason)}"
+        end
+
+      reraise %{error | message: error.message <> "\n#{ps}\nprocesses waiting:\n" <> waiting},
+              __STACKTRACE__
+  end
+
   @tag :tmux
   test "iex -S mix vws.serve: the shell works and the floor keeps serving; Ctrl-\\ stops it in order" do
     wc = Acceptance.free_port()
     http = Acceptance.free_port()
 
+    dump = Path.join(System.tmp_dir!(), "vws-iex-#{System.unique_integer([:positive])}.dump")
+    on_exit(fn -> File.rm(dump) end)
+
     t =
       Acceptance.tmux_start(
         "iex -S mix vws.serve --wc-port #{wc} --http-port #{http} --time-scale 20",
-        env: [{"MIX_ENV", "dev"}]
+        env: [{"MIX_ENV", "dev"}, {"ERL_CRASH_DUMP", dump}]
       )
 
     on_exit(fn -> Acceptance.tmux_stop(t) end)
@@ -63,12 +108,9 @@ defmodule Vws.Acceptance.IexServeTest do
     refute Acceptance.tmux_capture(t) =~ "DAQ #1 NOT CONNECTED"
 
     # Ctrl-\ (SIGQUIT): a clean stop, in order, exit status 0
-    # (the terminal's settings, for the failure message: Ctrl-\ is SIGQUIT only with isig)
-    {tty, 0} = System.cmd("tmux", ["-L", t.socket, "display", "-p", "-t", "main", "\#{pane_tty}"])
-    {stty, _} = System.cmd("stty", ["-a", "-F", String.trim(tty)], stderr_to_stdout: true)
     Acceptance.tmux_keys(t, ["C-\\"])
     Acceptance.tmux_await(t, ~r/SIGQUIT received/, 30_000)
-    assert Acceptance.tmux_await_exit(t) == 0, stty
+    assert exit_or_dump(t, dump) == 0
     pane = Acceptance.tmux_capture(t)
     assert [_, stop] = String.split(pane, "SIGQUIT received", parts: 2), pane
     refute stop =~ ~r/\*\* \(EXIT|SUPERVISOR REPORT|CRASH REPORT|unknown registry|\[error\]/, pane

@@ -258,27 +258,52 @@ defmodule Vws.Test.Acceptance do
     end
   end
 
-  @doc "Waits until the pane's program has exited; returns its exit status (fails after `timeout`)."
+  @doc """
+  Waits until the pane's program has exited; returns its exit status (fails after `timeout`).
+
+  tmux does not always reap its pane's program when its server was started from the BEAM (the
+  program stays a zombie, the pane never "dead"), so the exit is also read from the kernel:
+  `/proc/PID/stat`'s exit code of the zombie.
+  """
   def tmux_await_exit(%{socket: socket} = t, timeout \\ 30_000) do
     deadline = System.monotonic_time(:millisecond) + timeout
+    pid = tmux_pid(t)
 
     Stream.repeatedly(fn ->
       {out, 0} =
         tmux(socket, ["list-panes", "-t", "main", "-F", "\#{pane_dead} \#{pane_dead_status}"])
 
-      out
+      {String.split(out), zombie_status(pid)}
     end)
-    |> Enum.find_value(fn out ->
-      case String.split(out) do
-        ["1", status] ->
-          String.to_integer(status)
+    |> Enum.find_value(fn
+      {["1", status], _} ->
+        String.to_integer(status)
 
-        _ ->
-          if System.monotonic_time(:millisecond) > deadline,
-            do: flunk("the pane's program did not exit in time; pane:\n#{tmux_capture(t)}"),
-            else: Process.sleep(100) && nil
-      end
+      {_, status} when is_integer(status) ->
+        status
+
+      _ ->
+        if System.monotonic_time(:millisecond) > deadline,
+          do: flunk("the pane's program did not exit in time; pane:\n#{tmux_capture(t)}"),
+          else: Process.sleep(100) && nil
     end)
+  end
+
+  # The exit status of a process that has exited but not been reaped (state Z): the last field of
+  # /proc/PID/stat is its wait status (exit status << 8, or the signal: 128 + signal as a shell
+  # reports it); nil while it runs.
+  defp zombie_status(pid) do
+    with {:ok, stat} <- File.read("/proc/#{pid}/stat"),
+         [_, rest] <- String.split(stat, ") ", parts: 2),
+         ["Z" | fields] <- String.split(rest) do
+      wait = fields |> List.last() |> String.to_integer()
+
+      if Bitwise.band(wait, 0x7F) == 0,
+        do: Bitwise.bsr(wait, 8),
+        else: 128 + Bitwise.band(wait, 0x7F)
+    else
+      _ -> nil
+    end
   end
 
   @doc "The OS pid of the program in the session's pane."
