@@ -313,7 +313,13 @@ defmodule Vws.Test.Acceptance do
   end
 
   @doc "Ends the session: SIGKILL to the pane's program and its group, then the tmux server."
-  def tmux_stop(%{socket: socket} = t) do
+  def tmux_stop(%{socket: socket}) do
+    socket_path =
+      case tmux(socket, ["display-message", "-p", "\#{socket_path}"]) do
+        {out, 0} -> String.trim(out)
+        _ -> nil
+      end
+
     case tmux(socket, ["list-panes", "-t", "main", "-F", "\#{pane_pid}"]) do
       {out, 0} ->
         pid = String.trim(out)
@@ -325,7 +331,8 @@ defmodule Vws.Test.Acceptance do
     end
 
     tmux(socket, ["kill-server"])
-    _ = t
+    # (a server whose pane program tmux never reaped can leave its socket behind)
+    if socket_path, do: File.rm(socket_path)
     :ok
   end
 
