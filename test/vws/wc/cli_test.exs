@@ -20,7 +20,12 @@ defmodule Vws.WC.CLITest do
 
   defp cli(args) do
     me = self()
-    out = capture_io(fn -> send(me, {:status, CLI.main(args)}) end)
+    # (usage errors go to standard error)
+    out =
+      capture_io(fn ->
+        capture_io(:stderr, fn -> send(me, {:status, CLI.main(args)}) end)
+      end)
+
     assert_received {:status, status}
     {status, out}
   end
