@@ -80,9 +80,9 @@ defmodule Vws.Partitions.MonarchTest do
   defp download_hp(peer, number, lines) do
     send_monarch(peer, number, "DOWNLOAD_HP")
 
-    for line <- lines do
-      WCPeer.send_raw(peer, Vws.WC.Reply.encode({:line, line}))
-      assert WCPeer.recv_line(peer) == "A"
+    for {line, n} <- Enum.with_index(lines, 1) do
+      WCPeer.send_raw(peer, Vws.WC.Reply.encode({:line, rem(n, 10_000), line}))
+      assert Vws.WC.Reply.decode(WCPeer.recv_line(peer)) == {:ok, {:line_ack, rem(n, 10_000)}}
     end
 
     finished(peer)
@@ -95,8 +95,9 @@ defmodule Vws.Partitions.MonarchTest do
   end
 
   defp receive_lines(peer, acc) do
-    {:ok, {:line, line}} = Vws.WC.Reply.decode_line(WCPeer.recv_line(peer))
-    WCPeer.send_line(peer, "A")
+    n = rem(length(acc) + 1, 10_000)
+    {:ok, {:line, ^n, line}} = Vws.WC.Reply.decode_line(WCPeer.recv_line(peer))
+    WCPeer.send_raw(peer, Vws.WC.Reply.encode({:line_ack, n}))
     acc = [line | acc]
     if line == "%" and length(acc) > 1, do: Enum.reverse(acc), else: receive_lines(peer, acc)
   end
