@@ -10,18 +10,18 @@ defmodule Vws.Sim.GE2000 do
 
   | command | effect |
   |---------|--------|
-  | `SNS`/`SCS` + program | stores it as the file named in the command text, else as `nnnnnn.PRO` after its first `O`/`:` word |
+  | `SNS`/`SCS` + program | stores it as the file named in the command text, else as `nnnnnn.PRO` after its first `O`/`:` word — only a whole program, one ending in a `%` line; otherwise the old file stays (alarm 7) |
   | `SNK` + `nnnnnn[.PRO]` | selects the program for the next cycle start |
   | `SND` + `nnnnnn.PRO`/`.GSU` | deletes the file |
   | `RNS` + file name | sends the file (the selected program without a name); nothing if there is none |
   | `RNO` + `TOFFSET` | sends the tool-offset table |
   | `RNL` | sends the status report (`Vws.DNC.Report`): `STATE=IDLE;PROG=001234;ALARM=0` |
-  | `RNF` | sends the directory, one file name per line |
+  | `RNF` | sends the directory, `nnnnnn.PRO bbbbbb cccc` per file: size and CRC-16/ARC (`Vws.DNC.Report.directory/1`) |
 
   The alarm number (decision, for the simulator) is the outcome of the last DNC command or
   cycle start: 0 none, 1 no such file, 2 program without program number, 3 refused while the
   machine is active, 4 cycle start without a selected program, 5 operation not supported,
-  6 bad file name.
+  6 bad file name, 7 program incomplete (no closing `%`: the transmission was cut short).
 
   The cycle-start button (`cycle_start/1`; `cycle_start_input/2` is the input the DAQ #1 relay
   drives, as on the real machine) runs the
@@ -33,6 +33,7 @@ defmodule Vws.Sim.GE2000 do
 
     * `:endpoint` — where it listens (`"tcp://127.0.0.1:0"` by default; `loopback:name`), or a
       `tty:` device it opens (one end of a pty pair, a real serial port)
+    * `:whole_programs_only` — refuse a `.PRO` that does not end in a `%` line (default true)
     * `:name`, `:programs` (`%{"001234.PRO" => text}`), `:offsets` (`[{line, value}]`),
       `:cycle_time` (5 000 ms), `:plant` (`(event -> any)`)
     * `:pace` — `false` (default), `true` (4 800 Bd, the seed's line) or a baud rate: the
@@ -66,7 +67,8 @@ defmodule Vws.Sim.GE2000 do
     active: 3,
     nothing_selected: 4,
     unsupported: 5,
-    bad_name: 6
+    bad_name: 6,
+    incomplete: 7
   }
 
   @doc false
@@ -163,6 +165,9 @@ defmodule Vws.Sim.GE2000 do
       downloads: 0,
       cycle_time: Keyword.get(opts, :cycle_time, 5_000),
       plant: Keyword.get(opts, :plant),
+      # false: a machine that files whatever arrived (as the old one did), for tests that show
+      # what MONARCH's directory check catches
+      whole_programs_only: Keyword.get(opts, :whole_programs_only, true),
       workstation: Vws.Workstation.id_of(Keyword.get(opts, :name))
     }
 
@@ -319,9 +324,16 @@ defmodule Vws.Sim.GE2000 do
       {:ok, ^running} ->
         alarm(s, :active)
 
+      {:ok, name} when s.whole_programs_only and binary_part(name, 7, 3) == "PRO" ->
+        if Program.complete?(text) do
+          store(s, name, text)
+        else
+          Logger.warning("GE-2000 simulator refused #{name}: no closing %, the old file stays")
+          alarm(s, :incomplete)
+        end
+
       {:ok, name} ->
-        Logger.info("GE-2000 simulator stored #{name} (#{byte_size(text)} bytes)")
-        %{alarm(s, :none) | programs: Map.put(s.programs, name, text), downloads: s.downloads + 1}
+        store(s, name, text)
 
       {:error, :bad_name} ->
         alarm(s, :bad_name)
@@ -361,6 +373,11 @@ defmodule Vws.Sim.GE2000 do
     alarm(s, :unsupported)
   end
 
+  defp store(s, name, text) do
+    Logger.info("GE-2000 simulator stored #{name} (#{byte_size(text)} bytes)")
+    %{alarm(s, :none) | programs: Map.put(s.programs, name, text), downloads: s.downloads + 1}
+  end
+
   # R commands: the text to send back.
   defp requested(%Command{operation: :part_program, text: name}, s) do
     name =
@@ -384,7 +401,7 @@ defmodule Vws.Sim.GE2000 do
   defp requested(%Command{operation: :status}, s), do: {Report.status(report(s)), s}
 
   defp requested(%Command{operation: :directory}, s) do
-    {s.programs |> Map.keys() |> Enum.sort() |> Enum.map_join(&(&1 <> "\n")), s}
+    {s.programs |> Enum.sort() |> Report.directory(), s}
   end
 
   defp requested(command, s) do
