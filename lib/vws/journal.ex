@@ -104,6 +104,18 @@ defmodule Vws.Journal do
   end
 
   @doc """
+  The command of `partition` the restart interrupted, `{number, text}` (text nil when the journal
+  has only its number), taken once: the restarted partition's safe clean-up runs for it.
+  """
+  @spec take_interrupted(term, atom) :: {0..9999, String.t() | nil} | nil
+  def take_interrupted(ws, partition) do
+    case :ets.take(Mailbox.table(ws), {:interrupted, partition}) do
+      [{_, number, text}] -> {number, text}
+      [] -> nil
+    end
+  end
+
+  @doc """
   Stores a program (`:nc_file` or `:nc_up`) in the journal's directory, whole or not at all, and
   syncs it to disk. Does nothing when the workstation has no journal.
   """
@@ -281,6 +293,11 @@ defmodule Vws.Journal do
         do: :ets.insert(table, Vws.Interlock.restored_lease(volume, holder, reasons))
 
     interrupted = for {p, %{status: :executing, number: n}} <- state.partitions, do: {p, n}
+
+    # what each restarted partition's safe clean-up is for (Vws.Partition, interrupted/2)
+    for {p, %{status: :executing, number: n, cmd_in: {in_n, text}}} <- state.partitions do
+      :ets.insert(table, {{:interrupted, p}, n, if(in_n == n, do: text)})
+    end
 
     if interrupted != [] do
       Logger.warning(
