@@ -77,7 +77,11 @@ defmodule Mix.Tasks.Vws.ServeJournalTest do
       ])
 
     {:os_pid, os_pid} = Port.info(port, :os_pid)
-    on_exit(fn -> System.cmd("kill", ["-9", Integer.to_string(os_pid)], stderr_to_stdout: true) end)
+
+    on_exit(fn ->
+      System.cmd("kill", ["-9", Integer.to_string(os_pid)], stderr_to_stdout: true)
+    end)
+
     wc = await_line(port, ~r/SUN_COMM waits for the WC on (tcp:\S+)/, "")
     assert await_line(port, ~r/^Journal: (.*)$/, "") == journal
     {{port, os_pid}, wc}
