@@ -46,8 +46,11 @@ defmodule Vws.SunComm do
   answered the same again. After acknowledging `M…UPLOAD_SUN` it sends NC_UP line by line; a line
   answered `E`, with a damaged answer, with another number or not at all is sent again (at most
   `:upload_retries` times); the command ends `DONE` when the WC has answered the closing `%` with
-  its number (`ERROR NO UPLOADED PROGRAM` when NC_UP is empty). A transfer that stalls or loses the
-  link ends the Monarch command `ERROR` with the reason.
+  its number (`ERROR NO UPLOADED PROGRAM` when NC_UP is empty). A status query during an upload is
+  answered and the upload goes on (a WC that took the closing line asks its command's status
+  while its answer reached us damaged: the closing line goes again, it answers again); any other
+  string during a transfer means the WC left it. A transfer that stalls or loses the link ends
+  the Monarch command `ERROR` with the reason.
 
   ## Options
 
@@ -365,24 +368,37 @@ defmodule Vws.SunComm do
 
   # The string that began the transfer, again: its acknowledgement was lost and the WC is
   # still waiting for it, so it is acknowledged again and the transfer begins afresh from its
-  # first line (the WC sends or takes the program only after the acknowledgement). Any other
-  # string: the WC gave the transfer up; it ends ERROR and the string is handled as usual.
+  # first line (the WC sends or takes the program only after the acknowledgement). A status
+  # query during an upload is answered and the upload goes on: it runs nothing, and a WC that
+  # has taken the closing line asks its command's status while its answer reached us damaged —
+  # the closing line goes again and it answers again. Any other string (and a status query
+  # during a download, where the WC is the sender): the WC gave the transfer up; it ends
+  # ERROR and the string is handled as usual.
   defp command_string_in_transfer(cs, line, %{mode: {kind, t}} = s) do
-    if Mailbox.last_string(s.workstation) == {cs.sequence, line} do
-      Logger.info(
-        "string #{cs.sequence} again during #{kind}: acknowledged again, transfer restarted"
-      )
+    cond do
+      Mailbox.last_string(s.workstation) == {cs.sequence, line} ->
+        restart_transfer(cs, kind, t, s)
 
-      telemetry(s, :retransmission, %{count: 1}, %{sequence: cs.sequence})
-      s = reply(%{s | counters: bump(s.counters, :retransmissions)}, {:ack, cs.sequence})
+      kind == :upload and status_string?(cs) ->
+        accept_string(cs, line, s)
 
-      case kind do
-        :download -> start_download(s, t.number)
-        :upload -> start_upload(s, t.number)
-      end
-    else
-      Logger.warning("string #{cs.sequence} during #{kind}: the WC left the transfer")
-      command_line(line, abort_transfer(s, "COMMAND STRING FROM THE WC"))
+      true ->
+        Logger.warning("string #{cs.sequence} during #{kind}: the WC left the transfer")
+        command_line(line, abort_transfer(s, "COMMAND STRING FROM THE WC"))
+    end
+  end
+
+  defp restart_transfer(cs, kind, t, s) do
+    Logger.info(
+      "string #{cs.sequence} again during #{kind}: acknowledged again, transfer restarted"
+    )
+
+    telemetry(s, :retransmission, %{count: 1}, %{sequence: cs.sequence})
+    s = reply(%{s | counters: bump(s.counters, :retransmissions)}, {:ack, cs.sequence})
+
+    case kind do
+      :download -> start_download(s, t.number)
+      :upload -> start_upload(s, t.number)
     end
   end
 

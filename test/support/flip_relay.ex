@@ -10,8 +10,9 @@ defmodule Vws.Test.FlipRelay do
     * `{:bytes, [{direction, index, mask}]}` — byte number `index` (0-based, counted per
       direction over every connection since the plan was set) goes out XOR `mask`: one bit for
       a single-bit flip, several for a burst;
-    * `{:lines, direction, regex, fun}` — in `direction`, every line (up to LF) matching `regex`
-      goes out as `fun.(line)` (one or more bits of it flipped);
+    * `{:lines, [{direction, regex, fun}]}` — in `direction`, every line (up to LF, without
+      it) matching `regex` goes out as `fun.(line)` (one or more bits of it flipped, or the
+      line unchanged); the first rule that matches applies;
     * `:none`.
 
   `counts/1` returns the bytes carried per direction since the plan was set, and how many
@@ -147,14 +148,21 @@ defmodule Vws.Test.FlipRelay do
     {:binary.list_to_bin(out), %{s | counts: counts}}
   end
 
-  defp damage(dir, bytes, %{plan: {:lines, dir, regex, fun}} = s) do
+  defp damage(dir, bytes, %{plan: {:lines, rules}} = s) do
     data = s.partial[dir] <> bytes
     parts = String.split(data, "\n")
     {lines, [rest]} = Enum.split(parts, -1)
 
     {out, n} =
       Enum.map_reduce(lines, 0, fn line, n ->
-        if Regex.match?(regex, line), do: {fun.(line) <> "\n", n + 1}, else: {line <> "\n", n}
+        case Enum.find(rules, fn {d, regex, _} -> d == dir and Regex.match?(regex, line) end) do
+          nil ->
+            {line <> "\n", n}
+
+          {_, _, fun} ->
+            out = fun.(line)
+            {out <> "\n", if(out == line, do: n, else: n + 1)}
+        end
       end)
 
     counts = %{s.counts | dir => s.counts[dir] + byte_size(bytes), flips: s.counts.flips + n}

@@ -370,6 +370,27 @@ defmodule Vws.SunCommTest do
       assert WCPeer.status(peer, 71, 35, "MONARCH_CMD") == "0004DONE"
     end
 
+    test "a status query while the answer to the closing line is outstanding: answered, the upload goes on",
+         %{peer: peer, ws: ws} do
+      Mailbox.put_nc_up(ws, ["%", "O000777", "%"])
+      WCPeer.send_string(peer, 74, [{"M", 11, "UPLOAD_SUN"}])
+      assert ack?(WCPeer.recv_line(peer), 74)
+
+      for n <- 1..2 do
+        assert {:ok, {:line, ^n, _}} = Vws.WC.Reply.decode_line(WCPeer.recv_line(peer))
+        WCPeer.send_raw(peer, Vws.WC.Reply.encode({:line_ack, n}))
+      end
+
+      closing = WCPeer.recv_line(peer)
+      assert {:ok, {:line, 3, "%"}} = Vws.WC.Reply.decode_line(closing)
+      # the WC has the program; its answer arrives damaged and it asks the command's status
+      WCPeer.send_line(peer, "A0003005")
+      assert WCPeer.recv_line(peer) == closing
+      assert WCPeer.status(peer, 75, 35, "MONARCH_CMD") == "0011EXECUTING"
+      WCPeer.send_raw(peer, Vws.WC.Reply.encode({:line_ack, 3}))
+      assert WCPeer.await_status(peer, 76, "MONARCH_CMD", &(&1 =~ "DONE")) == "0011DONE"
+    end
+
     test "a download that loses its link ends the Monarch command ERROR", %{
       peer: peer,
       ws: ws,

@@ -3,9 +3,12 @@ defmodule Mix.Tasks.Vws.ServeJournalTest do
   Durability as a user meets it (issue 15): `mix vws.serve` in an OS process of its own, killed
   with SIGKILL (`kill -9`: nothing of it runs after, no journal closed, no socket shut), then
   started again on the same journal. The NC file, NC_UP and every command status come back.
+  The first round trip (WC → CEC → GE-2000 → CEC → WC) goes through a relay that inverts a bit
+  of every third transfer answer, both ways: the program still comes back byte-identical.
   """
   use ExUnit.Case, async: true
 
+  alias Vws.Test.FlipRelay
   alias Vws.WC.Client
 
   @moduletag :tmp_dir
@@ -19,7 +22,20 @@ defmodule Mix.Tasks.Vws.ServeJournalTest do
 
     # before: a program downloaded to the CEC and on to the GE-2000, uploaded back into NC_UP
     {serve, wc} = serve!(journal)
-    {:ok, client} = Client.connect(wc)
+    {:ok, relay} = FlipRelay.start_link(wc)
+    counter = :counters.new(1, [])
+
+    flip = fn line ->
+      :counters.add(counter, 1, 1)
+      if rem(:counters.get(counter, 1), 3) == 0, do: FlipRelay.flip(line, 5, 2), else: line
+    end
+
+    answer = ~r/^A\d{7}\r?$/
+
+    :ok =
+      FlipRelay.plan(relay, {:lines, [{:to_client, answer, flip}, {:to_target, answer, flip}]})
+
+    {:ok, client} = Client.connect(FlipRelay.endpoint(relay))
     assert {:ok, {"M", 1}} = Client.download_program(client, @program)
     assert :done = Client.await_command(client, "M", 1, 30_000)
     assert {:ok, [{"M", 2}]} = Client.send_commands(client, [{"M", "DOWNLOAD_GE"}])
@@ -31,8 +47,12 @@ defmodule Mix.Tasks.Vws.ServeJournalTest do
     assert {:error, %{data: %{status: "ERROR " <> _}}} =
              Client.await_command(client, "G", 1, 30_000)
 
+    assert {:ok, {"M", 4}, @program} = Client.upload_program(client)
+    assert :done = Client.await_command(client, "M", 4, 30_000)
+    assert FlipRelay.counts(relay).flips >= 4
+
     statuses = statuses(client)
-    assert statuses["MONARCH_CMD"] == "0003DONE"
+    assert statuses["MONARCH_CMD"] == "0004DONE"
     Client.close(client)
 
     kill_9!(serve)

@@ -85,6 +85,11 @@ defmodule Vws.WC.Client.Connection do
   @doc false
   def idle(:enter, _old, _data), do: :keep_state_and_data
 
+  # the closing line of an upload is answered again until something else than a status query
+  # is asked: the CEC may send it again while the WC polls the command's status
+  def idle({:call, from}, {:request, {:status, _} = request}, data),
+    do: start(request, from, data)
+
   def idle({:call, from}, {:request, request}, data),
     do: start(request, from, %{data | last_closing: nil})
 
@@ -95,6 +100,9 @@ defmodule Vws.WC.Client.Connection do
     do: {:keep_state_and_data, [{:state_timeout, data.reply_timeout, :no_reply}]}
 
   def awaiting_reply({:call, _}, {:request, _}, _data), do: {:keep_state_and_data, :postpone}
+
+  def awaiting_reply(:internal, {:line, line}, %{last_closing: {line, _}} = data),
+    do: common(:internal, {:line, line}, data)
 
   def awaiting_reply(:internal, {:line, line}, data),
     do: reply_line(Reply.decode(line, bcc: data.bcc), line, data)
