@@ -44,7 +44,9 @@ defmodule Vws.Sim.GE2000 do
 
   `:nak_once_per_block`, `:drop_replies`, `{:wack, n}`, `:corrupt`, `:silent` (see
   `Vws.DNC.set_fault/2`), `:bid_contention` (at the CEC's next bid the GE-2000 bids at the same
-  moment, wins, and sends its status report unsolicited) and `:none`.
+  moment, wins, and sends its status report unsolicited), `{:file_as, fun}` (a program received
+  whole is filed as `fun.(text)`: a machine that keeps other bytes than it was sent, as a damage
+  the block check missed would leave; `:none` ends it too) and `:none`.
 
       iex> {:ok, sim} = Vws.Sim.GE2000.start_link(programs: %{"000001.PRO" => "O1\\nM30\\n"})
       iex> Vws.Sim.GE2000.endpoint(sim) =~ ~r/^tcp:\\/\\/127.0.0.1:\\d+$/
@@ -168,6 +170,7 @@ defmodule Vws.Sim.GE2000 do
       # false: a machine that files whatever arrived (as the old one did), for tests that show
       # what MONARCH's directory check catches
       whole_programs_only: Keyword.get(opts, :whole_programs_only, true),
+      file_as: nil,
       workstation: Vws.Workstation.id_of(Keyword.get(opts, :name))
     }
 
@@ -223,6 +226,12 @@ defmodule Vws.Sim.GE2000 do
   @impl true
   def handle_call(:endpoint, _from, s), do: {:reply, s.bound, s}
   def handle_call(:link, _from, s), do: {:reply, s.link, s}
+
+  def handle_call({:set_fault, {:file_as, fun}}, _from, s) when is_function(fun, 1),
+    do: {:reply, :ok, %{s | file_as: fun}}
+
+  def handle_call({:set_fault, :none}, _from, s),
+    do: {:reply, DNC.set_fault(s.link, :none), %{s | file_as: nil}}
 
   def handle_call({:set_fault, :bid_contention}, _from, s) do
     {:reply, DNC.set_fault(s.link, {:bid_contention, [Report.status(report(s))]}), s}
@@ -371,6 +380,10 @@ defmodule Vws.Sim.GE2000 do
   defp received(command, _text, s) do
     Logger.warning("GE-2000 simulator: #{inspect(command)} not supported")
     alarm(s, :unsupported)
+  end
+
+  defp store(%{file_as: fun} = s, name, text) when fun != nil do
+    store(%{s | file_as: nil}, name, fun.(text)) |> Map.put(:file_as, fun)
   end
 
   defp store(s, name, text) do

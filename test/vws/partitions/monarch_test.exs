@@ -215,6 +215,37 @@ defmodule Vws.Partitions.MonarchTest do
     assert monarch(ctx.peer, 3, "DOWNLOAD_GE") == "0003ERROR NC FILE HAS NO PROGRAM NUMBER"
   end
 
+  describe "a program is whole or it is nothing (PROTOCOLS.md §2)" do
+    test "DOWNLOAD_GE reads the directory: other bytes filed end ERROR PROGRAM VERIFY FAILED",
+         ctx do
+      program = with_program(ctx, 2_000)
+      text = Program.to_text(program)
+      # what an early end or a damage the block check missed leaves: a program that looks whole
+      :ok =
+        GE2000.set_fault(
+          ctx.sim,
+          {:file_as, &(binary_part(&1, 0, div(byte_size(&1), 2)) <> "%\n")}
+        )
+
+      assert monarch(ctx.peer, 2, "DOWNLOAD_GE") == "0002ERROR PROGRAM VERIFY FAILED 004711.PRO"
+      refute GE2000.program(ctx.sim, "004711.PRO") == text
+
+      :ok = GE2000.set_fault(ctx.sim, :none)
+      assert monarch(ctx.peer, 3, "DOWNLOAD_GE") == "0003DONE"
+      assert GE2000.program(ctx.sim, "004711.PRO") == text
+    end
+
+    test "UPLOAD_GE of a program without its closing % ends ERROR PROGRAM INCOMPLETE", ctx do
+      Mailbox.put_nc_up(ctx.ws, ["KEEP"])
+      :ok = GE2000.put_program(ctx.sim, "000200.PRO", "%\nO200\nN10 G01 X1\n")
+
+      assert monarch(ctx.peer, 1, "UPLOAD_GE(000200.PRO)") ==
+               "0001ERROR PROGRAM INCOMPLETE"
+
+      assert Mailbox.nc_up(ctx.ws) == ["KEEP"]
+    end
+  end
+
   ## Faults: each recovers or ends ERROR with its reason; the WC can always read the status
 
   defp with_program(ctx, bytes) do
