@@ -57,8 +57,15 @@ defmodule Mix.Tasks.Vws.ServeJournalTest do
 
     kill_9!(serve)
 
-    # after: the same journal, a new process; nothing of the old one remains
-    {serve, wc} = serve!(journal)
+    # after: the same journal, a new process; nothing of the old one remains. This time the
+    # journal is named by VWS_JOURNAL_DIR (mix vws.serve ignored it), with VWS_WC set as a
+    # release's environment would have it (mix vws.serve crashed already_started)
+    {serve, wc} =
+      serve!(journal, [], [
+        {~c"VWS_WC", ~c"tcp://127.0.0.1:0"},
+        {~c"VWS_JOURNAL_DIR", to_charlist(journal)}
+      ])
+
     {:ok, client} = Client.connect(wc, sequence: 500, numbers: %{"M" => 10})
     assert statuses(client) == statuses
 
@@ -83,17 +90,18 @@ defmodule Mix.Tasks.Vws.ServeJournalTest do
 
   # `mix vws.serve` on free ports with the journal in `journal`; returns the port and where
   # SUN_COMM serves the WC.
-  defp serve!(journal) do
+  defp serve!(journal, args \\ nil, env \\ [{~c"VWS_WC", false}, {~c"VWS_JOURNAL_DIR", false}]) do
+    args = args || ["--journal", journal]
+
     port =
       Port.open({:spawn_executable, System.find_executable("mix")}, [
         :binary,
         :exit_status,
         :stderr_to_stdout,
         {:line, 4096},
-        args:
-          ~w(vws.serve --id J15 --wc tcp://127.0.0.1:0 --http-port 0 --time-scale 20 --journal) ++
-            [journal],
-        env: [{~c"MIX_ENV", ~c"test"}, {~c"VWS_WC", false}, {~c"VWS_JOURNAL_DIR", false}]
+        args: ~w(vws.serve --id J15 --wc tcp://127.0.0.1:0 --http-port 0 --time-scale 20) ++ args,
+        env:
+          [{~c"MIX_ENV", ~c"test"}, {~c"VWS_DATA_DIR", to_charlist(Path.dirname(journal))}] ++ env
       ])
 
     {:os_pid, os_pid} = Port.info(port, :os_pid)
