@@ -684,8 +684,28 @@ defmodule Vws.Partitions.VwsStatus do
         {:ok, commands, expected} = DAQ.correction(s.daq, expected, results)
         send_actuation(s, {commands, expected, try + 1}, from)
 
+      {{_req, from, {commands, expected, try}} = a, {:error, {:damaged, why}}}
+      when try <= @actuation_retries ->
+        # the answers came back damaged even after the bus's own tries: the whole transaction
+        # again — the slot read twice, the writes (setting a relay again is harmless), the
+        # slot read back — as the longer whole-slot read-back meets more line noise
+        Vws.Telemetry.execute([:vws, :vws_status, :actuation_retry], %{count: 1}, %{
+          workstation: s.workstation,
+          reason: why,
+          try: try
+        })
+
+        s = %{s | actuations: List.delete(s.actuations, a)}
+        send_actuation(s, {commands, expected, try + 1}, from)
+
       {{_req, from, _act} = a, reply} ->
-        reply = with {:error, {:relays, why, _results}} <- reply, do: {:error, why}
+        reply =
+          case reply do
+            {:error, {:relays, why, _results}} -> {:error, why}
+            {:error, {:damaged, why}} -> {:error, why}
+            other -> other
+          end
+
         actuated(from, reply, %{s | actuations: List.delete(s.actuations, a)})
     end
   end
@@ -748,6 +768,9 @@ defmodule Vws.Partitions.VwsStatus do
     with {:error, why} <- DAQ.confirm_relays(expected, results, @device),
          do: {:error, {:relays, why, results}}
   end
+
+  defp actuation_result({:error, %HPIB.Error{reason: :bad_response} = error}, _expected),
+    do: {:error, {:damaged, hpib_reason(error)}}
 
   defp actuation_result({:error, error}, _expected), do: {:error, hpib_reason(error)}
 
