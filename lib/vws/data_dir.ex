@@ -12,7 +12,7 @@ defmodule Vws.DataDir do
   release — in `journal/<id>` of the data directory. `VWS_JOURNAL_DIR` names the journal's
   directory itself instead (`off`: no journal); the mix tasks' `--journal DIR` and `--no-journal`
   come before both. A workstation id becomes one path segment: characters other than letters,
-  digits, `-`, `_` and `.` are replaced by `_`.
+  digits, `-`, `_` and `.` are replaced by `_` (and an id of `.` or `..` is all `_`).
 
   One VM at a time may use a journal directory: two processes writing the same journal files
   damage them. Two workstations need two ids (or two directories).
@@ -76,7 +76,12 @@ defmodule Vws.DataDir do
     end
   end
 
-  defp segment(id), do: String.replace(to_string(id), ~r/[^A-Za-z0-9._-]/, "_")
+  defp segment(id) do
+    case String.replace(to_string(id), ~r/[^A-Za-z0-9._-]/, "_") do
+      dots when dots in ["", ".", ".."] -> String.duplicate("_", max(byte_size(dots), 1))
+      segment -> segment
+    end
+  end
 
   defp env(name) do
     case System.get_env(name) do

@@ -175,19 +175,31 @@ defmodule Vws.HydraulicController.Pallet do
   end
 
   defp confirm(p, commands, expected, tries) do
-    with {:ok, results} <- transaction(p, commands) do
-      case DAQ.confirm_relays(expected, results, @device) do
-        {:error, _} when tries > 1 ->
-          Vws.Telemetry.execute([:vws, :hydraulic_controller, :relay_corrected], %{count: 1}, %{
-            device: p.device
-          })
+    case HPIB.transaction(p.device, commands, p.timeout_ms) do
+      {:ok, results} ->
+        confirmed(p, expected, tries, results)
 
-          {:ok, commands, expected} = DAQ.correction(p.daq, expected, results)
-          confirm(p, commands, expected, tries - 1)
+      # the answers still damaged after the bus's own tries: the whole transaction again
+      {:error, %HPIB.Error{reason: :bad_response}} when tries > 1 ->
+        confirm(p, commands, expected, tries - 1)
 
-        result ->
-          result
-      end
+      {:error, error} ->
+        {:error, hpib_reason(error)}
+    end
+  end
+
+  defp confirmed(p, expected, tries, results) do
+    case DAQ.confirm_relays(expected, results, @device) do
+      {:error, _} when tries > 1 ->
+        Vws.Telemetry.execute([:vws, :hydraulic_controller, :relay_corrected], %{count: 1}, %{
+          device: p.device
+        })
+
+        {:ok, commands, expected} = DAQ.correction(p.daq, expected, results)
+        confirm(p, commands, expected, tries - 1)
+
+      result ->
+        result
     end
   end
 
