@@ -116,8 +116,10 @@ defmodule Vws.Partitions.Monarch do
          :ok <- if(Program.complete?(text), do: :ok, else: {:error, "PROGRAM INCOMPLETE"}),
          lines = Program.from_text(text),
          :ok <- uploadable(lines, file) do
-      Mailbox.put_nc_up(ctx.workstation, lines)
-      :done
+      case Mailbox.put_nc_up(ctx.workstation, lines) do
+        :ok -> :done
+        {:error, reason} -> {:error, "NC_UP NOT STORED #{inspect(reason)}"}
+      end
     end
   end
 
