@@ -38,6 +38,10 @@ defmodule Vws.Journal do
   leases are kept because what they stand for outlived the workstation: the arm that was moving
   into the vise is in the table's volume still, and no cycle may start until it has left.
 
+  One OS process at a time may write a journal directory: a `LOCK` file names it, and a
+  workstation whose directory is held by another live OS process does not start (one left by a
+  process that is gone, after a `kill -9`, is taken over).
+
   The log is a wrap log (`:max_bytes` × `:max_files`, bounded) opened with `repair: true`; it is
   read record by record, so a torn last record (power lost in the middle of a write) is cut off and
   the records before it are kept. Each time the journal opens it is compacted to one snapshot of
@@ -172,6 +176,7 @@ defmodule Vws.Journal do
     ws = Keyword.fetch!(opts, :workstation)
     dir = Keyword.fetch!(opts, :dir)
     File.mkdir_p!(dir)
+    :ok = lock!(dir)
     log = {:vws_journal, ws}
     size = {Keyword.get(opts, :max_bytes, 256 * 1024), Keyword.get(opts, :max_files, 8)}
 
@@ -207,13 +212,49 @@ defmodule Vws.Journal do
     :ok = :disk_log.log(log, {:snapshot, state_of(table)})
     :ok = :disk_log.sync(log)
     :ets.insert(table, {:journal, log, Keyword.get(opts, :snapshot_every, 500), self()})
-    {:ok, %{workstation: ws, log: log}}
+    {:ok, %{workstation: ws, log: log, dir: dir}}
   end
 
   @impl true
   def terminate(_reason, s) do
     :disk_log.close(s.log)
+    # a stop that runs this lets the directory go; a kill leaves the lock to be taken over
+    if File.read(Path.join(s.dir, "LOCK")) == {:ok, System.pid()},
+      do: File.rm(Path.join(s.dir, "LOCK"))
+
     :ok
+  end
+
+  # One OS process at a time writes a journal directory: two would damage each other's records.
+  # The lock names the OS process holding it; one left by a process that is gone (kill -9) is
+  # taken over, and this VM may take its own again (a workstation restarted in the same node).
+  defp lock!(dir) do
+    path = Path.join(dir, "LOCK")
+    me = System.pid()
+
+    case File.read(path) do
+      {:ok, holder} ->
+        holder = String.trim(holder)
+
+        if holder != me and os_process_alive?(holder) do
+          raise "journal directory #{dir} is in use by OS process #{holder}"
+        end
+
+      {:error, _} ->
+        :ok
+    end
+
+    File.write!(path, me)
+  end
+
+  defp os_process_alive?(pid) do
+    case Integer.parse(pid) do
+      {_n, ""} ->
+        match?({_, 0}, System.cmd("kill", ["-0", pid], stderr_to_stdout: true))
+
+      _ ->
+        false
+    end
   end
 
   defp read_all(log), do: read_all(log, :start, [])
