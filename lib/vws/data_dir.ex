@@ -14,8 +14,9 @@ defmodule Vws.DataDir do
   come before both. A workstation id becomes one path segment: characters other than letters,
   digits, `-`, `_` and `.` are replaced by `_` (and an id of `.` or `..` is all `_`).
 
-  One VM at a time may use a journal directory: two processes writing the same journal files
-  damage them. Two workstations need two ids (or two directories).
+  One OS process at a time may use a journal directory (`Vws.Journal` keeps a `LOCK` file):
+  two writing the same journal files would damage them. Two workstations on one host need two
+  ids (or two directories).
   """
 
   @doc "The data directory: `$VWS_DATA_DIR`, else `$XDG_STATE_HOME/vws`, else `~/.local/state/vws`."
