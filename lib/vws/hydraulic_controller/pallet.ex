@@ -179,8 +179,9 @@ defmodule Vws.HydraulicController.Pallet do
       {:ok, results} ->
         confirmed(p, expected, tries, results)
 
-      # the answers still damaged after the bus's own tries: the whole transaction again
-      {:error, %HPIB.Error{reason: :bad_response}} when tries > 1 ->
+      # the answers still damaged (or missing) after the bus's own tries: the whole
+      # transaction again
+      {:error, %HPIB.Error{reason: reason}} when reason in [:bad_response, :timeout] and tries > 1 ->
         confirm(p, commands, expected, tries - 1)
 
       {:error, error} ->

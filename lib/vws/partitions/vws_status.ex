@@ -686,9 +686,9 @@ defmodule Vws.Partitions.VwsStatus do
 
       {{_req, from, {commands, expected, try}} = a, {:error, {:damaged, why}}}
       when try <= @actuation_retries ->
-        # the answers came back damaged even after the bus's own tries: the whole transaction
-        # again — the slot read twice, the writes (setting a relay again is harmless), the
-        # slot read back — as the longer whole-slot read-back meets more line noise
+        # the answers came back damaged or not at all even after the bus's own tries: the
+        # whole transaction again — the slot read twice, the writes (setting a relay again is
+        # harmless), the slot read back — as the longer whole-slot read-back meets more noise
         Vws.Telemetry.execute([:vws, :vws_status, :actuation_retry], %{count: 1}, %{
           workstation: s.workstation,
           reason: why,
@@ -769,8 +769,9 @@ defmodule Vws.Partitions.VwsStatus do
          do: {:error, {:relays, why, results}}
   end
 
-  defp actuation_result({:error, %HPIB.Error{reason: :bad_response} = error}, _expected),
-    do: {:error, {:damaged, hpib_reason(error)}}
+  defp actuation_result({:error, %HPIB.Error{reason: reason} = error}, _expected)
+       when reason in [:bad_response, :timeout],
+       do: {:error, {:damaged, hpib_reason(error)}}
 
   defp actuation_result({:error, error}, _expected), do: {:error, hpib_reason(error)}
 
