@@ -3,12 +3,14 @@
 # DAQ #1's and the hydraulic controller's (HPIB) and the hydraulic controller's own to DAQ #2 —
 # each cycle audited by Vws.Sim.Soak: completed, every retry counted from telemetry, commands
 # lost (numbered by the WC, never ended in the CEC) and duplicated (started or ended twice in the
-# CEC, or equipment that did more than the clean reference cycle).
+# CEC, or equipment that did more than the clean reference cycle), and silent differences (issue
+# 15: the program's bytes in the CEC, the GE-2000 and back at the WC, and every relay, against
+# what was sent and the clean cycle: what ended DONE but is not so).
 #
 #     mix run bench/soak.exs [--cycles 100] [--ber 1.0e-4] [--seed 1] [--time-scale 20]
 #
-# Prints a line per cycle, then one block of figures. Exits 1 if a cycle did not complete or a
-# command was lost or duplicated.
+# Prints a line per cycle, then one block of figures. Exits 1 if a cycle did not complete, a
+# command was lost or duplicated, or a silent difference was found.
 
 Code.require_file("support.exs", __DIR__)
 Logger.configure(level: :error)
@@ -47,10 +49,12 @@ IO.puts("""
   bits flipped   #{Enum.map_join(Enum.sort(flipped), ", ", fn {l, n} -> "#{l} #{n}" end)}
   cycles         #{report.completed} of #{report.cycles} completed in #{Float.round(report.elapsed_ms / 1000, 1)} s#{if report.stopped == [], do: "", else: " — stopped: " <> inspect(report.stopped)}
   commands       #{report.commands} numbered by the WC: lost #{report.lost}, duplicated #{report.duplicated}
+  silent         #{report.silent_differences} silent differences (program bytes at the CEC, the GE-2000 and the WC; relays)#{if report.silent == [], do: "", else: ": " <> inspect(report.silent)}
   retries        #{Enum.sum(Map.values(r))} in all: WC strings/lines sent again #{r.wc_resends}, transfers made again #{r.transfers_made_again},
                  retransmissions recognised by SUN_COMM #{r.sun_comm_retransmissions}, DDCMP retransmissions #{r.ddcmp_retransmissions},
                  DNC retries #{r.dnc_retries}, DNC requests made again #{r.dnc_requests_made_again}, HPIB requests tried again #{r.hpib_retries}, relays set again #{r.relays_set_again}
 """)
 
-if report.completed != report.cycles or report.lost != 0 or report.duplicated != 0,
-  do: System.halt(1)
+if report.completed != report.cycles or report.lost != 0 or report.duplicated != 0 or
+     report.silent_differences != 0,
+   do: System.halt(1)

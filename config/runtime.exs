@@ -7,7 +7,9 @@ import Config
 #   VWS_ID            the workstation id (default VWS); also its MTConnect device name
 #   VWS_WC            the WC endpoint: tty:/dev/ttyS0?baud=9600 or tcp://0.0.0.0:7070
 #   VWS_BCC           sum (default) or xor: the WC link's block check
-#   VWS_JOURNAL_DIR   where the command journal lives (none when unset)
+#   VWS_DATA_DIR      the data directory (default $XDG_STATE_HOME/vws, else ~/.local/state/vws);
+#                     the journal is in journal/<VWS_ID> of it (Vws.DataDir)
+#   VWS_JOURNAL_DIR   the command journal's directory instead; "off": no journal
 #   VWS_ROBOT         the VAL II's supervisory port (tty:/dev/ttyS1?baud=9600 or tcp://…)
 #   VWS_GE2000        the GE-2000's DNC port (tty:/dev/ttyS2?baud=4800 or tcp://…)
 #   VWS_DAQ1, VWS_DAQ2, VWS_HYDRAULIC
@@ -59,7 +61,8 @@ if wc = env.("VWS_WC") do
   config :vws, :workstation,
     id: env.("VWS_ID") || "VWS",
     wc: wc,
-    journal: env.("VWS_JOURNAL_DIR"),
+    # on by default (issue 15): a restart forgets nothing acknowledged
+    journal: Vws.DataDir.journal_dir(env.("VWS_ID") || "VWS", :default),
     sun_comm: [bcc: bcc],
     devices: devices
 end

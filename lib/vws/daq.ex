@@ -8,8 +8,8 @@ defmodule Vws.DAQ do
   The channel map is the one the plant simulator is wired by, `priv/sims/plant.exs`
   (`Vws.Sim.Plant.Config`): a real DAQ is wired the same way, or configured with its own file.
   Slot 1 channels of kind switch, pot and spare are read in one `MEAS:VOLT:DC?`, gauges in one
-  `MEAS:RES?`; slot 2 relays are driven with `ROUT:OPEN`/`ROUT:CLOS` and confirmed with
-  `ROUT:CLOS?`.
+  `MEAS:RES?`; slot 2 relays are driven with `ROUT:OPEN`/`ROUT:CLOS` and the whole slot is
+  confirmed with `ROUT:CLOS?` (PROTOCOLS.md §4 "Relays are verified whole").
 
       iex> daq = Vws.DAQ.new()
       iex> Vws.DAQ.poll_commands(daq)
@@ -20,9 +20,14 @@ defmodule Vws.DAQ do
       {true, false, 50.0}
       iex> round(r.values.vise_force_n)
       2000
-      iex> Vws.DAQ.actuation(daq, vise_open_valve: :open, vise_close_valve: :close)
-      {:ok, [{:rout_open, [205]}, {:rout_clos, [206]}, {:rout_clos?, [205, 206]}],
-       [{205, false}, {206, true}]}
+      iex> slot = Vws.DAQ.slot(daq)
+      iex> {:ok, commands, expected} =
+      ...>   Vws.DAQ.actuation(daq, vise_open_valve: :open, vise_close_valve: :close)
+      iex> commands
+      [{:rout_clos?, slot}, {:rout_clos?, slot}, {:rout_open, [205]}, {:rout_clos, [206]},
+       {:rout_clos?, slot}]
+      iex> expected
+      {:write, slot, [{205, false}, {206, true}]}
 
   ## Options of `new/1`
 
@@ -151,12 +156,30 @@ defmodule Vws.DAQ do
   end
 
   @doc """
+  Every relay of the slot as wired (the actuator channels of the map), ascending: what a
+  whole-slot read-back asks (PROTOCOLS.md §4 "Relays are verified whole").
+  """
+  @spec slot(t) :: [pos_integer]
+  def slot(%__MODULE__{actuators: actuators}), do: actuators |> Map.values() |> Enum.sort()
+
+  @typedoc """
+  What a relay write must leave behind: `{:write, slot, commanded}` for a first write (the
+  other relays of the slot must stay as the two reads before the write agree they were), or
+  `{:whole, [{channel, closed?}]}` for the whole slot (a correction).
+  """
+  @type expected ::
+          {:write, [pos_integer], [{pos_integer, boolean}]}
+          | {:whole, [{pos_integer, boolean}]}
+
+  @doc """
   The commands that set relays (the seed's Hp_act: a channel and open or close), opens first so
-  that two solenoids working against each other are never both on, followed by a `ROUT:CLOS?`
-  of every channel touched; and the states that query must return.
+  that two solenoids working against each other are never both on — between two reads of the
+  whole slot before (they must agree: they tell what the other relays are) and one after
+  (PROTOCOLS.md §4: SCPI has no check, so one bit can turn `ROUT:CLOS (@207)` into `(@206)`).
+  Returns the commands, sent as one transaction, and what `confirm_relays/3` checks.
   """
   @spec actuation(t, [{signal | pos_integer, action}]) ::
-          {:ok, [Vws.SCPI.command()], [{pos_integer, boolean}]}
+          {:ok, [Vws.SCPI.command()], expected | []}
           | {:error, {:unknown_actuator, term}}
   def actuation(%__MODULE__{} = daq, actions) do
     resolved =
@@ -176,53 +199,110 @@ defmodule Vws.DAQ do
 
       list ->
         # the last word on a channel wins
-        expected = list |> Enum.reverse() |> Map.new() |> Enum.sort()
-        opens = for {ch, false} <- expected, do: ch
-        closes = for {ch, true} <- expected, do: ch
+        commanded = list |> Enum.reverse() |> Map.new() |> Enum.sort()
+        slot = slot(daq)
+        query = {:rout_clos?, slot}
+        {:ok, [query, query | writes(commanded)] ++ [query], {:write, slot, commanded}}
+    end
+  end
 
-        commands =
-          [
-            {:rout_open, opens},
-            {:rout_clos, closes},
-            {:rout_clos?, Enum.map(expected, &elem(&1, 0))}
-          ]
-          |> Enum.reject(&match?({_, []}, &1))
+  defp writes(states) do
+    opens = for {ch, false} <- states, do: ch
+    closes = for {ch, true} <- states, do: ch
+    Enum.reject([{:rout_open, opens}, {:rout_clos, closes}], &match?({_, []}, &1))
+  end
 
-        {:ok, commands, expected}
+  @doc """
+  The whole slot a write intends, from the transaction's answers: the commanded relays as
+  commanded, every other one as both reads before the write found it. `:unknown` when the two
+  reads disagree on a relay the write did not command (one was damaged: nothing can be said).
+  """
+  @spec intended(expected, [term]) :: {:ok, [{pos_integer, boolean}]} | :unknown
+  def intended({:whole, states}, _results), do: {:ok, states}
+
+  def intended({:write, slot, commanded}, [before1, before2 | _])
+      when is_list(before1) and is_list(before2) and length(before1) == length(slot) and
+             length(before2) == length(slot) do
+    commanded = Map.new(commanded)
+
+    Enum.zip([slot, before1, before2])
+    |> Enum.reduce_while([], fn {ch, b1, b2}, acc ->
+      case Map.fetch(commanded, ch) do
+        {:ok, want} -> {:cont, [{ch, want} | acc]}
+        :error when b1 == b2 -> {:cont, [{ch, b1} | acc]}
+        :error -> {:halt, :unknown}
+      end
+    end)
+    |> case do
+      :unknown -> :unknown
+      list -> {:ok, Enum.reverse(list)}
+    end
+  end
+
+  def intended(_expected, _results), do: :unknown
+
+  @doc """
+  Compares the read-back of the whole slot (the transaction's last answer) with the state
+  intended for it: `:ok`, or `{:error, channels}` — the channels not as intended (`[]` when the
+  answer is missing or the reads before the write disagree).
+  """
+  @spec check_relays(expected, [term]) :: :ok | {:error, [pos_integer]}
+  def check_relays(expected, results) do
+    with {:ok, states} <- intended(expected, results),
+         after_write when is_list(after_write) <- List.last(results),
+         true <- length(after_write) == length(states) do
+      wrong = for {{ch, want}, got} <- Enum.zip(states, after_write), want != got, do: ch
+      if wrong == [], do: :ok, else: {:error, wrong}
+    else
+      _ -> {:error, []}
     end
   end
 
   @doc """
-  Compares the `ROUT:CLOS?` answer with the expected states: `:ok`, or the channels that are not
-  as commanded.
-  """
-  @spec check_relays([{pos_integer, boolean}], [boolean]) :: :ok | {:error, [pos_integer]}
-  def check_relays(expected, states) do
-    wrong = for {{ch, want}, got} <- Enum.zip(expected, states), want != got, do: ch
+  `check_relays/2` as a command status says it: `:ok`, or
+  `{:error, "RELAY 206 NOT AS COMMANDED"}` (the first channel of the slot not as intended —
+  the commanded one or any other), or `RELAYS NOT READ BACK` when the slot could not be read
+  back alike. `device` names the DAQ in the latter.
 
-    if wrong == [] and length(states) == length(expected), do: :ok, else: {:error, wrong}
+      iex> Vws.DAQ.confirm_relays({:whole, [{205, false}, {206, true}]}, [:ok, [false, false]], "DAQ #1")
+      {:error, "RELAY 206 NOT AS COMMANDED"}
+  """
+  @spec confirm_relays(expected, [term], String.t()) :: :ok | {:error, String.t()}
+  def confirm_relays(expected, results, device) do
+    case check_relays(expected, results) do
+      :ok -> :ok
+      {:error, [ch | _]} -> {:error, "RELAY #{ch} NOT AS COMMANDED"}
+      {:error, []} -> {:error, "#{device} RELAYS NOT READ BACK"}
+    end
   end
 
   @doc """
-  `check_relays/2` as a command status says it, for the DAQ named `device`: `:ok`, or
-  `{:error, "DAQ #1 RELAY 206 DID NOT CLOSE"}` (the first channel not as commanded).
-
-      iex> Vws.DAQ.confirm_relays([{205, false}, {206, true}], [false, false], "DAQ #1")
-      {:error, "DAQ #1 RELAY 206 DID NOT CLOSE"}
+  After a write that did not read back as intended: the transaction that sets the wrong
+  relays right (opens first) and reads the whole slot back, and what it must leave. When the
+  intended state is unknown (the reads before the write disagreed), the write itself again.
   """
-  @spec confirm_relays([{pos_integer, boolean}], [boolean], String.t()) ::
-          :ok | {:error, String.t()}
-  def confirm_relays(expected, states, device) do
-    case check_relays(expected, states) do
-      :ok ->
-        :ok
+  @spec correction(t, expected, [term]) :: {:ok, [Vws.SCPI.command()], expected}
+  def correction(daq, expected, results) do
+    case {intended(expected, results), List.last(results)} do
+      {{:ok, states}, after_write}
+      when is_list(after_write) and length(after_write) == length(states) ->
+        wrong =
+          for {{ch, want}, got} <- Enum.zip(states, after_write), want != got, do: {ch, want}
 
-      {:error, [ch | _]} ->
-        {_, want} = List.keyfind(expected, ch, 0)
-        {:error, "#{device} RELAY #{ch} DID NOT #{if want, do: "CLOSE", else: "OPEN"}"}
+        query = {:rout_clos?, Enum.map(states, &elem(&1, 0))}
+        {:ok, writes(wrong) ++ [query], {:whole, states}}
 
-      {:error, []} ->
-        {:error, "#{device} RELAYS NOT ALL READ BACK"}
+      {{:ok, states}, _no_answer} ->
+        query = {:rout_clos?, Enum.map(states, &elem(&1, 0))}
+        {:ok, writes(states) ++ [query], {:whole, states}}
+
+      {:unknown, _} ->
+        {:write, _slot, commanded} = expected
+
+        actuation(
+          daq,
+          for({ch, closed?} <- commanded, do: {ch, if(closed?, do: :close, else: :open)})
+        )
     end
   end
 end

@@ -61,7 +61,8 @@ defmodule Vws.Demo do
   times faster than real time), `:bcc`, `:lines` (faulty cables on every link, the WC's included:
   `[faults: [ber: 1.0e-4, …], seed: term]`, see `Vws.Sim.Floor`; `Vws.Sim.Floor.line(id, :wc)` is
   the WC's), `:supervisor` (a `DynamicSupervisor` to start the floor and the WC's line under;
-  by default they are linked to the caller). Returns where the WC reaches SUN_COMM (through its line, if any), what is
+  by default they are linked to the caller), `:journal` (the journal's directory, none by
+  default; `mix vws.demo` gives one). Returns where the WC reaches SUN_COMM (through its line, if any), what is
   simulated, which links have a faulty line and which partitions have no device link.
   """
   @spec start_shop_floor(keyword) :: {:ok, shop_floor} | {:error, term}
@@ -81,6 +82,7 @@ defmodule Vws.Demo do
              id: id,
              wc: wc,
              sun_comm: [bcc: Keyword.get(opts, :bcc, :sum)],
+             journal: Keyword.get(opts, :journal),
              links: Enum.flat_map(sims, & &1.links),
              partitions: merge_partitions(sims)
            ),

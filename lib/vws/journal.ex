@@ -13,19 +13,34 @@ defmodule Vws.Journal do
     * `{:status, partition, number, status}` — a command status written outright (dispatch, a rule)
     * `{:finish, partition, number, status}` — a command ended: applied only while the status
       location still shows `number`, exactly as `Vws.Mailbox.finish/4` does
+    * `{:unknown_status, letter, number, status}` — a command of a set letter the CEC does not
+      know, refused by rule 5 (`Vws.Mailbox.put_unknown_status/4`)
     * `{:lease, volume, holder, reasons}` — a work-volume lease (`Vws.Interlock`) taken or
       changed, `reasons` `[]` when it ended: written before the lease counts
     * `{:snapshot, state}` — the whole restorable state, written when the journal opens and every
       `:snapshot_every` records, so the newest state survives the wrap of old files
+
+  ## Programs
+
+  The NC file and NC_UP are not log records (a program may be megabytes): each is a file of its
+  own in the journal's directory (`nc_file`, `nc_up`), written whole to a temporary file, synced,
+  and renamed over the old one (`store_lines/3`), so after a crash it is the old program or the
+  new one, never a part. It is written before the mailbox shows it, as every status is.
 
   ## Restart
 
   When the journal opens on a fresh mailbox table it replays the log: command statuses, CMD_IN,
   the last sequence number and the work-volume leases come back as they were. A command that was
   `EXECUTING` — or acknowledged but not yet dispatched — when the workstation went down answers
-  `ERROR INTERRUPTED BY RESTART` and is never run again by itself: a robot move is physical. The
+  `ERROR INTERRUPTED BY RESTART` and is never run again by itself: a robot move is physical; its
+  partition's safe clean-up (`Vws.Journal.interrupted/1`, e.g. the vise's valves off) is what runs
+  instead, when the partition starts. The
   leases are kept because what they stand for outlived the workstation: the arm that was moving
   into the vise is in the table's volume still, and no cycle may start until it has left.
+
+  One OS process at a time may write a journal directory: a `LOCK` file names it, and a
+  workstation whose directory is held by another live OS process does not start (one left by a
+  process that is gone, after a `kill -9`, is taken over).
 
   The log is a wrap log (`:max_bytes` × `:max_files`, bounded) opened with `repair: true`; it is
   read record by record, so a torn last record (power lost in the middle of a write) is cut off and
@@ -92,6 +107,68 @@ defmodule Vws.Journal do
     read_all(log)
   end
 
+  @doc """
+  The command of `partition` the restart interrupted, `{number, text}` (text nil when the journal
+  has only its number), taken once: the restarted partition's safe clean-up runs for it.
+  """
+  @spec take_interrupted(term, atom) :: {0..9999, String.t() | nil} | nil
+  def take_interrupted(ws, partition) do
+    case :ets.take(Mailbox.table(ws), {:interrupted, partition}) do
+      [{_, number, text}] -> {number, text}
+      [] -> nil
+    end
+  end
+
+  @doc """
+  Stores a program (`:nc_file` or `:nc_up`) in the journal's directory, whole or not at all, and
+  syncs it to disk. Does nothing when the workstation has no journal.
+  """
+  @spec store_lines(:ets.tid(), :nc_file | :nc_up, [binary]) :: :ok | {:error, term}
+  def store_lines(table, key, lines) when key in [:nc_file, :nc_up] do
+    case :ets.lookup(table, :journal_dir) do
+      [] -> :ok
+      [{:journal_dir, dir}] -> write_whole(Path.join(dir, Atom.to_string(key)), lines)
+    end
+  end
+
+  defp write_whole(path, lines) do
+    tmp = path <> ".new"
+    bin = :erlang.term_to_binary({:lines, lines})
+
+    with {:ok, fd} <- :file.open(tmp, [:write, :raw, :binary]),
+         :ok <- write_sync_close(fd, bin) do
+      :file.rename(tmp, path)
+    end
+  end
+
+  defp write_sync_close(fd, bin) do
+    result = with :ok <- :file.write(fd, bin), do: :file.sync(fd)
+    :file.close(fd)
+    result
+  end
+
+  defp read_lines(dir, key) do
+    path = Path.join(dir, Atom.to_string(key))
+
+    with {:ok, bin} <- File.read(path),
+         {:lines, lines} when is_list(lines) <- safe_term(bin) do
+      lines
+    else
+      {:error, :enoent} ->
+        []
+
+      other ->
+        Logger.error("#{path} unreadable (#{inspect(other, limit: 5)}): no #{key} restored")
+        []
+    end
+  end
+
+  defp safe_term(bin) do
+    :erlang.binary_to_term(bin, [:safe])
+  rescue
+    ArgumentError -> :damaged
+  end
+
   ## Server
 
   @impl true
@@ -99,6 +176,7 @@ defmodule Vws.Journal do
     ws = Keyword.fetch!(opts, :workstation)
     dir = Keyword.fetch!(opts, :dir)
     File.mkdir_p!(dir)
+    :ok = lock!(dir)
     log = {:vws_journal, ws}
     size = {Keyword.get(opts, :max_bytes, 256 * 1024), Keyword.get(opts, :max_files, 8)}
 
@@ -123,7 +201,10 @@ defmodule Vws.Journal do
     # Restore only into a fresh table: if only the journal restarted, the mailboxes are current.
     if :ets.insert_new(table, {:journal_restored, true}) do
       restore(table, read_all(log))
+      for key <- [:nc_file, :nc_up], do: :ets.insert(table, {key, read_lines(dir, key)})
     end
+
+    :ets.insert(table, {:journal_dir, dir})
 
     # Compact: the snapshot of the restored state replaces everything before it, so a damaged
     # record never stands in front of the records written from now on.
@@ -131,13 +212,49 @@ defmodule Vws.Journal do
     :ok = :disk_log.log(log, {:snapshot, state_of(table)})
     :ok = :disk_log.sync(log)
     :ets.insert(table, {:journal, log, Keyword.get(opts, :snapshot_every, 500), self()})
-    {:ok, %{workstation: ws, log: log}}
+    {:ok, %{workstation: ws, log: log, dir: dir}}
   end
 
   @impl true
   def terminate(_reason, s) do
     :disk_log.close(s.log)
+    # a stop that runs this lets the directory go; a kill leaves the lock to be taken over
+    if File.read(Path.join(s.dir, "LOCK")) == {:ok, System.pid()},
+      do: File.rm(Path.join(s.dir, "LOCK"))
+
     :ok
+  end
+
+  # One OS process at a time writes a journal directory: two would damage each other's records.
+  # The lock names the OS process holding it; one left by a process that is gone (kill -9) is
+  # taken over, and this VM may take its own again (a workstation restarted in the same node).
+  defp lock!(dir) do
+    path = Path.join(dir, "LOCK")
+    me = System.pid()
+
+    case File.read(path) do
+      {:ok, holder} ->
+        holder = String.trim(holder)
+
+        if holder != me and os_process_alive?(holder) do
+          raise "journal directory #{dir} is in use by OS process #{holder}"
+        end
+
+      {:error, _} ->
+        :ok
+    end
+
+    File.write!(path, me)
+  end
+
+  defp os_process_alive?(pid) do
+    case Integer.parse(pid) do
+      {_n, ""} ->
+        match?({_, 0}, System.cmd("kill", ["-0", pid], stderr_to_stdout: true))
+
+      _ ->
+        false
+    end
   end
 
   defp read_all(log), do: read_all(log, :start, [])
@@ -178,6 +295,12 @@ defmodule Vws.Journal do
 
     [{_, seq, line}] = :ets.lookup(table, :last_string)
 
+    unknown =
+      for {{:unknown_status, letter}, n, status} <-
+            :ets.match_object(table, {{:unknown_status, :_}, :_, :_}),
+          into: %{},
+          do: {letter, {n, status}}
+
     # the leases, the earliest first: `[{volume, holder, reasons}]`
     leases =
       for {{:interlock, volume, holder}, %{state: :held} = lease} <-
@@ -187,7 +310,7 @@ defmodule Vws.Journal do
       |> Enum.sort()
       |> Enum.map(&elem(&1, 1))
 
-    %{partitions: partitions, last_string: {seq, line}, leases: leases}
+    %{partitions: partitions, last_string: {seq, line}, leases: leases, unknown: unknown}
   end
 
   defp restore(_table, []), do: :ok
@@ -204,10 +327,18 @@ defmodule Vws.Journal do
     {seq, line} = state.last_string
     :ets.insert(table, {:last_string, seq, line})
 
+    for {letter, {n, status}} <- state.unknown,
+        do: :ets.insert(table, {{:unknown_status, letter}, n, status})
+
     for {volume, holder, reasons} <- state.leases,
         do: :ets.insert(table, Vws.Interlock.restored_lease(volume, holder, reasons))
 
     interrupted = for {p, %{status: :executing, number: n}} <- state.partitions, do: {p, n}
+
+    # what each restarted partition's safe clean-up is for (Vws.Partition, interrupted/2)
+    for {p, %{status: :executing, number: n, cmd_in: {in_n, text}}} <- state.partitions do
+      :ets.insert(table, {{:interrupted, p}, n, if(in_n == n, do: text)})
+    end
 
     if interrupted != [] do
       Logger.warning(
@@ -226,7 +357,11 @@ defmodule Vws.Journal do
   end
 
   # a snapshot written before leases were journaled has none
-  defp apply_record({:snapshot, snapshot}, _state), do: Map.put_new(snapshot, :leases, [])
+  defp apply_record({:snapshot, snapshot}, _state),
+    do: snapshot |> Map.put_new(:leases, []) |> Map.put_new(:unknown, %{})
+
+  defp apply_record({:unknown_status, letter, n, status}, state),
+    do: put_in(state.unknown[letter], {n, status})
 
   # a lease keeps its place among the others (the earliest first) while it is held
   defp apply_record({:lease, volume, holder, reasons}, state) do

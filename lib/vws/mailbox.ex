@@ -221,6 +221,27 @@ defmodule Vws.Mailbox do
     end
   end
 
+  @doc """
+  Sets the status of command `number` of a set letter the CEC does not know (rule broken
+  `UNKNOWN COMMAND SET <letter>`), answered to the status `<letter>_CMD`.
+  """
+  @spec put_unknown_status(workstation, String.t(), 0..9999, status) :: :ok
+  def put_unknown_status(ws, letter, number, status) do
+    table = table(ws)
+    journal(table, {:unknown_status, letter, number, status})
+    :ets.insert(table, {{:unknown_status, letter}, number, status})
+    :ok
+  end
+
+  @doc "The status of the last command of an unknown set letter: `{number | nil, status}`."
+  @spec unknown_status(workstation, String.t()) :: {0..9999 | nil, status}
+  def unknown_status(ws, letter) do
+    case :ets.lookup(table(ws), {:unknown_status, letter}) do
+      [{_, number, status}] -> {number, status}
+      [] -> {nil, :none}
+    end
+  end
+
   @doc "The command status of a partition: `{number | nil, status}`."
   @spec command_status(workstation, partition) :: {0..9999 | nil, status}
   def command_status(ws, partition) do
@@ -258,16 +279,20 @@ defmodule Vws.Mailbox do
 
   ## NC file and NC_UP
 
-  @doc "Replaces the NC file (the program downloaded from the WC)."
-  @spec put_nc_file(workstation, [binary]) :: :ok
+  @doc """
+  Replaces the NC file (the program downloaded from the WC). With a journal the program is on
+  disk first (`Vws.Journal.store_lines/3`); `{:error, reason}` when it could not be made durable
+  (the mailbox keeps the old program then).
+  """
+  @spec put_nc_file(workstation, [binary]) :: :ok | {:error, term}
   def put_nc_file(ws, lines), do: put_lines(ws, :nc_file, lines)
 
   @doc "The NC file's lines."
   @spec nc_file(workstation) :: [binary]
   def nc_file(ws), do: get_lines(ws, :nc_file)
 
-  @doc "Replaces NC_UP (the program uploaded from the machine tool)."
-  @spec put_nc_up(workstation, [binary]) :: :ok
+  @doc "Replaces NC_UP (the program uploaded from the machine tool); durable like `put_nc_file/2`."
+  @spec put_nc_up(workstation, [binary]) :: :ok | {:error, term}
   def put_nc_up(ws, lines), do: put_lines(ws, :nc_up, lines)
 
   @doc "NC_UP's lines."
@@ -275,8 +300,17 @@ defmodule Vws.Mailbox do
   def nc_up(ws), do: get_lines(ws, :nc_up)
 
   defp put_lines(ws, key, lines) when is_list(lines) do
-    :ets.insert(table(ws), {key, lines})
-    :ok
+    table = table(ws)
+
+    case Vws.Journal.store_lines(table, key, lines) do
+      :ok ->
+        :ets.insert(table, {key, lines})
+        :ok
+
+      {:error, reason} = error ->
+        Logger.error("#{key} not stored durably (#{inspect(reason)}): kept the old one")
+        error
+    end
   end
 
   defp get_lines(ws, key) do

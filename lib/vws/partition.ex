@@ -19,6 +19,20 @@ defmodule Vws.Partition do
   and the restarted partition ends the command it finds in flight with
   `ERROR INTERRUPTED BY PARTITION RESTART` — it never runs it again by itself.
 
+  ## After a restart of the workstation
+
+  A command the journal found `EXECUTING` when the workstation went down answers
+  `ERROR INTERRUPTED BY RESTART` and is never run again. What the module may do instead is its
+  safe clean-up, the optional callback
+
+      @callback interrupted(command :: term, ctx) :: :ok | {:error, String.t()}
+
+  — the state a failed command of the set leaves the device in, never the command's work (the
+  vise: both valves off, so the jaws hold where they are). The restarted partition runs it in a
+  process of its own, trying again every `:cleanup_retry_ms` (250) until `:cleanup_timeout_ms`
+  (60 000) while its device is not reachable yet, and reports it as
+  `[:vws, :partition, :cleaned_up]` (`status` `:ok` or `{:error, reason}`).
+
   A partition started without a link to its device (`link: nil`) answers every valid command
   `ERROR NO LINK TO <device>`; an invalid one gets `ERROR UNKNOWN COMMAND <text>` either way.
   """
@@ -39,6 +53,8 @@ defmodule Vws.Partition do
   @callback device() :: String.t()
   @callback parse(String.t()) :: {:ok, term} | {:error, :unknown | String.t()}
   @callback execute(command :: term, ctx) :: :done | {:error, String.t()}
+  @callback interrupted(command :: term, ctx) :: :ok | {:error, String.t()}
+  @optional_callbacks interrupted: 2
 
   @doc false
   def child_spec(opts) do
@@ -106,6 +122,23 @@ defmodule Vws.Partition do
         )
 
         finish(ws, partition, number, {:error, "INTERRUPTED BY PARTITION RESTART"}, 0)
+    end
+
+    module = Keyword.fetch!(opts, :module)
+
+    case Vws.Journal.take_interrupted(ws, partition) do
+      nil ->
+        :ok
+
+      {number, text} ->
+        clean_up(module, %{
+          workstation: ws,
+          partition: partition,
+          number: number,
+          text: text,
+          link: Keyword.get(opts, :link),
+          options: Keyword.get(opts, :options, [])
+        })
     end
 
     {:ok,
@@ -243,6 +276,74 @@ defmodule Vws.Partition do
 
       {result, Map.put(meta, :result, result)}
     end)
+  end
+
+  # The safe clean-up of a command the workstation's restart interrupted (see the moduledoc),
+  # in a process of its own: the device may not be reachable for a while yet.
+  defp clean_up(module, ctx) do
+    with {:module, _} <- Code.ensure_loaded(module),
+         true <- function_exported?(module, :interrupted, 2),
+         {:ok, command} <- module.parse(ctx.text || "") do
+      retry = Keyword.get(ctx.options, :cleanup_retry_ms, 250)
+
+      deadline =
+        System.monotonic_time(:millisecond) +
+          Keyword.get(ctx.options, :cleanup_timeout_ms, 60_000)
+
+      Task.start(fn ->
+        Logger.metadata(workstation: ctx.workstation, partition: ctx.partition)
+        status = clean_up_until(module, command, ctx, retry, deadline)
+
+        case status do
+          :ok ->
+            Logger.warning(
+              "command #{ctx.number} #{ctx.text} interrupted by the restart: safe state restored"
+            )
+
+          {:error, why} ->
+            Logger.error(
+              "command #{ctx.number} #{ctx.text} interrupted by the restart: safe state NOT restored (#{why})"
+            )
+        end
+
+        Vws.Telemetry.execute([:vws, :partition, :cleaned_up], %{count: 1}, %{
+          workstation: ctx.workstation,
+          partition: ctx.partition,
+          command: ctx.number,
+          text: ctx.text,
+          status: status
+        })
+      end)
+    else
+      _ -> :ok
+    end
+  end
+
+  defp clean_up_until(module, command, ctx, retry, deadline) do
+    case safe(fn -> module.interrupted(command, ctx) end) do
+      :ok ->
+        :ok
+
+      {:error, why} ->
+        if System.monotonic_time(:millisecond) >= deadline do
+          {:error, why}
+        else
+          Process.sleep(retry)
+          clean_up_until(module, command, ctx, retry, deadline)
+        end
+    end
+  end
+
+  defp safe(fun) do
+    case fun.() do
+      :ok -> :ok
+      {:error, why} when is_binary(why) -> {:error, why}
+      other -> {:error, "BAD RESULT #{inspect(other, limit: 5)}"}
+    end
+  rescue
+    e -> {:error, Exception.message(e)}
+  catch
+    kind, reason -> {:error, "#{kind} #{inspect(reason, limit: 5)}"}
   end
 
   defp normalise(:done), do: :done

@@ -8,8 +8,10 @@ defmodule Vws.Status do
   `VACUUM_CMD`, `HYDRAULIC_CMD`) answer `cccc` + `DONE` | `EXECUTING` | `ERROR <reason>` (`0000NONE`
   before any command). Device-status names (`GRIPPER`, `TABLE`, `VISE`, `TRAYS`, `VACUUM`,
   `TLI_TABLE`, `CHANGER_1`, `MONARCH`, `WHERE_ROBOT`, `PALLET`) answer the text of their
-  device-status location, `NO DATA` before anything was written there. Anything else answers
-  `ERROR UNKNOWN STATUS <name>`. Answers are cut to 94 characters (PROTOCOLS.md §1).
+  device-status location, `NO DATA` before anything was written there. `<L>_CMD` for a set letter
+  `L` the CEC does not know answers the error of the last command of that letter (`0000NONE`
+  before any; PROTOCOLS.md §1 rule 5 — a command of an unknown set breaks a rule like the
+  others). Anything else answers `ERROR UNKNOWN STATUS <name>`. Answers are cut to 94 characters (PROTOCOLS.md §1).
   """
 
   alias Vws.Mailbox
@@ -43,6 +45,10 @@ defmodule Vws.Status do
           {number, status} = Mailbox.command_status(ws, partition)
           number_text(number) <> Mailbox.status_word(status)
 
+        unknown_set_letter(name) ->
+          {number, status} = Mailbox.unknown_status(ws, unknown_set_letter(name))
+          number_text(number) <> Mailbox.status_word(status)
+
         name in @device_names ->
           case Mailbox.get_device(ws, Mailbox.device_location(name)) do
             {nil, _age} -> "NO DATA"
@@ -56,6 +62,16 @@ defmodule Vws.Status do
 
     String.slice(text, 0, @max_text)
   end
+
+  # `Q_CMD` for a letter that names no command set
+  defp unknown_set_letter(<<letter, "_CMD">>) when letter in ?A..?Z do
+    case Vws.WC.Command.set_for_letter(<<letter>>) do
+      {:unknown, l} -> l
+      _known -> nil
+    end
+  end
+
+  defp unknown_set_letter(_name), do: nil
 
   defp number_text(nil), do: "0000"
   defp number_text(n), do: n |> Integer.to_string() |> String.pad_leading(4, "0")

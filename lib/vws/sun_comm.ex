@@ -17,20 +17,40 @@ defmodule Vws.SunComm do
     2. a string with an S command contains nothing else;
     3. a command for a set whose previous command is in flight is not run: `ERROR BUSY <previous>`;
     4. a string that repeats the last accepted sequence number with the same bytes is a
-       retransmission: acknowledged again, nothing executed; with other bytes it can only be a
-       resend damaged past the BCC (the sequence number advances with every new string), so it
-       is answered `E` and nothing runs (decision);
+       retransmission: acknowledged again, nothing executed. With other bytes it is a new string
+       from a WC that restarted and numbers from where it began again (decision, issue 15): it is
+       handled as any new string. (A resend damaged so that its BCC still matches cannot be told
+       from it; the BCC is the link's only check, as everywhere else on this link.)
     5. an intact string that breaks a rule is acknowledged, nothing in it runs, and each of its
-       commands answers `ERROR <rule>` on its next status query.
+       commands answers `ERROR <rule>` on its next status query. A command for a set letter the
+       CEC does not know (`Q0005…`) breaks the rule `UNKNOWN COMMAND SET Q`: its error is
+       queryable as status `Q_CMD` (`0005ERROR UNKNOWN COMMAND SET Q`), and every other command
+       of that string answers the same error under its own status (decision, issue 15).
 
-  ## NC line transfers
+  ## Lines that are no string (decision, issue 15)
 
-  After acknowledging a string carrying `M…DOWNLOAD_HP`, SUN_COMM reads program lines (`L` + BCC,
-  each answered `A` or `E`) until the closing `%` (a `%` as the very first line is the tape's leading
-  rewind stop and is kept), stores them as the NC file and ends the Monarch command `DONE`. After
-  acknowledging `M…UPLOAD_SUN` it sends NC_UP line by line, resending a line the WC answers `E`, and
-  ends the command `DONE` after the last line is acknowledged (`ERROR NO UPLOADED PROGRAM` when NC_UP is
-  empty). A transfer that stalls or loses the link ends the Monarch command `ERROR` with the reason.
+  An empty line and a line over `:max_line` bytes (1024) are answered `E` at once — the long one
+  as soon as its 1025th byte arrives, not when its LF does; the rest of it, up to its LF, is
+  discarded without a further answer. A line whose end never comes is dropped and answered `E`
+  after `:partial_line_timeout`.
+
+  ## NC line transfers (PROTOCOLS.md §1 "NC download", "NC upload")
+
+  Program lines are numbered: `nnnn` + text + BCC, answered `A` + `nnnn` + BCC (stored) or `E`
+  (damaged). After acknowledging a string carrying `M…DOWNLOAD_HP`, SUN_COMM reads lines 0001,
+  0002, … until the closing `%` (a `%` as the very first line is the tape's leading rewind stop and
+  is kept). A line carrying the number just stored is a resend after a damaged answer: answered
+  again, not stored twice; any other number ends the command `ERROR PROGRAM LINE OUT OF ORDER`. The
+  closing `%` is answered `A` + the number of lines stored, the program is journaled as the NC file
+  and the Monarch command ends `DONE`; a resend of that closing line after the command ended is
+  answered the same again. After acknowledging `M…UPLOAD_SUN` it sends NC_UP line by line; a line
+  answered `E`, with a damaged answer, with another number or not at all is sent again (at most
+  `:upload_retries` times); the command ends `DONE` when the WC has answered the closing `%` with
+  its number (`ERROR NO UPLOADED PROGRAM` when NC_UP is empty). A status query during an upload is
+  answered and the upload goes on (a WC that took the closing line asks its command's status
+  while its answer reached us damaged: the closing line goes again, it answers again); any other
+  string during a transfer means the WC left it. A transfer that stalls or loses the link ends
+  the Monarch command `ERROR` with the reason.
 
   ## Options
 
@@ -109,6 +129,9 @@ defmodule Vws.SunComm do
       conn: nil,
       decoder: nil,
       mode: :command,
+      # the closing line of the last download and its answer: a resend of it after the
+      # transfer ended (its answer was damaged) is answered again
+      last_closing: nil,
       timer: nil,
       dialogue: :queue.new(),
       dialogue_size: 0,
@@ -120,7 +143,8 @@ defmodule Vws.SunComm do
         status_answers: 0,
         connections: 0,
         lines_in: 0,
-        lines_out: 0
+        lines_out: 0,
+        lines_again: 0
       }
     }
 
@@ -351,24 +375,37 @@ defmodule Vws.SunComm do
 
   # The string that began the transfer, again: its acknowledgement was lost and the WC is
   # still waiting for it, so it is acknowledged again and the transfer begins afresh from its
-  # first line (the WC sends or takes the program only after the acknowledgement). Any other
-  # string: the WC gave the transfer up; it ends ERROR and the string is handled as usual.
+  # first line (the WC sends or takes the program only after the acknowledgement). A status
+  # query during an upload is answered and the upload goes on: it runs nothing, and a WC that
+  # has taken the closing line asks its command's status while its answer reached us damaged —
+  # the closing line goes again and it answers again. Any other string (and a status query
+  # during a download, where the WC is the sender): the WC gave the transfer up; it ends
+  # ERROR and the string is handled as usual.
   defp command_string_in_transfer(cs, line, %{mode: {kind, t}} = s) do
-    if Mailbox.last_string(s.workstation) == {cs.sequence, line} do
-      Logger.info(
-        "string #{cs.sequence} again during #{kind}: acknowledged again, transfer restarted"
-      )
+    cond do
+      Mailbox.last_string(s.workstation) == {cs.sequence, line} ->
+        restart_transfer(cs, kind, t, s)
 
-      telemetry(s, :retransmission, %{count: 1}, %{sequence: cs.sequence})
-      s = reply(%{s | counters: bump(s.counters, :retransmissions)}, {:ack, cs.sequence})
+      kind == :upload and status_string?(cs) ->
+        accept_string(cs, line, s)
 
-      case kind do
-        :download -> start_download(s, t.number)
-        :upload -> start_upload(s, t.number)
-      end
-    else
-      Logger.warning("string #{cs.sequence} during #{kind}: the WC left the transfer")
-      command_line(line, abort_transfer(s, "COMMAND STRING FROM THE WC"))
+      true ->
+        Logger.warning("string #{cs.sequence} during #{kind}: the WC left the transfer")
+        command_line(line, abort_transfer(s, "COMMAND STRING FROM THE WC"))
+    end
+  end
+
+  defp restart_transfer(cs, kind, t, s) do
+    Logger.info(
+      "string #{cs.sequence} again during #{kind}: acknowledged again, transfer restarted"
+    )
+
+    telemetry(s, :retransmission, %{count: 1}, %{sequence: cs.sequence})
+    s = reply(%{s | counters: bump(s.counters, :retransmissions)}, {:ack, cs.sequence})
+
+    case kind do
+      :download -> start_download(s, t.number)
+      :upload -> start_upload(s, t.number)
     end
   end
 
@@ -377,9 +414,16 @@ defmodule Vws.SunComm do
     %{reply(s, :nak) | counters: bump(s.counters, :naks)}
   end
 
-  defp command_line("", s), do: s
+  defp command_line("", s), do: reject(s, :empty_line)
+
+  defp command_line(line, %{last_closing: {line, answer}} = s) do
+    Logger.info("the closing line of the last download again: answered again")
+    %{reply(s, answer) | counters: bump(s.counters, :lines_again)}
+  end
 
   defp command_line(line, s) do
+    s = %{s | last_closing: nil}
+
     case CommandString.decode(line, bcc: s.bcc) do
       {:error, error} ->
         reject(s, error.reason)
@@ -417,16 +461,6 @@ defmodule Vws.SunComm do
         s = %{s | counters: bump(s.counters, :retransmissions)}
         reply(s, {:ack, cs.sequence})
 
-      match?({seq, _other_bytes} when seq == cs.sequence, Mailbox.last_string(ws)) ->
-        # The last accepted sequence number with other bytes: a resend damaged in a way the
-        # 8-bit sum cannot see (two errors that cancel). Running it could run a command twice,
-        # so it is refused; the WC sends it again and the intact copy is a retransmission.
-        Logger.warning(
-          "string #{cs.sequence} repeats the last sequence number with other bytes: answered E"
-        )
-
-        reject(s, :sequence_reused)
-
       journal_string(ws, cs, line) != :ok ->
         # not durable, so not acknowledged: the WC sends it again
         reject(s, :journal_unavailable)
@@ -437,8 +471,12 @@ defmodule Vws.SunComm do
         Logger.warning("string #{cs.sequence} breaks a rule (#{broken}): nothing in it runs")
         telemetry(s, :rule_broken, %{count: 1}, %{sequence: cs.sequence, rule: broken})
 
-        for %{set: set, number: n} <- cs.commands, set in Mailbox.partitions() do
-          Mailbox.put_status(ws, set, n, {:error, broken})
+        for %{set: set, number: n} <- cs.commands do
+          case set do
+            {:unknown, letter} -> Mailbox.put_unknown_status(ws, letter, n, {:error, broken})
+            :ack -> :ok
+            set -> Mailbox.put_status(ws, set, n, {:error, broken})
+          end
         end
 
         %{s | counters: bump(s.counters, :rules_broken)}
@@ -526,38 +564,67 @@ defmodule Vws.SunComm do
   end
 
   defp download_line(line, %{mode: {:download, d}} = s) do
+    next = rem(d.count + 1, 10_000)
+    last = if d.count > 0, do: rem(d.count, 10_000)
+
     case Reply.decode_line(line, bcc: s.bcc) do
-      {:error, _} ->
-        s |> reject(:bad_bcc) |> arm(s.download_timeout)
+      {:error, error} ->
+        s |> reject(error.reason) |> arm(s.download_timeout)
 
-      {:ok, {:line, text}} ->
-        s = %{reply(s, :line_ack) | counters: bump(s.counters, :lines_in)}
-        telemetry(s, :nc_line, %{bytes: byte_size(text)}, %{direction: :in})
+      {:ok, {:line, ^next, text}} ->
+        store_download_line(line, text, d, s)
 
-        d = %{
-          d
-          | lines: [text | d.lines],
-            count: d.count + 1,
-            bytes: d.bytes + byte_size(text) + 1
-        }
+      {:ok, {:line, ^last, _text}} ->
+        # the WC did not take our answer for its line: the same line again, stored once
+        s = %{reply(s, {:line_ack, last}) | counters: bump(s.counters, :lines_again)}
+        arm(s, s.download_timeout)
 
-        cond do
-          String.trim(text) == "%" and d.count > 1 ->
-            lines = Enum.reverse(d.lines)
-            Mailbox.put_nc_file(s.workstation, lines)
+      {:ok, {:line, n, _text}} ->
+        Logger.warning("DOWNLOAD_HP #{d.number}: line #{n} came when #{next} was due")
+
+        end_transfer(
+          reject(s, :line_out_of_order),
+          d.number,
+          {:error, "PROGRAM LINE OUT OF ORDER"}
+        )
+    end
+  end
+
+  defp store_download_line(line, text, d, s) do
+    s = %{s | counters: bump(s.counters, :lines_in)}
+    telemetry(s, :nc_line, %{bytes: byte_size(text)}, %{direction: :in})
+
+    d = %{
+      d
+      | lines: [text | d.lines],
+        count: d.count + 1,
+        bytes: d.bytes + byte_size(text) + 1
+    }
+
+    cond do
+      d.bytes > s.max_program_bytes ->
+        s = reject(s, :program_too_large)
+        end_transfer(s, d.number, {:error, "NC PROGRAM LARGER THAN #{s.max_program_bytes} BYTES"})
+
+      String.trim(text) == "%" and d.count > 1 ->
+        lines = Enum.reverse(d.lines)
+
+        case Mailbox.put_nc_file(s.workstation, lines) do
+          :ok ->
+            # the closing line's answer: the number of lines stored, so both ends agree
+            answer = {:line_ack, rem(d.count, 10_000)}
+            s = reply(s, answer)
             Logger.info("DOWNLOAD_HP #{d.number}: #{d.count} lines stored as the NC file")
-            end_transfer(s, d.number, :done)
+            %{end_transfer(s, d.number, :done) | last_closing: {line, answer}}
 
-          d.bytes > s.max_program_bytes ->
-            end_transfer(
-              s,
-              d.number,
-              {:error, "NC PROGRAM LARGER THAN #{s.max_program_bytes} BYTES"}
-            )
-
-          true ->
-            arm(%{s | mode: {:download, d}}, s.download_timeout)
+          {:error, reason} ->
+            s = reject(s, :journal_unavailable)
+            end_transfer(s, d.number, {:error, "NC FILE NOT STORED #{inspect(reason)}"})
         end
+
+      true ->
+        s = reply(s, {:line_ack, rem(d.count, 10_000)})
+        arm(%{s | mode: {:download, d}}, s.download_timeout)
     end
   end
 
@@ -579,15 +646,18 @@ defmodule Vws.SunComm do
     end
   end
 
-  defp send_upload_line(%{mode: {:upload, %{lines: [line | _]}}} = s) do
+  defp send_upload_line(%{mode: {:upload, %{lines: [line | _]} = u}} = s) do
     telemetry(s, :nc_line, %{bytes: byte_size(line)}, %{direction: :out})
-    s = %{reply(s, {:line, line}) | counters: bump(s.counters, :lines_out)}
-    arm(s, s.upload_timeout)
+    s = reply(s, {:line, rem(u.sent + 1, 10_000), line})
+    arm(%{s | counters: bump(s.counters, :lines_out)}, s.upload_timeout)
   end
 
   defp upload_answer(line, %{mode: {:upload, u}} = s) do
+    this = rem(u.sent + 1, 10_000)
+    previous = if u.sent > 0, do: rem(u.sent, 10_000)
+
     case Reply.decode(line, bcc: s.bcc) do
-      {:ok, :line_ack} ->
+      {:ok, {:line_ack, ^this}} ->
         case u.lines do
           [_last] ->
             Logger.info("UPLOAD_SUN #{u.number}: #{u.sent + 1} lines sent")
@@ -600,12 +670,17 @@ defmodule Vws.SunComm do
             })
         end
 
+      {:ok, {:line_ack, ^previous}} ->
+        # a late second answer to the line before (sent again after a silence): nothing new
+        s
+
       {:ok, :nak} ->
         resend_upload_line(s, u)
 
       _ ->
-        Logger.warning("during UPLOAD_SUN the WC sent #{inspect(line)}; expected A or E")
-        s
+        # a damaged answer, or one naming another line: this line is not known to be stored
+        Logger.warning("during UPLOAD_SUN the WC sent #{inspect(line)}; expected A#{pad4(this)}")
+        resend_upload_line(s, u)
     end
   end
 

@@ -54,6 +54,8 @@ defmodule Vws.Telemetry do
   | `[:vws, :vws_status, :missed]` | `count` | `workstation, reason` |
   | `[:vws, :vws_status, :stale]` | `count` | `workstation, reason` |
   | `[:vws, :vws_status, :actuation_retry]` | `count` | `workstation, reason, try` |
+  | `[:vws, :partition, :cleaned_up]` | `count` | `workstation, partition, command, text, status`: the safe clean-up of a command a restart interrupted |
+  | `[:vws, :hydraulic_controller, :relay_corrected]` | `count` | `device`: a DAQ #2 slot read back not as intended, set right |
   | `[:vws, :interlock, :acquired]` | `wait_ms, tries` | `workstation, volume, holder, reason` |
   | `[:vws, :interlock, :refused]` | `wait_ms, tries` | `workstation, volume, holder, reason, why` |
   | `[:vws, :interlock, :released]` | `count` | `workstation, volume, holder, reason` (`:all` or one) |
@@ -117,6 +119,8 @@ defmodule Vws.Telemetry do
     [:vws, :vws_status, :missed],
     [:vws, :vws_status, :stale],
     [:vws, :vws_status, :actuation_retry],
+    [:vws, :hydraulic_controller, :relay_corrected],
+    [:vws, :partition, :cleaned_up],
     [:vws, :web, :request],
     [:vws, :interlock, :acquired],
     [:vws, :interlock, :refused],

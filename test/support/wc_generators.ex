@@ -57,7 +57,7 @@ defmodule Vws.WC.Generators do
   def reply do
     oneof([
       exactly(:nak),
-      exactly(:line_ack),
+      bind(range(0, 9999), &exactly({:line_ack, &1}), false),
       bind(range(0, 9999), &exactly({:ack, &1}), false),
       bind(
         tuple([range(0, 9999), status_text()]),
@@ -67,7 +67,8 @@ defmodule Vws.WC.Generators do
     ])
   end
 
-  def nc_line, do: bind(line_text(), &exactly({:line, &1}), false)
+  def nc_line,
+    do: bind(tuple([range(0, 9999), line_text()]), fn {n, t} -> exactly({:line, n, t}) end, false)
 
   # Sizes to cut a byte stream at.
   def cuts, do: list(range(1, 40))

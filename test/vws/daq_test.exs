@@ -62,15 +62,20 @@ defmodule Vws.DAQTest do
       assert_raise ArgumentError, fn -> DAQ.new(switches: [changer1_released: 103]) end
     end
 
-    test "actuation opens before it closes, the last word on a channel wins, and asks back" do
+    @slot Enum.to_list(201..210)
+
+    test "actuation: the whole slot read twice, opens before closes, the last word wins, the whole slot read back" do
       daq = DAQ.new()
+      assert DAQ.slot(daq) == @slot
+      q = {:rout_clos?, @slot}
 
       assert DAQ.actuation(daq, [{:gripper_open_solenoid, :close}, {202, :open}, {207, :close}]) ==
-               {:ok,
-                [{:rout_open, [202]}, {:rout_clos, [201, 207]}, {:rout_clos?, [201, 202, 207]}],
-                [{201, true}, {202, false}, {207, true}]}
+               {:ok, [q, q, {:rout_open, [202]}, {:rout_clos, [201, 207]}, q],
+                {:write, @slot, [{201, true}, {202, false}, {207, true}]}}
 
-      assert {:ok, _, [{207, false}]} = DAQ.actuation(daq, [{207, :close}, {207, :open}])
+      assert {:ok, _, {:write, _, [{207, false}]}} =
+               DAQ.actuation(daq, [{207, :close}, {207, :open}])
+
       assert DAQ.actuation(daq, []) == {:ok, [], []}
 
       assert DAQ.actuation(daq, [{:vise_jaw_mm, :close}]) ==
@@ -79,10 +84,40 @@ defmodule Vws.DAQTest do
       assert DAQ.actuation(daq, [{117, :close}]) == {:error, {:unknown_actuator, 117}}
     end
 
-    test "relay states are checked against what was commanded" do
-      assert DAQ.check_relays([{201, true}, {202, false}], [true, false]) == :ok
-      assert DAQ.check_relays([{201, true}, {202, false}], [false, false]) == {:error, [201]}
-      assert DAQ.check_relays([{201, true}], []) == {:error, []}
+    # slot states as a list of booleans, the channels given closed
+    defp states(closed), do: Enum.map(@slot, &(&1 in closed))
+
+    test "the read-back is checked against the whole slot: the commanded relay and every other" do
+      daq = DAQ.new()
+      {:ok, _, expected} = DAQ.actuation(daq, [{207, :close}])
+      before = states([205])
+
+      assert DAQ.check_relays(expected, [before, before, :ok, states([205, 207])]) == :ok
+      # ROUT:CLOS (@207) arrived as (@206): 207 not closed, 206 closed — both found
+      results = [before, before, :ok, states([205, 206])]
+      assert DAQ.check_relays(expected, results) == {:error, [206, 207]}
+
+      assert DAQ.confirm_relays(expected, results, "DAQ #1") ==
+               {:error, "RELAY 206 NOT AS COMMANDED"}
+
+      # set right: 206 opened, 207 closed, the slot read again and compared whole
+      assert {:ok, [{:rout_open, [206]}, {:rout_clos, [207]}, {:rout_clos?, @slot}], whole} =
+               DAQ.correction(daq, expected, results)
+
+      assert DAQ.check_relays(whole, [:ok, :ok, states([205, 207])]) == :ok
+      assert DAQ.check_relays(whole, [:ok, :ok, states([207])]) == {:error, [205]}
+
+      # the two reads before disagree on a relay not commanded: nothing can be said; the write
+      # is made again, whole
+      disagree = [states([205]), states([]), :ok, states([205, 207])]
+      assert DAQ.check_relays(expected, disagree) == {:error, []}
+
+      assert DAQ.confirm_relays(expected, disagree, "DAQ #1") ==
+               {:error, "DAQ #1 RELAYS NOT READ BACK"}
+
+      assert DAQ.correction(daq, expected, disagree) == DAQ.actuation(daq, [{207, :close}])
+      # no answer at all
+      assert DAQ.check_relays(expected, [before, before, :ok]) == {:error, []}
     end
   end
 

@@ -160,4 +160,25 @@ defmodule Vws.JournalTest do
     assert Mailbox.command_status(id, :vacuum) == {400, :done}
     assert Mailbox.command_status(id, :robot) == {77, {:error, "INTERRUPTED BY RESTART"}}
   end
+
+  test "a journal directory held by another live OS process is not used; one left by a dead one is",
+       %{tmp_dir: dir} do
+    # another OS process holds the directory
+    port = Port.open({:spawn_executable, System.find_executable("sleep")}, args: ["60"])
+    {:os_pid, os_pid} = Port.info(port, :os_pid)
+    File.write!(Path.join(dir, "LOCK"), Integer.to_string(os_pid))
+    id = "journal-lock-#{System.unique_integer([:positive])}"
+
+    assert {:error, _} =
+             start_supervised(
+               {Workstation, id: id, wc: "loopback:wc-#{id}", journal: [dir: dir]},
+               id: id
+             )
+
+    # it is gone (kill -9): the directory is taken over
+    {_, 0} = System.cmd("kill", ["-9", Integer.to_string(os_pid)])
+    assert Eventually.eventually(fn -> Port.info(port) == nil end)
+    start_ws(id, dir)
+    assert File.read!(Path.join(dir, "LOCK")) == System.pid()
+  end
 end

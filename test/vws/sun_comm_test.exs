@@ -7,6 +7,10 @@ defmodule Vws.SunCommTest do
 
   defp ack?(line, seq), do: Vws.WC.Reply.decode(line) == {:ok, {:ack, seq}}
 
+  # NC program line `n` on the wire, and the answer that says it was stored
+  defp nc(n, text), do: Vws.WC.Reply.encode({:line, n, text})
+  defp stored(n), do: IO.iodata_to_binary(Vws.WC.Reply.encode({:line_ack, n})) |> String.trim()
+
   setup context do
     partitions = if context[:held], do: Workstation.held_robot(), else: []
     %{ws: ws, wc: wc} = Workstation.start(partitions: partitions)
@@ -133,19 +137,37 @@ defmodule Vws.SunCommTest do
   end
 
   @tag :held
-  test "rule 4: the last sequence number with other bytes is refused E and runs nothing", %{
-    peer: peer
-  } do
-    WCPeer.send_string(peer, 32, [{"R", 13, "HOLD"}])
-    assert ack?(WCPeer.recv_line(peer), 32)
+  test "rule 4: the last sequence number with other bytes is a new string from a restarted WC",
+       %{peer: peer} do
+    WCPeer.send_string(peer, 1, [{"R", 13, "HOLD"}])
+    assert ack?(WCPeer.recv_line(peer), 1)
     assert_receive {:executing, runner, 13, _}, 5_000
     send(runner, {:result, :done})
     assert WCPeer.await_status(peer, 39, "ROBOT_CMD", &(&1 == "0013DONE")) == "0013DONE"
 
-    # "O"->"N" and "*"->"+" in one resend: the 8-bit sum cannot see it
-    WCPeer.send_string(peer, 32, [{"R", 13, "HOLD"}, {"G", 1, "OPEN"}])
+    # the WC restarted and numbers from 1 again: its first string is acknowledged once and run
+    WCPeer.send_string(peer, 1, [{"R", 1, "HOLD"}])
+    assert ack?(WCPeer.recv_line(peer), 1)
+    assert_receive {:executing, runner, 1, _}, 5_000
+    send(runner, {:result, :done})
+    assert WCPeer.await_status(peer, 40, "ROBOT_CMD", &(&1 == "0001DONE")) == "0001DONE"
+  end
+
+  test "an empty line is answered E at once", %{peer: peer} do
+    WCPeer.send_raw(peer, "\r\n")
     assert WCPeer.recv_line(peer) == "E"
-    refute_receive {:executing, _, _, _}, 200
+    assert WCPeer.status(peer, 44, 1, "ROBOT_CMD") == "0000NONE"
+  end
+
+  test "a command of an unknown set breaks a rule; its error is asked as <letter>_CMD", %{
+    peer: peer
+  } do
+    WCPeer.send_string(peer, 45, [{"Q", 5, "FROB"}, {"V", 2, "ON"}])
+    assert ack?(WCPeer.recv_line(peer), 45)
+    assert WCPeer.status(peer, 46, 1, "Q_CMD") == "0005ERROR UNKNOWN COMMAND SET Q"
+    assert WCPeer.status(peer, 47, 2, "VACUUM_CMD") == "0002ERROR UNKNOWN COMMAND SET Q"
+    assert WCPeer.status(peer, 48, 3, "X_CMD") == "0000NONE"
+    assert WCPeer.status(peer, 49, 4, "G_CMD") == "ERROR UNKNOWN STATUS G_CMD"
   end
 
   test "device status answers say truthfully that no data has come in", %{peer: peer} do
@@ -154,9 +176,12 @@ defmodule Vws.SunCommTest do
     assert WCPeer.status(peer, 42, 3, "NONSENSE") == "ERROR UNKNOWN STATUS NONSENSE"
   end
 
-  test "an overlong line is answered E and the link goes on", %{peer: peer} do
-    WCPeer.send_line(peer, String.duplicate("X", 5000))
+  test "an overlong line is answered E at once, before its LF, and the link goes on", %{
+    peer: peer
+  } do
+    WCPeer.send_raw(peer, String.duplicate("X", 1025))
     assert WCPeer.recv_line(peer) == "E"
+    WCPeer.send_line(peer, String.duplicate("X", 5000))
     assert WCPeer.status(peer, 43, 1, "ROBOT_CMD") == "0000NONE"
   end
 
@@ -170,9 +195,9 @@ defmodule Vws.SunCommTest do
 
       program = ["%", "O001234", "N10 G90 G00 X0 Y0", "N20 M30", "%"]
 
-      for line <- program do
-        WCPeer.send_raw(peer, Vws.WC.Reply.encode({:line, line}))
-        assert WCPeer.recv_line(peer) == "A"
+      for {line, n} <- Enum.with_index(program, 1) do
+        WCPeer.send_raw(peer, nc(n, line))
+        assert WCPeer.recv_line(peer) == stored(n)
       end
 
       assert WCPeer.status(peer, 51, 35, "MONARCH_CMD") == "0001DONE"
@@ -189,16 +214,36 @@ defmodule Vws.SunCommTest do
     } do
       WCPeer.send_string(peer, 60, [{"M", 3, "DOWNLOAD_HP"}])
       assert ack?(WCPeer.recv_line(peer), 60)
-      WCPeer.send_raw(peer, Vws.WC.Reply.encode({:line, "%"}))
-      assert WCPeer.recv_line(peer) == "A"
-      WCPeer.send_line(peer, "N10 G00X0000")
+      WCPeer.send_raw(peer, nc(1, "%"))
+      assert WCPeer.recv_line(peer) == stored(1)
+      WCPeer.send_line(peer, "0002N10 G00X0000")
       assert WCPeer.recv_line(peer) == "E"
-      WCPeer.send_raw(peer, Vws.WC.Reply.encode({:line, "N10 G00X0"}))
-      assert WCPeer.recv_line(peer) == "A"
-      WCPeer.send_raw(peer, Vws.WC.Reply.encode({:line, "%"}))
-      assert WCPeer.recv_line(peer) == "A"
+      WCPeer.send_raw(peer, nc(2, "N10 G00X0"))
+      assert WCPeer.recv_line(peer) == stored(2)
+      # our answer reached the WC damaged: it sends line 2 again, which is not stored twice
+      WCPeer.send_raw(peer, nc(2, "N10 G00X0"))
+      assert WCPeer.recv_line(peer) == stored(2)
+      WCPeer.send_raw(peer, nc(3, "%"))
+      assert WCPeer.recv_line(peer) == stored(3)
+      # and the closing line's answer too: answered again after the command ended
+      WCPeer.send_raw(peer, nc(3, "%"))
+      assert WCPeer.recv_line(peer) == stored(3)
       assert WCPeer.status(peer, 61, 35, "MONARCH_CMD") == "0003DONE"
       assert Mailbox.nc_file(ws) == ["%", "N10 G00X0", "%"]
+    end
+
+    test "a line number that is neither the next nor the last ends ERROR OUT OF ORDER", %{
+      peer: peer,
+      ws: ws
+    } do
+      WCPeer.send_string(peer, 58, [{"M", 10, "DOWNLOAD_HP"}])
+      assert ack?(WCPeer.recv_line(peer), 58)
+      WCPeer.send_raw(peer, nc(1, "%"))
+      assert WCPeer.recv_line(peer) == stored(1)
+      WCPeer.send_raw(peer, nc(3, "N10 G00X0"))
+      assert WCPeer.recv_line(peer) == "E"
+      assert WCPeer.status(peer, 59, 35, "MONARCH_CMD") == "0010ERROR PROGRAM LINE OUT OF ORDER"
+      assert Mailbox.nc_file(ws) == []
     end
 
     test "a program line whose end never comes is dropped after a silence and answered E", %{
@@ -207,11 +252,10 @@ defmodule Vws.SunCommTest do
     } do
       WCPeer.send_string(peer, 62, [{"M", 6, "DOWNLOAD_HP"}])
       assert ack?(WCPeer.recv_line(peer), 62)
-      WCPeer.send_raw(peer, Vws.WC.Reply.encode({:line, "%"}))
-      assert WCPeer.recv_line(peer) == "A"
+      WCPeer.send_raw(peer, nc(1, "%"))
+      assert WCPeer.recv_line(peer) == stored(1)
       # the line's LF damaged on the wire: SUN_COMM holds an unfinished line, the WC waits
-      [line, _crlf] =
-        Vws.WC.Reply.encode({:line, "N10 G00X0"}) |> IO.iodata_to_binary() |> String.split("\r")
+      [line, _crlf] = nc(2, "N10 G00X0") |> IO.iodata_to_binary() |> String.split("\r")
 
       WCPeer.send_raw(peer, line <> "\r\x1A")
       t0 = System.monotonic_time(:millisecond)
@@ -219,10 +263,10 @@ defmodule Vws.SunCommTest do
       # not before the inter-character silence (500 ms by default)
       assert System.monotonic_time(:millisecond) - t0 >= 400
       # the WC sends the line again; stored once
-      WCPeer.send_raw(peer, Vws.WC.Reply.encode({:line, "N10 G00X0"}))
-      assert WCPeer.recv_line(peer) == "A"
-      WCPeer.send_raw(peer, Vws.WC.Reply.encode({:line, "%"}))
-      assert WCPeer.recv_line(peer) == "A"
+      WCPeer.send_raw(peer, nc(2, "N10 G00X0"))
+      assert WCPeer.recv_line(peer) == stored(2)
+      WCPeer.send_raw(peer, nc(3, "%"))
+      assert WCPeer.recv_line(peer) == stored(3)
       assert WCPeer.status(peer, 63, 35, "MONARCH_CMD") == "0006DONE"
       assert Mailbox.nc_file(ws) == ["%", "N10 G00X0", "%"]
     end
@@ -236,9 +280,9 @@ defmodule Vws.SunCommTest do
       WCPeer.send_raw(peer, line)
       assert ack?(WCPeer.recv_line(peer), 64)
 
-      for text <- ["%", "N10 G00X0", "%"] do
-        WCPeer.send_raw(peer, Vws.WC.Reply.encode({:line, text}))
-        assert WCPeer.recv_line(peer) == "A"
+      for {text, n} <- Enum.with_index(["%", "N10 G00X0", "%"], 1) do
+        WCPeer.send_raw(peer, nc(n, text))
+        assert WCPeer.recv_line(peer) == stored(n)
       end
 
       assert WCPeer.status(peer, 65, 35, "MONARCH_CMD") == "0007DONE"
@@ -251,8 +295,8 @@ defmodule Vws.SunCommTest do
     } do
       WCPeer.send_string(peer, 66, [{"M", 8, "DOWNLOAD_HP"}])
       assert ack?(WCPeer.recv_line(peer), 66)
-      WCPeer.send_raw(peer, Vws.WC.Reply.encode({:line, "%"}))
-      assert WCPeer.recv_line(peer) == "A"
+      WCPeer.send_raw(peer, nc(1, "%"))
+      assert WCPeer.recv_line(peer) == stored(1)
 
       # the WC gave the transfer up: its next string is a string, answered as one
       assert WCPeer.status(peer, 67, 35, "MONARCH_CMD") ==
@@ -272,16 +316,16 @@ defmodule Vws.SunCommTest do
       line = WCPeer.send_string(peer, 72, [{"M", 9, "UPLOAD_SUN"}])
       assert ack?(WCPeer.recv_line(peer), 72)
       first = WCPeer.recv_line(peer)
-      assert {:ok, {:line, "%"}} = Vws.WC.Reply.decode_line(first)
+      assert {:ok, {:line, 1, "%"}} = Vws.WC.Reply.decode_line(first)
       # the WC saw neither: it sends the string again
       WCPeer.send_raw(peer, line)
       assert ack?(WCPeer.recv_line(peer), 72)
 
       received =
-        for _ <- program do
+        for n <- 1..length(program) do
           l = WCPeer.recv_line(peer)
-          WCPeer.send_line(peer, "A")
-          {:ok, {:line, text}} = Vws.WC.Reply.decode_line(l)
+          WCPeer.send_raw(peer, Vws.WC.Reply.encode({:line_ack, n}))
+          {:ok, {:line, ^n, text}} = Vws.WC.Reply.decode_line(l)
           text
         end
 
@@ -299,22 +343,52 @@ defmodule Vws.SunCommTest do
       assert ack?(WCPeer.recv_line(peer), 70)
 
       received =
-        for {expected, i} <- Enum.with_index(program) do
+        for {expected, n} <- Enum.with_index(program, 1) do
           line = WCPeer.recv_line(peer)
 
-          if i == 1 do
-            # ask for this line again once
-            WCPeer.send_line(peer, "E")
-            assert WCPeer.recv_line(peer) == line
+          case n do
+            2 ->
+              # ask for this line again once
+              WCPeer.send_line(peer, "E")
+              assert WCPeer.recv_line(peer) == line
+
+            3 ->
+              # a damaged answer (one bit) is no answer: the line comes again
+              WCPeer.send_line(peer, "A0003005")
+              assert WCPeer.recv_line(peer) == line
+
+            _ ->
+              :ok
           end
 
-          WCPeer.send_line(peer, "A")
-          assert {:ok, {:line, ^expected}} = Vws.WC.Reply.decode_line(line)
+          WCPeer.send_raw(peer, Vws.WC.Reply.encode({:line_ack, n}))
+          assert {:ok, {:line, ^n, ^expected}} = Vws.WC.Reply.decode_line(line)
           expected
         end
 
       assert received == program
       assert WCPeer.status(peer, 71, 35, "MONARCH_CMD") == "0004DONE"
+    end
+
+    test "a status query while the answer to the closing line is outstanding: answered, the upload goes on",
+         %{peer: peer, ws: ws} do
+      Mailbox.put_nc_up(ws, ["%", "O000777", "%"])
+      WCPeer.send_string(peer, 74, [{"M", 11, "UPLOAD_SUN"}])
+      assert ack?(WCPeer.recv_line(peer), 74)
+
+      for n <- 1..2 do
+        assert {:ok, {:line, ^n, _}} = Vws.WC.Reply.decode_line(WCPeer.recv_line(peer))
+        WCPeer.send_raw(peer, Vws.WC.Reply.encode({:line_ack, n}))
+      end
+
+      closing = WCPeer.recv_line(peer)
+      assert {:ok, {:line, 3, "%"}} = Vws.WC.Reply.decode_line(closing)
+      # the WC has the program; its answer arrives damaged and it asks the command's status
+      WCPeer.send_line(peer, "A0003005")
+      assert WCPeer.recv_line(peer) == closing
+      assert WCPeer.status(peer, 75, 35, "MONARCH_CMD") == "0011EXECUTING"
+      WCPeer.send_raw(peer, Vws.WC.Reply.encode({:line_ack, 3}))
+      assert WCPeer.await_status(peer, 76, "MONARCH_CMD", &(&1 =~ "DONE")) == "0011DONE"
     end
 
     test "a download that loses its link ends the Monarch command ERROR", %{
@@ -324,8 +398,8 @@ defmodule Vws.SunCommTest do
     } do
       WCPeer.send_string(peer, 80, [{"M", 5, "DOWNLOAD_HP"}])
       assert ack?(WCPeer.recv_line(peer), 80)
-      WCPeer.send_raw(peer, Vws.WC.Reply.encode({:line, "%"}))
-      assert WCPeer.recv_line(peer) == "A"
+      WCPeer.send_raw(peer, nc(1, "%"))
+      assert WCPeer.recv_line(peer) == stored(1)
       WCPeer.close(peer)
       assert eventually(fn -> match?({5, {:error, _}}, Mailbox.command_status(ws, :monarch)) end)
       {:ok, peer2} = WCPeer.connect(wc)

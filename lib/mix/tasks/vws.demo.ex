@@ -26,6 +26,8 @@ defmodule Mix.Tasks.Vws.Demo do
       the WC's included, flipping each bit with probability RATE, drawn from seed N (default 0):
       the dialogue shows the resends, the summary counts them
     * `--id ID` — the workstation id (default `VWS-DEMO`)
+    * `--journal DIR`, `--no-journal` — as for `mix vws.serve`: the journal is on by default, in
+      `journal/<id>` of the data directory (`Vws.DataDir`)
     * `--verbose` — keep the application's info logs (by default only warnings interleave with
       the dialogue)
 
@@ -45,7 +47,9 @@ defmodule Mix.Tasks.Vws.Demo do
     id: :string,
     ber: :float,
     seed: :integer,
-    verbose: :boolean
+    verbose: :boolean,
+    journal: :string,
+    no_journal: :boolean
   ]
 
   @impl true
@@ -67,6 +71,13 @@ defmodule Mix.Tasks.Vws.Demo do
         _ -> Mix.raise("--ber must be between 0 and 1")
       end
 
+    journal =
+      try do
+        Vws.DataDir.journal_dir(opts[:id] || "VWS-DEMO", Vws.DataDir.choice(opts))
+      rescue
+        ArgumentError -> Mix.raise("--journal DIR and --no-journal exclude each other")
+      end
+
     # the floor under the application's equipment supervisor, not linked to this task's process
     # (which ends under `iex -S mix vws.demo`): it stops in order with the application
     demo_opts =
@@ -74,6 +85,7 @@ defmodule Mix.Tasks.Vws.Demo do
         time_scale: time_scale,
         wc: "tcp://127.0.0.1:#{opts[:wc_port] || 0}",
         lines: lines,
+        journal: journal,
         supervisor: Vws.EquipmentSupervisor
       ] ++ Keyword.take(opts, [:script, :id])
 

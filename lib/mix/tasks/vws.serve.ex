@@ -15,6 +15,7 @@ defmodule Mix.Tasks.Vws.Serve do
       mix vws.serve --hydraulic tcp://10.0.0.12:5026    # a hydraulic controller of its own (mix vws.hydraulic)
       iex -S mix vws.serve                # the same, with a shell to inspect it live
       mix vws.serve --http-port 8080      # the dashboard and MTConnect agent on another port
+      mix vws.serve --journal /var/lib/vws/journal   # the command journal there (default: see below)
 
   Options:
 
@@ -22,6 +23,11 @@ defmodule Mix.Tasks.Vws.Serve do
     * `--bind ADDR` — address to listen on (default 127.0.0.1)
     * `--wc ENDPOINT` — any endpoint instead (`tcp://host:port`, `tty:/dev/…?baud=…`, `loopback:name`)
     * `--id ID` — the workstation id (default `VWS`)
+    * `--journal DIR` — the command journal (every command status, the NC file and NC_UP, kept
+      across a restart or a `kill -9`: `Vws.Journal`) in DIR. By default it is on, in
+      `$VWS_JOURNAL_DIR`, else `journal/<id>` of the data directory (`$VWS_DATA_DIR`, else
+      `$XDG_STATE_HOME/vws`, else `~/.local/state/vws`; see `Vws.DataDir`)
+    * `--no-journal` — no journal: a restart forgets every command
     * `--bcc sum|xor` — the WC link's block check (default sum)
     * `--time-scale N` — the simulated plant runs N times faster than real time (default 1)
     * `--daq1 ENDPOINT` — DAQ #1 is real equipment there; the plant and DAQ #1 are not simulated
@@ -61,7 +67,9 @@ defmodule Mix.Tasks.Vws.Serve do
     hydraulic: :string,
     http_port: :integer,
     http_bind: :string,
-    http_token: :string
+    http_token: :string,
+    journal: :string,
+    no_journal: :boolean
   ]
 
   @impl true
@@ -69,10 +77,16 @@ defmodule Mix.Tasks.Vws.Serve do
     {opts, _rest, invalid} = OptionParser.parse(args, strict: @switches)
     if invalid != [], do: Mix.raise("unknown options: #{inspect(invalid)}")
 
+    # config/runtime.exs starts a workstation of its own when VWS_WC is set (a release's way):
+    # this task starts the one it is asked for instead, so that one must not start too
+    # (it collided: {:error, {:already_started, _}})
+    Mix.Task.run("app.config")
+    Application.delete_env(:vws, :workstation)
     Mix.Task.run("app.start")
 
     wc = opts[:wc] || "tcp://#{opts[:bind] || "127.0.0.1"}:#{opts[:wc_port] || 7070}"
     id = opts[:id] || "VWS"
+    journal = Vws.DataDir.journal_dir(id, journal_choice(opts))
 
     bcc =
       case opts[:bcc] do
@@ -93,12 +107,18 @@ defmodule Mix.Tasks.Vws.Serve do
         wc: wc,
         sun_comm: [bcc: bcc],
         devices: devices,
-        partitions: [monarch: [options: monarch]]
+        partitions: [monarch: [options: monarch]],
+        journal: journal
       )
 
     listening = wait_listening(id, 50)
     Mix.shell().info("VWS workstation #{id}: SUN_COMM waits for the WC on #{listening || wc}")
     Mix.shell().info("GE-2000 DNC link: #{ge2000}")
+
+    Mix.shell().info(
+      "Journal: #{journal || "none (--no-journal): a restart forgets every command"}"
+    )
+
     Mix.shell().info("Dashboard and MTConnect agent: #{start_web(opts)}")
     Mix.shell().info("Inspect it: Vws.Inspect.overview(#{inspect(id)})")
     Mix.shell().info(stop_hint(iex_running?()))
@@ -197,6 +217,12 @@ defmodule Mix.Tasks.Vws.Serve do
   # the registry they are named in.
   defp start_equipment(child_spec),
     do: DynamicSupervisor.start_child(Vws.EquipmentSupervisor, child_spec)
+
+  defp journal_choice(opts) do
+    Vws.DataDir.choice(opts)
+  rescue
+    ArgumentError -> Mix.raise("--journal DIR and --no-journal exclude each other")
+  end
 
   defp wait_listening(_id, 0), do: nil
 

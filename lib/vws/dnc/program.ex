@@ -58,6 +58,28 @@ defmodule Vws.DNC.Program do
     with {:ok, n} <- number(program), do: {:ok, n <> ".PRO"}
   end
 
+  @doc """
+  Whether DNC text is a whole program (PROTOCOLS.md §2 "A program is whole or it is nothing"): its
+  last line is `%` (blanks around it allowed) and ends with LF. A transmission cut short — an ENQ
+  damaged into EOT looks like a normal end — is not.
+
+      iex> Vws.DNC.Program.complete?("%\\nO1\\nM30\\n%\\n")
+      true
+      iex> Vws.DNC.Program.complete?("%\\nO1\\nM30\\n")
+      false
+  """
+  @spec complete?(binary) :: boolean
+  def complete?(text) when is_binary(text) do
+    if String.ends_with?(text, "\n") do
+      case from_text(text) do
+        [_ | _] = lines -> String.trim(List.last(lines)) == "%"
+        [] -> false
+      end
+    else
+      false
+    end
+  end
+
   @doc "The program as DNC text: every line followed by LF."
   @spec to_text([binary]) :: binary
   def to_text(lines), do: IO.iodata_to_binary(Enum.map(lines, &[&1, ?\n]))

@@ -44,6 +44,63 @@ defmodule Vws.DNC.Report do
     end
   end
 
+  @typedoc "A directory entry: file name, size in bytes, CRC-16/ARC of the file's bytes."
+  @type entry :: %{name: binary, size: non_neg_integer, crc: 0..0xFFFF}
+
+  @doc """
+  The directory text answering `RNF` (PROTOCOLS.md §2 "Directory"): one line per file,
+  `nnnnnn.PRO bbbbbb cccc` — name, size (six digits), CRC-16/ARC of the file's bytes (four upper
+  case hex digits) — LF after each, in the order given.
+
+      iex> Vws.DNC.Report.directory([{"001234.PRO", "123456789"}])
+      "001234.PRO 000009 BB3D\\n"
+  """
+  @spec directory([{binary, binary}]) :: binary
+  def directory(files) do
+    IO.iodata_to_binary(
+      for {name, bytes} <- files do
+        %{size: size, crc: crc} = entry(name, bytes)
+
+        [
+          name,
+          ?\s,
+          String.pad_leading(Integer.to_string(size), 6, "0"),
+          ?\s,
+          String.pad_leading(Integer.to_string(crc, 16), 4, "0"),
+          ?\n
+        ]
+      end
+    )
+  end
+
+  @doc "The directory entry of a file's bytes."
+  @spec entry(binary, binary) :: entry
+  def entry(name, bytes), do: %{name: name, size: byte_size(bytes), crc: Vws.CRC16.compute(bytes)}
+
+  @doc """
+  Reads a directory into `%{name => entry}`; blank lines are skipped, any other line that is not
+  `nnnnnn.PRO|GSU bbbbbb cccc` is an error.
+
+      iex> Vws.DNC.Report.parse_directory("001234.PRO 000009 BB3D\\n")
+      {:ok, %{"001234.PRO" => %{name: "001234.PRO", size: 9, crc: 0xBB3D}}}
+  """
+  @spec parse_directory(binary) :: {:ok, %{binary => entry}} | {:error, {:bad_line, binary}}
+  def parse_directory(text) do
+    text
+    |> String.split(["\r\n", "\n"])
+    |> Enum.reject(&(String.trim(&1) == ""))
+    |> Enum.reduce_while({:ok, %{}}, fn line, {:ok, acc} ->
+      case Regex.run(~r/^(\d{6}\.(?:PRO|GSU)) (\d{6}) ([0-9A-F]{4})$/, line) do
+        [_, name, size, crc] ->
+          entry = %{name: name, size: String.to_integer(size), crc: String.to_integer(crc, 16)}
+          {:cont, {:ok, Map.put(acc, name, entry)}}
+
+        nil ->
+          {:halt, {:error, {:bad_line, line}}}
+      end
+    end)
+  end
+
   @doc "The tool-offset table text for `[{line, value}]` (|value| < 1000)."
   @spec offsets([{0..99, number}]) :: binary
   def offsets(table) do

@@ -22,7 +22,8 @@ defmodule Vws.HydraulicController.Pallet do
 
   A step that fails leaves the valves as they are, so `PALLET?` shows the real state and the
   CEC decides the recovery (usually RELEASE_PALLET). Relays are confirmed with `ROUT:CLOS?`
-  and set again (twice at most) when they do not read back (`DAQ #2 RELAY 203 DID NOT CLOSE`);
+  and the whole slot read back after every write: a relay not as intended is set right (twice at
+  most) and otherwise ends the operation (`RELAY 203 NOT AS COMMANDED`);
   a DAQ #2 reading that cannot be had is asked again until the step's time is up, then it is the
   reason (`DAQ #2 NOT ANSWERING (NO ANSWER IN 500 MS)`); a sensor that reads open circuit is waited
   for and reported (`CLAMP 1 FORCE GAUGE OPEN CIRCUIT (DAQ #2 CH 103)`).
@@ -165,15 +166,41 @@ defmodule Vws.HydraulicController.Pallet do
     end)
   end
 
-  # A relay that does not read back as commanded is set and read again, at most twice (the
-  # command or its answer may have been damaged on the line; setting a relay again is harmless).
-  defp actuate(p, actions, tries \\ 3) do
+  # The whole slot is read back after every write (PROTOCOLS.md §4); a relay of it not as
+  # intended — the commanded one or any other — is set right and the slot read again, at most
+  # twice (the command or its answer may have been damaged on the line).
+  defp actuate(p, actions) do
     with {:ok, commands, expected} <- actuation(p, actions),
-         {:ok, results} <- transaction(p, commands) do
-      case DAQ.confirm_relays(expected, List.last(results), @device) do
-        {:error, _} when tries > 1 -> actuate(p, actions, tries - 1)
-        result -> result
-      end
+         do: confirm(p, commands, expected, 3)
+  end
+
+  defp confirm(p, commands, expected, tries) do
+    case HPIB.transaction(p.device, commands, p.timeout_ms) do
+      {:ok, results} ->
+        confirmed(p, expected, tries, results)
+
+      # the answers still damaged (or missing) after the bus's own tries: the whole
+      # transaction again
+      {:error, %HPIB.Error{reason: reason}} when reason in [:bad_response, :timeout] and tries > 1 ->
+        confirm(p, commands, expected, tries - 1)
+
+      {:error, error} ->
+        {:error, hpib_reason(error)}
+    end
+  end
+
+  defp confirmed(p, expected, tries, results) do
+    case DAQ.confirm_relays(expected, results, @device) do
+      {:error, _} when tries > 1 ->
+        Vws.Telemetry.execute([:vws, :hydraulic_controller, :relay_corrected], %{count: 1}, %{
+          device: p.device
+        })
+
+        {:ok, commands, expected} = DAQ.correction(p.daq, expected, results)
+        confirm(p, commands, expected, tries - 1)
+
+      result ->
+        result
     end
   end
 

@@ -90,6 +90,15 @@ defmodule Vws.Partitions.Fixture do
     end
   end
 
+  # After a restart that interrupted OPEN or CLOSE: both valves off, so the vise holds where it
+  # is — what a failed motion leaves — never the motion again.
+  @impl true
+  def interrupted(command, ctx) when command in [:open, :close] do
+    VwsStatus.actuate(ctx.workstation, vise_open_valve: :open, vise_close_valve: :open)
+  end
+
+  def interrupted(_command, _ctx), do: :ok
+
   # The table is the vise's while it moves; what the sensors confirm gives it back.
   defp vise_motion(ctx, motion) do
     with :ok <- take_table(ctx, :vise) do

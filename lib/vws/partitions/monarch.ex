@@ -5,8 +5,8 @@ defmodule Vws.Partitions.Monarch do
 
   | command | on the link | result |
   |---------|-------------|--------|
-  | `DOWNLOAD_GE` | `SNS` + the NC file | the GE-2000 files it as `nnnnnn.PRO` (first `O`/`:` word) |
-  | `UPLOAD_GE(nnnnnn.PRO\\|.GSU)` | `RNS` + file name | the program replaces NC_UP, whole or not at all |
+  | `DOWNLOAD_GE` | `SNS` + the NC file, then `RNF` | the GE-2000 files it as `nnnnnn.PRO` (first `O`/`:` word); its directory entry must match the bytes sent |
+  | `UPLOAD_GE(nnnnnn.PRO\\|.GSU)` | `RNS` + file name | the program replaces NC_UP, whole (ending in `%`) or not at all |
   | `PROGRAM_SELECT(nnnnnn)` | `SNK` + `nnnnnn.PRO` | selected for the next cycle start |
   | `PROGRAM_DELETE(nnnnnn.PRO\\|.GSU)` | `SND` + file name | deleted |
   | `TABLE(L1/…/Ln)` | `RNO` + `TOFFSET` | the offsets of lines L1…Ln → `TLI_TABLE` status `n/M1/…/Mn` |
@@ -21,6 +21,14 @@ defmodule Vws.Partitions.Monarch do
   report (`RNL`) and ends the command `ERROR GE-2000 ALARM n` unless the alarm is 0 (and, for a
   select, the report names the program). Every status report read also refreshes the `MONARCH`
   device status (location 8). Option `verify: false` skips the extra report.
+
+  **A program is whole or it is nothing** (PROTOCOLS.md §2). DOWNLOAD_GE sends only an NC file
+  that ends with its `%` line, and after the status report reads the directory (`RNF`): unless
+  the entry of `nnnnnn.PRO` has the size and CRC-16/ARC of exactly the bytes sent, the command
+  ends `ERROR PROGRAM VERIFY FAILED nnnnnn.PRO` — DONE means the machine holds those bytes. An
+  UPLOAD_GE whose text does not end with a `%` line (the transmission ended early: an ENQ
+  damaged into EOT looks like a normal end) ends `ERROR PROGRAM INCOMPLETE` and NC_UP keeps the
+  old program. (`verify: false` skips the directory too.)
 
   **Table interlock** (seed App. I A, §2.3.8 rules 1b and 3b). CYCLE_START first takes the
   table's work volume for the machine (`Vws.Interlock`, holder `:monarch`) — re-tried four times a
@@ -90,10 +98,13 @@ defmodule Vws.Partitions.Monarch do
     with :ok <- if(lines == [], do: {:error, "NO NC FILE"}, else: :ok),
          {:ok, file} <- program_file(lines),
          :ok <- sendable(lines),
+         text = Program.to_text(lines),
+         :ok <- if(Program.complete?(text), do: :ok, else: {:error, "NC FILE HAS NO CLOSING %"}),
          {:ok, max_text} <- max_text(ctx),
-         blocks = Frame.split_text(Program.to_text(lines), max_text),
+         blocks = Frame.split_text(text, max_text),
          {:ok, _} <- request(ctx, :send, :part_program, "", blocks),
-         {:ok, _report} <- verify(ctx, "DOWNLOAD OF #{file} FAILED", fn _ -> true end) do
+         {:ok, _report} <- verify(ctx, "DOWNLOAD OF #{file} FAILED", fn _ -> true end),
+         :ok <- verify_directory(ctx, file, text) do
       :done
     end
   end
@@ -102,10 +113,13 @@ defmodule Vws.Partitions.Monarch do
     with {:ok, blocks} <- request(ctx, :receive, :part_program, file, []),
          text = IO.iodata_to_binary(blocks),
          :ok <- if(text == "", do: {:error, "GE-2000 SENT NO PROGRAM #{file}"}, else: :ok),
+         :ok <- if(Program.complete?(text), do: :ok, else: {:error, "PROGRAM INCOMPLETE"}),
          lines = Program.from_text(text),
          :ok <- uploadable(lines, file) do
-      Mailbox.put_nc_up(ctx.workstation, lines)
-      :done
+      case Mailbox.put_nc_up(ctx.workstation, lines) do
+        :ok -> :done
+        {:error, reason} -> {:error, "NC_UP NOT STORED #{inspect(reason)}"}
+      end
     end
   end
 
@@ -213,6 +227,23 @@ defmodule Vws.Partitions.Monarch do
       end
     else
       {:ok, nil}
+    end
+  end
+
+  # The machine's directory must hold exactly the bytes sent under the file's name.
+  defp verify_directory(ctx, file, text) do
+    if Keyword.get(ctx.options, :verify, true) do
+      sent = Report.entry(file, text)
+
+      with {:ok, blocks} <- request(ctx, :receive, :directory, "", []) do
+        case Report.parse_directory(IO.iodata_to_binary(blocks)) do
+          {:ok, %{^file => ^sent}} -> :ok
+          {:ok, _other} -> {:error, "PROGRAM VERIFY FAILED #{file}"}
+          {:error, _} -> {:error, "PROGRAM VERIFY FAILED #{file} BAD DIRECTORY"}
+        end
+      end
+    else
+      :ok
     end
   end
 

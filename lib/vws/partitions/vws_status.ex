@@ -135,7 +135,7 @@ defmodule Vws.Partitions.VwsStatus do
   @doc """
   Sets relays of DAQ #1 — `[{signal_or_channel, :open | :close}]` — and confirms them with
   `ROUT:CLOS?`. Returns `:ok` or `{:error, reason}` with the reason as a command status shows it
-  (`DAQ #1 NOT ANSWERING (NO ANSWER IN 500 MS)`, `DAQ #1 RELAY 206 DID NOT CLOSE`, …).
+  (`DAQ #1 NOT ANSWERING (NO ANSWER IN 500 MS)`, `RELAY 206 NOT AS COMMANDED`, …).
   """
   @spec actuate(workstation, [action], timeout) :: :ok | {:error, String.t()}
   def actuate(ws, actions, timeout \\ 5_000) do
@@ -675,10 +675,25 @@ defmodule Vws.Partitions.VwsStatus do
         Logger.debug("VWS_STATUS: unexpected message #{inspect(msg, limit: 10)}")
         s
 
-      {{_req, from, {commands, expected, try}} = a, {:error, {:relays, why}}}
+      {{_req, from, {_commands, expected, try}} = a, {:error, {:relays, why, results}}}
       when try <= @actuation_retries ->
-        # a relay not as commanded: the command or the answer may have been damaged on the
-        # line; setting a relay again is harmless, so it is sent again and confirmed again
+        # a relay of the slot not as intended: the command or the answer may have been damaged
+        # on the line; the wrong relays are set right and the whole slot confirmed again
+        Vws.Telemetry.execute([:vws, :vws_status, :actuation_retry], %{count: 1}, %{
+          workstation: s.workstation,
+          reason: why,
+          try: try
+        })
+
+        s = %{s | actuations: List.delete(s.actuations, a)}
+        {:ok, commands, expected} = DAQ.correction(s.daq, expected, results)
+        send_actuation(s, {commands, expected, try + 1}, from)
+
+      {{_req, from, {commands, expected, try}} = a, {:error, {:damaged, why}}}
+      when try <= @actuation_retries ->
+        # the answers came back damaged or not at all even after the bus's own tries: the
+        # whole transaction again — the slot read twice, the writes (setting a relay again is
+        # harmless), the slot read back — as the longer whole-slot read-back meets more noise
         Vws.Telemetry.execute([:vws, :vws_status, :actuation_retry], %{count: 1}, %{
           workstation: s.workstation,
           reason: why,
@@ -689,7 +704,13 @@ defmodule Vws.Partitions.VwsStatus do
         send_actuation(s, {commands, expected, try + 1}, from)
 
       {{_req, from, _act} = a, reply} ->
-        reply = with {:error, {:relays, why}} <- reply, do: {:error, why}
+        reply =
+          case reply do
+            {:error, {:relays, why, _results}} -> {:error, why}
+            {:error, {:damaged, why}} -> {:error, why}
+            other -> other
+          end
+
         actuated(from, reply, %{s | actuations: List.delete(s.actuations, a)})
     end
   end
@@ -758,9 +779,13 @@ defmodule Vws.Partitions.VwsStatus do
   end
 
   defp actuation_result({:ok, results}, expected) do
-    with {:error, why} <- DAQ.confirm_relays(expected, List.last(results), @device),
-         do: {:error, {:relays, why}}
+    with {:error, why} <- DAQ.confirm_relays(expected, results, @device),
+         do: {:error, {:relays, why, results}}
   end
+
+  defp actuation_result({:error, %HPIB.Error{reason: reason} = error}, _expected)
+       when reason in [:bad_response, :timeout],
+       do: {:error, {:damaged, hpib_reason(error)}}
 
   defp actuation_result({:error, error}, _expected), do: {:error, hpib_reason(error)}
 

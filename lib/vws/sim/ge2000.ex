@@ -10,18 +10,18 @@ defmodule Vws.Sim.GE2000 do
 
   | command | effect |
   |---------|--------|
-  | `SNS`/`SCS` + program | stores it as the file named in the command text, else as `nnnnnn.PRO` after its first `O`/`:` word |
+  | `SNS`/`SCS` + program | stores it as the file named in the command text, else as `nnnnnn.PRO` after its first `O`/`:` word — only a whole program, one ending in a `%` line; otherwise the old file stays (alarm 7) |
   | `SNK` + `nnnnnn[.PRO]` | selects the program for the next cycle start |
   | `SND` + `nnnnnn.PRO`/`.GSU` | deletes the file |
   | `RNS` + file name | sends the file (the selected program without a name); nothing if there is none |
   | `RNO` + `TOFFSET` | sends the tool-offset table |
   | `RNL` | sends the status report (`Vws.DNC.Report`): `STATE=IDLE;PROG=001234;ALARM=0` |
-  | `RNF` | sends the directory, one file name per line |
+  | `RNF` | sends the directory, `nnnnnn.PRO bbbbbb cccc` per file: size and CRC-16/ARC (`Vws.DNC.Report.directory/1`) |
 
   The alarm number (decision, for the simulator) is the outcome of the last DNC command or
   cycle start: 0 none, 1 no such file, 2 program without program number, 3 refused while the
   machine is active, 4 cycle start without a selected program, 5 operation not supported,
-  6 bad file name.
+  6 bad file name, 7 program incomplete (no closing `%`: the transmission was cut short).
 
   The cycle-start button (`cycle_start/1`; `cycle_start_input/2` is the input the DAQ #1 relay
   drives, as on the real machine) runs the
@@ -33,6 +33,7 @@ defmodule Vws.Sim.GE2000 do
 
     * `:endpoint` — where it listens (`"tcp://127.0.0.1:0"` by default; `loopback:name`), or a
       `tty:` device it opens (one end of a pty pair, a real serial port)
+    * `:whole_programs_only` — refuse a `.PRO` that does not end in a `%` line (default true)
     * `:name`, `:programs` (`%{"001234.PRO" => text}`), `:offsets` (`[{line, value}]`),
       `:cycle_time` (5 000 ms), `:plant` (`(event -> any)`)
     * `:pace` — `false` (default), `true` (4 800 Bd, the seed's line) or a baud rate: the
@@ -43,7 +44,9 @@ defmodule Vws.Sim.GE2000 do
 
   `:nak_once_per_block`, `:drop_replies`, `{:wack, n}`, `:corrupt`, `:silent` (see
   `Vws.DNC.set_fault/2`), `:bid_contention` (at the CEC's next bid the GE-2000 bids at the same
-  moment, wins, and sends its status report unsolicited) and `:none`.
+  moment, wins, and sends its status report unsolicited), `{:file_as, fun}` (a program received
+  whole is filed as `fun.(text)`: a machine that keeps other bytes than it was sent, as a damage
+  the block check missed would leave; `:none` ends it too) and `:none`.
 
       iex> {:ok, sim} = Vws.Sim.GE2000.start_link(programs: %{"000001.PRO" => "O1\\nM30\\n"})
       iex> Vws.Sim.GE2000.endpoint(sim) =~ ~r/^tcp:\\/\\/127.0.0.1:\\d+$/
@@ -66,7 +69,8 @@ defmodule Vws.Sim.GE2000 do
     active: 3,
     nothing_selected: 4,
     unsupported: 5,
-    bad_name: 6
+    bad_name: 6,
+    incomplete: 7
   }
 
   @doc false
@@ -163,6 +167,10 @@ defmodule Vws.Sim.GE2000 do
       downloads: 0,
       cycle_time: Keyword.get(opts, :cycle_time, 5_000),
       plant: Keyword.get(opts, :plant),
+      # false: a machine that files whatever arrived (as the old one did), for tests that show
+      # what MONARCH's directory check catches
+      whole_programs_only: Keyword.get(opts, :whole_programs_only, true),
+      file_as: nil,
       workstation: Vws.Workstation.id_of(Keyword.get(opts, :name))
     }
 
@@ -218,6 +226,12 @@ defmodule Vws.Sim.GE2000 do
   @impl true
   def handle_call(:endpoint, _from, s), do: {:reply, s.bound, s}
   def handle_call(:link, _from, s), do: {:reply, s.link, s}
+
+  def handle_call({:set_fault, {:file_as, fun}}, _from, s) when is_function(fun, 1),
+    do: {:reply, :ok, %{s | file_as: fun}}
+
+  def handle_call({:set_fault, :none}, _from, s),
+    do: {:reply, DNC.set_fault(s.link, :none), %{s | file_as: nil}}
 
   def handle_call({:set_fault, :bid_contention}, _from, s) do
     {:reply, DNC.set_fault(s.link, {:bid_contention, [Report.status(report(s))]}), s}
@@ -319,9 +333,16 @@ defmodule Vws.Sim.GE2000 do
       {:ok, ^running} ->
         alarm(s, :active)
 
+      {:ok, name} when s.whole_programs_only and binary_part(name, 7, 3) == "PRO" ->
+        if Program.complete?(text) do
+          store(s, name, text)
+        else
+          Logger.warning("GE-2000 simulator refused #{name}: no closing %, the old file stays")
+          alarm(s, :incomplete)
+        end
+
       {:ok, name} ->
-        Logger.info("GE-2000 simulator stored #{name} (#{byte_size(text)} bytes)")
-        %{alarm(s, :none) | programs: Map.put(s.programs, name, text), downloads: s.downloads + 1}
+        store(s, name, text)
 
       {:error, :bad_name} ->
         alarm(s, :bad_name)
@@ -361,6 +382,15 @@ defmodule Vws.Sim.GE2000 do
     alarm(s, :unsupported)
   end
 
+  defp store(%{file_as: fun} = s, name, text) when fun != nil do
+    store(%{s | file_as: nil}, name, fun.(text)) |> Map.put(:file_as, fun)
+  end
+
+  defp store(s, name, text) do
+    Logger.info("GE-2000 simulator stored #{name} (#{byte_size(text)} bytes)")
+    %{alarm(s, :none) | programs: Map.put(s.programs, name, text), downloads: s.downloads + 1}
+  end
+
   # R commands: the text to send back.
   defp requested(%Command{operation: :part_program, text: name}, s) do
     name =
@@ -384,7 +414,7 @@ defmodule Vws.Sim.GE2000 do
   defp requested(%Command{operation: :status}, s), do: {Report.status(report(s)), s}
 
   defp requested(%Command{operation: :directory}, s) do
-    {s.programs |> Map.keys() |> Enum.sort() |> Enum.map_join(&(&1 <> "\n")), s}
+    {s.programs |> Enum.sort() |> Report.directory(), s}
   end
 
   defp requested(command, s) do

@@ -203,24 +203,31 @@ defmodule Vws.Sim.Plant do
     state = %{state | model: Model.advance(state.model, dt), last: now}
     {reply, model} = handle(request, state.model)
     notify_relays(state.on_relay, state.model, model)
-    written(request, reply, state)
 
-    {:reply, reply,
-     %{state | model: model, writes: count_writes(state.writes, request, reply, model)}}
+    # one account of the relay writes serves both Plant.writes/1 and the telemetry event, so
+    # they cannot disagree (an *RST's openings are writes too)
+    writes =
+      for {address, kind} <- relay_writes(request, reply, model), reduce: state.writes do
+        acc ->
+          written(address, kind, state)
+          count_write(acc, address, kind)
+      end
+
+    {:reply, reply, %{state | model: model, writes: writes}}
   end
 
-  defp count_writes(writes, {route, address}, :ok, _model)
-       when route in [:close_channel, :open_channel] do
-    count_write(writes, address, if(route == :close_channel, do: :close, else: :open))
-  end
+  # The relays a request wrote, `[{address, :close | :open}]`: what the equipment was told to
+  # do, whether or not it changed anything.
+  defp relay_writes({route, address}, :ok, _model)
+       when route in [:close_channel, :open_channel],
+       do: [{address, if(route == :close_channel, do: :close, else: :open)}]
 
-  defp count_writes(writes, {:open_all, daq}, :ok, model) do
+  defp relay_writes({:open_all, daq}, :ok, model) do
     for {{^daq, _} = address, %{kind: :actuator}} <- model.config.channels,
-        reduce: writes,
-        do: (acc -> count_write(acc, address, :open))
+        do: {address, :open}
   end
 
-  defp count_writes(writes, _request, _reply, _model), do: writes
+  defp relay_writes(_request, _reply, _model), do: []
 
   defp count_write(writes, address, kind) do
     Map.update(
@@ -231,11 +238,9 @@ defmodule Vws.Sim.Plant do
     )
   end
 
-  # Every relay written, whether or not it changes anything: what the equipment was told to do.
-  defp written({action, {daq, channel}}, :ok, state)
-       when action in [:close_channel, :open_channel] do
+  defp written({daq, channel} = address, kind, state) do
     signal =
-      case Config.entry(state.model.config, {daq, channel}) do
+      case Config.entry(state.model.config, address) do
         %{signal: signal} -> signal
         _ -> nil
       end
@@ -245,11 +250,9 @@ defmodule Vws.Sim.Plant do
       daq: daq,
       channel: channel,
       signal: signal,
-      action: if(action == :close_channel, do: :close, else: :open)
+      action: kind
     })
   end
-
-  defp written(_request, _reply, _state), do: :ok
 
   defp notify_relays(nil, _before, _after), do: :ok
 

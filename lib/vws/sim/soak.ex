@@ -14,7 +14,14 @@ defmodule Vws.Sim.Soak do
     * **lost** — commands the WC numbered that never ended (no `DONE`/`ERROR` in the CEC);
     * **duplicated** — commands that started (or ended) more than once in the CEC, and equipment
       that did more than a clean cycle does: VAL II commands received and GE-2000 machining
-      cycles per cycle, against the first cycle run without faults.
+      cycles per cycle, against the first cycle run without faults;
+    * **silent differences** (issue 15) — what ended `DONE` but is not what was sent: after each
+      cycle the CEC's NC file, the GE-2000's copy of the program and NC_UP are compared byte for
+      byte with the script's program (the cycle ends with `M UPLOAD_GE` and `UPLOAD`, added to
+      the script by the soak, so a program goes WC → CEC → GE-2000 → CEC → WC every cycle), and
+      the relays of every slot with those at the end of the clean cycle. A store only happens on
+      `DONE`, so any difference there is one; in a completed cycle every comparison counts, in a
+      stopped one those whose command may not have run are left out. Must be 0.
 
   `bench/soak.exs` prints the figures of a long run; the reliability tests run a short one.
 
@@ -49,6 +56,8 @@ defmodule Vws.Sim.Soak do
           retries: %{atom => non_neg_integer},
           lost: non_neg_integer,
           duplicated: non_neg_integer,
+          silent_differences: non_neg_integer,
+          silent: [{pos_integer, term}],
           bits_flipped: %{atom => non_neg_integer},
           elapsed_ms: non_neg_integer
         }
@@ -67,7 +76,9 @@ defmodule Vws.Sim.Soak do
     id = Keyword.get(opts, :id, "SOAK-#{System.unique_integer([:positive])}")
     cycles = Keyword.get(opts, :cycles, 100)
     faults = [ber: Keyword.get(opts, :ber, 1.0e-4)] ++ Keyword.get(opts, :faults, [])
-    {:ok, script} = Script.parse_file(Keyword.get_lazy(opts, :script, &Vws.Demo.default_script/0))
+    path = Keyword.get_lazy(opts, :script, &Vws.Demo.default_script/0)
+    {:ok, script} = Script.parse_file(path)
+    {script, program} = with_round_trip(script)
     runner_opts = [timeout: Keyword.get(opts, :timeout, 60_000)]
     on_cycle = Keyword.get(opts, :on_cycle, fn _n, _summary -> :ok end)
     links = Keyword.get(opts, :links, @links)
@@ -90,6 +101,9 @@ defmodule Vws.Sim.Soak do
       if clean.summary.result != :completed,
         do: raise("the clean reference cycle stopped: #{clean.summary.stopped.reason}")
 
+      clean = Map.put(clean, :relays, relays(id))
+      {[], []} = audit(id, clean, clean, program)
+
       # the numbers the WC gives out from here on are the audited ones
       clean = Map.put(clean, :next_numbers, Client.info(client).next_numbers)
       :ets.delete_all_objects(counts)
@@ -103,8 +117,9 @@ defmodule Vws.Sim.Soak do
       results =
         for n <- 1..cycles//1 do
           result = run_cycle(client, script, runner_opts, id)
+          {silent, _unverified} = audit(id, result, clean, program)
           on_cycle.(n, result.summary)
-          result
+          Map.put(result, :silent, silent)
         end
 
       report(id, client, clean, results, counts, System.monotonic_time(:millisecond) - t0)
@@ -186,6 +201,8 @@ defmodule Vws.Sim.Soak do
         ),
       lost: lost,
       duplicated: twice + extra,
+      silent_differences: Enum.sum(Enum.map(results, &length(&1.silent))),
+      silent: for({r, n} <- Enum.with_index(results, 1), d <- r.silent, do: {n, d}),
       bits_flipped:
         Map.new(Floor.lines(id), fn {link, line} ->
           info = Line.info(line)
@@ -194,6 +211,57 @@ defmodule Vws.Sim.Soak do
       elapsed_ms: elapsed
     }
   end
+
+  # The script and its program, the round trip back to the WC added at its end: the GE-2000's
+  # copy into NC_UP, NC_UP to the WC.
+  defp with_round_trip(script) do
+    case for(%{op: {:download, _path, lines}} <- script.steps, do: lines) do
+      [] ->
+        {script, nil}
+
+      [lines | _] ->
+        {:ok, file} = Vws.DNC.Program.file_name(lines)
+        {:ok, extra} = Script.parse("M UPLOAD_GE(#{file})\nUPLOAD\n")
+        {%{script | steps: script.steps ++ extra.steps}, %{lines: lines, file: file}}
+    end
+  end
+
+  defp relays(id) do
+    Vws.Sim.Plant.snapshot(Floor.plant(id)).relays |> Enum.sort()
+  end
+
+  # What ended DONE must be what was sent: `{silent_differences, comparisons_left_out}`.
+  defp audit(_id, _result, _clean, nil), do: {[], []}
+
+  defp audit(id, result, clean, program) do
+    ws = id
+    completed? = result.summary.result == :completed
+    text = Vws.DNC.Program.to_text(program.lines)
+    nc_file = Vws.Mailbox.nc_file(ws)
+    nc_up = Vws.Mailbox.nc_up(ws)
+    ge = GE2000.program(Floor.ge2000(id), program.file)
+    uploads = result.summary.uploads
+
+    checks = [
+      # stored only on DONE: whatever is there must be the program, cycle completed or not
+      {:nc_file, nc_file in [[], program.lines], true},
+      {:nc_up, nc_up in [[], program.lines], true},
+      # the GE-2000 files any whole program; MONARCH's DONE vouches for it in a completed cycle
+      {:ge2000_file, ge == text, completed?},
+      # what the WC took from UPLOAD_SUN
+      {:uploaded, Enum.all?(uploads, &(&1 == program.lines)), completed? or uploads != []},
+      {:uploads_done, length(uploads) == 1, completed?},
+      # every relay where the clean cycle left it
+      {:relays, relays(id) == clean.relays, completed?}
+    ]
+
+    silent = for {what, ok?, counts?} <- checks, counts? and not ok?, do: {what, detail(what, id)}
+
+    {silent, for({what, _, false} <- checks, do: what)}
+  end
+
+  defp detail(:relays, id), do: relays(id)
+  defp detail(_what, _id), do: nil
 
   defp partition("R"), do: :robot
   defp partition("M"), do: :monarch

@@ -32,11 +32,15 @@ defmodule Vws.WC.Client do
 
   ## NC programs
 
-  `download_program/2` sends `M…DOWNLOAD_HP` and then the program, one line + BCC at a time,
-  each answered `A` (next) or `E` (sent again, at most `:max_resends` times). `upload_program/1`
-  sends `M…UPLOAD_SUN` and receives NC_UP the same way, answering `A`, or `E` to a damaged line.
-  A transfer that breaks off cannot be resumed on the wire, so the client closes and reopens the
-  link: SUN_COMM then ends the Monarch command `ERROR`, as it must.
+  `download_program/2` sends `M…DOWNLOAD_HP` and then the program, one numbered line + BCC at a
+  time (`nnnn` + text + BBB, PROTOCOLS.md §1). Only `A` + that number + a good BCC counts as
+  stored; `E`, a damaged answer, another number or silence sends the same line again (at most
+  `:max_resends` times) — the CEC recognises the resend of a line it stored by its number and does
+  not store it twice. `upload_program/1` sends `M…UPLOAD_SUN` and receives NC_UP the same way,
+  answering `A` + the line's number, or `E` to a damaged line, and answering a resend of the line
+  just stored again without keeping it twice. A transfer that breaks off cannot be resumed on the
+  wire, so the client closes and reopens the link: SUN_COMM then ends the Monarch command `ERROR`,
+  as it must.
 
   ## The event log
 

@@ -3,11 +3,12 @@ defmodule Vws.WC.LineDecoder do
   Splits the WC link's byte stream into lines (PROTOCOLS.md §1): each line ends at LF, and one CR
   before the LF is stripped. Lines are returned without their terminator, an empty line as `""`.
 
-  A line longer than `max_line` bytes (default 1024, counted without its CR LF) is discarded up
-  to its LF and reported as exactly one `%Vws.WC.Error{reason: :line_too_long}`, in its place
-  among the lines, when its LF arrives: the reply `E` then follows the whole line, as the sender
-  expects. The decoder holds at most `max_line + 1` bytes (a full-length line and the CR that
-  may end it); while discarding it holds none.
+  A line longer than `max_line` bytes (default 1024, counted without its CR LF) is reported as
+  exactly one `%Vws.WC.Error{reason: :line_too_long}`, in its place among the lines, as soon as
+  it is known to be too long (its first byte past `max_line` that is not its CR), and the rest
+  of it is discarded up to its LF (decision, issue 15: the reply `E` comes at once; a sender that
+  never ends the line gets its answer all the same). The decoder holds at most `max_line + 1`
+  bytes (a full-length line and the CR that may end it); while discarding it holds none.
 
   Lines and the unfinished tail are copied out of the bytes fed, so neither pins a large received
   chunk: a peer sending megabytes with a short line at the end cannot make whoever keeps the
@@ -52,7 +53,7 @@ defmodule Vws.WC.LineDecoder do
     lines(dec, buffer <> bytes, [])
   end
 
-  def feed(%__MODULE__{discarding: {count, cr?}} = dec, bytes) when is_binary(bytes) do
+  def feed(%__MODULE__{discarding: {count, _cr?}} = dec, bytes) when is_binary(bytes) do
     case :binary.match(bytes, "\n") do
       :nomatch when bytes == "" ->
         {[], dec}
@@ -61,10 +62,9 @@ defmodule Vws.WC.LineDecoder do
         {[], %{dec | discarding: {count + byte_size(bytes), :binary.last(bytes) == ?\r}}}
 
       {pos, 1} ->
-        cr? = if pos == 0, do: cr?, else: :binary.at(bytes, pos - 1) == ?\r
-        length = if cr?, do: count + pos - 1, else: count + pos
+        # the line was reported when it grew too long: its end says nothing more
         rest = binary_part(bytes, pos + 1, byte_size(bytes) - pos - 1)
-        lines(%{dec | discarding: nil}, rest, [too_long(length, dec.max_line)])
+        lines(%{dec | discarding: nil}, rest, [])
     end
   end
 
@@ -87,6 +87,7 @@ defmodule Vws.WC.LineDecoder do
       [partial] ->
         if byte_size(strip_cr(partial)) > dec.max_line do
           cr? = :binary.last(partial) == ?\r
+          acc = [too_long(byte_size(partial), dec.max_line) | acc]
           {Enum.reverse(acc), %{dec | buffer: "", discarding: {byte_size(partial), cr?}}}
         else
           {Enum.reverse(acc), %{dec | buffer: :binary.copy(partial)}}

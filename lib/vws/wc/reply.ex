@@ -7,10 +7,15 @@ defmodule Vws.WC.Reply do
   | term                    | on the wire                          | sent by                      |
   |-------------------------|--------------------------------------|------------------------------|
   | `:nak`                  | `E`                                  | the receiver of a bad line   |
-  | `:line_ack`             | `A`                                  | the receiver of a good NC line |
+  | `{:line_ack, n}`        | `A` `nnnn` BBB                       | the receiver of NC line `n`, stored |
   | `{:ack, seq}`           | `05A` `SSSS` BBB                     | CEC, string received intact  |
   | `{:status, n, text}`    | `NN` `S` `nnnn` text BBB             | CEC, answer to status command `n` |
-  | `{:line, text}`         | text BBB                             | NC download/upload, either way |
+  | `{:line, n, text}`      | `nnnn` text BBB                      | NC download/upload, either way |
+
+  NC program lines are numbered (0001, 0002, …, after 9999 comes 0000) and their answers name the
+  line stored, with a BCC, so a damaged answer is seen as damaged and a resent line is recognised
+  by its number (PROTOCOLS.md §1 "NC download"): one bit turns `A` into `E` (0x41/0x45), so an
+  unchecked one-letter answer could make a line be stored twice or skipped.
 
   `NN` is the two-digit length of `S` + `nnnn` + text, so a status text has at most
   94 characters (`truncate_status_text/1`). Texts are printable ASCII (0x20–0x7E).
@@ -29,13 +34,14 @@ defmodule Vws.WC.Reply do
 
   @type t ::
           :nak
-          | :line_ack
+          | {:line_ack, 0..9999}
           | {:ack, 0..9999}
           | {:status, 0..9999, String.t()}
-          | {:line, String.t()}
+          | {:line, 0..9999, String.t()}
 
   @nak "E"
   @line_ack "A"
+  @line_ack_length 8
   @ack_length "05"
   @ack "A"
   @status "S"
@@ -62,7 +68,7 @@ defmodule Vws.WC.Reply do
   end
 
   defp body(:nak, _mode), do: @nak
-  defp body(:line_ack, _mode), do: @line_ack
+  defp body({:line_ack, n}, mode), do: with_bcc([@line_ack, Command.pad4(n)], mode)
   defp body({:ack, seq}, mode), do: with_bcc([@ack_length, @ack, Command.pad4(seq)], mode)
 
   defp body({:status, number, text}, mode) do
@@ -70,7 +76,7 @@ defmodule Vws.WC.Reply do
     with_bcc([pad2(length), @status, Command.pad4(number), text], mode)
   end
 
-  defp body({:line, text}, mode), do: with_bcc(text, mode)
+  defp body({:line, n, text}, mode), do: with_bcc([Command.pad4(n), text], mode)
 
   defp with_bcc(data, mode), do: [data, BCC.encode(BCC.compute(data, mode))]
 
@@ -84,7 +90,7 @@ defmodule Vws.WC.Reply do
   @spec validate(term) :: :ok | {:error, Error.t()}
   def validate(reply)
   def validate(:nak), do: :ok
-  def validate(:line_ack), do: :ok
+  def validate({:line_ack, n}) when is_integer(n) and n in 0..9999, do: :ok
   def validate({:ack, seq}) when is_integer(seq) and seq in 0..9999, do: :ok
   def validate({:ack, seq}), do: {:error, %Error{reason: :bad_sequence, data: seq}}
 
@@ -102,7 +108,7 @@ defmodule Vws.WC.Reply do
     end
   end
 
-  def validate({:line, text} = reply) do
+  def validate({:line, n, text} = reply) when is_integer(n) and n in 0..9999 do
     if is_binary(text) and printable?(text),
       do: :ok,
       else: {:error, %Error{reason: :malformed, data: reply}}
@@ -124,14 +130,26 @@ defmodule Vws.WC.Reply do
 
   @doc """
   Decodes a reply the WC receives after sending a command string (one line, no CR LF):
-  `:nak`, `:line_ack`, `{:ack, seq}` or `{:status, number, text}`. Option `bcc:`.
+  `:nak`, `{:line_ack, n}`, `{:ack, seq}` or `{:status, number, text}`. Option `bcc:`.
+
+      iex> Vws.WC.Reply.decode("A0007008")
+      {:ok, {:line_ack, 7}}
   """
   @spec decode(binary, keyword) ::
-          {:ok, :nak | :line_ack | {:ack, 0..9999} | {:status, 0..9999, String.t()}}
+          {:ok, :nak | {:line_ack, 0..9999} | {:ack, 0..9999} | {:status, 0..9999, String.t()}}
           | {:error, Error.t()}
   def decode(line, opts \\ [])
   def decode(@nak, _opts), do: {:ok, :nak}
-  def decode(@line_ack, _opts), do: {:ok, :line_ack}
+
+  def decode(<<@line_ack, _::binary>> = line, opts) when byte_size(line) == @line_ack_length do
+    with {:ok, <<@line_ack, field::binary-size(4)>>} <- checked(line, BCC.mode(opts)),
+         {:ok, n} <- Command.digits(field) do
+      {:ok, {:line_ack, n}}
+    else
+      {:error, %Error{}} = error -> error
+      _ -> malformed(line)
+    end
+  end
 
   def decode(line, opts) when is_binary(line) do
     mode = BCC.mode(opts)
@@ -168,17 +186,23 @@ defmodule Vws.WC.Reply do
   defp reply(_rest, line), do: malformed(line)
 
   @doc """
-  Decodes an NC program line, text + BCC (one line, no CR LF). Option `bcc:`.
+  Decodes an NC program line, number + text + BCC (one line, no CR LF). Option `bcc:`.
 
-      iex> Vws.WC.Reply.decode_line("%037")
-      {:ok, {:line, "%"}}
+      iex> Vws.WC.Reply.decode_line("0012%232")
+      {:ok, {:line, 12, "%"}}
   """
-  @spec decode_line(binary, keyword) :: {:ok, {:line, String.t()}} | {:error, Error.t()}
+  @spec decode_line(binary, keyword) :: {:ok, {:line, 0..9999, String.t()}} | {:error, Error.t()}
   def decode_line(line, opts \\ []) when is_binary(line) do
     mode = BCC.mode(opts)
 
-    with {:ok, text} <- checked(line, mode) do
-      if printable?(text), do: {:ok, {:line, text}}, else: malformed(line)
+    with {:ok, body} <- checked(line, mode),
+         <<field::binary-size(4), text::binary>> <- body,
+         {:ok, n} <- Command.digits(field),
+         true <- printable?(text) do
+      {:ok, {:line, n, text}}
+    else
+      {:error, %Error{}} = error -> error
+      _ -> malformed(line)
     end
   end
 

@@ -3,14 +3,19 @@ defmodule Mix.Tasks.Vws.DemoTest do
 
   # The task as a user runs it, in a VM of its own: its exit status is the point.
   @tag timeout: 300_000
-  test "mix vws.demo --once prints the dialogue and a summary, and exits 0 only if it completed" do
+  @tag :tmp_dir
+  test "mix vws.demo --once prints the dialogue and a summary, and exits 0 only if it completed",
+       %{tmp_dir: data} do
     {output, status} =
       System.cmd(
         System.find_executable("mix"),
         ~w(vws.demo --once --time-scale 50 --http-port 0),
-        env: [{"MIX_ENV", "test"}],
+        # the journal is on by default, in the data directory: this test's own
+        env: [{"MIX_ENV", "test"}, {"VWS_DATA_DIR", data}, {"VWS_JOURNAL_DIR", nil}],
         stderr_to_stdout: true
       )
+
+    assert File.exists?(Path.join([data, "journal", "VWS-DEMO"]))
 
     assert output =~ ~r{^dashboard and MTConnect agent: http://127\.0\.0\.1:\d+/ \(read-only\)$}m
     assert output =~ ~r/^ +\d+\.\d{3}s  → \*0001\*R0001DISABLE_TRAY1\*\d{3} /m

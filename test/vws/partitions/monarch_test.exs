@@ -80,9 +80,9 @@ defmodule Vws.Partitions.MonarchTest do
   defp download_hp(peer, number, lines) do
     send_monarch(peer, number, "DOWNLOAD_HP")
 
-    for line <- lines do
-      WCPeer.send_raw(peer, Vws.WC.Reply.encode({:line, line}))
-      assert WCPeer.recv_line(peer) == "A"
+    for {line, n} <- Enum.with_index(lines, 1) do
+      WCPeer.send_raw(peer, Vws.WC.Reply.encode({:line, rem(n, 10_000), line}))
+      assert Vws.WC.Reply.decode(WCPeer.recv_line(peer)) == {:ok, {:line_ack, rem(n, 10_000)}}
     end
 
     finished(peer)
@@ -95,8 +95,9 @@ defmodule Vws.Partitions.MonarchTest do
   end
 
   defp receive_lines(peer, acc) do
-    {:ok, {:line, line}} = Vws.WC.Reply.decode_line(WCPeer.recv_line(peer))
-    WCPeer.send_line(peer, "A")
+    n = rem(length(acc) + 1, 10_000)
+    {:ok, {:line, ^n, line}} = Vws.WC.Reply.decode_line(WCPeer.recv_line(peer))
+    WCPeer.send_raw(peer, Vws.WC.Reply.encode({:line_ack, n}))
     acc = [line | acc]
     if line == "%" and length(acc) > 1, do: Enum.reverse(acc), else: receive_lines(peer, acc)
   end
@@ -212,6 +213,37 @@ defmodule Vws.Partitions.MonarchTest do
     assert monarch(ctx.peer, 1, "DOWNLOAD_GE") == "0001ERROR NO NC FILE"
     assert download_hp(ctx.peer, 2, ["%", "N10 G00", "%"]) == "0002DONE"
     assert monarch(ctx.peer, 3, "DOWNLOAD_GE") == "0003ERROR NC FILE HAS NO PROGRAM NUMBER"
+  end
+
+  describe "a program is whole or it is nothing (PROTOCOLS.md §2)" do
+    test "DOWNLOAD_GE reads the directory: other bytes filed end ERROR PROGRAM VERIFY FAILED",
+         ctx do
+      program = with_program(ctx, 2_000)
+      text = Program.to_text(program)
+      # what an early end or a damage the block check missed leaves: a program that looks whole
+      :ok =
+        GE2000.set_fault(
+          ctx.sim,
+          {:file_as, &(binary_part(&1, 0, div(byte_size(&1), 2)) <> "%\n")}
+        )
+
+      assert monarch(ctx.peer, 2, "DOWNLOAD_GE") == "0002ERROR PROGRAM VERIFY FAILED 004711.PRO"
+      refute GE2000.program(ctx.sim, "004711.PRO") == text
+
+      :ok = GE2000.set_fault(ctx.sim, :none)
+      assert monarch(ctx.peer, 3, "DOWNLOAD_GE") == "0003DONE"
+      assert GE2000.program(ctx.sim, "004711.PRO") == text
+    end
+
+    test "UPLOAD_GE of a program without its closing % ends ERROR PROGRAM INCOMPLETE", ctx do
+      Mailbox.put_nc_up(ctx.ws, ["KEEP"])
+      :ok = GE2000.put_program(ctx.sim, "000200.PRO", "%\nO200\nN10 G01 X1\n")
+
+      assert monarch(ctx.peer, 1, "UPLOAD_GE(000200.PRO)") ==
+               "0001ERROR PROGRAM INCOMPLETE"
+
+      assert Mailbox.nc_up(ctx.ws) == ["KEEP"]
+    end
   end
 
   ## Faults: each recovers or ends ERROR with its reason; the WC can always read the status

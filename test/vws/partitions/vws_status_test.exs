@@ -337,28 +337,36 @@ defmodule Vws.Partitions.VwsStatusTest do
       end
     end
 
-    test "it is set and read again, and the retry counted" do
+    @q "ROUT:CLOS? (@201:210)"
+    # an answer to @q: the channels given closed
+    defp slot(closed),
+      do: Enum.map_join(201..210, ",", &if(&1 in closed, do: "1", else: "0")) <> "\n"
+
+    test "a relay of the slot not as intended is set right, the slot read again, the retry counted" do
       {ws, conn} = fake_daq1()
       task = Task.async(fn -> VwsStatus.actuate(ws, vacuum_motor: :close) end)
-      expect_lines(conn, ["ROUT:CLOS (@207)", "ROUT:CLOS? (@207)"])
-      :ok = Vws.Transport.send(conn, "0\n")
-      assert_receive {:actuation_retry, "DAQ #1 RELAY 207 DID NOT CLOSE", 1}
-      expect_lines(conn, ["ROUT:CLOS (@207)", "ROUT:CLOS? (@207)"])
-      :ok = Vws.Transport.send(conn, "1\n")
+      expect_lines(conn, [@q, @q, "ROUT:CLOS (@207)", @q])
+      # ROUT:CLOS (@207) arrived as (@206): the read-back shows it, although 207 alone was asked
+      :ok = Vws.Transport.send(conn, slot([]) <> slot([]) <> slot([206]))
+      assert_receive {:actuation_retry, "RELAY 206 NOT AS COMMANDED", 1}
+      expect_lines(conn, ["ROUT:OPEN (@206)", "ROUT:CLOS (@207)", @q])
+      :ok = Vws.Transport.send(conn, slot([207]))
       assert Task.await(task) == :ok
     end
 
     test "after two tries again the relay's state is the error" do
       {ws, conn} = fake_daq1()
       task = Task.async(fn -> VwsStatus.actuate(ws, vacuum_motor: :open) end)
+      expect_lines(conn, [@q, @q, "ROUT:OPEN (@207)", @q])
+      :ok = Vws.Transport.send(conn, slot([207]) <> slot([207]) <> slot([207]))
 
-      for try <- 1..3 do
-        expect_lines(conn, ["ROUT:OPEN (@207)", "ROUT:CLOS? (@207)"])
-        :ok = Vws.Transport.send(conn, "1\n")
-        if try < 3, do: assert_receive({:actuation_retry, _, ^try})
+      for try <- 1..2 do
+        assert_receive({:actuation_retry, "RELAY 207 NOT AS COMMANDED", ^try})
+        expect_lines(conn, ["ROUT:OPEN (@207)", @q])
+        :ok = Vws.Transport.send(conn, slot([207]))
       end
 
-      assert Task.await(task) == {:error, "DAQ #1 RELAY 207 DID NOT OPEN"}
+      assert Task.await(task) == {:error, "RELAY 207 NOT AS COMMANDED"}
       refute_received {:actuation_retry, _, 3}
     end
   end

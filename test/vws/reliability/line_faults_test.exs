@@ -29,6 +29,8 @@ defmodule Vws.Reliability.LineFaultsTest do
     assert report.commands > 0
     assert report.lost == 0
     assert report.duplicated == 0
+    # program bytes at the CEC, the GE-2000 and the WC, and every relay: as sent (issue 15)
+    assert report.silent_differences == 0, inspect(report.silent)
   end
 
   for {link, {ber, counter}} <- @link_retries do

@@ -211,6 +211,14 @@ defmodule Vws.Reliability.RestartTest do
       assert answer == expected, "#{name}"
     end
 
+    # an interrupted vise motion's safe clean-up ran: both valves off (issue 15)
+    if letter == "F" do
+      assert eventually(fn ->
+               relays = Plant.snapshot(Floor.plant(ws)).relays
+               {:daq1, 205} not in relays and {:daq1, 206} not in relays
+             end)
+    end
+
     # nothing re-ran by itself, and the acknowledged string resent byte for byte is
     # acknowledged again and not run
     assert same_work?(equipment(ws), at_kill)
@@ -444,13 +452,15 @@ defmodule Vws.Reliability.RestartTest do
   end
 
   # Nothing was done again: the same writes, except that a restarted VWS_STATUS lets go of every
-  # push button (the cycle-start relay, already open) — the safe state, never a press.
+  # push button (the cycle-start relay, already open) and an interrupted vise motion's clean-up
+  # turns both vise valves off (issue 15) — the safe state, never a press or a valve energised.
   defp same_work?(now, at_kill) do
-    button = {:daq1, 210}
-    %{close: presses, open: _} = Map.get(now.relay_writes, button, %{close: 0, open: 0})
-    %{close: presses_then} = Map.get(at_kill.relay_writes, button, %{close: 0, open: 0})
-    drop = &Map.update!(&1, :relay_writes, fn w -> Map.delete(w, button) end)
-    presses == presses_then and drop.(now) == drop.(at_kill)
+    safe = [{:daq1, 210}, {:daq1, 205}, {:daq1, 206}]
+    closes = fn w, relay -> Map.get(w, relay, %{close: 0}).close end
+    drop = &Map.update!(&1, :relay_writes, fn w -> Map.drop(w, safe) end)
+
+    Enum.all?(safe, &(closes.(now.relay_writes, &1) == closes.(at_kill.relay_writes, &1))) and
+      drop.(now) == drop.(at_kill)
   end
 
   # The kill came while the equipment was doing the command.

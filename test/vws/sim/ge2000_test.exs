@@ -47,8 +47,22 @@ defmodule Vws.Sim.GE2000Test do
     assert DNC.request(ctx.cec, s(:part_program), ["N10 G00\n"]) == {:ok, []}
     assert report(ctx.cec).alarm == 2
 
+    # the directory: name, size, CRC-16/ARC of the file's bytes
     assert {:ok, blocks} = DNC.request(ctx.cec, r(:directory), [])
-    assert IO.iodata_to_binary(blocks) == "000005.GSU\n000077.PRO\n000100.PRO\n"
+    text = IO.iodata_to_binary(blocks)
+    assert text =~ ~r/\A000005.GSU 000004 [0-9A-F]{4}\n000077.PRO 000012 [0-9A-F]{4}\n000100.PRO/
+    {:ok, dir} = Vws.DNC.Report.parse_directory(text)
+    assert dir["000077.PRO"] == Vws.DNC.Report.entry("000077.PRO", "%\nO77\nM30\n%\n")
+    assert dir["000077.PRO"].crc == Vws.CRC16.compute("%\nO77\nM30\n%\n")
+  end
+
+  test "a program without its closing % is refused: the old file stays (alarm 7)", ctx do
+    assert DNC.request(ctx.cec, s(:part_program), ["%\nO77\nM30\n%\n"]) == {:ok, []}
+    # the transmission ended early (an ENQ damaged into EOT looks like a normal end)
+    assert DNC.request(ctx.cec, s(:part_program), ["%\nO77\nN5 G01\n"]) == {:ok, []}
+    assert report(ctx.cec).alarm == 7
+    assert GE2000.program(ctx.sim, "000077.PRO") == "%\nO77\nM30\n%\n"
+    assert GE2000.state(ctx.sim).downloads == 1
   end
 
   test "select, cycle start, the plant told, delete refused while it runs", ctx do

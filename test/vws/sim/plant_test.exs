@@ -431,3 +431,59 @@ defmodule Vws.Sim.PlantTest do
     end
   end
 end
+
+defmodule Vws.Sim.PlantWritesTest do
+  # issue 15: one account of the relay writes serves Plant.writes/1 and the telemetry
+  use ExUnit.Case, async: true
+
+  alias Vws.Sim.Plant
+
+  test "Plant.writes/1 and the [:vws, :sim, :plant, :actuator] events count the same writes" do
+    ws = "plant-writes-#{System.unique_integer([:positive])}"
+    plant = start_supervised!({Plant, time_scale: 0, name: Vws.Workstation.via(ws, :plant)})
+    test = self()
+    handler = {__MODULE__, ws}
+
+    :ok =
+      Vws.Telemetry.attach(
+        handler,
+        [:vws, :sim, :plant, :actuator],
+        fn _, %{count: n}, m, _ ->
+          if m.workstation == ws, do: send(test, {:write, {m.daq, m.channel}, m.action, n})
+        end,
+        nil
+      )
+
+    on_exit(fn -> Vws.Telemetry.detach(handler) end)
+
+    :ok = Plant.close_channel(plant, 207)
+    :ok = Plant.close_channel(plant, 207)
+    :ok = Plant.open_channel(plant, {:daq2, 201})
+    # an *RST opens every relay of the DAQ: each is a write, in both accounts
+    :ok = Plant.open_all(plant, :daq1)
+    # not a relay: no write in either
+    assert {:error, _} = Plant.close_channel(plant, 101)
+
+    writes = Plant.writes(plant)
+    events = collect(%{})
+    assert events == writes
+    assert writes[{:daq1, 207}] == %{close: 2, open: 1}
+    assert writes[{:daq2, 201}] == %{close: 0, open: 1}
+    assert map_size(writes) == length(Vws.DAQ.slot(Vws.DAQ.new())) + 1
+  end
+
+  defp collect(acc) do
+    receive do
+      {:write, address, action, n} ->
+        acc
+        |> Map.update(
+          address,
+          Map.put(%{close: 0, open: 0}, action, n),
+          &Map.update!(&1, action, fn c -> c + n end)
+        )
+        |> collect()
+    after
+      200 -> acc
+    end
+  end
+end

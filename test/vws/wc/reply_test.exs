@@ -19,11 +19,12 @@ defmodule Vws.WC.ReplyTest do
      "082"}
   ]
 
+  # numbered NC program lines: {number, text, sum, xor}
   @golden_lines [
-    {"%", "037", "037"},
-    {"O001234", "121", "075"},
-    {"G01 X63.5 Y0", "149", "105"},
-    {"", "000", "000"}
+    {1, "%", "230", "036"},
+    {2, "O001234", "059", "073"},
+    {45, "G01 X63.5 Y0", "094", "104"},
+    {9999, "", "228", "000"}
   ]
 
   defp wire(reply, opts \\ []), do: IO.iodata_to_binary(Reply.encode(reply, opts))
@@ -38,19 +39,24 @@ defmodule Vws.WC.ReplyTest do
   end
 
   test "golden NC program lines, sum and xor" do
-    for {text, sum, xor} <- @golden_lines do
-      assert wire({:line, text}) == text <> sum <> "\r\n"
-      assert wire({:line, text}, bcc: :xor) == text <> xor <> "\r\n"
-      assert Reply.decode_line(text <> sum) == {:ok, {:line, text}}
-      assert Reply.decode_line(text <> xor, bcc: :xor) == {:ok, {:line, text}}
+    for {n, text, sum, xor} <- @golden_lines do
+      body = Vws.WC.Command.pad4(n) <> text
+      assert wire({:line, n, text}) == body <> sum <> "\r\n"
+      assert wire({:line, n, text}, bcc: :xor) == body <> xor <> "\r\n"
+      assert Reply.decode_line(body <> sum) == {:ok, {:line, n, text}}
+      assert Reply.decode_line(body <> xor, bcc: :xor) == {:ok, {:line, n, text}}
     end
   end
 
-  test "E and A carry no block check" do
+  test "E carries no block check; a line's answer names the line and carries one" do
     assert wire(:nak) == "E\r\n"
-    assert wire(:line_ack) == "A\r\n"
+    assert wire({:line_ack, 7}) == "A0007008\r\n"
+    assert wire({:line_ack, 7}, bcc: :xor) == "A0007070\r\n"
     assert Reply.decode("E") == {:ok, :nak}
-    assert Reply.decode("A", bcc: :xor) == {:ok, :line_ack}
+    assert Reply.decode("A0007070", bcc: :xor) == {:ok, {:line_ack, 7}}
+    # the old one-letter answer is no answer any more: one bit makes A of E
+    assert {:error, %Error{}} = Reply.decode("A")
+    assert {:error, %Error{reason: :bad_bcc}} = Reply.decode("A0007009")
   end
 
   test "decode refuses everything else, with a reason" do
@@ -74,9 +80,10 @@ defmodule Vws.WC.ReplyTest do
   end
 
   test "decode_line refuses a bad block check, a missing one and control characters" do
-    assert {:error, %Error{reason: :bad_bcc, data: %{computed: 37, received: 38}}} =
-             Reply.decode_line("%038")
+    assert {:error, %Error{reason: :bad_bcc, data: %{computed: 230, received: 231}}} =
+             Reply.decode_line("0001%231")
 
+    assert {:error, %Error{reason: :malformed}} = Reply.decode_line("%037")
     assert {:error, %Error{reason: :malformed}} = Reply.decode_line("%")
     assert {:error, %Error{reason: :malformed}} = Reply.decode_line("E")
     assert {:error, %Error{reason: :malformed}} = Reply.decode_line("13S00390009DON\x01046")
@@ -95,7 +102,14 @@ defmodule Vws.WC.ReplyTest do
   end
 
   test "encode refuses what could not be sent" do
-    for bad <- [{:ack, 10_000}, {:status, -1, "X"}, {:status, 1, "A\r\nB"}, {:line, "\t"}, :ok] do
+    for bad <- [
+          {:ack, 10_000},
+          {:status, -1, "X"},
+          {:status, 1, "A\r\nB"},
+          {:line, 1, "\t"},
+          :line_ack,
+          :ok
+        ] do
       assert {:error, %Error{}} = Reply.validate(bad)
       assert_raise ArgumentError, fn -> Reply.encode(bad) end
     end
@@ -156,7 +170,7 @@ defmodule Vws.WC.ReplyTest do
       assert_property(property, 300)
     end
 
-    # `E` and `A` have no block check (PROTOCOLS.md §1), so only the checked kinds are here.
+    # `E` has no block check (PROTOCOLS.md §1), so only the checked kinds are here.
     test "any single corrupted byte of a checked reply or NC line is rejected" do
       checked =
         :proper_types.union([
@@ -170,7 +184,12 @@ defmodule Vws.WC.ReplyTest do
             fn {n, text} -> :proper_types.exactly({:status, n, text}) end,
             false
           ),
-          Generators.nc_line()
+          Generators.nc_line(),
+          :proper_types.bind(
+            :proper_types.range(0, 9999),
+            &:proper_types.exactly({:line_ack, &1}),
+            false
+          )
         ])
 
       corruption =
@@ -194,7 +213,7 @@ defmodule Vws.WC.ReplyTest do
 
           decoded =
             case reply do
-              {:line, _} -> Reply.decode_line(corrupted, bcc: mode)
+              {:line, _, _} -> Reply.decode_line(corrupted, bcc: mode)
               _ -> Reply.decode(corrupted, bcc: mode)
             end
 

@@ -102,8 +102,9 @@ defmodule Vws.WC.RunnerTest do
     {:ok, relay} = Vws.Test.LineRelay.start_link(wc, name)
     {:ok, client} = Client.connect("loopback:" <> name)
     File.write!(Path.join(dir, "p.nc"), "%\nO000042\nN10 G00 X0\n%\n")
-    # the A to the second program line arrives damaged, once
-    :ok = Vws.Test.LineRelay.arm(relay, :to_wc, :corrupt, &(&1 == "A"), 1)
+    # the answer to the second program line arrives damaged four times: the line was sent as
+    # often as the client sends one (1 + 3 resends), so the transfer breaks off
+    :ok = Vws.Test.LineRelay.arm(relay, :to_wc, :corrupt, &String.starts_with?(&1, "A0002"), 4)
     summary = Runner.run(client, script!("DOWNLOAD p.nc\n", base_dir: dir), poll_interval: 5)
 
     assert %Summary{result: :completed, transfers_broken: 1} = summary
@@ -113,7 +114,7 @@ defmodule Vws.WC.RunnerTest do
     assert Enum.any?(Summary.format(summary), &(&1 =~ "1 transfers broke off"))
 
     # with no retries allowed, the script stops at the broken transfer
-    :ok = Vws.Test.LineRelay.arm(relay, :to_wc, :corrupt, &(&1 == "A"), 1)
+    :ok = Vws.Test.LineRelay.arm(relay, :to_wc, :corrupt, &String.starts_with?(&1, "A0002"), 4)
 
     summary =
       Runner.run(client, script!("DOWNLOAD p.nc\n", base_dir: dir),

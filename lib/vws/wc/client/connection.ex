@@ -4,8 +4,10 @@ defmodule Vws.WC.Client.Connection do
   #
   #   :idle           nothing on the link; a request starts here
   #   :awaiting_reply a string (commands or a status query) is out; waiting for 05A / NN S / E
-  #   :downloading    DOWNLOAD_HP acknowledged; sending program lines, each answered A or E
-  #   :uploading      UPLOAD_SUN acknowledged; receiving program lines, answering A or E
+  #   :downloading    DOWNLOAD_HP acknowledged; sending numbered program lines, each answered
+  #                   Annnn+BCC (stored) — anything else, or nothing, sends the same line again
+  #   :uploading      UPLOAD_SUN acknowledged; receiving numbered program lines, answering
+  #                   Annnn+BCC or E; a resend of the line just stored is answered again
   #   :disconnected   the link closed; the next request opens it again
   #
   # Requests arriving while a request is under way are postponed, so one exchange is on the link
@@ -37,6 +39,9 @@ defmodule Vws.WC.Client.Connection do
       reply_timeout: Keyword.get(opts, :reply_timeout, 5_000),
       line_timeout: Keyword.get(opts, :line_timeout, 5_000),
       req: nil,
+      # the closing line of the last upload and our answer, bytes: the CEC sends it again
+      # when our answer reached it damaged, after we were done
+      last_closing: nil,
       counters: %{
         strings: 0,
         commands: 0,
@@ -48,6 +53,7 @@ defmodule Vws.WC.Client.Connection do
         lines_received: 0,
         naks_sent: 0,
         stray: 0,
+        lines_again: 0,
         reconnects: 0,
         transfers_broken: 0
       },
@@ -78,7 +84,15 @@ defmodule Vws.WC.Client.Connection do
 
   @doc false
   def idle(:enter, _old, _data), do: :keep_state_and_data
-  def idle({:call, from}, {:request, request}, data), do: start(request, from, data)
+
+  # the closing line of an upload is answered again until something else than a status query
+  # is asked: the CEC may send it again while the WC polls the command's status
+  def idle({:call, from}, {:request, {:status, _} = request}, data),
+    do: start(request, from, data)
+
+  def idle({:call, from}, {:request, request}, data),
+    do: start(request, from, %{data | last_closing: nil})
+
   def idle(type, content, data), do: common(type, content, data)
 
   @doc false
@@ -86,6 +100,9 @@ defmodule Vws.WC.Client.Connection do
     do: {:keep_state_and_data, [{:state_timeout, data.reply_timeout, :no_reply}]}
 
   def awaiting_reply({:call, _}, {:request, _}, _data), do: {:keep_state_and_data, :postpone}
+
+  def awaiting_reply(:internal, {:line, line}, %{last_closing: {line, _}} = data),
+    do: common(:internal, {:line, line}, data)
 
   def awaiting_reply(:internal, {:line, line}, data),
     do: reply_line(Reply.decode(line, bcc: data.bcc), line, data)
@@ -117,11 +134,11 @@ defmodule Vws.WC.Client.Connection do
   def downloading({:call, _}, {:request, _}, _data), do: {:keep_state_and_data, :postpone}
 
   def downloading(:internal, {:line, line}, %{req: req} = data) do
-    n = req.sent + 1
+    n = line_number(req.sent + 1)
 
     case Reply.decode(line, bcc: data.bcc) do
-      {:ok, :line_ack} ->
-        data = emit(data, :received, :line_ack, line, "A: program line #{n} accepted")
+      {:ok, {:line_ack, ^n}} ->
+        data = emit(data, :received, :line_ack, line, "A#{pad4(n)}: program line #{n} stored")
 
         case tl(req.lines) do
           [] ->
@@ -129,35 +146,35 @@ defmodule Vws.WC.Client.Connection do
             {:next_state, :idle, %{data | req: nil}}
 
           rest ->
-            send_program_line(%{data | req: %{req | lines: rest, sent: n, tries: 1}})
+            send_program_line(%{data | req: %{req | lines: rest, sent: req.sent + 1, tries: 1}})
         end
 
       {:ok, :nak} ->
+        data = emit(bump(data, :naks), :received, :nak, line, "E: program line #{n} damaged")
+        resend_program_line(data, "answered E")
+
+      {:ok, _other} ->
+        # an answer naming another line, or no line answer at all: not known to be stored
+        resend_program_line(stray(data, line), "answered #{inspect(line)}")
+
+      {:error, error} ->
         data =
-          emit(bump(data, :naks), :received, :nak, line, "E: program line #{n} arrived damaged")
+          emit(data, :received, :damaged, line, "damaged answer: #{Exception.message(error)}")
 
-        if req.tries > data.max_resends do
-          transfer_failed(data, :download, n, "answered E #{req.tries} times")
-        else
-          send_program_line(bump(%{data | req: %{req | tries: req.tries + 1}}, :resends))
-        end
-
-      _other ->
-        # neither A nor E: a damaged answer. It may have been either, and lines carry no
-        # number, so the line can be neither sent again nor taken as stored: give up at once
-        data = stray(data, line)
-        transfer_failed(data, :download, n, "the answer to it arrived damaged")
+        resend_program_line(data, "its answer arrived damaged")
     end
   end
 
+  def downloading(:internal, {:line_error, error}, data) do
+    data = emit(data, :received, :damaged, nil, "damaged answer: #{Exception.message(error)}")
+    resend_program_line(data, "its answer arrived damaged")
+  end
+
   def downloading(:state_timeout, :no_answer, data) do
-    # No resend: lines carry no number, so a line whose A was lost would be stored twice.
-    transfer_failed(
-      data,
-      :download,
-      data.req.sent + 1,
-      "no A or E within #{data.line_timeout} ms"
-    )
+    # The line carries its number: if it was stored and only the answer was lost, the CEC
+    # answers the resend again and does not store it twice.
+    data = bump(data, :timeouts)
+    resend_program_line(data, "no answer within #{data.line_timeout} ms")
   end
 
   def downloading(type, content, data), do: common(type, content, data)
@@ -169,23 +186,35 @@ defmodule Vws.WC.Client.Connection do
   def uploading({:call, _}, {:request, _}, _data), do: {:keep_state_and_data, :postpone}
 
   def uploading(:internal, {:line, line}, %{req: req} = data) do
-    n = length(req.received) + 1
+    count = length(req.received)
+    n = line_number(count + 1)
+    last = if count > 0, do: line_number(count)
 
     case Reply.decode_line(line, bcc: data.bcc) do
-      {:ok, {:line, text}} ->
+      {:ok, {:line, ^n, text}} ->
         data =
           emit(bump(data, :lines_received), :received, :program_line, line, "program line #{n}")
 
-        data = answer_line(data, "A", "A: line #{n} received")
+        answer = answer_line(data, n, "A#{pad4(n)}: line #{n} stored")
+        data = answer.data
         received = [text | req.received]
 
-        if String.trim(text) == "%" and n > 1 do
+        if String.trim(text) == "%" and count + 1 > 1 do
           :gen_statem.reply(req.from, {:ok, {"M", req.number}, Enum.reverse(received)})
-          {:next_state, :idle, %{data | req: nil}}
+          {:next_state, :idle, %{data | req: nil, last_closing: {line, answer.bytes}}}
         else
           {:keep_state, %{data | req: %{req | received: received}},
            [{:state_timeout, data.line_timeout, :no_line}]}
         end
+
+      {:ok, {:line, ^last, _text}} ->
+        data = emit(data, :received, :program_line, line, "program line #{last} again")
+        data = answer_line(bump(data, :lines_again), last, "A#{pad4(last)}: stored already").data
+        {:keep_state, data, [{:state_timeout, data.line_timeout, :no_line}]}
+
+      {:ok, {:line, other, _text}} ->
+        data = emit(data, :received, :program_line, line, "program line #{other}")
+        transfer_failed(data, :upload, count + 1, "line #{other} came when #{n} was due")
 
       {:error, error} ->
         damaged_upload_line(data, line, error)
@@ -372,11 +401,24 @@ defmodule Vws.WC.Client.Connection do
 
   ## Program lines
 
+  defp resend_program_line(%{req: req} = data, why) do
+    n = req.sent + 1
+
+    if req.tries > data.max_resends do
+      transfer_failed(data, :download, n, "#{why}, #{req.tries} tries")
+    else
+      send_program_line(bump(%{data | req: %{req | tries: req.tries + 1}}, :resends))
+    end
+  end
+
+  # lines are numbered 0001, 0002, …; after 9999 comes 0000 (PROTOCOLS.md §1)
+  defp line_number(n), do: rem(n, 10_000)
+
   defp send_program_line(%{req: req} = data) do
     [text | _] = req.lines
     n = req.sent + 1
     again = if req.tries > 1, do: " again (try #{req.tries})", else: ""
-    line = IO.iodata_to_binary(Reply.encode({:line, text}, bcc: data.bcc))
+    line = IO.iodata_to_binary(Reply.encode({:line, line_number(n), text}, bcc: data.bcc))
 
     data =
       send_line(
@@ -393,18 +435,15 @@ defmodule Vws.WC.Client.Connection do
     data =
       emit(data, :received, :damaged, line, "damaged program line: #{Exception.message(error)}")
 
-    data = answer_line(bump(data, :naks_sent), "E", "E: send that line again")
+    data = answer_line(bump(data, :naks_sent), :nak, "E: send that line again").data
     {:keep_state, data, [{:state_timeout, data.line_timeout, :no_line}]}
   end
 
-  defp answer_line(data, answer, meaning),
-    do:
-      send_line(
-        data,
-        IO.iodata_to_binary(Reply.encode(if(answer == "A", do: :line_ack, else: :nak))),
-        :line_answer,
-        meaning
-      )
+  defp answer_line(data, answer, meaning) do
+    reply = if answer == :nak, do: :nak, else: {:line_ack, answer}
+    bytes = IO.iodata_to_binary(Reply.encode(reply, bcc: data.bcc))
+    %{data: send_line(data, bytes, :line_answer, meaning), bytes: bytes}
+  end
 
   defp transfer_failed(%{req: req} = data, direction, line, why) do
     error = %ClientError{
@@ -497,6 +536,11 @@ defmodule Vws.WC.Client.Connection do
 
   defp common({:call, from}, other, _data),
     do: {:keep_state_and_data, [{:reply, from, {:error, {:unknown_call, other}}}]}
+
+  defp common(:internal, {:line, line}, %{last_closing: {line, answer}} = data) do
+    data = emit(bump(data, :lines_again), :received, :program_line, line, "closing line again")
+    {:keep_state, send_line(data, answer, :line_answer, "answered again: stored already")}
+  end
 
   defp common(:internal, {:line, line}, data), do: {:keep_state, stray(data, line)}
 

@@ -1,0 +1,152 @@
+defmodule Vws.Reliability.DNCBitFlipTest do
+  @moduledoc """
+  DOWNLOAD_GE and UPLOAD_GE under bit errors on the DNC link (issue 15, PROTOCOLS.md §2 "A
+  program is whole or it is nothing", "Directory"): for every single-bit flip in every byte of a
+  transfer's traffic, both directions — and random bursts — the program arrives unchanged or the
+  Monarch command ends `ERROR` with a reason; never `DONE` with other bytes. MONARCH's DNC link
+  talks to the simulated GE-2000 over TCP through `Vws.Test.FlipRelay`.
+
+  Before, an ENQ damaged into EOT ended a download early: the GE-2000 kept part of the program
+  and MONARCH said DONE.
+  """
+  use ExUnit.Case, async: true
+  use Vws.PropCase
+
+  alias Vws.{DNC, Mailbox, Workstation}
+  alias Vws.DNC.Program
+  alias Vws.Sim.GE2000
+  alias Vws.Test.FlipRelay
+  alias Vws.WC.Client
+  import Vws.Test.Eventually
+
+  @moduletag timeout: 900_000
+
+  @link_opts [
+    reply_timeout: 40,
+    response_timeout: 200,
+    receive_timeout: 200,
+    wack_delay: 10,
+    backoff_min: 5,
+    backoff_max: 20
+  ]
+  @program ["%", "O000012", "N10 G1X1", "%"]
+  @file_name "000012.PRO"
+  @old "%\nO000012\nN10 G0X9\n%\n"
+
+  setup do
+    sim = start_supervised!({GE2000, link: @link_opts})
+    {:ok, relay} = FlipRelay.start_link(GE2000.endpoint(sim))
+
+    %{ws: ws, wc: wc} =
+      Vws.Test.Workstation.start(
+        # no status monitor: the DNC traffic is the commands' alone
+        devices: [
+          ge2000: [endpoint: FlipRelay.endpoint(relay), status_interval: nil] ++ @link_opts
+        ],
+        partitions: [monarch: [options: [request_timeout: 20_000]]]
+      )
+
+    link = Workstation.whereis(ws, :ge2000)
+    assert eventually(fn -> DNC.info(link).state == :idle end)
+    {:ok, client} = Client.connect(wc, numbers: %{"M" => 1})
+    %{ws: ws, sim: sim, relay: relay, client: client, link: link}
+  end
+
+  for kind <- [:download, :upload] do
+    @kind kind
+    test "#{kind}: single-bit flips in every byte, both directions", ctx do
+      kind = @kind
+      {to_target, to_client} = traffic(ctx, kind)
+
+      flips =
+        for {dir, n} <- [to_target: to_target, to_client: to_client],
+            index <- 0..(n - 1),
+            bit <- 0..7,
+            do: {dir, index, Bitwise.bsl(1, bit)}
+
+      outcomes = Enum.map(flips, &check!(ctx, kind, [&1]))
+      assert Enum.count(outcomes, &(&1 == :done)) > length(flips) / 2
+    end
+
+    test "#{kind}: random bursts", ctx do
+      kind = @kind
+      {to_target, to_client} = traffic(ctx, kind)
+
+      burst =
+        :proper_types.bind(
+          :proper_types.tuple([
+            :proper_types.elements([:to_target, :to_client]),
+            :proper_types.range(0, 1_000_000),
+            :proper_types.range(1, 255),
+            :proper_types.range(0, 255)
+          ]),
+          fn {dir, r, mask, next_mask} ->
+            n = if dir == :to_target, do: to_target, else: to_client
+            index = rem(r, n)
+            next = if index + 1 < n and next_mask > 0, do: [{dir, index + 1, next_mask}], else: []
+            :proper_types.exactly([{dir, index, mask} | next])
+          end,
+          false
+        )
+
+      property = :proper.forall(burst, &(check!(ctx, kind, &1) in [:done, :error]))
+      assert_property(property, 120)
+    end
+  end
+
+  defp traffic(ctx, kind) do
+    :ok = FlipRelay.plan(ctx.relay, {:bytes, []})
+    assert check!(ctx, kind, []) == :done
+    counts = FlipRelay.counts(ctx.relay)
+    assert counts.to_target > 20 and counts.to_client > 20
+    {counts.to_target, counts.to_client}
+  end
+
+  # One DOWNLOAD_GE or UPLOAD_GE with `flips` on the DNC line: `:done` with the program exactly
+  # where it went, or `:error` with a reason; anything else fails the test.
+  defp check!(ctx, kind, flips) do
+    ws = ctx.ws
+    text = Program.to_text(@program)
+    await_idle(ctx.link)
+
+    case kind do
+      :download ->
+        :ok = GE2000.put_program(ctx.sim, @file_name, @old)
+        :ok = Mailbox.put_nc_file(ws, @program)
+
+      :upload ->
+        :ok = GE2000.put_program(ctx.sim, @file_name, text)
+        :ok = Mailbox.put_nc_up(ws, [])
+    end
+
+    :ok = FlipRelay.plan(ctx.relay, {:bytes, flips})
+    command = if kind == :download, do: "DOWNLOAD_GE", else: "UPLOAD_GE(#{@file_name})"
+    {:ok, [{"M", n}]} = Client.send_commands(ctx.client, [{"M", command}])
+    result = Client.await_command(ctx.client, "M", n, 120_000, poll_interval: 5)
+
+    case {kind, result} do
+      {:download, :done} ->
+        assert GE2000.program(ctx.sim, @file_name) == text,
+               "DONE with other bytes, flips #{inspect(flips)}"
+
+        :done
+
+      {:upload, :done} ->
+        assert Mailbox.nc_up(ws) == @program, "DONE with other bytes, flips #{inspect(flips)}"
+        :done
+
+      {kind, {:error, %{reason: :command_failed, data: %{status: "ERROR " <> reason}}}}
+      when reason != "" ->
+        # whole or nothing: NC_UP is never part of a program
+        if kind == :upload, do: assert(Mailbox.nc_up(ws) == [])
+        :error
+
+      other ->
+        flunk("#{inspect(other)}, flips #{inspect(flips)}")
+    end
+  end
+
+  defp await_idle(link) do
+    assert eventually(fn -> DNC.info(link).state == :idle end, 10_000)
+  end
+end
