@@ -14,6 +14,11 @@ defmodule Vws.Test.Acceptance do
       0 = Acceptance.await_exit(proc)
       Acceptance.output(proc)                          # stdout and stderr, as the user saw them
 
+  Every process started here gets a data directory of its own (`VWS_DATA_DIR`, a fresh
+  temporary directory) unless `:env` names one: the journal is on by default and holds one OS
+  process per directory, so two tests (or a test and a developer's own `mix vws.serve`) never
+  share one, and no run restores another's commands.
+
   `start/2` runs the command in a session (and process group) of its own, through a small `sh`
   wrapper: the command is `exec`ed (so `signal/2` reaches the program itself, e.g. the BEAM
   behind `mix`), and a watcher in the group kills the whole group as soon as the harness's port
@@ -196,7 +201,7 @@ defmodule Vws.Test.Acceptance do
     socket = "vws-acceptance-#{System.unique_integer([:positive])}"
 
     env =
-      for {k, v} <- Keyword.get(opts, :env, []),
+      for {k, v} <- with_data_dir(Keyword.get(opts, :env, [])),
           do: "#{k}=#{shell_quote(v)} "
 
     line = "cd #{shell_quote(@root)} && exec env #{Enum.join(env)}#{command}"
@@ -414,7 +419,7 @@ defmodule Vws.Test.Acceptance do
       Process.monitor(owner)
 
       env =
-        for {k, v} <- Keyword.get(opts, :env, []),
+        for {k, v} <- Vws.Test.Acceptance.with_data_dir(Keyword.get(opts, :env, [])),
             do: {String.to_charlist(k), v && String.to_charlist(v)}
 
       port =
@@ -512,4 +517,18 @@ defmodule Vws.Test.Acceptance do
 
   @doc false
   def wrapper, do: @wrapper
+
+  @doc false
+  # `env` with a fresh `VWS_DATA_DIR` unless it names one (see the moduledoc).
+  def with_data_dir(env) do
+    if List.keymember?(env, "VWS_DATA_DIR", 0) do
+      env
+    else
+      dir =
+        Path.join(System.tmp_dir!(), "vws-acceptance-data-#{System.unique_integer([:positive])}")
+
+      File.mkdir_p!(dir)
+      [{"VWS_DATA_DIR", dir} | env]
+    end
+  end
 end
