@@ -1,0 +1,450 @@
+defmodule Vws.Test.Acceptance do
+  @moduledoc ~S"""
+  The harness of the end-to-end acceptance tests: real OS processes started the way the README
+  says (`mix vws.serve`, `iex -S mix vws.serve` under tmux, `mix vws.demo`, the release), driven
+  through real TCP and HTTP, and stopped with real signals.
+
+  ## OS processes
+
+      :ok = Acceptance.prebuild("dev")                 # once per run: `MIX_ENV=dev mix compile`
+      wc = Acceptance.free_port()
+      proc = Acceptance.start(["mix", "vws.serve", "--wc-port", "#{wc}"], env: [{"MIX_ENV", "dev"}])
+      [_, port] = Acceptance.await(proc, ~r/waits for the WC on tcp:\/\/127.0.0.1:(\d+)/)
+      Acceptance.signal(proc, "TERM")
+      0 = Acceptance.await_exit(proc)
+      Acceptance.output(proc)                          # stdout and stderr, as the user saw them
+
+  `start/2` runs the command in a session (and process group) of its own, through a small `sh`
+  wrapper: the command is `exec`ed (so `signal/2` reaches the program itself, e.g. the BEAM
+  behind `mix`), and a watcher in the group kills the whole group as soon as the harness's port
+  closes — when `stop/1` is called, when the owner (the process that called `start/2`) exits, or
+  when the test VM dies. Nothing started here outlives the test run. The first argument is
+  looked up in `PATH`; `:env` (added to the test VM's environment — give `MIX_ENV` explicitly,
+  the test VM's is `test`) and `:cd` (default: the project root) are the options.
+
+  Spawning `mix` from inside `mix test`: give the child another `MIX_ENV` (usually `dev`) than
+  the test VM's build, and compile that environment once with `prebuild/1` before the first
+  start, so that concurrent children never compile (Elixir 1.14 has no build lock).
+
+  ## A shell under tmux
+
+      t = Acceptance.tmux_start("iex -S mix vws.serve --wc-port 7171", env: [{"MIX_ENV", "dev"}])
+      Acceptance.tmux_await(t, ~r/iex\(1\)>/)
+      Acceptance.tmux_send(t, ~s|Vws.Inspect.overview("VWS")|)   # typed, then Enter
+      Acceptance.tmux_capture(t)                                 # the pane's text (with history)
+      Acceptance.tmux_stop(t)
+
+  Each tmux session runs on a tmux server of its own (`tmux -L <socket>`), killed by
+  `tmux_stop/1`.
+
+  ## Talking to what runs
+
+    * `free_port/0` — a TCP port free on 127.0.0.1 right now
+    * `wc_request/3` — one WC string over real TCP (framed with its BCC here), its reply line
+    * `wc_frame/1` — `"*0001*S0001ROBOT_CMD*"` → `"*0001*S0001ROBOT_CMD*012"` (sum BCC)
+    * `http_get/2` — `{status, body}` of `GET http://127.0.0.1:port/path`
+
+  Every wait has a deadline (monotonic time) and fails the test with the output so far.
+  """
+
+  import ExUnit.Assertions
+
+  @root Path.expand("../..", __DIR__)
+
+  @doc "The project's root directory (where mix.exs is)."
+  def root, do: @root
+
+  ## Building
+
+  @doc """
+  Compiles the project in `mix_env` (`"dev"`, `"prod"`) once per test run, outside the test
+  VM's build; concurrent callers wait for the first one.
+  """
+  def prebuild(mix_env) do
+    key = {__MODULE__, :prebuilt, mix_env}
+
+    :global.trans({key, self()}, fn ->
+      case :persistent_term.get(key, nil) do
+        nil ->
+          {out, status} =
+            System.cmd(mix(), ["compile"],
+              env: [{"MIX_ENV", mix_env}],
+              cd: @root,
+              stderr_to_stdout: true
+            )
+
+          if status != 0, do: flunk("MIX_ENV=#{mix_env} mix compile failed:\n#{out}")
+          :persistent_term.put(key, true)
+
+        true ->
+          :ok
+      end
+    end)
+
+    :ok
+  end
+
+  defp mix, do: System.find_executable("mix") || flunk("mix is not in PATH")
+
+  ## OS processes
+
+  # The wrapper: a watcher in the background kills the process group when its stdin (the
+  # port) closes; the command replaces the shell, keeping the shell's pid (the group's id).
+  @wrapper ~S"""
+  exec 3<&0
+  ( read -r _ <&3; kill -s KILL -- -$$ ) >/dev/null 2>&1 </dev/null &
+  echo "@@acceptance-pid $$"
+  exec "$@" </dev/null 3<&-
+  """
+
+  @doc "Starts `argv` as an OS process in its own process group. Options: `:env`, `:cd`."
+  def start([command | args], opts \\ []) do
+    executable =
+      if String.contains?(command, "/"),
+        do: Path.expand(command, Keyword.get(opts, :cd, @root)),
+        else: System.find_executable(command) || flunk("#{command} is not in PATH")
+
+    owner = self()
+    {:ok, pid} = GenServer.start(__MODULE__.Proc, {owner, executable, args, opts})
+    pid
+  end
+
+  @doc "Everything the process wrote so far (stdout and stderr together)."
+  def output(proc), do: GenServer.call(proc, :output)
+
+  @doc "The OS pid of the process (the program `exec`ed by the wrapper)."
+  def os_pid(proc), do: GenServer.call(proc, :os_pid)
+
+  @doc """
+  Waits until the output matches `regex` and returns its captures (`Regex.run/2`); fails the
+  test with the output if `timeout` ms pass first or the process exits without matching.
+  """
+  def await(proc, regex, timeout \\ 60_000) do
+    deadline = System.monotonic_time(:millisecond) + timeout
+    await_loop(proc, regex, deadline)
+  end
+
+  defp await_loop(proc, regex, deadline) do
+    %{output: out, status: status} = GenServer.call(proc, :state)
+
+    cond do
+      match = Regex.run(regex, out) ->
+        match
+
+      status != nil ->
+        flunk("the process exited (status #{status}) before #{inspect(regex)}; output:\n#{out}")
+
+      System.monotonic_time(:millisecond) > deadline ->
+        flunk("no #{inspect(regex)} in time; output so far:\n#{out}")
+
+      true ->
+        Process.sleep(50)
+        await_loop(proc, regex, deadline)
+    end
+  end
+
+  @doc "Sends signal `sig` (`\"TERM\"`, `\"INT\"`, `\"QUIT\"`, …) to the process itself."
+  def signal(proc, sig) do
+    {_, 0} = System.cmd("kill", ["-s", sig, "--", Integer.to_string(os_pid(proc))])
+    :ok
+  end
+
+  @doc "Waits for the process to exit and returns its exit status; fails the test after `timeout` ms."
+  def await_exit(proc, timeout \\ 30_000) do
+    deadline = System.monotonic_time(:millisecond) + timeout
+    await_exit_loop(proc, deadline)
+  end
+
+  defp await_exit_loop(proc, deadline) do
+    %{output: out, status: status} = GenServer.call(proc, :state)
+
+    cond do
+      status != nil ->
+        status
+
+      System.monotonic_time(:millisecond) > deadline ->
+        flunk("the process did not exit in time; output so far:\n#{out}")
+
+      true ->
+        Process.sleep(50)
+        await_exit_loop(proc, deadline)
+    end
+  end
+
+  @doc "Kills the process and everything in its group (SIGKILL); returns the output. Idempotent."
+  def stop(proc) do
+    if Process.alive?(proc) do
+      try do
+        GenServer.call(proc, :stop, 10_000)
+      catch
+        :exit, _ -> ""
+      end
+    else
+      ""
+    end
+  end
+
+  ## tmux
+
+  @doc """
+  Starts `command` (a shell command line, run in the project root) in a new detached tmux
+  session on a tmux server of its own, 200 columns wide. Options: `:env`.
+  """
+  def tmux_start(command, opts \\ []) do
+    socket = "vws-acceptance-#{System.unique_integer([:positive])}"
+
+    env =
+      for {k, v} <- Keyword.get(opts, :env, []),
+          do: "#{k}=#{shell_quote(v)} "
+
+    line = "cd #{shell_quote(@root)} && exec env #{Enum.join(env)}#{command}"
+
+    {out, status} =
+      System.cmd(
+        "tmux",
+        ["-L", socket, "new-session", "-d", "-s", "main", "-x", "200", "-y", "50", line],
+        stderr_to_stdout: true
+      )
+
+    if status != 0, do: flunk("tmux new-session failed: #{out}")
+    {_, 0} = tmux(socket, ["set-option", "-t", "main", "history-limit", "20000"])
+    %{socket: socket}
+  end
+
+  @doc "Types `text` into the session's pane, then Enter."
+  def tmux_send(%{socket: socket}, text) do
+    {_, 0} = tmux(socket, ["send-keys", "-t", "main", "-l", text])
+    {_, 0} = tmux(socket, ["send-keys", "-t", "main", "Enter"])
+    :ok
+  end
+
+  @doc "The pane's text, its scroll-back included."
+  def tmux_capture(%{socket: socket}) do
+    case tmux(socket, ["capture-pane", "-p", "-J", "-S", "-20000", "-t", "main"]) do
+      {out, 0} -> out
+      {out, _} -> "(no pane: #{out})"
+    end
+  end
+
+  @doc "Waits until the pane's text matches `regex`; returns the captures or fails with the pane."
+  def tmux_await(t, regex, timeout \\ 60_000) do
+    deadline = System.monotonic_time(:millisecond) + timeout
+    tmux_await_loop(t, regex, deadline)
+  end
+
+  defp tmux_await_loop(t, regex, deadline) do
+    text = tmux_capture(t)
+
+    cond do
+      match = Regex.run(regex, text) ->
+        match
+
+      System.monotonic_time(:millisecond) > deadline ->
+        flunk("no #{inspect(regex)} in the tmux pane in time; pane:\n#{text}")
+
+      true ->
+        Process.sleep(100)
+        tmux_await_loop(t, regex, deadline)
+    end
+  end
+
+  @doc "The OS pid of the program in the session's pane."
+  def tmux_pid(%{socket: socket}) do
+    {out, 0} = tmux(socket, ["list-panes", "-t", "main", "-F", "\#{pane_pid}"])
+    out |> String.trim() |> String.to_integer()
+  end
+
+  @doc "Ends the session: SIGKILL to the pane's program and its group, then the tmux server."
+  def tmux_stop(%{socket: socket} = t) do
+    case tmux(socket, ["list-panes", "-t", "main", "-F", "\#{pane_pid}"]) do
+      {out, 0} ->
+        pid = String.trim(out)
+        System.cmd("kill", ["-s", "KILL", "--", "-" <> pid], stderr_to_stdout: true)
+        System.cmd("kill", ["-s", "KILL", "--", pid], stderr_to_stdout: true)
+
+      _ ->
+        :ok
+    end
+
+    tmux(socket, ["kill-server"])
+    _ = t
+    :ok
+  end
+
+  defp tmux(socket, args), do: System.cmd("tmux", ["-L", socket | args], stderr_to_stdout: true)
+
+  defp shell_quote(value), do: "'" <> String.replace(to_string(value), "'", ~S('\'')) <> "'"
+
+  ## Talking to it
+
+  @doc "A TCP port free on 127.0.0.1 at this moment."
+  def free_port do
+    {:ok, socket} = :gen_tcp.listen(0, ip: {127, 0, 0, 1}, reuseaddr: true)
+    {:ok, port} = :inet.port(socket)
+    :gen_tcp.close(socket)
+    port
+  end
+
+  @doc ~S"""
+  The WC string `data` (`"*0001*S0001ROBOT_CMD*"`) with its block check (8-bit sum, three digits).
+
+      iex> Vws.Test.Acceptance.wc_frame("*0001*S0001ROBOT_CMD*")
+      "*0001*S0001ROBOT_CMD*012"
+  """
+  def wc_frame(data) do
+    sum = data |> :binary.bin_to_list() |> Enum.sum() |> rem(256)
+    data <> String.pad_leading(Integer.to_string(sum), 3, "0")
+  end
+
+  @doc """
+  Connects to the WC link on `127.0.0.1:port` (retrying until `timeout`), sends `data` framed
+  with `wc_frame/1` and `\r\n`, and returns the first reply line (without its line end).
+  """
+  def wc_request(port, data, timeout \\ 10_000) do
+    deadline = System.monotonic_time(:millisecond) + timeout
+    socket = connect_retrying(port, deadline)
+
+    try do
+      :ok = :gen_tcp.send(socket, wc_frame(data) <> "\r\n")
+
+      case :gen_tcp.recv(socket, 0, max(deadline - System.monotonic_time(:millisecond), 1)) do
+        {:ok, line} -> String.trim_trailing(line, "\n") |> String.trim_trailing("\r")
+        {:error, reason} -> flunk("no WC reply to #{data}: #{inspect(reason)}")
+      end
+    after
+      :gen_tcp.close(socket)
+    end
+  end
+
+  defp connect_retrying(port, deadline) do
+    case :gen_tcp.connect({127, 0, 0, 1}, port, [:binary, active: false, packet: :line], 1_000) do
+      {:ok, socket} ->
+        socket
+
+      {:error, reason} ->
+        if System.monotonic_time(:millisecond) > deadline,
+          do: flunk("cannot connect to 127.0.0.1:#{port}: #{inspect(reason)}"),
+          else: Process.sleep(100) && connect_retrying(port, deadline)
+    end
+  end
+
+  @doc "`{status, body}` of `GET http://127.0.0.1:port<path>`."
+  def http_get(port, path) do
+    {:ok, _} = Application.ensure_all_started(:inets)
+    url = ~c"http://127.0.0.1:#{port}#{path}"
+
+    case :httpc.request(:get, {url, []}, [timeout: 10_000], body_format: :binary) do
+      {:ok, {{_, status, _}, _headers, body}} -> {status, body}
+      {:error, reason} -> flunk("GET #{url} failed: #{inspect(reason)}")
+    end
+  end
+
+  defmodule Proc do
+    @moduledoc false
+    # Owns the port of one OS process started by Vws.Test.Acceptance.start/2.
+    use GenServer
+
+    @impl true
+    def init({owner, executable, args, opts}) do
+      Process.monitor(owner)
+
+      env =
+        for {k, v} <- Keyword.get(opts, :env, []),
+            do: {String.to_charlist(k), v && String.to_charlist(v)}
+
+      port =
+        Port.open({:spawn_executable, System.find_executable("setsid")}, [
+          :binary,
+          :exit_status,
+          :stderr_to_stdout,
+          :use_stdio,
+          :hide,
+          args: [
+            "-w",
+            "sh",
+            "-c",
+            Vws.Test.Acceptance.wrapper(),
+            "vws-acceptance",
+            executable | args
+          ],
+          env: env,
+          cd: Keyword.get(opts, :cd, Vws.Test.Acceptance.root())
+        ])
+
+      {:ok, %{port: port, output: "", os_pid: nil, status: nil}}
+    end
+
+    @impl true
+    def handle_info({port, {:data, data}}, %{port: port} = state) do
+      output = state.output <> data
+
+      case state.os_pid do
+        nil ->
+          case Regex.run(~r/\A@@acceptance-pid (\d+)\n/, output) do
+            [header, pid] ->
+              rest = binary_part(output, byte_size(header), byte_size(output) - byte_size(header))
+              {:noreply, %{state | os_pid: String.to_integer(pid), output: rest}}
+
+            nil ->
+              {:noreply, %{state | output: output}}
+          end
+
+        _ ->
+          {:noreply, %{state | output: output}}
+      end
+    end
+
+    def handle_info({port, {:exit_status, status}}, %{port: port} = state),
+      do: {:noreply, %{state | status: status}}
+
+    def handle_info({:DOWN, _, :process, _owner, _}, state), do: {:stop, :normal, state}
+    def handle_info(_other, state), do: {:noreply, state}
+
+    @impl true
+    def handle_call(:output, _from, state), do: {:reply, state.output, state}
+    def handle_call(:state, _from, state), do: {:reply, state, state}
+
+    def handle_call(:os_pid, from, %{os_pid: nil} = state) do
+      # the wrapper prints its pid first thing; wait for it
+      Process.sleep(20)
+      handle_call_later(from, state)
+    end
+
+    def handle_call(:os_pid, _from, state), do: {:reply, state.os_pid, state}
+
+    def handle_call(:stop, _from, state) do
+      kill_group(state)
+      {:stop, :normal, state.output, state}
+    end
+
+    defp handle_call_later(from, state) do
+      receive do
+        {port, {:data, _}} = msg when port == state.port ->
+          {:noreply, state} = handle_info(msg, state)
+          handle_call(:os_pid, from, state)
+      after
+        5_000 -> {:reply, nil, state}
+      end
+    end
+
+    @impl true
+    def terminate(_reason, state), do: kill_group(state)
+
+    defp kill_group(%{os_pid: pid, port: port, status: status}) do
+      if pid && status == nil,
+        do: System.cmd("kill", ["-s", "KILL", "--", "-#{pid}"], stderr_to_stdout: true)
+
+      # closing the port also makes the group's watcher kill whatever is left in it
+      try do
+        Port.close(port)
+      catch
+        _, _ -> :ok
+      end
+
+      :ok
+    end
+  end
+
+  @doc false
+  def wrapper, do: @wrapper
+end
