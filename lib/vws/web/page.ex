@@ -112,7 +112,7 @@ defmodule Vws.Web.Page do
         if (h.length > HISTORY) h.shift();
       });
       const log = errors[ws.id] = errors[ws.id] || [];
-      (ws.alerts || []).forEach(a => {
+      (ws.alerts || []).slice().reverse().forEach(a => {
         const found = log.find(e => e.where === a.where && e.text === a.text);
         if (found) { found.last = t; found.lastText = now; }
         else log.unshift({first: t, firstText: now, last: t, lastText: now, where: a.where, text: a.text});
@@ -167,8 +167,11 @@ defmodule Vws.Web.Page do
     const nums = values.filter(v => typeof v === "number");
     if (nums.length === 0) return svg;
     let lo = Math.min(...nums), hi = Math.max(...nums);
-    if (hi - lo < 1e-9) { lo -= 1; hi += 1; }
-    const x = i => (values.length < 2 ? W : (i * (W - 2)) / (HISTORY - 1) + 1);
+    // a steady value stays a flat line: its noise is not blown up to the plot's height
+    const least = Math.max(1, 0.05 * Math.max(Math.abs(hi), Math.abs(lo)));
+    if (hi - lo < least) { const mid = (hi + lo) / 2; lo = mid - least / 2; hi = mid + least / 2; }
+    const span = Math.max(values.length, 30) - 1;
+    const x = i => (i * (W - 2)) / span + 1;
     const y = v => H - 2 - ((v - lo) * (H - 4)) / (hi - lo);
     let pts = [];
     const flush = () => {
@@ -187,7 +190,8 @@ defmodule Vws.Web.Page do
 
   function value(q) {
     if (q.value === null || q.value === undefined) return {text: "no reading" + (q.note ? " (" + q.note + ")" : ""), cls: "num nodata"};
-    return {text: (q.unit === "N" ? Math.round(q.value) : q.value.toFixed(1)) + " " + q.unit, cls: "num"};
+    const v = Math.abs(q.value) < 0.05 ? 0 : q.value;  // never "-0.0"
+    return {text: (q.unit === "N" ? Math.round(v) : v.toFixed(1)) + " " + q.unit, cls: "num"};
   }
 
   function sensors(ws) {
