@@ -115,7 +115,7 @@ defmodule Vws.Acceptance.DashboardTest do
     end
 
     # the lease, the NC file done, the error highlighted
-    assert page =~ ~r/tray1 robot disable tray1|tray1 robot \w+/
+    assert page =~ ~r/tray1 robot disabled \d+ (ms|s)/
     assert page =~ "no NC transfer under way"
     assert dom =~ ~r/<div class="error new">[^<]*ROBOT: #{pad4(bad)} ERROR/
 

@@ -92,8 +92,17 @@ defmodule Vws.Web.State do
       }
     end
   rescue
-    # the registry went away (the node is stopping)
-    ArgumentError -> []
+    # the registry went away (the node is stopping), or a controller stopped while read
+    e ->
+      [
+        %{
+          name: "equipment",
+          state: "could not be read: #{Inspect.words(e)}",
+          status: nil,
+          details: "",
+          links: []
+        }
+      ]
   end
 
   defp status_text(nil), do: nil
@@ -124,8 +133,8 @@ defmodule Vws.Web.State do
   defp workstation(ws) do
     if Mailbox.exists?(ws), do: [workstation!(ws)], else: []
   rescue
-    # stopped while we read it
-    ArgumentError -> []
+    # stopped while we read it: not shown; still there: shown, saying it could not be read
+    e -> if Mailbox.exists?(ws), do: [unreadable(ws, e)], else: []
   end
 
   defp workstation!(ws) do
