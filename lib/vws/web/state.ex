@@ -375,22 +375,18 @@ defmodule Vws.Web.State do
         _ -> []
       end
 
+    # NC programs only: the status reads of MONARCH's monitor are not transfers to follow
     dnc =
-      for %{id: :ge2000, info: %{transfer: %{} = t}} <- snapshot.links do
-        {kind, number} = dnc_kind(t.command)
-        progress("GE-2000 (DNC)", kind, number, :blocks, t, now)
-      end
+      for %{id: :ge2000, info: %{transfer: %{} = t}} <- snapshot.links,
+          kind = dnc_kind(t.command),
+          do: progress("GE-2000 (DNC)", kind, nil, :blocks, t, now)
 
     wc ++ dnc
   end
 
-  defp dnc_kind(%{direction: :send, operation: :part_program}), do: {"DOWNLOAD_GE", nil}
-  defp dnc_kind(%{direction: :receive, operation: :part_program}), do: {"UPLOAD_GE", nil}
-
-  defp dnc_kind(%{direction: d, operation: o}),
-    do: {"DNC #{Inspect.words(d)} #{Inspect.words(o)}", nil}
-
-  defp dnc_kind(_), do: {"DNC transmission", nil}
+  defp dnc_kind(%{direction: :send, operation: :part_program}), do: "DOWNLOAD_GE"
+  defp dnc_kind(%{direction: :receive, operation: :part_program}), do: "UPLOAD_GE"
+  defp dnc_kind(_other), do: nil
 
   @doc false
   # An NC transfer's progress from a link's `transfer` info: so far, in all, rate and ETA.
