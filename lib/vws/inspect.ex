@@ -21,9 +21,15 @@ defmodule Vws.Inspect do
     * **partitions** — each command partition's process state (`idle`, `running`, `down`), its
       command status (mailbox 34–39), the command in flight and for how long, commands done and
       ended in error since it started, and its restarts;
-    * **links** — every child of the workstation's links supervisor: its id, pid, state and,
-      when its module exports `info/1` (called with the pid), that map (counters, last error, …);
-    * **interlocks** — every mailbox entry `{:interlock, what}` and its holder.
+    * **links** — every child of the workstation's links supervisor: what it is
+      (`link_name/2`: `DAQ #1 (HPIB 9)`, `GE-2000 (DNC)`, …), its pid, state and, when its module
+      exports `info/1`, that map (counters, last error, …). Every link module's `info/1` takes
+      the link's pid; one that cannot be read (its `info/1` raises) is shown `unreadable` with
+      the error, and the other rows are shown all the same;
+    * **interlocks** — every interlock lease (`Vws.Interlock.held/1`): volume, holder, reasons,
+      age.
+
+  Everything printed is words and numbers (`words/1`), never an Elixir term.
   """
 
   alias Vws.{Events, Mailbox}

@@ -19,7 +19,13 @@ defmodule Vws.InspectFloorTest do
     )
 
     :ok = Vws.HydraulicController.await_ready(Floor.hydraulic_controller(ws), 10_000)
-    Vws.Test.Workstation.start(id: ws, devices: Floor.devices(ws))
+    # stale only after 10 s: a loaded machine (the whole suite on two cores) must not blank the
+    # readings this test reads; staleness itself is tested in vws_status_test.exs
+    Vws.Test.Workstation.start(
+      id: ws,
+      devices: Floor.devices(ws),
+      partitions: [vws_status: [stale_after_ms: 10_000]]
+    )
 
     # DAQ #1 answered: the readings are there to be shown
     assert Vws.Test.Eventually.eventually(fn ->

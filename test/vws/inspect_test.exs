@@ -132,6 +132,21 @@ defmodule Vws.InspectTest do
     assert out =~ ~r/fine +#PID<[\d.]+> +ready/
   end
 
+  test "words: what a person reads, never an Elixir term" do
+    assert Inspect.words({:ready, :still}) == "ready still"
+    assert Inspect.words(:not_answering) == "not answering"
+    assert Inspect.words(%{a: 1, b: [:x, "Y"]}) == "a 1, b x Y"
+    assert Inspect.words(self()) == "process"
+    assert Inspect.words(%Vws.HPIB.Error{reason: :timeout, address: 9, detail: 500}) =~ "9"
+    assert Inspect.words(nil) == "-"
+
+    assert Vws.Mailbox.device_text({:no_data, "NO LINK TO DAQ #1"}) ==
+             "NO DATA (NO LINK TO DAQ #1)"
+
+    assert Vws.Mailbox.device_text(%Vws.DAQ.Readings{seq: 3, values: %{vise_jaw_mm: 50.04}}) ==
+             "POLL 3: VISE JAW WIDTH 50.0 MM"
+  end
+
   test "the printed views", %{ws: ws} do
     out = capture_io(fn -> Inspect.overview(ws) end)
     assert out =~ "VWS mailboxes of workstation"
