@@ -90,7 +90,8 @@ defmodule Vws.HPIB do
     * `:connect_timeout` — ms allowed to open the endpoint (1000);
     * `:backoff` — `{first_ms, max_ms}` between reconnection attempts, doubling (`{50, 2000}`),
       back to `first_ms` only once the device has answered on a connection (`Vws.Backoff`);
-    * `:retries` — how many times a repeatable request is tried again (2).
+    * `:retries` — how many times a repeatable request is tried again (2);
+    * `:device` — what the device is, for people (`"DAQ #1"`), shown by `info/1` and the dashboard.
   """
   @spec start_link(keyword) :: :gen_statem.start_ret()
   def start_link(opts) do
@@ -166,10 +167,15 @@ defmodule Vws.HPIB do
   end
 
   @doc """
-  The device process's state: `%{state, address, endpoint, connects, timeouts, retried,
-  requests, queued, unsolicited, last_error}` (`retried`: requests tried again) (`state` is `:connecting`, `:disconnected`, `:ready` or `:busy`).
+  The device process's state: `%{state, device, address, endpoint, connects, timeouts, retried,
+  requests, queued, unsolicited, last_error}` (`retried`: requests tried again; `device`: the
+  `:device` option or nil) (`state` is `:connecting`, `:disconnected`, `:ready` or `:busy`).
+
+  Asked by `{bus, address}` or by the device process's pid — the way every link under a
+  workstation's links supervisor is asked (`Vws.Inspect.link_rows/1`).
   """
-  @spec info(device) :: map
+  @spec info(device | pid) :: map
+  def info(pid) when is_pid(pid), do: :gen_statem.call(pid, :info)
   def info({bus, address}), do: :gen_statem.call(name(bus, address), :info)
 
   @doc "Waits until the device is connected (for start-up and tests): `:ok` or `:timeout`."

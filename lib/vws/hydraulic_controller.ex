@@ -131,7 +131,7 @@ defmodule Vws.HydraulicController do
     {bus, address} = device = daq2_device(name, opts)
 
     hpib =
-      [bus: bus, address: address, endpoint: Keyword.fetch!(opts, :daq2)] ++
+      [bus: bus, address: address, endpoint: Keyword.fetch!(opts, :daq2), device: "DAQ #2"] ++
         Keyword.get(opts, :hpib, [])
 
     pallet =

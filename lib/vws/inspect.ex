@@ -21,9 +21,15 @@ defmodule Vws.Inspect do
     * **partitions** — each command partition's process state (`idle`, `running`, `down`), its
       command status (mailbox 34–39), the command in flight and for how long, commands done and
       ended in error since it started, and its restarts;
-    * **links** — every child of the workstation's links supervisor: its id, pid, state and,
-      when its module exports `info/1` (called with the pid), that map (counters, last error, …);
-    * **interlocks** — every mailbox entry `{:interlock, what}` and its holder.
+    * **links** — every child of the workstation's links supervisor: what it is
+      (`link_name/2`: `DAQ #1 (HPIB 9)`, `GE-2000 (DNC)`, …), its pid, state and, when its module
+      exports `info/1`, that map (counters, last error, …). Every link module's `info/1` takes
+      the link's pid; one that cannot be read (its `info/1` raises) is shown `unreadable` with
+      the error, and the other rows are shown all the same;
+    * **interlocks** — every interlock lease (`Vws.Interlock.held/1`): volume, holder, reasons,
+      age.
+
+  Everything printed is words and numbers (`words/1`), never an Elixir term.
   """
 
   alias Vws.{Events, Mailbox}
@@ -71,6 +77,7 @@ defmodule Vws.Inspect do
           nil -> :down
           :down -> :down
           :not_answering -> :not_answering
+          {:unreadable, _} -> :unreadable
           %{current: nil} -> :idle
           %{current: _} -> :running
         end
@@ -119,8 +126,8 @@ defmodule Vws.Inspect do
           end
 
         children
-        |> Enum.sort_by(fn {id, _, _, _} -> inspect(id) end)
         |> parallel(&link_row/1)
+        |> Enum.sort_by(& &1.name)
     end
   end
 
@@ -137,9 +144,10 @@ defmodule Vws.Inspect do
 
         module && Code.ensure_loaded?(module) && function_exported?(module, :info, 1) ->
           case call(fn -> module.info(pid) end) do
-            %{} = info -> {Map.get(info, :state, :running), info}
+            %{} = info -> {Map.get(info, :state, :running), line_info(module, info)}
             :not_answering -> {:not_answering, nil}
             :down -> {:down, nil}
+            {:unreadable, why} -> {:unreadable, %{error: why}}
             other -> {:running, %{info: other}}
           end
 
@@ -147,29 +155,97 @@ defmodule Vws.Inspect do
           {:running, nil}
       end
 
-    %{id: id, pid: if(is_pid(pid), do: pid), module: module, state: state, info: info}
+    %{
+      id: id,
+      name: link_name(id, info),
+      pid: if(is_pid(pid), do: pid),
+      module: module,
+      state: state,
+      info: info
+    }
   end
 
-  @doc "Every interlock in the mailboxes: `%{what, holder, extra}` (`extra` is the rest of the entry)."
+  # A VAL II's own line: the DDCMP link it started (retransmissions, last error) under `:line`.
+  defp line_info(Vws.VAL, %{link: link} = info) when is_pid(link) do
+    case call(fn -> Vws.DDCMP.info(link) end) do
+      %{} = line -> Map.put(info, :line, line)
+      _ -> info
+    end
+  end
+
+  defp line_info(_module, info), do: info
+
+  @doc """
+  Equipment of the cell that runs on this node outside any workstation — the hydraulic
+  controller (`Vws.HydraulicController`, on the simulated floor or started with
+  `mix vws.hydraulic`) — with its own link to DAQ #2: `[%{name, state, info, links}]`, `links`
+  shaped as `link_rows/1`.
+  """
+  @spec equipment_rows() :: [map]
+  def equipment_rows do
+    Registry.select(Vws.Registry, [
+      {{{{:hydraulic_controller, :"$1"}, :program}, :_, :_}, [], [:"$1"]}
+    ])
+    |> Enum.sort_by(&inspect/1)
+    |> Enum.map(fn name ->
+      info = call(fn -> Vws.HydraulicController.info(name) end)
+      {bus, address} = Vws.HydraulicController.daq2_device(name)
+
+      daq2 =
+        case Registry.lookup(Vws.Registry, {bus, {:hpib, address}}) do
+          [{pid, _}] -> link_row({{Vws.HPIB, bus, address}, pid, :worker, [Vws.HPIB]})
+          [] -> link_row({{Vws.HPIB, bus, address}, :undefined, :worker, [Vws.HPIB]})
+        end
+
+      %{
+        name: "hydraulic controller #{words(name)}",
+        state: if(is_map(info), do: Map.get(info, :phase, :running), else: info),
+        info: if(is_map(info), do: info),
+        links: [daq2]
+      }
+    end)
+  end
+
+  @doc """
+  The device link a partition was given, for people: `"VAL II"`, `"GE-2000"`, `"HPIB 9"`,
+  `"none"`.
+  """
+  @spec link_ref(term) :: String.t()
+  def link_ref(nil), do: "none"
+  def link_ref({:via, Registry, {Vws.Registry, {_ws, :val}}}), do: "VAL II"
+  def link_ref({:via, Registry, {Vws.Registry, {_ws, :ge2000}}}), do: "GE-2000"
+  def link_ref({:via, Registry, {Vws.Registry, {_ws, role}}}), do: words(role)
+  def link_ref({_bus, address}) when is_integer(address), do: "HPIB #{address}"
+  def link_ref(other), do: words(other)
+
+  @doc """
+  What a link is, for people: `"DAQ #1 (HPIB 9)"`, `"GE-2000 (DNC)"`, `"VAL II (DDCMP)"`, … —
+  from the link's id under the links supervisor and its `info/1` map (an HPIB device says what
+  it is through its `:device` option).
+  """
+  @spec link_name(term, map | nil) :: String.t()
+  def link_name({Vws.HPIB, _bus, address}, info) do
+    case info do
+      %{device: device} when is_binary(device) -> "#{device} (HPIB #{address})"
+      _ -> "HPIB device #{address}"
+    end
+  end
+
+  def link_name(:ge2000, _info), do: "GE-2000 (DNC)"
+  def link_name(:val, _info), do: "VAL II (DDCMP)"
+  def link_name(Vws.Partitions.Monarch.Monitor, _info), do: "MONARCH status reader"
+  def link_name(Vws.Partitions.Hydraulic.Monitor, _info), do: "PALLET status reader"
+  def link_name(id, _info), do: label(id)
+
+  @doc """
+  Every interlock lease of the workstation (`Vws.Interlock.held/1`), by volume:
+  `%{what, holder, reasons, age_ms}` — `what` is the volume (`:table`, `:tray1`, …).
+  """
   @spec interlock_rows(workstation) :: [map]
   def interlock_rows(ws) do
-    # one clause per entry size: {{:interlock, what}, holder, ...}
-    spec =
-      for extra <- 0..6 do
-        {List.to_tuple([{:interlock, :_} | List.duplicate(:_, extra)]), [], [:"$_"]}
-      end
-
-    Mailbox.table(ws)
-    |> :ets.select(spec)
-    |> Enum.map(fn entry ->
-      [{:interlock, what} | rest] = Tuple.to_list(entry)
-
-      case rest do
-        [] -> %{what: what, holder: nil, extra: []}
-        [holder | extra] -> %{what: what, holder: holder, extra: extra}
-      end
-    end)
-    |> Enum.sort_by(&inspect(&1.what))
+    for lease <- Vws.Interlock.held(ws) do
+      %{what: lease.volume, holder: lease.holder, reasons: lease.reasons, age_ms: lease.age_ms}
+    end
   end
 
   @doc "SUN_COMM's `info/1` map, or `:down` / `:not_answering`."
@@ -249,7 +325,7 @@ defmodule Vws.Inspect do
           count(r.done),
           count(r.errors),
           to_string(r.restarts),
-          if(r.link == nil, do: "none", else: inspect(r.link, limit: 5))
+          link_ref(r.link)
         ]
       end
 
@@ -266,7 +342,7 @@ defmodule Vws.Inspect do
     rows =
       for r <- link_rows(ws) do
         [
-          label(r.id),
+          r.name,
           if(r.pid, do: inspect(r.pid), else: "-"),
           label(r.state),
           format_info(r.info)
@@ -283,13 +359,12 @@ defmodule Vws.Inspect do
   def format_interlocks(ws) do
     rows =
       for r <- interlock_rows(ws) do
-        [label(r.what), holder(r.holder)] ++
-          if r.extra == [], do: [""], else: [inspect(r.extra, limit: 8, charlists: :as_lists)]
+        [label(r.what), holder(r.holder), Enum.map_join(r.reasons, " ", &label/1), age(r.age_ms)]
       end
 
     if rows == [],
       do: "INTERLOCKS of #{inspect(ws)}\n(none held)",
-      else: table("INTERLOCKS of #{inspect(ws)}", ["interlock", "holder", ""], rows)
+      else: table("INTERLOCKS of #{inspect(ws)}", ["interlock", "holder", "for", "held"], rows)
   end
 
   @doc "The text `wc/2` prints."
@@ -301,7 +376,7 @@ defmodule Vws.Inspect do
           counters = Enum.map_join(Enum.sort(i.counters), " ", fn {k, v} -> "#{k}=#{v}" end)
 
           "WC LINK of #{inspect(ws)}: #{i.listening || i.endpoint || "no endpoint"}, " <>
-            "peer #{i.peer || "none"}, mode #{inspect(i.mode)}\n#{counters}"
+            "peer #{i.peer || "none"}, mode #{words(i.mode)}\n#{counters}"
 
         other ->
           "WC LINK of #{inspect(ws)}: SUN_COMM #{label(other)}"
@@ -471,13 +546,16 @@ defmodule Vws.Inspect do
 
   ## Helpers
 
-  # Runs fun with a deadline: its result, or :not_answering (an exit, or no answer in time).
+  # Runs fun with a deadline: its result; :down (the process exited or is not there);
+  # :not_answering (no answer in time); {:unreadable, why} when asking raised — one row that
+  # cannot be read says so and never takes the view (or the shell that asked) down with it.
   defp call(fun) do
     task = Task.async(fn -> try_call(fun) end)
 
     case Task.yield(task, @call_timeout) || Task.shutdown(task, :brutal_kill) do
       {:ok, {:ok, result}} -> result
       {:ok, :down} -> :down
+      {:ok, {:unreadable, _} = unreadable} -> unreadable
       _ -> :not_answering
     end
   end
@@ -486,7 +564,10 @@ defmodule Vws.Inspect do
     {:ok, fun.()}
   catch
     :exit, _ -> :down
+    kind, reason -> {:unreadable, Exception.format_banner(kind, reason) |> first_line()}
   end
+
+  defp first_line(text), do: text |> String.split("\n", parts: 2) |> hd() |> String.slice(0, 160)
 
   defp parallel(list, fun) do
     list
@@ -503,6 +584,7 @@ defmodule Vws.Inspect do
   defp fun_failed({id, _pid, _type, modules}),
     do: %{
       id: id,
+      name: link_name(id, nil),
       pid: nil,
       module: List.first(List.wrap(modules)),
       state: :not_answering,
@@ -537,6 +619,47 @@ defmodule Vws.Inspect do
 
   def label(other), do: inspect(other, limit: 8)
 
+  @doc """
+  Any value as words a person reads, never an Elixir term: text as it is, atoms and numbers as
+  they read, tuples and lists joined with spaces, maps as `key value` pairs, an exception as
+  its message, a process as `process`.
+
+      iex> Vws.Inspect.words({:ready, :still})
+      "ready still"
+      iex> Vws.Inspect.words(%{a: 1, b: [:x, "Y"]})
+      "a 1, b x Y"
+  """
+  @spec words(term) :: String.t()
+  def words(nil), do: "-"
+  def words(v) when is_binary(v), do: if(String.printable?(v), do: v, else: inspect(v))
+  def words(v) when is_atom(v), do: v |> to_string() |> String.replace("_", " ")
+  def words(v) when is_integer(v), do: Integer.to_string(v)
+  def words(v) when is_float(v), do: :erlang.float_to_binary(v, [:compact, decimals: 3])
+  def words(v) when is_pid(v) or is_reference(v) or is_port(v), do: "process"
+  def words(%{__exception__: true} = e), do: Exception.message(e)
+  def words(%Vws.DAQ.Readings{} = r), do: Vws.DAQ.Readings.describe(r)
+  def words(%_{} = struct), do: struct |> Map.from_struct() |> words()
+
+  def words(%{} = m),
+    do: m |> Enum.sort() |> Enum.map_join(", ", fn {k, v} -> "#{words(k)} #{words(v)}" end)
+
+  def words(t) when is_tuple(t), do: t |> Tuple.to_list() |> Enum.map_join(" ", &words/1)
+
+  def words(l) when is_list(l) do
+    if l != [] and List.ascii_printable?(l),
+      do: List.to_string(l),
+      else: Enum.map_join(l, " ", &words/1)
+  end
+
+  def words(other), do: inspect(other, limit: 8)
+
+  @doc false
+  # A duration for people: "850 ms", "12 s", "3 min".
+  def age(nil), do: "-"
+  def age(ms) when ms < 10_000, do: "#{ms} ms"
+  def age(ms) when ms < 600_000, do: "#{div(ms, 1000)} s"
+  def age(ms), do: "#{div(ms, 60_000)} min"
+
   defp holder(nil), do: "-"
   defp holder(h), do: label(h)
 
@@ -557,7 +680,7 @@ defmodule Vws.Inspect do
 
   defp short(v) when is_binary(v), do: printable(v)
   defp short(v) when is_atom(v) or is_number(v), do: to_string(v)
-  defp short(v), do: inspect(v, limit: 8, printable_limit: 80)
+  defp short(v), do: words(v)
 
   defp count(nil), do: "-"
   defp count(n), do: to_string(n)

@@ -134,6 +134,28 @@ defmodule Vws.Mailbox do
     :ok
   end
 
+  @doc """
+  Keeps the latest decoded readings of a device that has no location of its own for them
+  (`:pallet`: the hydraulic controller's `PALLET?` answer, clamp forces included), for the views
+  (`Vws.Inspect`, the dashboard). Nothing decides on them: commands read their device.
+  """
+  @spec put_readings(workstation, atom, term) :: :ok
+  def put_readings(ws, source, value) when is_atom(source) do
+    :ets.insert(table(ws), {{:readings, source}, value, now()})
+    :ok
+  end
+
+  @doc "The readings kept with `put_readings/3`: `%{source => {value, age_ms}}`."
+  @spec readings(workstation) :: %{atom => {term, non_neg_integer}}
+  def readings(ws) do
+    now = now()
+
+    for {{:readings, source}, value, at} <-
+          :ets.match_object(table(ws), {{:readings, :_}, :_, :_}),
+        into: %{},
+        do: {source, {value, now - at}}
+  end
+
   @doc "Reads a device-status location: `{value, age_ms}`; value `nil` means never written."
   @spec get_device(workstation, 1..14) :: {term, non_neg_integer}
   def get_device(ws, loc) when loc in 1..14 do
@@ -425,8 +447,25 @@ defmodule Vws.Mailbox do
   defp age(%{age_ms: ms}) when ms < 10_000, do: "#{ms}ms"
   defp age(%{age_ms: ms}), do: "#{div(ms, 1000)}s"
   defp text(nil), do: "(no data)"
-  defp text(v) when is_binary(v), do: v
-  defp text(v), do: inspect(v, limit: 20)
+  defp text(v), do: device_text(v)
+
+  @doc """
+  A device-status value in words, as a person reads it: the text itself; `{:no_data, why}` as
+  `NO DATA (why)`; a poll of DAQ #1 (`Vws.DAQ.Readings`, location 11) as its quantities
+  (`Vws.DAQ.Readings.describe/1`); nil (never written) as nil.
+
+      iex> Vws.Mailbox.device_text({:no_data, "NO LINK TO DAQ #1"})
+      "NO DATA (NO LINK TO DAQ #1)"
+  """
+  @spec device_text(term) :: String.t() | nil
+  def device_text(nil), do: nil
+
+  def device_text(v) when is_binary(v),
+    do: if(String.printable?(v), do: v, else: "UNPRINTABLE TEXT #{Base.encode16(v)}")
+
+  def device_text({:no_data, why}) when is_binary(why), do: Vws.DAQ.DeviceStatus.no_data(why)
+  def device_text(%Vws.DAQ.Readings{} = r), do: Vws.DAQ.Readings.describe(r)
+  def device_text(other), do: "UNKNOWN VALUE " <> inspect(other, limit: 10)
 
   defp now, do: System.monotonic_time(:millisecond)
 end

@@ -53,7 +53,7 @@ defmodule Vws.Status do
           case Mailbox.get_device(ws, Mailbox.device_location(name)) do
             {nil, _age} -> "NO DATA"
             {text, _age} when is_binary(text) -> text
-            {other, _age} -> inspect(other)
+            {other, _age} -> Mailbox.device_text(other)
           end
 
         true ->

@@ -270,6 +270,7 @@ defmodule Vws.SunComm do
        ok_to_proceed: s.ok_to_proceed,
        peer: s.conn && Transport.peer(s.conn),
        mode: mode_name(s.mode),
+       transfer: transfer(s.mode),
        counters: s.counters
      }, s}
   end
@@ -558,7 +559,10 @@ defmodule Vws.SunComm do
     Logger.info("DOWNLOAD_HP #{number}: reading program lines from the WC")
 
     arm(
-      %{s | mode: {:download, %{number: number, lines: [], count: 0, bytes: 0}}},
+      %{
+        s
+        | mode: {:download, %{number: number, lines: [], count: 0, bytes: 0, started: now_ms()}}
+      },
       s.download_timeout
     )
   end
@@ -641,7 +645,18 @@ defmodule Vws.SunComm do
 
         send_upload_line(%{
           s
-          | mode: {:upload, %{number: number, lines: lines, sent: 0, retries: 0}}
+          | mode:
+              {:upload,
+               %{
+                 number: number,
+                 lines: lines,
+                 sent: 0,
+                 retries: 0,
+                 started: now_ms(),
+                 total: length(lines),
+                 bytes: 0,
+                 total_bytes: Enum.reduce(lines, 0, &(byte_size(&1) + 1 + &2))
+               }}
         })
     end
   end
@@ -666,7 +681,15 @@ defmodule Vws.SunComm do
           [_ | rest] ->
             send_upload_line(%{
               s
-              | mode: {:upload, %{u | lines: rest, sent: u.sent + 1, retries: 0}}
+              | mode:
+                  {:upload,
+                   %{
+                     u
+                     | lines: rest,
+                       sent: u.sent + 1,
+                       retries: 0,
+                       bytes: u.bytes + byte_size(hd(u.lines)) + 1
+                   }}
             })
         end
 
@@ -783,6 +806,34 @@ defmodule Vws.SunComm do
 
   defp bump(counters, key), do: Map.update!(counters, key, &(&1 + 1))
   defp pad4(n), do: n |> Integer.to_string() |> String.pad_leading(4, "0")
+
+  # an NC transfer's progress for info/1: lines and bytes so far, the totals when known (an
+  # upload's; a download's length is not announced), and its start (monotonic ms)
+  defp transfer(:command), do: nil
+
+  defp transfer({:download, d}),
+    do: %{
+      kind: "DOWNLOAD_HP",
+      number: d.number,
+      lines: d.count,
+      bytes: d.bytes,
+      total_lines: nil,
+      total_bytes: nil,
+      started_ms: d.started
+    }
+
+  defp transfer({:upload, u}),
+    do: %{
+      kind: "UPLOAD_SUN",
+      number: u.number,
+      lines: u.sent,
+      bytes: u.bytes,
+      total_lines: u.total,
+      total_bytes: u.total_bytes,
+      started_ms: u.started
+    }
+
+  defp now_ms, do: System.monotonic_time(:millisecond)
 
   defp mode_name(:command), do: :command
   defp mode_name({:download, d}), do: {:download, d.number, d.count}

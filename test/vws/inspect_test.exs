@@ -26,6 +26,14 @@ defmodule Vws.InspectTest do
     def handle_call(:info, _from, s), do: {:noreply, s}
   end
 
+  defmodule RaisingLink do
+    @moduledoc false
+    # A link whose info/1 takes something other than its pid (as Vws.HPIB's once did).
+    use Agent
+    def start_link(_), do: Agent.start_link(fn -> nil end)
+    def info({_bus, _address}), do: %{}
+  end
+
   setup do
     links = [
       Supervisor.child_spec(
@@ -89,18 +97,54 @@ defmodule Vws.InspectTest do
     assert table =~ ~r/daq1 +#PID<[\d.]+> +not_answering/
   end
 
-  test "interlocks: whatever {:interlock, what} entries exist, with their holders", %{ws: ws} do
+  test "interlocks: every lease, with its holder, reasons and age", %{ws: ws} do
     assert Inspect.format_interlocks(ws) =~ "(none held)"
-    table = Vws.Mailbox.table(ws)
-    :ets.insert(table, {{:interlock, :table}, :robot})
-    :ets.insert(table, {{:interlock, {:tray, 2}}, :gripper, 123})
+    :ok = Vws.Interlock.acquire(ws, :table, :robot, 1_000)
+    :ok = Vws.Interlock.acquire(ws, :tray2, :mhs, 1_000, as: :transfer)
 
-    assert [%{what: :table, holder: :robot}, %{what: {:tray, 2}, holder: :gripper, extra: [123]}] =
-             Inspect.interlock_rows(ws)
+    assert [
+             %{what: :table, holder: :robot, reasons: [:lease]},
+             %{what: :tray2, holder: :mhs, reasons: [:transfer], age_ms: age}
+           ] = Inspect.interlock_rows(ws)
+
+    assert is_integer(age)
 
     text = Inspect.format_interlocks(ws)
-    assert text =~ ~r/^table +robot$/m
-    assert text =~ ~r/^tray 2 +gripper +\[123\]$/m
+    assert text =~ ~r/^table +robot +lease +\d+ ms$/m
+    assert text =~ ~r/^tray2 +mhs +transfer +\d+ ms$/m
+  end
+
+  test "a link whose info cannot be read is shown so, and every view still prints" do
+    links = [
+      Supervisor.child_spec({RaisingLink, nil}, id: :broken),
+      Supervisor.child_spec({FakeLink, %{state: :ready}}, id: :fine)
+    ]
+
+    %{ws: ws} = Vws.Test.Workstation.start(links: links)
+
+    assert [
+             %{id: :broken, state: :unreadable, info: %{error: "** (FunctionClauseError)" <> _}},
+             %{id: :fine, state: :ready}
+           ] = Inspect.link_rows(ws)
+
+    out = capture_io(fn -> Inspect.overview(ws) end)
+    assert out =~ ~r/broken +#PID<[\d.]+> +unreadable +error=\*\* \(FunctionClauseError\)/
+    assert out =~ ~r/fine +#PID<[\d.]+> +ready/
+  end
+
+  test "words: what a person reads, never an Elixir term" do
+    assert Inspect.words({:ready, :still}) == "ready still"
+    assert Inspect.words(:not_answering) == "not answering"
+    assert Inspect.words(%{a: 1, b: [:x, "Y"]}) == "a 1, b x Y"
+    assert Inspect.words(self()) == "process"
+    assert Inspect.words(%Vws.HPIB.Error{reason: :timeout, address: 9, detail: 500}) =~ "9"
+    assert Inspect.words(nil) == "-"
+
+    assert Vws.Mailbox.device_text({:no_data, "NO LINK TO DAQ #1"}) ==
+             "NO DATA (NO LINK TO DAQ #1)"
+
+    assert Vws.Mailbox.device_text(%Vws.DAQ.Readings{seq: 3, values: %{vise_jaw_mm: 50.04}}) ==
+             "POLL 3: VISE JAW WIDTH 50.0 MM"
   end
 
   test "the printed views", %{ws: ws} do

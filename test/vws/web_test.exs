@@ -54,7 +54,7 @@ defmodule Vws.WebTest do
   test "/api/state: partitions, command statuses, devices, interlocks and the WC dialogue",
        %{ws: ws, wc: wc} do
     url = web([])
-    :ets.insert(Vws.Mailbox.table(ws), {{:interlock, {:tray, 1}}, :robot})
+    :ok = Vws.Interlock.acquire(ws, :tray1, :robot, 1_000)
     {:ok, peer} = WCPeer.connect(wc)
     line = WCPeer.send_string(peer, 1, [{"R", 7, "HOLD AT TRAY"}])
     assert_receive {:executing, _pid, 7, _}, 5_000
@@ -74,7 +74,17 @@ defmodule Vws.WebTest do
     assert %{"name" => "VISE", "value" => "NO DATA (NO LINK TO DAQ #1)"} =
              Enum.find(me["devices"], &(&1["location"] == 3))
 
-    assert me["interlocks"] == [%{"what" => "tray 1", "holder" => "robot", "extra" => nil}]
+    assert [%{"what" => "tray1", "holder" => "robot", "reasons" => "lease", "age_ms" => age}] =
+             me["interlocks"]
+
+    assert is_integer(age)
+
+    # a device status is words, never an Elixir term: location 11 holds {:no_data, why}
+    assert %{"name" => "SENSORS", "value" => "NO DATA (NO LINK TO DAQ #1)", "no_data" => true} =
+             Enum.find(me["devices"], &(&1["location"] == 11))
+
+    assert me["sensors"]["note"] == "NO DATA (NO LINK TO DAQ #1)"
+    refute body =~ ~r/[{}]:|%\{|#PID|\{:/
     assert me["wc"]["state"] == "connected"
 
     assert %{"dir" => "in", "line" => String.trim_trailing(line)} in Enum.map(

@@ -438,7 +438,8 @@ defmodule Vws.DNC.Link do
       fault: data.fault,
       max_text: data.limits.max_text,
       pace: data.limits.pace,
-      counters: data.counters
+      counters: data.counters,
+      transfer: transfer(data)
     }
 
     {:keep_state_and_data, [{:reply, from, info}]}
@@ -561,6 +562,36 @@ defmodule Vws.DNC.Link do
   end
 
   ## Transmitting
+
+  # The transmission under way, for info/1: its blocks and bytes so far and in all (a reception's
+  # total is not known before its ETX), its command and its start (monotonic ms).
+  defp transfer(%{tx: %{frames: frames} = tx} = data) do
+    total = tuple_size(frames)
+
+    %{
+      direction: :out,
+      command: data.req && data.req.command,
+      blocks: tx.acked,
+      total_blocks: total,
+      bytes: div(tx.bytes * tx.acked, max(total, 1)),
+      total_bytes: tx.bytes,
+      started_ms: System.convert_time_unit(tx.started, :native, :millisecond)
+    }
+  end
+
+  defp transfer(%{rx: %{} = rx} = data) do
+    %{
+      direction: :in,
+      command: rx.command || (data.req && data.req.command),
+      blocks: rx.count,
+      total_blocks: nil,
+      bytes: rx.bytes,
+      total_bytes: nil,
+      started_ms: System.convert_time_unit(rx.started, :native, :millisecond)
+    }
+  end
+
+  defp transfer(_data), do: nil
 
   defp new_tx(kind, frames) do
     %{

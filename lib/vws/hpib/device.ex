@@ -46,6 +46,7 @@ defmodule Vws.HPIB.Device do
     data = %{
       bus: bus,
       address: address,
+      device: Keyword.get(opts, :device),
       endpoint: endpoint,
       timeout: Keyword.get(opts, :timeout, @default_timeout),
       retries: Keyword.get(opts, :retries, @retries),
@@ -372,6 +373,7 @@ defmodule Vws.HPIB.Device do
   defp common(state, {:call, from}, :info, data) do
     info = %{
       state: state,
+      device: data.device,
       address: data.address,
       endpoint: endpoint(data),
       connects: data.connects,

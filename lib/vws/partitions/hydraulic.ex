@@ -164,6 +164,7 @@ defmodule Vws.Partitions.Hydraulic do
     {text, result} =
       case HPIB.query(link, :pallet?, timeout) do
         {:ok, pallet} ->
+          Mailbox.put_readings(ws, :pallet, pallet)
           {pallet_text(pallet), {:ok, pallet}}
 
         {:error, error} ->
@@ -228,7 +229,8 @@ defmodule Vws.Partitions.Hydraulic do
 
     hpib =
       HPIB.child_spec(
-        [bus: ws, address: address, endpoint: endpoint] ++ Keyword.get(opts, :hpib, [])
+        [bus: ws, address: address, endpoint: endpoint, device: @device] ++
+          Keyword.get(opts, :hpib, [])
       )
 
     monitor =

@@ -338,7 +338,8 @@ defmodule Vws.Partitions.VwsStatus do
 
     hpib =
       HPIB.child_spec(
-        [bus: ws, address: address, endpoint: endpoint] ++ Keyword.get(opts, :hpib, [])
+        [bus: ws, address: address, endpoint: endpoint, device: @device] ++
+          Keyword.get(opts, :hpib, [])
       )
 
     %{

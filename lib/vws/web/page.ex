@@ -1,14 +1,24 @@
 defmodule Vws.Web.Page do
   @moduledoc """
-  The dashboard: one HTML page with plain JavaScript that asks `/api/state` every 400 ms and
-  redraws the workstations — partitions and their command statuses, device statuses, interlocks,
-  link states and the recent WC dialogue — and, on a node of a cell, the cell: every workstation
-  of every connected node with its state. Text from the equipment is only ever put into the page
-  with `textContent`, never as HTML. The control form (a status query) appears only when the
-  server has a control token, and sends the token the user types in the `x-vws-token` header.
+  The dashboard: one HTML page with plain JavaScript that asks `/api/state` (`Vws.Web.State`)
+  every 400 ms and redraws, per workstation: what is wrong now and the errors seen recently
+  (highlighted); the partitions with their state, command and status; the numbers read from
+  the sensors (jaw width, finger gap, vise and pallet clamp forces, …) each with a small trend
+  plot of its last values (an inline SVG drawn by the page from a history it keeps, up to
+  150 polls); the device statuses as the WC reads them; every link (the WC link, DAQ #1,
+  the hydraulic controller, the GE-2000, the VAL II) with its state, counters, retries and last
+  error; the interlock leases; NC transfers under way with their progress, rate and ETA; the
+  recent WC dialogue and the command status changes it saw. Below them the equipment on this
+  node outside any workstation (the hydraulic controller with its link to DAQ #2), and, on a
+  node of a cell, the cell: every workstation of every connected node with its state.
+
+  Text from the equipment is only ever put into the page with `textContent`, never as HTML.
+  The control form (a status query) appears only when the server has a control token, and
+  sends the token the user types in the `x-vws-token` header.
   """
 
   @poll_ms 400
+  @history 150
 
   @doc "The interval at which the page polls `/api/state`, in ms."
   @spec poll_ms() :: pos_integer
@@ -33,13 +43,22 @@ defmodule Vws.Web.Page do
   h2 { font-size: 17px; margin: 6px 0; } h3 { font-size: 14px; margin: 10px 0 4px; color: #4a5468; }
   table { border-collapse: collapse; width: 100%; font-size: 13px; }
   th, td { text-align: left; padding: 2px 6px; border-bottom: 1px solid #e3e6eb; vertical-align: top; }
-  td.nowrap, th { white-space: nowrap; }
+  td.nowrap, th { white-space: nowrap; } td.num { text-align: right; font-variant-numeric: tabular-nums; white-space: nowrap; }
   th { color: #4a5468; font-weight: 600; }
-  .DONE { color: #1b7a2f; } .EXECUTING { color: #b36b00; font-weight: 600; } .ERROR { color: #c62828; font-weight: 600; }
-  .down, .not_answering, .restarting { color: #c62828; } .running { color: #b36b00; }
+  .done { color: #1b7a2f; } .executing { color: #b36b00; font-weight: 600; } .error { color: #c62828; font-weight: 600; }
+  .bad, .down, .not_answering, .restarting, .unreadable, .nodata { color: #c62828; } .running { color: #b36b00; }
+  .alerts { border: 1px solid #f2b8b5; background: #fdecea; border-radius: 4px; padding: 4px 8px; font-size: 13px; }
+  .alerts div.new { font-weight: 700; }
+  .alerts .none { color: #1b7a2f; }
+  .ok-box { border: 1px solid #c8e6c9; background: #eef8ef; border-radius: 4px; padding: 4px 8px; font-size: 13px; color: #1b7a2f; }
   .dialogue { font-family: ui-monospace, monospace; font-size: 12px; max-height: 260px; overflow-y: auto; background: #fafbfc; border: 1px solid #e3e6eb; padding: 4px; }
   .dialogue div { white-space: pre; }
   .muted { color: #7a8394; }
+  .counters { font-size: 12px; color: #4a5468; }
+  svg.spark { vertical-align: middle; }
+  .bar { display: inline-block; width: 160px; height: 10px; background: #e3e6eb; border-radius: 5px; overflow: hidden; vertical-align: middle; }
+  .bar > span { display: block; height: 100%; background: #3f6fd8; }
+  .switches span { display: inline-block; margin: 0 10px 2px 0; font-size: 12px; }
   form { display: flex; gap: 6px; flex-wrap: wrap; font-size: 13px; }
   </style>
   </head>
@@ -51,6 +70,7 @@ defmodule Vws.Web.Page do
   <main>
   <section class="ws" id="cell" hidden><h2>Cell</h2><div id="cell-table"></div></section>
   <div id="workstations"><p class="muted">loading…</p></div>
+  <section class="ws" id="equipment" hidden><h2>Equipment on this node</h2><div id="equipment-table"></div></section>
   <section class="ws" id="control" hidden>
   <h2>Control</h2>
   <form id="control-form">
@@ -65,12 +85,16 @@ defmodule Vws.Web.Page do
   <script>
   "use strict";
   const POLL_MS = #{@poll_ms};
+  const HISTORY = #{@history};
   let updates = 0;
   const seen = {};     // "ws/partition" -> "0007 EXECUTING", as last drawn
   const changes = {};  // ws -> the command status changes seen by this page, newest first
+  const history = {};  // "ws/key" -> the last HISTORY values of a sensor quantity (null: no reading)
+  const errors = {};   // ws -> recent errors seen by this page: {first, last, where, text}, newest first
 
   function noteChanges(state) {
     const now = state.time.substring(11, 23);
+    const t = Date.parse(state.time);
     state.workstations.forEach(ws => {
       ws.partitions.forEach(p => {
         const key = ws.id + "/" + p.name;
@@ -81,6 +105,19 @@ defmodule Vws.Web.Page do
         }
         seen[key] = shown;
       });
+      const qs = (ws.sensors && ws.sensors.quantities) || [];
+      qs.forEach(q => {
+        const h = history[ws.id + "/" + q.key] = history[ws.id + "/" + q.key] || [];
+        h.push(q.value);
+        if (h.length > HISTORY) h.shift();
+      });
+      const log = errors[ws.id] = errors[ws.id] || [];
+      (ws.alerts || []).slice().reverse().forEach(a => {
+        const found = log.find(e => e.where === a.where && e.text === a.text);
+        if (found) { found.last = t; found.lastText = now; }
+        else log.unshift({first: t, firstText: now, last: t, lastText: now, where: a.where, text: a.text});
+      });
+      log.length = Math.min(log.length, 30);
     });
   }
 
@@ -91,23 +128,23 @@ defmodule Vws.Web.Page do
     return e;
   }
 
-  function table(headers, rows) {
+  function table(headers, rows, id) {
     const t = el("table");
+    if (id) t.id = id;
     const h = el("tr");
     headers.forEach(x => h.appendChild(el("th", x)));
     t.appendChild(h);
     rows.forEach(r => {
       const tr = el("tr");
       r.forEach(c => {
-        if (c && typeof c === "object") tr.appendChild(el("td", c.text, c.cls));
+        if (c instanceof Node) { const td = el("td"); td.appendChild(c); tr.appendChild(td); }
+        else if (c && typeof c === "object") tr.appendChild(el("td", c.text, c.cls));
         else tr.appendChild(el("td", c === null || c === undefined ? "" : c));
       });
       t.appendChild(tr);
     });
     return t;
   }
-
-  function statusClass(s) { return s ? s.split(" ")[0] : ""; }
 
   function box(title, content) {
     const d = el("div");
@@ -116,44 +153,159 @@ defmodule Vws.Web.Page do
     return d;
   }
 
+  function age(ms) {
+    if (ms === null || ms === undefined) return "";
+    return ms < 10000 ? ms + " ms" : Math.round(ms / 1000) + " s";
+  }
+
+  // A small trend plot of a quantity's recent values: an SVG polyline, gaps where no reading.
+  function spark(values) {
+    const NS = "http://www.w3.org/2000/svg", W = 150, H = 26;
+    const svg = document.createElementNS(NS, "svg");
+    svg.setAttribute("width", W); svg.setAttribute("height", H);
+    svg.setAttribute("class", "spark");
+    const nums = values.filter(v => typeof v === "number");
+    if (nums.length === 0) return svg;
+    let lo = Math.min(...nums), hi = Math.max(...nums);
+    // a steady value stays a flat line: its noise is not blown up to the plot's height
+    const least = Math.max(1, 0.05 * Math.max(Math.abs(hi), Math.abs(lo)));
+    if (hi - lo < least) { const mid = (hi + lo) / 2; lo = mid - least / 2; hi = mid + least / 2; }
+    const span = Math.max(values.length, 30) - 1;
+    const x = i => (i * (W - 2)) / span + 1;
+    const y = v => H - 2 - ((v - lo) * (H - 4)) / (hi - lo);
+    let pts = [];
+    const flush = () => {
+      if (pts.length > 0) {
+        const p = document.createElementNS(NS, "polyline");
+        p.setAttribute("points", pts.join(" "));
+        p.setAttribute("fill", "none"); p.setAttribute("stroke", "#3f6fd8"); p.setAttribute("stroke-width", "1.5");
+        svg.appendChild(p);
+      }
+      pts = [];
+    };
+    values.forEach((v, i) => { if (typeof v === "number") pts.push(x(i).toFixed(1) + "," + y(v).toFixed(1)); else flush(); });
+    flush();
+    return svg;
+  }
+
+  function value(q) {
+    if (q.value === null || q.value === undefined) return {text: "no reading" + (q.note ? " (" + q.note + ")" : ""), cls: "num nodata"};
+    const v = Math.abs(q.value) < 0.05 ? 0 : q.value;  // never "-0.0"
+    return {text: (q.unit === "N" ? Math.round(v) : v.toFixed(1)) + " " + q.unit, cls: "num"};
+  }
+
+  function sensors(ws) {
+    const s = ws.sensors;
+    const d = el("div");
+    d.appendChild(el("div", s.poll !== null ? "DAQ #1 poll " + s.poll + ", " + age(s.age_ms) + " ago" :
+      (s.note || "no readings"), s.poll !== null ? "muted" : "nodata"));
+    d.appendChild(table(["quantity", "value", "trend", "from"],
+      s.quantities.map(q => [q.name, value(q), spark(history[ws.id + "/" + q.key] || []), q.source]), "sensors-" + ws.id));
+    const sw = el("div", null, "switches");
+    s.switches.forEach(x => sw.appendChild(el("span", x.name + ": " + x.state)));
+    d.appendChild(sw);
+    return d;
+  }
+
+  function counters(list) {
+    return list.filter(c => c.value !== 0).map(c => c.key + " " + c.value).join(", ");
+  }
+
+  function linkRows(ws) {
+    const wc = ws.wc;
+    const rows = [["WC (SUN_COMM)", {text: wc.state, cls: wc.state === "connected" || wc.state === "waiting" ? "" : "bad"},
+      {text: wc.retries, cls: "num"}, "",
+      {text: Object.keys(wc.counters).sort().filter(k => wc.counters[k] !== 0).map(k => k.replace(/_/g, " ") + " " + wc.counters[k]).join(", "), cls: "counters"},
+      (wc.peer ? "peer " + wc.peer : "no peer") + (wc.endpoint ? ", on " + wc.endpoint : "") + ", mode " + wc.mode]];
+    return rows.concat(ws.links.map(linkRow));
+  }
+
+  function linkRow(l) {
+    return [l.id, {text: l.state, cls: l.state_class}, {text: l.retries, cls: "num"},
+      {text: l.last_error || "", cls: l.last_error ? "error" : ""},
+      {text: counters(l.counters), cls: "counters"}, l.details];
+  }
+
+  const LINK_HEAD = ["link", "state", "retries", "last error", "counters", "details"];
+
+  function transfers(ws) {
+    if (ws.transfers.length === 0) return el("p", "no NC transfer under way", "muted");
+    return table(["transfer", "link", "progress", "so far", "rate", "ETA"], ws.transfers.map(t => {
+      const bar = el("span", null, "bar");
+      const fill = el("span"); fill.style.width = (t.percent === null ? 0 : t.percent) + "%"; bar.appendChild(fill);
+      const prog = el("span"); prog.appendChild(bar); prog.appendChild(el("span", t.percent === null ? " length not announced" : " " + t.percent + " %"));
+      return [(t.kind + " " + (t.number || "")).trim(), t.link, prog,
+        t.done + (t.total !== null ? " of " + t.total : "") + " " + t.unit + ", " + t.bytes + (t.total_bytes !== null ? " of " + t.total_bytes : "") + " bytes",
+        {text: t.bytes_per_s + " B/s", cls: "num"}, {text: t.eta_s === null ? "unknown" : t.eta_s + " s", cls: "num"}];
+    }), "transfers-" + ws.id);
+  }
+
+  function alerts(ws) {
+    const log = errors[ws.id] || [];
+    const now = Date.now();
+    const current = new Set((ws.alerts || []).map(a => a.where + "|" + a.text));
+    if (log.length === 0) return el("div", "no errors seen", "ok-box");
+    const d = el("div", null, "alerts");
+    d.id = "alerts-" + ws.id;
+    log.forEach(e => {
+      const still = current.has(e.where + "|" + e.text);
+      const line = el("div", e.firstText + "  " + e.where + ": " + e.text + (still ? "  (now)" : "  (until " + e.lastText + ")"),
+        now - e.first < 15000 ? "error new" : (still ? "error" : "muted"));
+      d.appendChild(line);
+    });
+    return d;
+  }
+
   function workstation(ws) {
     const s = el("section", null, "ws");
     s.id = "ws-" + ws.id;
     s.appendChild(el("h2", "Workstation " + ws.id));
+    if (ws.unreadable) s.appendChild(el("p", ws.unreadable, "bad"));
     const wc = ws.wc;
     s.appendChild(el("div", "WC link: " + wc.state + (wc.peer ? " — peer " + wc.peer : "") +
-      (wc.endpoint ? " — on " + wc.endpoint : "") + " — last string " + (ws.last_sequence || "none") +
-      " — " + Object.keys(wc.counters).sort().map(k => k + " " + wc.counters[k]).join(", "), "muted"));
+      (wc.endpoint ? " — on " + wc.endpoint : "") + " — last string " + (ws.last_sequence || "none"), "muted"));
+    s.appendChild(box("Errors (now and recent)", alerts(ws)));
     const g = el("div", null, "grid");
     g.appendChild(box("Partitions", table(
-      ["partition", "state", "command", "status", "running", "done", "errors", "restarts"],
+      ["partition", "state", "command", "status", "running", "done", "errors", "restarts", "link"],
       ws.partitions.map(p => [p.name, {text: p.state, cls: p.state}, p.number || "----",
-        {text: p.status, cls: statusClass(p.status)},
+        {text: p.status, cls: p.status_class},
         p.current ? p.current + " (" + p.running_ms + " ms)" : "",
-        p.done, p.errors, p.restarts]))));
-    const devices = box("Device status", table(
+        p.done, p.errors, p.restarts, p.link]), "partitions-" + ws.id)));
+    g.appendChild(box("Sensors (numbers as read, with their trend)", sensors(ws)));
+    g.appendChild(box("Device status (as the WC reads it)", table(
       ["loc", "device", "status", "age"],
-      ws.devices.map(d => [d.location, d.name, d.value === null ? "(no data)" : d.value,
-        {text: d.age_ms === null ? "" : (d.age_ms < 10000 ? d.age_ms + " ms" : Math.round(d.age_ms / 1000) + " s"), cls: "nowrap"}])));
-    const locks = el("div");
-    locks.appendChild(box("Interlocks", ws.interlocks.length === 0 ? el("p", "none held", "muted") :
-      table(["interlock", "holder"], ws.interlocks.map(i => [i.what, i.holder]))));
-    locks.appendChild(box("Links", ws.links.length === 0 ? el("p", "no device links configured", "muted") :
-      table(["link", "state", "details"], ws.links.map(l => [l.id, {text: l.state, cls: l.state},
-        l.info.map(i => i.key + ": " + i.value).join("; ")]))));
+      ws.devices.map(d => [d.location, d.name, {text: d.value === null ? "(never written)" : d.value, cls: d.no_data ? "nodata" : ""},
+        {text: age(d.age_ms), cls: "nowrap"}]), "devices-" + ws.id)));
+    const right = el("div");
+    right.appendChild(box("NC transfers", transfers(ws)));
+    right.appendChild(box("Interlock leases", ws.interlocks.length === 0 ? el("p", "none held", "muted") :
+      table(["volume", "holder", "for", "held"], ws.interlocks.map(i => [i.what, i.holder, i.reasons, age(i.age_ms)]), "interlocks-" + ws.id)));
+    const log = changes[ws.id] || [];
+    right.appendChild(box("Command status changes (seen by this page)", log.length === 0 ?
+      el("p", "none yet", "muted") : (() => { const d = el("div", null, "dialogue");
+        d.classList.add("changes"); log.forEach(l => d.appendChild(el("div", l))); return d; })()));
+    g.appendChild(right);
+    s.appendChild(g);
+    s.appendChild(box("Links", table(LINK_HEAD, linkRows(ws), "links-" + ws.id)));
     const dlg = el("div", null, "dialogue");
     dlg.id = "dialogue-" + ws.id;
     if (wc.dialogue.length === 0) dlg.appendChild(el("div", "no WC traffic yet", "muted"));
     wc.dialogue.forEach(l => dlg.appendChild(el("div", l.time + "  " + (l.dir === "in" ? "WC → CEC  " : "CEC → WC  ") + l.line)));
-    g.appendChild(box("WC dialogue (recent)", dlg));
-    const log = changes[ws.id] || [];
-    locks.appendChild(box("Command status changes (seen by this page)", log.length === 0 ?
-      el("p", "none yet", "muted") : (() => { const d = el("div", null, "dialogue");
-        d.classList.add("changes"); log.forEach(l => d.appendChild(el("div", l))); return d; })()));
-    g.appendChild(devices);
-    g.appendChild(locks);
-    s.appendChild(g);
+    s.appendChild(box("WC dialogue (recent)", dlg));
     return s;
+  }
+
+  function renderEquipment(list) {
+    const section = document.getElementById("equipment");
+    section.hidden = !list || list.length === 0;
+    if (section.hidden) return;
+    const rows = [];
+    list.forEach(e => {
+      rows.push([e.name, {text: e.state, cls: e.state}, "", "", "", (e.status ? "status " + e.status + ", " : "") + e.details]);
+      e.links.forEach(l => rows.push(linkRow(l)));
+    });
+    document.getElementById("equipment-table").replaceChildren(table(LINK_HEAD, rows, "equipment-links"));
   }
 
   function renderCell(cell) {
@@ -171,6 +323,7 @@ defmodule Vws.Web.Page do
   function render(state) {
     noteChanges(state);
     renderCell(state.cell);
+    renderEquipment(state.equipment);
     const root = document.getElementById("workstations");
     const scrolls = {};
     root.querySelectorAll(".dialogue:not(.changes)").forEach(d => {
@@ -186,7 +339,7 @@ defmodule Vws.Web.Page do
     control.hidden = !state.control;
     const sel = document.getElementById("control-ws");
     const ids = state.workstations.map(w => w.id);
-    if (Array.from(sel.options).map(o => o.value).join("\\n") !== ids.join("\\n")) {
+    if (Array.from(sel.options).map(o => o.value).join(",") !== ids.join(",")) {
       sel.replaceChildren(...ids.map(id => { const o = el("option", id); o.value = id; return o; }));
     }
     updates += 1;

@@ -60,7 +60,7 @@ defmodule Vws.Web.BrowserTest do
     WCPeer.send_string(peer, 1, [{"R", 7, "HOLD AT TRAY 1"}, {"G", 8, "OPEN"}])
     assert "05A0001" <> _ = WCPeer.recv_line(peer)
     assert_receive {:executing, robot_cmd, 7, _}, 5_000
-    :ets.insert(Vws.Mailbox.table(ws), {{:interlock, :table}, :robot})
+    :ok = Vws.Interlock.acquire(ws, :table, :robot, 1_000)
 
     # While Chromium runs, the robot's command finishes as soon as the page has fetched the state
     # showing it EXECUTING (released from this server's request event, so no timing luck is
@@ -103,7 +103,9 @@ defmodule Vws.Web.BrowserTest do
     # device status, interlocks, links
     assert page =~ ~r/3 VISE NO DATA \(NO LINK TO DAQ #1\)/
     assert page =~ ~r/table robot/
-    assert page =~ "no device links configured"
+    assert page =~ ~r/WC \(SUN_COMM\) connected 0/
+    # and the error it ended with, highlighted
+    assert dom =~ ~r/<div class="error new">[^<]*GRIPPER: 0008 ERROR NO LINK TO DAQ #1/
 
     # the WC dialogue, both ways
     assert page =~ ~r/WC → CEC \*0001\*R0007HOLD AT TRAY 1\*G0008OPEN\*\d{3}/
