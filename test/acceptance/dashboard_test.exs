@@ -48,15 +48,21 @@ defmodule Vws.Acceptance.DashboardTest do
     {first, rest} = Enum.split(program, 12)
     assert "05A0001" <> _ = request(socket, Acceptance.wc_frame("*0001*M0001DOWNLOAD_HP*"))
 
-    for line <- first,
-        do: assert("A" = request(socket, IO.iodata_to_binary(Reply.encode({:line, line}))))
+    # numbered lines, each answered A nnnn BBB (PROTOCOLS.md §1)
+    for {line, n} <- Enum.with_index(first, 1),
+        do: assert({:ok, {:line_ack, ^n}} = Reply.decode(request(socket, nc_line(n, line))))
 
     page = text(dump_dom(url, 3_000))
     assert page =~ ~r/DOWNLOAD_HP 0001 WC .* 12 lines, \d+ bytes \d+ B\/s unknown/
     screenshot(url, "dashboard-download.png")
 
-    for line <- rest,
-        do: assert("A" = request(socket, IO.iodata_to_binary(Reply.encode({:line, line}))))
+    # the closing % is answered with the number of lines stored
+    total = length(program)
+
+    for {line, n} <- Enum.with_index(rest, length(first) + 1) do
+      expected = if n == total, do: total, else: n
+      assert {:ok, {:line_ack, ^expected}} = Reply.decode(request(socket, nc_line(n, line)))
+    end
 
     :gen_tcp.close(socket)
 
@@ -149,6 +155,8 @@ defmodule Vws.Acceptance.DashboardTest do
     {:ok, line} = :gen_tcp.recv(socket, 0, 10_000)
     String.trim_trailing(line)
   end
+
+  defp nc_line(n, text), do: IO.iodata_to_binary(Reply.encode({:line, n, text}))
 
   defp pad4(n), do: n |> Integer.to_string() |> String.pad_leading(4, "0")
 
