@@ -231,12 +231,13 @@ defmodule Vws.Web.Conn do
   end
 
   # Closes a connection whose request (or body) was not read to its end without resetting it
-  # under the answer: the write side is shut first, then whatever the client still sends is
-  # read and dropped for at most a second and 64 KB, then the socket is closed.
+  # under the answer (a close with unread bytes resets the connection, and the client may lose
+  # the answer): the write side is shut first, then whatever the client still sends is read and
+  # dropped — never kept — for at most a second and 16 MB, then the socket is closed.
   defp close_unread(socket) do
     _ = :gen_tcp.shutdown(socket, :write)
     _ = :inet.setopts(socket, packet: :raw)
-    drain(socket, now() + 1_000, 65_536)
+    drain(socket, now() + 1_000, 16 * 1024 * 1024)
     :gen_tcp.close(socket)
   end
 
