@@ -6,6 +6,8 @@ import Config
 #
 #   VWS_ID            the workstation id (default VWS); also its MTConnect device name
 #   VWS_WC            the WC endpoint: tty:/dev/ttyS0?baud=9600 or tcp://0.0.0.0:7070
+#   VWS_WC_ALLOW      who may connect to a TCP WC port: 10.0.0.5,10.0.0.0/24 (default loopback
+#                     only; required when VWS_WC listens on another address)
 #   VWS_BCC           sum (default) or xor: the WC link's block check
 #   VWS_JOURNAL_DIR   where the command journal lives (none when unset)
 #   VWS_ROBOT         the VAL II's supervisory port (tty:/dev/ttyS1?baud=9600 or tcp://…)
@@ -16,6 +18,7 @@ import Config
 #   VWS_HTTP_PORT     the dashboard and MTConnect agent (default 4000 in a release; "off": none)
 #   VWS_HTTP_BIND     the address they listen on (default 127.0.0.1)
 #   VWS_HTTP_TOKEN    enables the dashboard's control actions for requests carrying it
+#   VWS_HTTP_READ_TOKEN  every read of the dashboard and MTConnect agent needs it (Basic password)
 env = fn name ->
   case System.get_env(name) do
     nil -> nil
@@ -57,7 +60,7 @@ if wc = env.("VWS_WC") do
     id: env.("VWS_ID") || "VWS",
     wc: wc,
     journal: env.("VWS_JOURNAL_DIR"),
-    sun_comm: [bcc: bcc],
+    sun_comm: [bcc: bcc, allow: env.("VWS_WC_ALLOW")],
     devices: devices
 end
 
@@ -74,5 +77,6 @@ if http_port do
   config :vws, :http,
     port: http_port,
     bind: env.("VWS_HTTP_BIND") || "127.0.0.1",
-    token: env.("VWS_HTTP_TOKEN")
+    token: env.("VWS_HTTP_TOKEN"),
+    read_token: env.("VWS_HTTP_READ_TOKEN")
 end
