@@ -35,6 +35,7 @@ defmodule Vws.Web do
     * `:max_connections`, `:max_body`, `:max_line`, `:max_headers`, `:max_head`,
       `:head_timeout`, `:idle_timeout`, `:body_timeout`, `:max_requests`, `:send_timeout` — the
       server's limits (`Vws.Web.Server`)
+    * `:state_max_age` — ms the `/api/state` answer is reused for (`Vws.Web.Snapshot`, 200)
     * `:buffer_size`, `:interval`, `:node_timeout` — the MTConnect agent's (see
       `Vws.MTConnect.Agent`)
     * `:name` — a name for the server's supervisor
@@ -96,14 +97,20 @@ defmodule Vws.Web do
   def init({ref, opts}) do
     agent = {:via, Registry, {Vws.Registry, {__MODULE__, ref, :agent}}}
     connections = {:via, Registry, {Vws.Registry, {__MODULE__, ref, :connections}}}
+    snapshot = {:via, Registry, {Vws.Registry, {__MODULE__, ref, :snapshot}}}
+    control = opts[:token] not in [nil, ""]
     max = Keyword.get(opts, :max_connections, Vws.Web.Server.defaults()[:max_connections])
 
     children = [
       {Vws.MTConnect.Agent,
        [name: agent] ++
          Keyword.take(opts, [:buffer_size, :interval, :node_timeout, :workstations])},
+      {Vws.Web.Snapshot,
+       [name: snapshot, control: control] ++
+         if(opts[:state_max_age], do: [max_age: opts[:state_max_age]], else: [])},
       {Task.Supervisor, name: connections, max_children: max},
-      {Vws.Web.Server, [ref: ref, agent: agent, connections: connections] ++ opts}
+      {Vws.Web.Server,
+       [ref: ref, agent: agent, snapshot: snapshot, connections: connections] ++ opts}
     ]
 
     Supervisor.init(children, strategy: :rest_for_one)

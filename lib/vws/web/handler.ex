@@ -101,7 +101,7 @@ defmodule Vws.Web.Handler do
     do: {200, "text/html; charset=utf-8", Vws.Web.Page.html()}
 
   defp route(m, ["api", "state"], _q, _r, s) when m in @read,
-    do: {200, "application/json", Vws.JSON.encode(Vws.Web.State.build(control: s.token != nil))}
+    do: {200, "application/json", Vws.Web.Snapshot.json(s.snapshot)}
 
   defp route("POST", @control, q, _r, _s), do: status_query(q)
 

@@ -79,6 +79,7 @@ defmodule Vws.Web.Server do
 
       settings = %{
         agent: Keyword.fetch!(opts, :agent),
+        snapshot: Keyword.fetch!(opts, :snapshot),
         token: blank_to_nil(opts[:token]),
         read_token: blank_to_nil(opts[:read_token]),
         port: port
