@@ -124,6 +124,36 @@ defmodule Vws.Web.Conn do
 
   # Authorize on the head alone; only then read a body (bounded), then let the handler answer.
   defp answer(socket, request, conf) do
+    case pace(conf) do
+      :ok -> authorized(socket, request, conf)
+      :busy -> {:close, {503, "text/plain", "busy: too many requests"}}
+    end
+  end
+
+  # The server-wide request rate: each request takes the next free slot (1/max_rate s apart)
+  # and waits for it (a sleeping process: cheap; the client is held, not sent away to come back
+  # at once); a slot more than 10 s away is not taken.
+  defp pace(%{pace: ref, limits: %{max_rate: rate}}) do
+    interval = div(1_000_000, rate)
+    now = System.monotonic_time(:microsecond)
+    next = :atomics.get(ref, 1)
+    slot = max(next, now)
+
+    cond do
+      slot - now > 10_000_000 ->
+        :busy
+
+      :atomics.compare_exchange(ref, 1, next, slot + interval) == :ok ->
+        wait = div(slot - now, 1000)
+        if wait > 0, do: Process.sleep(wait)
+        :ok
+
+      true ->
+        pace(%{pace: ref, limits: %{max_rate: rate}})
+    end
+  end
+
+  defp authorized(socket, request, conf) do
     case Handler.authorize(request, conf.settings) do
       :ok ->
         case body_length(request, conf.limits) do

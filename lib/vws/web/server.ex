@@ -22,7 +22,13 @@ defmodule Vws.Web.Server do
     * at most `:max_connections` open connections [1024]; one more is answered 503 at once and
       closed (it never waits in a queue);
     * at most `:max_requests` requests per kept-alive connection [100]; an answer that the client
-      does not read within `:send_timeout` ms [10 000] closes the connection.
+      does not read within `:send_timeout` ms [10 000] closes the connection;
+    * at most `:max_rate` requests a second are served, all connections together [500; the
+      dashboard asks 2.5 a second per open page]: a request beyond it waits its turn (the client
+      is held, not sent away to come straight back), and one that would wait more than 10 s is
+      answered 503. HTTP load is so bounded in CPU and
+      socket work whatever the number of clients, which is what keeps the WC's answers on time
+      (`bench/http_load.exs`).
 
   Each connection is a process of its own (under a `Task.Supervisor` whose `max_children` is the
   connection limit) reading passively with timeouts; the head is parsed by the socket itself
@@ -45,7 +51,8 @@ defmodule Vws.Web.Server do
     body_timeout: 10_000,
     max_connections: 1024,
     max_requests: 100,
-    send_timeout: 10_000
+    send_timeout: 10_000,
+    max_rate: 500
   ]
 
   @doc "The limits and timeouts the server applies unless told otherwise."
@@ -88,7 +95,9 @@ defmodule Vws.Web.Server do
       conf = %{
         settings: settings,
         limits: Map.new(limits),
-        connections: Keyword.fetch!(opts, :connections)
+        connections: Keyword.fetch!(opts, :connections),
+        # the time (µs, monotonic) from which the next request may be served: see pace/1
+        pace: pace_counter()
       }
 
       acceptors = for _ <- 1..@acceptors, do: spawn_link(fn -> accept_loop(socket, conf) end)
@@ -101,6 +110,13 @@ defmodule Vws.Web.Server do
     else
       {:error, reason} -> {:stop, {:cannot_listen, bind, opts[:port], reason}}
     end
+  end
+
+  # monotonic time may be negative: the counter starts at now, not 0
+  defp pace_counter do
+    ref = :atomics.new(1, signed: true)
+    :atomics.put(ref, 1, System.monotonic_time(:microsecond))
+    ref
   end
 
   defp mode(%{token: nil, read_token: nil}), do: "read-only, reads open"
