@@ -105,12 +105,13 @@ defmodule Vws.Web do
       {Vws.MTConnect.Agent,
        [name: agent] ++
          Keyword.take(opts, [:buffer_size, :interval, :node_timeout, :workstations])},
-      {Vws.Web.Snapshot,
-       [name: snapshot, control: control] ++
-         if(opts[:state_max_age], do: [max_age: opts[:state_max_age]], else: [])},
       {Task.Supervisor, name: connections, max_children: max},
       {Vws.Web.Server,
-       [ref: ref, agent: agent, snapshot: snapshot, connections: connections] ++ opts}
+       [ref: ref, agent: agent, snapshot: snapshot, connections: connections] ++ opts},
+      # last: were it to fail, the listener (and its port) stays as it is
+      {Vws.Web.Snapshot,
+       [name: snapshot, control: control] ++
+         if(opts[:state_max_age], do: [max_age: opts[:state_max_age]], else: [])}
     ]
 
     Supervisor.init(children, strategy: :rest_for_one)

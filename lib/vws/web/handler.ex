@@ -101,7 +101,7 @@ defmodule Vws.Web.Handler do
     do: {200, "text/html; charset=utf-8", Vws.Web.Page.html()}
 
   defp route(m, ["api", "state"], _q, _r, s) when m in @read,
-    do: {200, "application/json", Vws.Web.Snapshot.json(s.snapshot)}
+    do: state(s)
 
   defp route("POST", @control, q, _r, _s), do: status_query(q)
 
@@ -114,6 +114,13 @@ defmodule Vws.Web.Handler do
 
   defp route(m, _path, _q, _r, _s) when m in @read, do: {404, "text/plain", "not found"}
   defp route(_m, _path, _q, _r, _s), do: {405, "text/plain", "method not allowed"}
+
+  defp state(s) do
+    case Vws.Web.Snapshot.json(s.snapshot) do
+      {:ok, json} -> {200, "application/json", json}
+      {:error, why} -> {503, "application/json", Vws.JSON.encode(%{error: why})}
+    end
+  end
 
   ## Control (authorized by authorize/2)
 
