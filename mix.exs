@@ -11,8 +11,15 @@ defmodule Vws.MixProject do
       deps: [],
       # PropEr comes from Debian's erlang-proper, not from hex: it is on the code path, not a dep
       xref: [exclude: [:proper, :proper_types, :proper_statem, :proper_gen]],
-      releases: [vws: [include_executables_for: [:unix]]]
+      releases: [vws: [include_executables_for: [:unix], steps: [:assemble, &drop_cookie/1]]]
     ]
+  end
+
+  # The node's cookie is made per installation on first start (rel/env.sh.eex), never shipped:
+  # the cookie mix writes into the build output would be the same, world-readable, everywhere.
+  defp drop_cookie(release) do
+    File.rm!(Path.join([release.path, "releases", "COOKIE"]))
+    release
   end
 
   def application do

@@ -6,6 +6,8 @@ import Config
 #
 #   VWS_ID            the workstation id (default VWS); also its MTConnect device name
 #   VWS_WC            the WC endpoint: tty:/dev/ttyS0?baud=9600 or tcp://0.0.0.0:7070
+#   VWS_WC_ALLOW      who may connect to a TCP WC port: 10.0.0.5,10.0.0.0/24 (default loopback
+#                     only; required when VWS_WC listens on another address)
 #   VWS_BCC           sum (default) or xor: the WC link's block check
 #   VWS_DATA_DIR      the data directory (default $XDG_STATE_HOME/vws, else ~/.local/state/vws);
 #                     the journal is in journal/<VWS_ID> of it (Vws.DataDir)
@@ -21,6 +23,7 @@ import Config
 #   VWS_LOG_DIR       the log also goes to DIR/vws.log, rotated at 10 MB, 10 old files kept
 #                     (Vws.LogFile); a release's default is its own log/ directory; "off": none
 #   VWS_LOG_LEVEL     debug, info (a release's default), notice, warning or error
+#   VWS_HTTP_READ_TOKEN  every read of the dashboard and MTConnect agent needs it (Basic password)
 env = fn name ->
   case System.get_env(name) do
     nil -> nil
@@ -63,7 +66,7 @@ if wc = env.("VWS_WC") do
     wc: wc,
     # on by default (issue 15): a restart forgets nothing acknowledged
     journal: Vws.DataDir.journal_dir(env.("VWS_ID") || "VWS", :default),
-    sun_comm: [bcc: bcc],
+    sun_comm: [bcc: bcc, allow: env.("VWS_WC_ALLOW")],
     devices: devices
 end
 
@@ -80,7 +83,8 @@ if http_port do
   config :vws, :http,
     port: http_port,
     bind: env.("VWS_HTTP_BIND") || "127.0.0.1",
-    token: env.("VWS_HTTP_TOKEN")
+    token: env.("VWS_HTTP_TOKEN"),
+    read_token: env.("VWS_HTTP_READ_TOKEN")
 end
 
 # The log: to rotating files as well as the console (Vws.LogFile), at the level asked.

@@ -79,6 +79,10 @@ defmodule Vws.HydraulicController do
     * `:daq2` — the endpoint of DAQ #2 (required);
     * `:listen` — where the CEC reaches it (default `"tcp://127.0.0.1:0"`, a free port: see
       `endpoint/1`);
+    * `:allow` — the CEC's address (or an allow-list, `Vws.Transport.Policy`): only it may
+      connect and send commands (default loopback only). Listening on an address that is not
+      loopback without it is refused: a raw `CLAMP_PALLET` from anyone else would bypass the
+      CEC and its interlocks;
     * `:name` — any term naming this controller in `Vws.Registry` (default
       `:hydraulic_controller`); it names the DAQ #2 bus `{:hydraulic_controller, name}` too;
     * `:daq2_address` — DAQ #2's primary address on that bus (default #{@daq2_address});
@@ -147,15 +151,19 @@ defmodule Vws.HydraulicController do
         ])
       )
 
+    allow = Vws.Transport.Policy.parse_allow!(Keyword.get(opts, :allow))
+
     cec_port = [
       registered_as: via(name, :cec_port),
-      listen: Keyword.get(opts, :listen, "tcp://127.0.0.1:0")
+      listen: Keyword.get(opts, :listen, "tcp://127.0.0.1:0"),
+      allow: allow
     ]
 
     program = [
       name: name,
       registered_as: via(name, :program),
       cec_port: via(name, :cec_port),
+      allow: allow,
       pallet: pallet,
       connect_timeout_ms: Keyword.get(opts, :connect_timeout_ms, 2_000)
     ]

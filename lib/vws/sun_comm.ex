@@ -6,10 +6,20 @@ defmodule Vws.SunComm do
 
   ## The link
 
-  One WC at a time, as on a serial line. On a TCP (or loopback) endpoint SUN_COMM listens and a new
-  connection takes over from the previous one, which is closed; both are logged. On a tty it opens
-  the device and reopens it if it goes away. Nothing is read before the workstation has caused
-  OK_TO_PROCEED.
+  One WC at a time, as on a serial line. On a tty it opens the device and reopens it if it goes
+  away. On a TCP (or loopback) endpoint SUN_COMM listens, under this policy (decisions; issue 16):
+
+    * **who may connect**: loopback only, unless `:allow` lists the addresses and networks that
+      may (`Vws.Transport.Policy`); listening on an address that is not loopback without an
+      allow-list is refused at start. Others are closed by the acceptor before SUN_COMM sees them.
+    * **takeover**: a new connection replaces the current WC only when the current one has been
+      silent (nothing received) for `:takeover_after` ms; otherwise the newcomer is closed. A WC
+      that restarts after losing its link without a close (a half-open connection) gets in after
+      that time. Every takeover and every refusal is logged with both peers.
+    * **send timeout**: an answer the WC has not made room for within `:send_timeout` ms closes
+      the connection (a WC that never reads is dropped; SUN_COMM is blocked at most that long).
+
+  Nothing is read before the workstation has caused OK_TO_PROCEED.
 
   ## Rules (PROTOCOLS.md §1)
 
@@ -57,6 +67,11 @@ defmodule Vws.SunComm do
     * `:workstation` (required), `:wc` — endpoint string or `nil` (no link)
     * `:bcc` — `:sum` (default) or `:xor`
     * `:max_line` — longest line accepted, default 1024 bytes
+    * `:allow` — who may connect: `Vws.Transport.Policy` allow-list (`"10.0.0.5,10.0.0.0/24"`;
+      default loopback only)
+    * `:takeover_after` — ms of silence of the current WC after which a new connection may
+      replace it (10 000)
+    * `:send_timeout` — ms an answer may wait for the WC to read before the link is dropped (5 000)
     * `:download_timeout` — ms without a program line before a download is abandoned (30 000)
     * `:upload_timeout` — ms to wait for the WC's `A`/`E` to an uploaded line (5 000)
     * `:upload_retries` — resends of one uploaded line before giving up (5)
@@ -106,6 +121,29 @@ defmodule Vws.SunComm do
   def init(opts) do
     ws = Keyword.fetch!(opts, :workstation)
     Logger.metadata(workstation: ws, partition: :sun_comm)
+
+    case link_policy(opts) do
+      {:ok, allow} -> init(opts, ws, allow)
+      {:error, message} -> {:stop, {:wc_link_policy, message}}
+    end
+  end
+
+  # The allow-list, and whether SUN_COMM may listen where it is told to under it.
+  defp link_policy(opts) do
+    with {:ok, allow} <- Vws.Transport.Policy.parse_allow(opts[:allow]),
+         :ok <- check_listen(opts[:wc], allow) do
+      {:ok, allow}
+    else
+      {:error, message} ->
+        Logger.error("SUN_COMM cannot start: #{message}")
+        {:error, message}
+    end
+  end
+
+  defp check_listen(nil, _allow), do: :ok
+  defp check_listen(wc, allow), do: Vws.Transport.Policy.check_listen(wc, allow)
+
+  defp init(opts, ws, allow) do
     Process.flag(:trap_exit, true)
     Events.create(ws, :wc_dialogue)
     :ok = Events.subscribe(ws, :ok_to_proceed)
@@ -121,6 +159,10 @@ defmodule Vws.SunComm do
       max_program_bytes: Keyword.get(opts, :max_program_bytes, 4 * 1024 * 1024),
       tty_retry: Keyword.get(opts, :tty_retry, 1_000),
       partial_line_timeout: Keyword.get(opts, :partial_line_timeout, 500),
+      allow: allow,
+      takeover_after: Keyword.get(opts, :takeover_after, 10_000),
+      send_timeout: Keyword.get(opts, :send_timeout, 5_000),
+      last_heard: nil,
       partial: nil,
       ok_to_proceed: false,
       listener: nil,
@@ -164,11 +206,15 @@ defmodule Vws.SunComm do
     if endpoint.kind == :tty do
       {:noreply, open_tty(s)}
     else
-      case Transport.listen(endpoint) do
+      case Transport.listen(endpoint, send_timeout: s.send_timeout) do
         {:ok, listener} ->
-          acceptor = Transport.start_acceptor(listener, self(), :wc_accepted)
+          acceptor = Transport.start_acceptor(listener, self(), :wc_accepted, allow: s.allow)
           bound = Transport.listener_endpoint(listener)
-          Logger.info("SUN_COMM listening for the WC on #{bound}")
+
+          Logger.info(
+            "SUN_COMM listening for the WC on #{bound} (#{Vws.Transport.Policy.describe(s.allow)})"
+          )
+
           {:noreply, %{s | listener: listener, listening: bound, acceptor: acceptor}}
 
         {:error, reason} ->
@@ -204,7 +250,24 @@ defmodule Vws.SunComm do
       else: {:noreply, %{s | ok_to_proceed: true}, {:continue, :open}}
   end
 
-  def handle_info({:wc_accepted, conn}, s), do: {:noreply, take_link(s, conn)}
+  def handle_info({:wc_accepted, conn}, s) do
+    if s.conn == nil or silent_ms(s) >= s.takeover_after do
+      {:noreply, take_link(s, conn)}
+    else
+      Logger.warning(
+        "WC connection from #{Transport.peer(conn)} refused: the WC on #{Transport.peer(s.conn)} " <>
+          "was heard #{silent_ms(s)} ms ago (a takeover needs #{s.takeover_after} ms of silence)"
+      )
+
+      telemetry(s, :wc_refused, %{count: 1}, %{
+        peer: Transport.peer(conn),
+        current: Transport.peer(s.conn)
+      })
+
+      Transport.close(conn)
+      {:noreply, s}
+    end
+  end
 
   def handle_info(:reopen_tty, s), do: {:noreply, open_tty(s)}
 
@@ -239,6 +302,7 @@ defmodule Vws.SunComm do
     case Transport.handle_message(conn, msg) do
       {:data, bytes} ->
         {lines, decoder} = LineDecoder.feed(s.decoder, bytes)
+        s = %{s | last_heard: System.monotonic_time(:millisecond)}
         s = Enum.reduce(lines, %{s | decoder: decoder}, &handle_line/2)
         if s.conn, do: Transport.activate(s.conn)
         {:noreply, watch_partial_line(s)}
@@ -314,11 +378,14 @@ defmodule Vws.SunComm do
     %{
       s
       | conn: conn,
+        last_heard: System.monotonic_time(:millisecond),
         decoder: LineDecoder.new(max_line: s.max_line),
         mode: :command,
         counters: bump(s.counters, :connections)
     }
   end
+
+  defp silent_ms(s), do: System.monotonic_time(:millisecond) - s.last_heard
 
   defp link_lost(s, why) do
     Logger.warning("WC link lost (#{why})")
@@ -771,12 +838,15 @@ defmodule Vws.SunComm do
     bytes = IO.iodata_to_binary(iodata)
 
     case Transport.send(s.conn, bytes) do
-      :ok -> :ok
-      {:error, reason} -> Logger.warning("reply not sent: #{inspect(reason)}")
-    end
+      :ok ->
+        telemetry(s, :reply_sent, %{bytes: byte_size(bytes)}, %{kind: reply_kind(reply)})
+        record(s, :out, String.trim_trailing(bytes, "\r\n"))
 
-    telemetry(s, :reply_sent, %{bytes: byte_size(bytes)}, %{kind: reply_kind(reply)})
-    record(s, :out, String.trim_trailing(bytes, "\r\n"))
+      {:error, reason} ->
+        # a WC that does not read (send_timeout) or is gone: drop it rather than wait on it
+        Transport.close(s.conn)
+        link_lost(s, "reply not sent: #{inspect(reason)}")
+    end
   end
 
   defp reply_kind(reply) when is_atom(reply), do: reply

@@ -58,6 +58,7 @@ defmodule Vws.Transport do
   """
 
   import Kernel, except: [send: 2]
+  require Logger
 
   alias Vws.Endpoint
   alias Vws.Transport.{Conn, Listener}
@@ -163,23 +164,90 @@ defmodule Vws.Transport do
   Starts a process, linked to the caller, that accepts connections on `listener` for ever: each
   one is handed to `owner` (its controlling process from then on) as the message `{tag, conn}`.
   When accepting fails (the listener was closed) it exits `{:shutdown, {:accept_failed, reason}}`.
+
+  Option `allow` (`Vws.Transport.Policy`; default `:loopback`): a connection from an address not
+  on it is closed before `owner` hears of it, logged (at most one line a second, with a count)
+  and counted as the telemetry event `[:vws, :transport, :refused]` (metadata `peer`,
+  `listener`). Connections without an address (loopback pairs, ttys) are always handed on.
   """
-  @spec start_acceptor(Listener.t(), pid, atom) :: pid
-  def start_acceptor(%Listener{} = listener, owner, tag) do
-    spawn_link(fn -> accept_loop(listener, owner, tag) end)
+  @spec start_acceptor(Listener.t(), pid, atom, keyword) :: pid
+  def start_acceptor(%Listener{} = listener, owner, tag, opts \\ []) do
+    allow = Keyword.get(opts, :allow, :loopback)
+    spawn_link(fn -> accept_loop(listener, owner, tag, allow, {nil, 0}) end)
   end
 
-  defp accept_loop(listener, owner, tag) do
+  defp accept_loop(listener, owner, tag, allow, refusals) do
     case accept(listener, :infinity) do
       {:ok, conn} ->
-        :ok = controlling_process(conn, owner)
-        Kernel.send(owner, {tag, conn})
-        accept_loop(listener, owner, tag)
+        case peer_address(conn) do
+          {:ok, ip} ->
+            if Vws.Transport.Policy.allowed?(allow, ip) do
+              hand_on(conn, owner, tag)
+              accept_loop(listener, owner, tag, allow, refusals)
+            else
+              refusals = refuse(listener, conn, allow, refusals)
+              accept_loop(listener, owner, tag, allow, refusals)
+            end
+
+          :none ->
+            hand_on(conn, owner, tag)
+            accept_loop(listener, owner, tag, allow, refusals)
+
+          {:error, _gone} ->
+            close(conn)
+            accept_loop(listener, owner, tag, allow, refusals)
+        end
 
       {:error, reason} ->
         exit({:shutdown, {:accept_failed, reason}})
     end
   end
+
+  defp hand_on(conn, owner, tag) do
+    :ok = controlling_process(conn, owner)
+    Kernel.send(owner, {tag, conn})
+  end
+
+  # One log line a second at most: the first refusal at once, later ones counted into the next.
+  defp refuse(listener, conn, allow, {last, suppressed}) do
+    peer = peer(conn)
+
+    Vws.Telemetry.execute([:vws, :transport, :refused], %{count: 1}, %{
+      peer: peer,
+      listener: to_string(listener.endpoint)
+    })
+
+    now = System.monotonic_time(:millisecond)
+
+    if last == nil or now - last >= 1_000 do
+      more = if suppressed > 0, do: " (and #{suppressed} more since the last such line)", else: ""
+
+      Logger.warning(
+        "refused a connection from #{peer} to #{listener.endpoint}: not allowed " <>
+          "(#{Vws.Transport.Policy.describe(allow)})#{more}"
+      )
+
+      close(conn)
+      {now, 0}
+    else
+      close(conn)
+      {last, suppressed + 1}
+    end
+  end
+
+  @doc """
+  The other end's IP address, `{:ok, ip}`, for transports that have one (TCP); `:none` for the
+  others (tty, loopback pairs), and for a TCP connection already closed (`{:error, reason}`).
+  """
+  @spec peer_address(Conn.t()) :: {:ok, :inet.ip_address()} | :none | {:error, term}
+  def peer_address(%Conn{module: Vws.Transport.TCP, handle: socket}) do
+    case :inet.peername(socket) do
+      {:ok, {ip, _port}} -> {:ok, ip}
+      {:error, reason} -> {:error, reason}
+    end
+  end
+
+  def peer_address(%Conn{}), do: :none
 
   @doc "Stops listening."
   @spec close_listener(Listener.t()) :: :ok

@@ -1,6 +1,7 @@
 defmodule Vws.Web do
   @moduledoc """
-  The node's web server, on OTP's own `:inets` httpd (no hex packages): the live dashboard and
+  The node's web server, a small bounded HTTP/1.1 server of its own on `:gen_tcp`
+  (`Vws.Web.Server`; no hex packages): the live dashboard and
   the MTConnect agent: the dashboard details every workstation of the node and lists every
   workstation of the cell with its node and state; the agent serves every workstation of the cell
   (`Vws.Cell`), each read on its own node.
@@ -14,7 +15,10 @@ defmodule Vws.Web do
   | `GET /<device>/probe` … | the same for one device (a workstation id) |
 
   It binds 127.0.0.1 unless told otherwise. It is read-only unless a `:token` is configured:
-  a control request without the token, or with a wrong one, is answered 403.
+  a control request without the token, or with a wrong one, is answered 403 before its body is
+  read. With a `:read_token` every read needs a token too (HTTP Basic password or `x-vws-token`;
+  see `Vws.Web.Handler`). Request sizes, connections and timeouts are bounded
+  (`Vws.Web.Server`).
 
   Every request emits the telemetry event `[:vws, :web, :request]` (measurements `duration`,
   `bytes`; metadata `method, path, status, port`).
@@ -27,6 +31,11 @@ defmodule Vws.Web do
     * `:port` — TCP port (default 4000; 0 picks a free one, see `port/1`)
     * `:bind` — address to listen on (default `"127.0.0.1"`)
     * `:token` — the token control actions need (default none: read-only)
+    * `:read_token` — the token every read needs (default none: reads open)
+    * `:max_connections`, `:max_body`, `:max_line`, `:max_headers`, `:max_head`,
+      `:head_timeout`, `:idle_timeout`, `:body_timeout`, `:max_requests`, `:send_timeout` — the
+      server's limits (`Vws.Web.Server`)
+    * `:state_max_age` — ms the `/api/state` answer is reused for (`Vws.Web.Snapshot`, 200)
     * `:buffer_size`, `:interval`, `:node_timeout` — the MTConnect agent's (see
       `Vws.MTConnect.Agent`)
     * `:name` — a name for the server's supervisor
@@ -42,7 +51,7 @@ defmodule Vws.Web do
     }
   end
 
-  @doc "Starts the web server (its MTConnect agent, then httpd)."
+  @doc "Starts the web server (its MTConnect agent, then the HTTP listener)."
   @spec start_link(keyword) :: Supervisor.on_start()
   def start_link(opts \\ []) do
     ref = make_ref()
@@ -60,7 +69,7 @@ defmodule Vws.Web do
   @doc """
   Starts the web server from the command-line options of `mix vws.serve` and `mix vws.demo`
   (`http_port` default 4000, `http_bind` default 127.0.0.1, `http_token` default
-  `$VWS_HTTP_TOKEN`). Returns the dashboard's URL, or a message saying why it could not start.
+  `$VWS_HTTP_TOKEN`, `http_read_token` default `$VWS_HTTP_READ_TOKEN`). Returns the dashboard's URL, or a message saying why it could not start.
   """
   @spec start_from_cli(keyword) :: {:ok, String.t()} | {:error, String.t()}
   def start_from_cli(opts) do
@@ -68,10 +77,14 @@ defmodule Vws.Web do
     bind = Keyword.get(opts, :http_bind, "127.0.0.1")
     token = Keyword.get_lazy(opts, :http_token, fn -> System.get_env("VWS_HTTP_TOKEN") end)
 
-    case start(port: port, bind: bind, token: token) do
+    read_token =
+      Keyword.get_lazy(opts, :http_read_token, fn -> System.get_env("VWS_HTTP_READ_TOKEN") end)
+
+    case start(port: port, bind: bind, token: token, read_token: read_token) do
       {:ok, web} ->
         mode = if token in [nil, ""], do: "read-only", else: "control actions need the token"
-        {:ok, "#{url(web)} (#{mode})"}
+        reads = if read_token in [nil, ""], do: "", else: ", reads need the read token"
+        {:ok, "#{url(web)} (#{mode}#{reads})"}
 
       {:error, reason} ->
         {:error,
@@ -83,12 +96,22 @@ defmodule Vws.Web do
   @impl true
   def init({ref, opts}) do
     agent = {:via, Registry, {Vws.Registry, {__MODULE__, ref, :agent}}}
+    connections = {:via, Registry, {Vws.Registry, {__MODULE__, ref, :connections}}}
+    snapshot = {:via, Registry, {Vws.Registry, {__MODULE__, ref, :snapshot}}}
+    control = opts[:token] not in [nil, ""]
+    max = Keyword.get(opts, :max_connections, Vws.Web.Server.defaults()[:max_connections])
 
     children = [
       {Vws.MTConnect.Agent,
        [name: agent] ++
          Keyword.take(opts, [:buffer_size, :interval, :node_timeout, :workstations])},
-      {Vws.Web.Server, [ref: ref, agent: agent] ++ opts}
+      {Task.Supervisor, name: connections, max_children: max},
+      {Vws.Web.Server,
+       [ref: ref, agent: agent, snapshot: snapshot, connections: connections] ++ opts},
+      # last: were it to fail, the listener (and its port) stays as it is
+      {Vws.Web.Snapshot,
+       [name: snapshot, control: control] ++
+         if(opts[:state_max_age], do: [max_age: opts[:state_max_age]], else: [])}
     ]
 
     Supervisor.init(children, strategy: :rest_for_one)

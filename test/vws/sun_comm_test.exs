@@ -13,7 +13,11 @@ defmodule Vws.SunCommTest do
 
   setup context do
     partitions = if context[:held], do: Workstation.held_robot(), else: []
-    %{ws: ws, wc: wc} = Workstation.start(partitions: partitions)
+
+    sun_comm =
+      if context[:takeover_after], do: [takeover_after: context[:takeover_after]], else: []
+
+    %{ws: ws, wc: wc} = Workstation.start(partitions: partitions, sun_comm: sun_comm)
     {:ok, peer} = WCPeer.connect(wc)
     %{ws: ws, peer: peer, wc: wc}
   end
@@ -409,15 +413,26 @@ defmodule Vws.SunCommTest do
     end
   end
 
-  test "a new WC connection takes over from the previous one, which is closed", %{
-    peer: peer,
-    wc: wc,
-    ws: ws
-  } do
+  @tag takeover_after: 0
+  test "with takeover_after 0, a new WC connection takes over from the previous one, which is closed",
+       %{
+         peer: peer,
+         wc: wc,
+         ws: ws
+       } do
     {:ok, peer2} = WCPeer.connect(wc)
     assert WCPeer.status(peer2, 90, 1, "ROBOT_CMD") == "0000NONE"
     assert WCPeer.recv_line(peer, 200) == {:timeout, :closed}
     assert Vws.SunComm.info(ws).counters.connections == 2
+  end
+
+  test "by default a new WC connection is refused while the current one has been heard within 10 s",
+       %{peer: peer, wc: wc, ws: ws} do
+    assert WCPeer.status(peer, 90, 1, "ROBOT_CMD") == "0000NONE"
+    {:ok, peer2} = WCPeer.connect(wc)
+    assert WCPeer.recv_line(peer2, 200) == {:timeout, :closed}
+    assert WCPeer.status(peer, 91, 1, "ROBOT_CMD") == "0000NONE"
+    assert Vws.SunComm.info(ws).counters.connections == 1
   end
 
   test "SUN_COMM takes no WC string before OK_TO_PROCEED" do

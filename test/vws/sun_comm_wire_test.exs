@@ -30,7 +30,7 @@ defmodule Vws.SunCommWireTest do
       |> String.pad_leading(3, "0")
 
   test "over TCP" do
-    %{ws: ws} = Workstation.start(wc: "tcp://127.0.0.1:0")
+    %{ws: ws} = Workstation.start(wc: "tcp://127.0.0.1:0", sun_comm: [takeover_after: 0])
     # SUN_COMM opens its listener once OK_TO_PROCEED has reached it
     assert Vws.Test.Eventually.eventually(fn -> Vws.SunComm.listening(ws) != nil end)
     endpoint = Vws.SunComm.listening(ws)
@@ -38,7 +38,7 @@ defmodule Vws.SunCommWireTest do
     {:ok, peer} = WCPeer.connect(to_string(endpoint))
     table1_dialogue(peer, ws)
 
-    # a second WC connection takes over; the first is closed
+    # a second WC connection takes over (takeover_after 0); the first is closed
     {:ok, peer2} = WCPeer.connect(to_string(endpoint))
     assert WCPeer.status(peer2, 56, 40, "GRIPPER_CMD") == "0004ERROR NO LINK TO DAQ #1"
     assert WCPeer.recv_line(peer, 500) == {:timeout, :closed}

@@ -6,12 +6,15 @@ defmodule Mix.Tasks.Vws.Hydraulic do
   `mix vws.serve --hydraulic ENDPOINT` (or `devices: [hydraulic: ENDPOINT]`).
 
       mix vws.hydraulic                                   # CEC on tcp://127.0.0.1:5026, DAQ #2 simulated
-      mix vws.hydraulic --listen tcp://0.0.0.0:5026 --daq2 tcp://10.0.0.10:5025   # a real DAQ #2
+      mix vws.hydraulic --listen tcp://0.0.0.0:5026 --cec 10.0.0.2 --daq2 tcp://10.0.0.10:5025
       iex -S mix vws.hydraulic                            # with a shell: Vws.HydraulicController.info()
 
   Options:
 
     * `--listen ENDPOINT` — where the CEC connects (default `tcp://127.0.0.1:5026`)
+    * `--cec LIST` — the CEC's address (or addresses/networks, `10.0.0.2,10.0.1.0/24`): only it
+      may connect and send commands (default loopback only; required with a `--listen` address
+      that is not loopback)
     * `--daq2 ENDPOINT` — DAQ #2 (a LAN SCPI socket, a GPIB gateway). Without it a simulated
       plant and DAQ #2 (`Vws.Sim.Plant`, `Vws.Sim.DAQ`) are started here
     * `--time-scale N` — the simulated plant runs N times faster than real time (default 1)
@@ -19,7 +22,13 @@ defmodule Mix.Tasks.Vws.Hydraulic do
   """
   use Mix.Task
 
-  @switches [listen: :string, daq2: :string, time_scale: :float, min_force: :integer]
+  @switches [
+    listen: :string,
+    cec: :string,
+    daq2: :string,
+    time_scale: :float,
+    min_force: :integer
+  ]
 
   @impl true
   def run(args) do
@@ -31,9 +40,17 @@ defmodule Mix.Tasks.Vws.Hydraulic do
     daq2 = opts[:daq2] || simulated_daq2(opts[:time_scale] || 1.0)
     listen = opts[:listen] || "tcp://127.0.0.1:5026"
 
+    allow =
+      with {:ok, allow} <- Vws.Transport.Policy.parse_allow(opts[:cec]),
+           :ok <- Vws.Transport.Policy.check_listen(listen, allow) do
+        allow
+      else
+        {:error, message} -> Mix.raise("--listen needs --cec (the CEC's address): " <> message)
+      end
+
     {:ok, sup} =
       Vws.HydraulicController.start_link(
-        [listen: listen, daq2: daq2] ++
+        [listen: listen, allow: allow, daq2: daq2] ++
           if(opts[:min_force], do: [min_force_n: opts[:min_force]], else: [])
       )
 

@@ -7,7 +7,7 @@ defmodule Mix.Tasks.Vws.Serve do
   at a real instrument and `--hydraulic` at a hydraulic controller running elsewhere.
 
       mix vws.serve                       # WC on tcp://127.0.0.1:7070
-      mix vws.serve --wc-port 7071 --bind 0.0.0.0
+      mix vws.serve --wc-port 7071 --bind 0.0.0.0 --wc-allow 10.0.0.5   # only the WC at 10.0.0.5
       mix vws.serve --wc tty:/dev/ttyUSB0?baud=9600
       mix vws.serve --time-scale 10       # the simulated plant ten times faster
       mix vws.serve --daq1 tcp://10.0.0.9:5025   # a real DAQ #1 (LAN SCPI socket): no simulators
@@ -21,6 +21,9 @@ defmodule Mix.Tasks.Vws.Serve do
 
     * `--wc-port N` — TCP port for the WC (default 7070)
     * `--bind ADDR` — address to listen on (default 127.0.0.1)
+    * `--wc-allow LIST` — the addresses/networks that may connect to the WC port
+      (`10.0.0.5,10.0.0.0/24`; default `$VWS_WC_ALLOW`, else loopback only). Required to listen
+      anywhere but loopback (`Vws.Transport.Policy`; the link's policy: `Vws.SunComm`)
     * `--wc ENDPOINT` — any endpoint instead (`tcp://host:port`, `tty:/dev/…?baud=…`, `loopback:name`)
     * `--id ID` — the workstation id (default `VWS`)
     * `--journal DIR` — the command journal (every command status, the NC file and NC_UP, kept
@@ -37,6 +40,9 @@ defmodule Mix.Tasks.Vws.Serve do
     * `--http-bind ADDR` — the address they listen on (default 127.0.0.1)
     * `--http-token TOKEN` — enables the dashboard's control actions for requests carrying this
       token (default: `$VWS_HTTP_TOKEN`, else none: read-only)
+    * `--http-read-token TOKEN` — every read (dashboard, `/api/state`, MTConnect) needs this
+      token too (HTTP Basic password or `x-vws-token`; default: `$VWS_HTTP_READ_TOKEN`, else
+      none: reads open)
     * `--robot ENDPOINT` — the VAL II's supervisory port (`tty:/dev/ttyS1?baud=9600`, a terminal
       server's `tcp://host:port`); without it a simulated VAL II (`Vws.Sim.VAL2`) is started on a
       free local port and ROBOT is connected to it
@@ -54,6 +60,7 @@ defmodule Mix.Tasks.Vws.Serve do
   @switches [
     wc_port: :integer,
     bind: :string,
+    wc_allow: :string,
     wc: :string,
     id: :string,
     bcc: :string,
@@ -69,7 +76,8 @@ defmodule Mix.Tasks.Vws.Serve do
     http_bind: :string,
     http_token: :string,
     journal: :string,
-    no_journal: :boolean
+    no_journal: :boolean,
+    http_read_token: :string
   ]
 
   @impl true
@@ -87,6 +95,7 @@ defmodule Mix.Tasks.Vws.Serve do
     wc = opts[:wc] || "tcp://#{opts[:bind] || "127.0.0.1"}:#{opts[:wc_port] || 7070}"
     id = opts[:id] || "VWS"
     journal = Vws.DataDir.journal_dir(id, journal_choice(opts))
+    allow = wc_allow(wc, opts[:wc_allow] || System.get_env("VWS_WC_ALLOW"))
 
     bcc =
       case opts[:bcc] do
@@ -105,7 +114,7 @@ defmodule Mix.Tasks.Vws.Serve do
       Vws.Workstation.start(
         id: id,
         wc: wc,
-        sun_comm: [bcc: bcc],
+        sun_comm: [bcc: bcc, allow: allow],
         devices: devices,
         partitions: [monarch: [options: monarch]],
         journal: journal
@@ -124,6 +133,16 @@ defmodule Mix.Tasks.Vws.Serve do
     Mix.shell().info(stop_hint(iex_running?()))
 
     unless iex_running?(), do: Process.sleep(:infinity)
+  end
+
+  # Who may connect to the WC port: refused here, with the reason, rather than by SUN_COMM later.
+  defp wc_allow(wc, text) do
+    with {:ok, allow} <- Vws.Transport.Policy.parse_allow(text),
+         :ok <- Vws.Transport.Policy.check_listen(wc, allow) do
+      allow
+    else
+      {:error, message} -> Mix.raise("the WC port: " <> message)
+    end
   end
 
   # DAQ #1 and the hydraulic controller: the real ones given with --daq1 / --hydraulic, or the

@@ -15,8 +15,12 @@ defmodule Vws.HydraulicController.CecPort do
 
   @impl true
   def init(opts) do
-    case Transport.listen(Keyword.fetch!(opts, :listen)) do
-      {:ok, listener} -> {:ok, listener}
+    listen = Keyword.fetch!(opts, :listen)
+
+    with :ok <- Vws.Transport.Policy.check_listen(listen, Keyword.fetch!(opts, :allow)),
+         {:ok, listener} <- Transport.listen(listen) do
+      {:ok, listener}
+    else
       {:error, reason} -> {:stop, {:cannot_listen, reason}}
     end
   end

@@ -31,6 +31,7 @@ defmodule Vws.HydraulicController.Program do
     s = %{
       name: name,
       cec_port: Keyword.fetch!(opts, :cec_port),
+      allow: Keyword.get(opts, :allow, :loopback),
       pallet: Keyword.fetch!(opts, :pallet),
       connect_timeout_ms: Keyword.fetch!(opts, :connect_timeout_ms),
       listener: nil,
@@ -190,7 +191,8 @@ defmodule Vws.HydraulicController.Program do
 
   # The task manager: accept the CEC's connections; each gets an `Options` loop.
   defp options(s) do
-    acceptor = Transport.start_acceptor(s.listener, self(), :accepted)
+    # only the CEC (the allow-list) reaches the program; anyone else is closed by the acceptor
+    acceptor = Transport.start_acceptor(s.listener, self(), :accepted, allow: s.allow)
     %{s | acceptor: acceptor, phase: :ready}
   end
 

@@ -57,7 +57,8 @@ defmodule Vws.Sim.DAQ do
 
   @doc """
   Starts a DAQ. Options: `:plant` (required), `:endpoint` to listen on (default
-  `"tcp://127.0.0.1:0"`), `:daq` (`:daq1` or `:daq2`, default `:daq1`), `:name`.
+  `"tcp://127.0.0.1:0"`), `:daq` (`:daq1` or `:daq2`, default `:daq1`), `:name`, `:allow` (who
+  may connect, `Vws.Transport.Policy`; default loopback only).
   """
   @spec start_link(keyword) :: GenServer.on_start()
   def start_link(opts) do
@@ -94,7 +95,10 @@ defmodule Vws.Sim.DAQ do
 
     case Transport.listen(Keyword.get(opts, :endpoint, "tcp://127.0.0.1:0")) do
       {:ok, listener} ->
-        acceptor = Transport.start_acceptor(listener, self(), :accepted)
+        acceptor =
+          Transport.start_acceptor(listener, self(), :accepted,
+            allow: Vws.Transport.Policy.parse_allow!(Keyword.get(opts, :allow))
+          )
 
         {:ok,
          %{

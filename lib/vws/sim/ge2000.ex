@@ -36,6 +36,7 @@ defmodule Vws.Sim.GE2000 do
     * `:whole_programs_only` — refuse a `.PRO` that does not end in a `%` line (default true)
     * `:name`, `:programs` (`%{"001234.PRO" => text}`), `:offsets` (`[{line, value}]`),
       `:cycle_time` (5 000 ms), `:plant` (`(event -> any)`)
+    * `:allow` — who may connect (`Vws.Transport.Policy`; default loopback only)
     * `:pace` — `false` (default), `true` (4 800 Bd, the seed's line) or a baud rate: the
       simulator then paces the line like the real serial link (see `Vws.DNC`, option `:pace`)
     * `:link` — further `Vws.DNC` options (limits, `max_text`)
@@ -152,6 +153,7 @@ defmodule Vws.Sim.GE2000 do
 
     s = %{
       endpoint: Keyword.get(opts, :endpoint, "tcp://127.0.0.1:0"),
+      allow: Vws.Transport.Policy.parse_allow!(Keyword.get(opts, :allow)),
       bound: nil,
       listener: nil,
       acceptor: nil,
@@ -193,7 +195,8 @@ defmodule Vws.Sim.GE2000 do
 
       case Vws.Transport.listen(endpoint) do
         {:ok, listener} ->
-          acceptor = spawn_link(fn -> accept_loop(listener, link) end)
+          allow = s.allow
+          acceptor = spawn_link(fn -> accept_loop(listener, link, allow) end)
           bound = to_string(Vws.Transport.listener_endpoint(listener))
           Logger.info("GE-2000 simulator listening on #{bound}")
           {:noreply, %{s | link: link, listener: listener, acceptor: acceptor, bound: bound}}
@@ -205,21 +208,32 @@ defmodule Vws.Sim.GE2000 do
   end
 
   # A new connection takes over from the previous one, like a cable plugged in again.
-  defp accept_loop(listener, link) do
+  # Only an allowed peer (default loopback, `Vws.Transport.Policy`) is plugged in.
+  defp accept_loop(listener, link, allow) do
     case Vws.Transport.accept(listener, :infinity) do
       {:ok, conn} ->
-        case DNC.attach(link, conn) do
-          :ok ->
-            :ok
-
-          error ->
-            Logger.warning("GE-2000 simulator could not take a connection: #{inspect(error)}")
+        with {:ok, ip} <- Vws.Transport.peer_address(conn),
+             false <- Vws.Transport.Policy.allowed?(allow, ip) do
+          Logger.warning("GE-2000 simulator refused #{Vws.Transport.peer(conn)}: not allowed")
+          Vws.Transport.close(conn)
+        else
+          _ -> attach(link, conn)
         end
 
-        accept_loop(listener, link)
+        accept_loop(listener, link, allow)
 
       {:error, reason} ->
         exit({:accept_failed, reason})
+    end
+  end
+
+  defp attach(link, conn) do
+    case DNC.attach(link, conn) do
+      :ok ->
+        :ok
+
+      error ->
+        Logger.warning("GE-2000 simulator could not take a connection: #{inspect(error)}")
     end
   end
 

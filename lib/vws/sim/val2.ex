@@ -49,6 +49,7 @@ defmodule Vws.Sim.VAL2 do
 
     * `:endpoint` — where to listen (default `"tcp://127.0.0.1:0"`, any free port); an endpoint
       that cannot listen (a tty) is opened directly
+    * `:allow` — who may connect (`Vws.Transport.Policy`; default loopback only)
     * `:locations` — a locations file path, or its map (default `priv/sims/robot_locations.exs`)
     * `:time_scale` — multiplies every motion time (default 1.0; tests use ~0.001)
     * `:on_move` — `fun(map)`, see "The plant"
@@ -133,6 +134,7 @@ defmodule Vws.Sim.VAL2 do
     state = %{
       monitor: Monitor.new(config),
       endpoint: Keyword.get(opts, :endpoint, "tcp://127.0.0.1:0"),
+      allow: Vws.Transport.Policy.parse_allow!(Keyword.get(opts, :allow)),
       bound: nil,
       listener: nil,
       acceptor: nil,
@@ -168,7 +170,7 @@ defmodule Vws.Sim.VAL2 do
       {:ok, listener} ->
         bound = to_string(Transport.listener_endpoint(listener))
         owner = self()
-        acceptor = Transport.start_acceptor(listener, owner, :accepted)
+        acceptor = Transport.start_acceptor(listener, owner, :accepted, allow: s.allow)
         Logger.info("VAL II simulator listening on #{bound}")
         {:noreply, %{s | listener: listener, bound: bound, acceptor: acceptor}}
 

@@ -8,7 +8,10 @@ defmodule Vws.Transport.TCP do
   `{:tcp, socket, data}`, `{:tcp_closed, socket}` and `{:tcp_error, socket, reason}` messages.
 
   Options: `connect/2` takes `timeout` (ms, default 5000); `listen/2` takes `ip` (an address
-  tuple or string, overriding the endpoint's host) and `backlog` (default 128).
+  tuple or string, overriding the endpoint's host), `backlog` (default 128) and `send_timeout`
+  (ms; default none): a send to an accepted connection that the peer has not made room for
+  within it fails `{:error, :timeout}` and closes the connection (`send_timeout_close`), so a
+  peer that never reads cannot block its owner for longer.
   """
 
   @behaviour Vws.Transport
@@ -30,9 +33,16 @@ defmodule Vws.Transport.TCP do
   @impl true
   def listen(%Endpoint{kind: :tcp, host: host, port: port}, opts) do
     with {:ok, ip} <- bind_address(Keyword.get(opts, :ip, host)) do
+      send_timeout =
+        case Keyword.get(opts, :send_timeout) do
+          nil -> []
+          ms -> [send_timeout: ms, send_timeout_close: true]
+        end
+
       :gen_tcp.listen(
         port,
-        @socket_opts ++ [reuseaddr: true, ip: ip, backlog: Keyword.get(opts, :backlog, 128)]
+        @socket_opts ++
+          [reuseaddr: true, ip: ip, backlog: Keyword.get(opts, :backlog, 128)] ++ send_timeout
       )
     end
   end

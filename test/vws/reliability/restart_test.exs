@@ -302,6 +302,9 @@ defmodule Vws.Reliability.RestartTest do
     [
       id: ws,
       wc: "loopback:wc-#{ws}",
+      # the check after a restart sends from a second WC while the first has just spoken: it
+      # may take the link over at once (by default only after 10 s of the first one's silence)
+      sun_comm: [takeover_after: 0],
       journal: [dir: dir],
       devices: Floor.devices(ws),
       # a refused cycle start ends in half a second, not ten

@@ -279,7 +279,9 @@ defmodule Vws.WC.ClientTest do
     @program ["%", "O001234", "N10 G90 G00 X0 Y0", "N20 G01 Z-1.0 F100", "N30 M30", "%"]
 
     setup do
-      %{ws: ws, wc: wc} = Workstation.start()
+      # takeover_after 0: another WC may take the link at once (the default waits for 10 s of
+      # silence, see wc_link_policy_test.exs)
+      %{ws: ws, wc: wc} = Workstation.start(sun_comm: [takeover_after: 0])
       {relay, via} = relay(wc)
       {:ok, client} = Client.connect(via, line_timeout: 300)
       %{ws: ws, client: client, relay: relay}
@@ -351,7 +353,9 @@ defmodule Vws.WC.ClientTest do
 
   describe "the link and the event log" do
     setup do
-      %{ws: ws, wc: wc} = Workstation.start()
+      # takeover_after 0: another WC may take the link at once (the default waits for 10 s of
+      # silence, see wc_link_policy_test.exs)
+      %{ws: ws, wc: wc} = Workstation.start(sun_comm: [takeover_after: 0])
       %{ws: ws, wc: wc}
     end
 
