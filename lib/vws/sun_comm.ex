@@ -71,6 +71,10 @@ defmodule Vws.SunComm do
       default loopback only)
     * `:takeover_after` — ms of silence of the current WC after which a new connection may
       replace it (10 000)
+    * `:takeover_grace` — ms a new connection refused by that rule waits for the current WC's
+      connection to end before it is closed (500): a WC that closes one connection and opens
+      the next at once (`bin/vws-wc`, `socat` per command) is let in, not refused for the close
+      SUN_COMM had not yet seen
     * `:send_timeout` — ms an answer may wait for the WC to read before the link is dropped (5 000)
     * `:download_timeout` — ms without a program line before a download is abandoned (30 000)
     * `:upload_timeout` — ms to wait for the WC's `A`/`E` to an uploaded line (5 000)
@@ -161,6 +165,8 @@ defmodule Vws.SunComm do
       partial_line_timeout: Keyword.get(opts, :partial_line_timeout, 500),
       allow: allow,
       takeover_after: Keyword.get(opts, :takeover_after, 10_000),
+      takeover_grace: Keyword.get(opts, :takeover_grace, 500),
+      waiting: nil,
       send_timeout: Keyword.get(opts, :send_timeout, 5_000),
       last_heard: nil,
       partial: nil,
@@ -251,23 +257,27 @@ defmodule Vws.SunComm do
   end
 
   def handle_info({:wc_accepted, conn}, s) do
-    if s.conn == nil or silent_ms(s) >= s.takeover_after do
-      {:noreply, take_link(s, conn)}
-    else
-      Logger.warning(
-        "WC connection from #{Transport.peer(conn)} refused: the WC on #{Transport.peer(s.conn)} " <>
-          "was heard #{silent_ms(s)} ms ago (a takeover needs #{s.takeover_after} ms of silence)"
-      )
+    cond do
+      s.conn == nil or silent_ms(s) >= s.takeover_after ->
+        {:noreply, take_link(s, conn)}
 
-      telemetry(s, :wc_refused, %{count: 1}, %{
-        peer: Transport.peer(conn),
-        current: Transport.peer(s.conn)
-      })
+      s.waiting != nil ->
+        # one newcomer waits at a time; a second one is refused at once
+        {:noreply, refuse(s, conn)}
 
-      Transport.close(conn)
-      {:noreply, s}
+      true ->
+        # the current connection may have ended already, its close still on its way to us:
+        # the newcomer waits (unread) a moment for it, and is refused only if it does not come
+        ref = make_ref()
+        Process.send_after(self(), {:takeover_grace, ref}, s.takeover_grace)
+        {:noreply, %{s | waiting: {conn, ref}}}
     end
   end
+
+  def handle_info({:takeover_grace, ref}, %{waiting: {conn, ref}} = s),
+    do: {:noreply, refuse(%{s | waiting: nil}, conn)}
+
+  def handle_info({:takeover_grace, _stale}, s), do: {:noreply, s}
 
   def handle_info(:reopen_tty, s), do: {:noreply, open_tty(s)}
 
@@ -344,6 +354,7 @@ defmodule Vws.SunComm do
   @impl true
   def terminate(_reason, s) do
     if s.conn, do: Transport.close(s.conn)
+    if s.waiting, do: Transport.close(elem(s.waiting, 0))
     if s.listener, do: Transport.close_listener(s.listener)
     :ok
   end
@@ -387,6 +398,25 @@ defmodule Vws.SunComm do
 
   defp silent_ms(s), do: System.monotonic_time(:millisecond) - s.last_heard
 
+  defp refuse(s, conn) do
+    Logger.warning(
+      "WC connection from #{Transport.peer(conn)} refused: the WC on #{Transport.peer(s.conn)} " <>
+        "was heard #{silent_ms(s)} ms ago (a takeover needs #{s.takeover_after} ms of silence)"
+    )
+
+    telemetry(s, :wc_refused, %{count: 1}, %{
+      peer: Transport.peer(conn),
+      current: Transport.peer(s.conn)
+    })
+
+    Transport.close(conn)
+    s
+  end
+
+  # The current WC is gone: a newcomer waiting for that takes the link now.
+  defp admit_waiting(%{waiting: {conn, _ref}} = s), do: take_link(%{s | waiting: nil}, conn)
+  defp admit_waiting(s), do: s
+
   defp link_lost(s, why) do
     Logger.warning("WC link lost (#{why})")
     telemetry(s, :wc_disconnected, %{count: 1}, %{peer: Transport.peer(s.conn), reason: why})
@@ -398,7 +428,7 @@ defmodule Vws.SunComm do
       Process.send_after(self(), :reopen_tty, s.tty_retry)
     end
 
-    s
+    admit_waiting(s)
   end
 
   ## Lines in

@@ -77,7 +77,8 @@ defmodule Vws.WCLinkPolicyTest do
   end
 
   test "a new WC replaces the current one only after takeover_after of silence; both peers logged" do
-    %{ws: ws, wc: wc} = start(takeover_after: 1_000)
+    # no grace: a refused newcomer is closed at once (the grace has a test of its own)
+    %{ws: ws, wc: wc} = start(takeover_after: 1_000, takeover_grace: 0)
     {:ok, first} = WCPeer.connect(wc)
     assert WCPeer.status(first, 1, 1, "ROBOT_CMD") == "0000NONE"
 
@@ -116,6 +117,47 @@ defmodule Vws.WCLinkPolicyTest do
 
     assert log =~ ~r/takes over from tcp:\/\/127\.0\.0\.1:\d+/
     assert Vws.SunComm.info(ws).counters.connections == 2
+  end
+
+  test "a WC that closes its connection and opens the next at once is let in, not refused" do
+    # one connection per command (bin/vws-wc, socat): the new connection can reach SUN_COMM
+    # before the old one's close does (found by the acceptance tests: a second request was
+    # closed unanswered). Forced here: SUN_COMM is held while the newcomer's acceptance and
+    # then the old connection's close are queued, in that order.
+    %{ws: ws, wc: wc} = start([])
+    sun_comm = GenServer.whereis(Vws.Workstation.via(ws, :sun_comm))
+    {:ok, first} = WCPeer.connect(wc)
+    assert WCPeer.status(first, 1, 1, "ROBOT_CMD") == "0000NONE"
+
+    :ok = :sys.suspend(sun_comm)
+
+    queued = fn n ->
+      eventually(fn -> Process.info(sun_comm, :message_queue_len) |> elem(1) >= n end)
+    end
+
+    {:ok, second} = WCPeer.connect(wc)
+    assert queued.(1)
+    WCPeer.close(first)
+    assert queued.(2)
+    :ok = :sys.resume(sun_comm)
+
+    assert WCPeer.status(second, 2, 2, "ROBOT_CMD") == "0000NONE"
+    assert Vws.SunComm.info(ws).counters.connections == 2
+  end
+
+  test "a second newcomer while one waits, and a newcomer while the WC stays, are refused" do
+    %{wc: wc} = start(takeover_grace: 300)
+    {:ok, first} = WCPeer.connect(wc)
+    assert WCPeer.status(first, 1, 1, "ROBOT_CMD") == "0000NONE"
+
+    capture_log(fn ->
+      {:ok, second} = WCPeer.connect(wc)
+      {:ok, third} = WCPeer.connect(wc)
+      assert WCPeer.recv_line(third, 2_000) in [{:timeout, :closed}, :closed]
+      assert WCPeer.recv_line(second, 2_000) in [{:timeout, :closed}, :closed]
+    end)
+
+    assert WCPeer.status(first, 2, 2, "ROBOT_CMD") == "0000NONE"
   end
 
   test "a WC that sends and never reads is dropped after send_timeout; SUN_COMM answers the next WC" do
