@@ -110,15 +110,17 @@ defmodule Mix.Tasks.Vws.Serve do
     devices = [ge2000: ge2000, robot: robot] ++ floor_devices(id, opts)
 
     # a simulated GE-2000's own button is MONARCH's cycle start; else the DAQ #1 relay is
-    {:ok, _} =
-      Vws.Workstation.start(
-        id: id,
-        wc: wc,
-        sun_comm: [bcc: bcc, allow: allow],
-        devices: devices,
-        partitions: [monarch: [options: monarch]],
-        journal: journal
-      )
+    case Vws.Workstation.start(
+           id: id,
+           wc: wc,
+           sun_comm: [bcc: bcc, allow: allow],
+           devices: devices,
+           partitions: [monarch: [options: monarch]],
+           journal: journal
+         ) do
+      {:ok, _} -> :ok
+      {:error, reason} -> Mix.raise("workstation #{id} did not start: #{start_error(reason)}")
+    end
 
     listening = wait_listening(id, 50)
     Mix.shell().info("VWS workstation #{id}: SUN_COMM waits for the WC on #{listening || wc}")
@@ -242,6 +244,16 @@ defmodule Mix.Tasks.Vws.Serve do
   rescue
     ArgumentError -> Mix.raise("--journal DIR and --no-journal exclude each other")
   end
+
+  # why a workstation did not start, in words: the innermost reason of the supervisor's
+  # failed child (a journal directory in use by another OS process, a port taken, …)
+  defp start_error({:shutdown, reason}), do: start_error(reason)
+  defp start_error({:failed_to_start_child, _child, reason}), do: start_error(reason)
+  defp start_error({%{__exception__: true} = e, _stacktrace}), do: Exception.message(e)
+  defp start_error(%{__exception__: true} = e), do: Exception.message(e)
+  defp start_error({:already_started, _pid}), do: "a workstation with this id already runs here"
+  defp start_error(reason) when is_binary(reason), do: reason
+  defp start_error(reason), do: inspect(reason)
 
   defp wait_listening(_id, 0), do: nil
 
