@@ -279,10 +279,11 @@ defmodule Vws.DAQ do
   @doc """
   After a write that did not read back as intended: the transaction that sets the wrong
   relays right (opens first) and reads the whole slot back, and what it must leave. When the
-  intended state is unknown (the reads before the write disagreed), the write itself again.
+  read-back is missing, or the intended state is unknown (the reads before the write
+  disagreed), the slot is read again first (`recheck/1`), never written blindly.
   """
-  @spec correction(t, expected, [term]) :: {:ok, [Vws.SCPI.command()], expected}
-  def correction(daq, expected, results) do
+  @spec correction(expected, [term]) :: {:ok, [Vws.SCPI.command()], expected}
+  def correction(expected, results) do
     case {intended(expected, results), List.last(results)} do
       {{:ok, states}, after_write}
       when is_list(after_write) and length(after_write) == length(states) ->
@@ -293,16 +294,27 @@ defmodule Vws.DAQ do
         {:ok, writes(wrong) ++ [query], {:whole, states}}
 
       {{:ok, states}, _no_answer} ->
-        query = {:rout_clos?, Enum.map(states, &elem(&1, 0))}
-        {:ok, writes(states) ++ [query], {:whole, states}}
+        # the reads before were good: the slot read again is held against them, whole
+        {:ok, recheck({:whole, states}), {:whole, states}}
 
       {:unknown, _} ->
-        {:write, _slot, commanded} = expected
-
-        actuation(
-          daq,
-          for({ch, closed?} <- commanded, do: {ch, if(closed?, do: :close, else: :open)})
-        )
+        {:ok, recheck(expected), expected}
     end
   end
+
+  @doc """
+  After a transaction whose answers were damaged or missing: the reads that tell whether its
+  writes took effect — the whole slot twice for a first write (the two reads must agree and
+  stand for the reads before it), once for a correction — checked against the same `expected`.
+  Nothing is written again blindly: a relay is set again only by a `correction/3` of these
+  reads, so a write that reached the DAQ while its answer was lost is never repeated.
+
+      iex> Vws.DAQ.recheck({:whole, [{205, false}, {206, true}]})
+      [{:rout_clos?, [205, 206]}]
+  """
+  @spec recheck(expected) :: [Vws.SCPI.command()]
+  def recheck({:write, slot, _commanded}),
+    do: [{:rout_clos?, slot}, {:rout_clos?, slot}]
+
+  def recheck({:whole, states}), do: [{:rout_clos?, Enum.map(states, &elem(&1, 0))}]
 end

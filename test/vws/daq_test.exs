@@ -102,22 +102,42 @@ defmodule Vws.DAQTest do
 
       # set right: 206 opened, 207 closed, the slot read again and compared whole
       assert {:ok, [{:rout_open, [206]}, {:rout_clos, [207]}, {:rout_clos?, @slot}], whole} =
-               DAQ.correction(daq, expected, results)
+               DAQ.correction(expected, results)
 
       assert DAQ.check_relays(whole, [:ok, :ok, states([205, 207])]) == :ok
       assert DAQ.check_relays(whole, [:ok, :ok, states([207])]) == {:error, [205]}
 
-      # the two reads before disagree on a relay not commanded: nothing can be said; the write
-      # is made again, whole
+      # the two reads before disagree on a relay not commanded: nothing can be said; the slot
+      # is read again, twice, and nothing written until those reads show what is wrong
       disagree = [states([205]), states([]), :ok, states([205, 207])]
       assert DAQ.check_relays(expected, disagree) == {:error, []}
 
       assert DAQ.confirm_relays(expected, disagree, "DAQ #1") ==
                {:error, "DAQ #1 RELAYS NOT READ BACK"}
 
-      assert DAQ.correction(daq, expected, disagree) == DAQ.actuation(daq, [{207, :close}])
-      # no answer at all
+      assert DAQ.correction(expected, disagree) ==
+               {:ok, [{:rout_clos?, @slot}, {:rout_clos?, @slot}], expected}
+
+      # the reads again: 207 closed (the write took effect) → confirmed, nothing written again
+      assert DAQ.check_relays(expected, [states([205, 207]), states([205, 207])]) == :ok
+      # 207 still open → the correction writes only 207
+      reread = [states([205]), states([205])]
+      assert {:error, [207]} = DAQ.check_relays(expected, reread)
+
+      assert {:ok, [{:rout_clos, [207]}, {:rout_clos?, @slot}], _} =
+               DAQ.correction(expected, reread)
+
+      # no answer at all: read again, never written blindly
       assert DAQ.check_relays(expected, [before, before, :ok]) == {:error, []}
+
+      # (the reads before were good: the slot read once more is held against them, whole)
+      assert {:ok, [{:rout_clos?, @slot}], {:whole, _} = whole} =
+               DAQ.correction(expected, [before, before, :ok])
+
+      assert DAQ.check_relays(whole, [states([205, 207])]) == :ok
+      assert DAQ.check_relays(whole, [states([207])]) == {:error, [205]}
+
+      assert DAQ.recheck(expected) == [{:rout_clos?, @slot}, {:rout_clos?, @slot}]
     end
   end
 

@@ -179,10 +179,10 @@ defmodule Vws.HydraulicController.Pallet do
       {:ok, results} ->
         confirmed(p, expected, tries, results)
 
-      # the answers still damaged (or missing) after the bus's own tries: the whole
-      # transaction again
+      # the answers still damaged (or missing) after the bus's own tries: the writes may have
+      # been done, so the slot is read again and set right only where it is not as intended
       {:error, %HPIB.Error{reason: reason}} when reason in [:bad_response, :timeout] and tries > 1 ->
-        confirm(p, commands, expected, tries - 1)
+        confirm(p, DAQ.recheck(expected), expected, tries - 1)
 
       {:error, error} ->
         {:error, hpib_reason(error)}
@@ -196,7 +196,7 @@ defmodule Vws.HydraulicController.Pallet do
           device: p.device
         })
 
-        {:ok, commands, expected} = DAQ.correction(p.daq, expected, results)
+        {:ok, commands, expected} = DAQ.correction(expected, results)
         confirm(p, commands, expected, tries - 1)
 
       result ->

@@ -687,14 +687,14 @@ defmodule Vws.Partitions.VwsStatus do
         })
 
         s = %{s | actuations: List.delete(s.actuations, a)}
-        {:ok, commands, expected} = DAQ.correction(s.daq, expected, results)
+        {:ok, commands, expected} = DAQ.correction(expected, results)
         send_actuation(s, {commands, expected, try + 1}, from)
 
-      {{_req, from, {commands, expected, try}} = a, {:error, {:damaged, why}}}
+      {{_req, from, {_commands, expected, try}} = a, {:error, {:damaged, why}}}
       when try <= @actuation_retries ->
         # the answers came back damaged or not at all even after the bus's own tries: the
-        # whole transaction again — the slot read twice, the writes (setting a relay again is
-        # harmless), the slot read back — as the longer whole-slot read-back meets more noise
+        # writes may have been done, so the slot is read again (DAQ.recheck/1) and a relay is
+        # set again only if those reads show it is not as intended — never written blindly
         Vws.Telemetry.execute([:vws, :vws_status, :actuation_retry], %{count: 1}, %{
           workstation: s.workstation,
           reason: why,
@@ -702,7 +702,7 @@ defmodule Vws.Partitions.VwsStatus do
         })
 
         s = %{s | actuations: List.delete(s.actuations, a)}
-        send_actuation(s, {commands, expected, try + 1}, from)
+        send_actuation(s, {DAQ.recheck(expected), expected, try + 1}, from)
 
       {{_req, from, _act} = a, reply} ->
         reply =
