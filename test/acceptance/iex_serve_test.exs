@@ -12,25 +12,6 @@ defmodule Vws.Acceptance.IexServeTest do
     Acceptance.prebuild("dev")
   end
 
-  defp pad(n), do: String.pad_leading(Integer.to_string(n), 4, "0")
-
-  # Polls FIXTURE_CMD until command `number` ends; its status text.
-  defp await_fixture(wc, seq, number, deadline) do
-    reply = Acceptance.wc_request(wc, "*#{pad(seq)}*S#{pad(seq)}FIXTURE_CMD*")
-
-    cond do
-      reply =~ ~r/^\d\dS#{pad(seq)}#{pad(number)}(DONE|ERROR)/ ->
-        reply
-
-      System.monotonic_time(:millisecond) > deadline ->
-        flunk("FIXTURE command #{number} did not end: #{reply}")
-
-      true ->
-        Process.sleep(100)
-        await_fixture(wc, seq + 1, number, deadline)
-    end
-  end
-
   # The exit status; if the node does not stop in time, the failure message says what the pane's
   # process is doing (ps) and, from a crash dump (SIGUSR1), where its Erlang processes wait.
   defp exit_or_dump(t, dump) do
@@ -102,7 +83,7 @@ defmodule Vws.Acceptance.IexServeTest do
     # ended with it: a command verified on the simulated sensors (DAQ #1) still completes
     assert Acceptance.wc_request(wc, "*0001*F0001OPEN*") =~ ~r/^05A0001\d{3}$/
     deadline = System.monotonic_time(:millisecond) + 30_000
-    reply = await_fixture(wc, 2, 1, deadline)
+    reply = Acceptance.await_command(wc, "FIXTURE_CMD", 2, 1, deadline)
     assert reply =~ ~r/^\d\dS\d{4}0001DONE\d{3}$/, "#{reply}\n#{Acceptance.tmux_capture(t)}"
 
     refute Acceptance.tmux_capture(t) =~ "DAQ #1 NOT CONNECTED"

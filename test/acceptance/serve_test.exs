@@ -39,25 +39,6 @@ defmodule Vws.Acceptance.ServeTest do
     %{proc: proc, wc: wc, http: http}
   end
 
-  # Polls FIXTURE_CMD until command `number` is no longer EXECUTING; returns its status text.
-  defp await_fixture(wc, seq, number, deadline) do
-    reply = Acceptance.wc_request(wc, "*#{pad(seq)}*S#{pad(seq)}FIXTURE_CMD*")
-
-    cond do
-      reply =~ ~r/^\d\dS#{pad(seq)}#{pad(number)}(DONE|ERROR)/ ->
-        reply
-
-      System.monotonic_time(:millisecond) > deadline ->
-        flunk("FIXTURE command #{number} did not end: #{reply}")
-
-      true ->
-        Process.sleep(100)
-        await_fixture(wc, seq + 1, number, deadline)
-    end
-  end
-
-  defp pad(n), do: String.pad_leading(Integer.to_string(n), 4, "0")
-
   test "mix vws.serve: a status and a command over TCP, the dashboard's state and MTConnect over HTTP, SIGTERM stops it cleanly" do
     %{proc: proc, wc: wc, http: http} = serve(["--time-scale", "20"])
 
@@ -67,7 +48,9 @@ defmodule Vws.Acceptance.ServeTest do
     # a real command, run on the simulated floor and verified on its sensors
     assert Acceptance.wc_request(wc, "*0002*F0001OPEN*") =~ ~r/^05A0002\d{3}$/
     deadline = System.monotonic_time(:millisecond) + 30_000
-    assert await_fixture(wc, 3, 1, deadline) =~ ~r/^\d\dS\d{4}0001DONE\d{3}$/
+
+    assert Acceptance.await_command(wc, "FIXTURE_CMD", 3, 1, deadline) =~
+             ~r/^\d\dS\d{4}0001DONE\d{3}$/
 
     # the integrator's command line (README): a command to its end, exit status 0
     cli =

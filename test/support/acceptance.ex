@@ -367,6 +367,29 @@ defmodule Vws.Test.Acceptance do
   end
 
   @doc """
+  Polls the WC status command `status` (`"FIXTURE_CMD"`, …) over `wc_request/3`, one sequence
+  number after another from `seq`, until command `number` has ended DONE or ERROR; returns that
+  status line. Fails the test at `deadline` (monotonic ms).
+  """
+  def await_command(port, status, seq, number, deadline) do
+    reply = wc_request(port, "*#{pad4(seq)}*S#{pad4(seq)}#{status}*")
+
+    cond do
+      reply =~ ~r/^\d\dS#{pad4(seq)}#{pad4(number)}(DONE|ERROR)/ ->
+        reply
+
+      System.monotonic_time(:millisecond) > deadline ->
+        flunk("#{status} command #{number} did not end: #{reply}")
+
+      true ->
+        Process.sleep(100)
+        await_command(port, status, seq + 1, number, deadline)
+    end
+  end
+
+  defp pad4(n), do: String.pad_leading(Integer.to_string(n), 4, "0")
+
+  @doc """
   Connects to the WC link on `127.0.0.1:port` (retrying until `timeout`), sends `data` framed
   with `wc_frame/1` and `\r\n`, and returns the first reply line (without its line end).
   """
