@@ -676,33 +676,18 @@ defmodule Vws.Partitions.VwsStatus do
         Logger.debug("VWS_STATUS: unexpected message #{inspect(msg, limit: 10)}")
         s
 
-      {{_req, from, {_commands, expected, try}} = a, {:error, {:relays, why, results}}}
-      when try <= @actuation_retries ->
-        # a relay of the slot not as intended: the command or the answer may have been damaged
-        # on the line; the wrong relays are set right and the whole slot confirmed again
+      {{_req, from, {_commands, expected, try}} = a, {:error, failure}}
+      when is_tuple(failure) and elem(failure, 0) in [:relays, :damaged] and
+             try <= @actuation_retries ->
         Vws.Telemetry.execute([:vws, :vws_status, :actuation_retry], %{count: 1}, %{
           workstation: s.workstation,
-          reason: why,
+          reason: elem(failure, 1),
           try: try
         })
 
         s = %{s | actuations: List.delete(s.actuations, a)}
-        {:ok, commands, expected} = DAQ.correction(expected, results)
+        {commands, expected} = retry(failure, expected)
         send_actuation(s, {commands, expected, try + 1}, from)
-
-      {{_req, from, {_commands, expected, try}} = a, {:error, {:damaged, why}}}
-      when try <= @actuation_retries ->
-        # the answers came back damaged or not at all even after the bus's own tries: the
-        # writes may have been done, so the slot is read again (DAQ.recheck/1) and a relay is
-        # set again only if those reads show it is not as intended — never written blindly
-        Vws.Telemetry.execute([:vws, :vws_status, :actuation_retry], %{count: 1}, %{
-          workstation: s.workstation,
-          reason: why,
-          try: try
-        })
-
-        s = %{s | actuations: List.delete(s.actuations, a)}
-        send_actuation(s, {DAQ.recheck(expected), expected, try + 1}, from)
 
       {{_req, from, _act} = a, reply} ->
         reply =
@@ -715,6 +700,18 @@ defmodule Vws.Partitions.VwsStatus do
         actuated(from, reply, %{s | actuations: List.delete(s.actuations, a)})
     end
   end
+
+  # The transaction after a failed one. A relay of the slot not as intended (the command or
+  # the answer may have been damaged on the line): the wrong relays set right and the whole
+  # slot confirmed again. Answers damaged or missing even after the bus's own tries: the writes
+  # may have been done, so the slot is read again (DAQ.recheck/1) and a relay is set again only
+  # if those reads show it is not as intended — never written blindly.
+  defp retry({:relays, _why, results}, expected) do
+    {:ok, commands, expected} = DAQ.correction(expected, results)
+    {commands, expected}
+  end
+
+  defp retry({:damaged, _why}, expected), do: {DAQ.recheck(expected), expected}
 
   defp request(s, commands, expected, from, counter \\ :actuations) do
     s = update_in(s.stats[counter], &(&1 + 1))
