@@ -37,6 +37,29 @@ defmodule Vws.Test.FlipRelay do
     <<pre::binary, Bitwise.bxor(byte, Bitwise.bsl(1, bit)), post::binary>>
   end
 
+  @doc """
+  A PropEr generator of byte bursts for `{:bytes, _}` plans over traffic of `to_target` and
+  `to_client` bytes: one byte of either direction XOR a random mask, and often the next byte of
+  that direction with a mask of its own.
+  """
+  def burst(to_target, to_client) do
+    :proper_types.bind(
+      :proper_types.tuple([
+        :proper_types.elements([:to_target, :to_client]),
+        :proper_types.range(0, 1_000_000),
+        :proper_types.range(1, 255),
+        :proper_types.range(0, 255)
+      ]),
+      fn {dir, r, mask, next_mask} ->
+        n = if dir == :to_target, do: to_target, else: to_client
+        index = rem(r, n)
+        next = if index + 1 < n and next_mask > 0, do: [{dir, index + 1, next_mask}], else: []
+        :proper_types.exactly([{dir, index, mask} | next])
+      end,
+      false
+    )
+  end
+
   @impl true
   def init(target) do
     %URI{host: host, port: port} = URI.parse(target)

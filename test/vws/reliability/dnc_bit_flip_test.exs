@@ -72,22 +72,7 @@ defmodule Vws.Reliability.DNCBitFlipTest do
       kind = @kind
       {to_target, to_client} = traffic(ctx, kind)
 
-      burst =
-        :proper_types.bind(
-          :proper_types.tuple([
-            :proper_types.elements([:to_target, :to_client]),
-            :proper_types.range(0, 1_000_000),
-            :proper_types.range(1, 255),
-            :proper_types.range(0, 255)
-          ]),
-          fn {dir, r, mask, next_mask} ->
-            n = if dir == :to_target, do: to_target, else: to_client
-            index = rem(r, n)
-            next = if index + 1 < n and next_mask > 0, do: [{dir, index + 1, next_mask}], else: []
-            :proper_types.exactly([{dir, index, mask} | next])
-          end,
-          false
-        )
+      burst = Vws.Test.FlipRelay.burst(to_target, to_client)
 
       property = :proper.forall(burst, &(check!(ctx, kind, &1) in [:done, :error]))
       assert_property(property, 120)

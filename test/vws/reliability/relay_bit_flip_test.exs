@@ -61,22 +61,7 @@ defmodule Vws.Reliability.RelayBitFlipTest do
   test "V ON: random bursts", ctx do
     {to_target, to_client} = traffic(ctx)
 
-    burst =
-      :proper_types.bind(
-        :proper_types.tuple([
-          :proper_types.elements([:to_target, :to_client]),
-          :proper_types.range(0, 1_000_000),
-          :proper_types.range(1, 255),
-          :proper_types.range(0, 255)
-        ]),
-        fn {dir, r, mask, next_mask} ->
-          n = if dir == :to_target, do: to_target, else: to_client
-          index = rem(r, n)
-          next = if index + 1 < n and next_mask > 0, do: [{dir, index + 1, next_mask}], else: []
-          :proper_types.exactly([{dir, index, mask} | next])
-        end,
-        false
-      )
+    burst = Vws.Test.FlipRelay.burst(to_target, to_client)
 
     assert_property(:proper.forall(burst, &(check!(ctx, &1) in [:ok, :error])), 150)
   end
