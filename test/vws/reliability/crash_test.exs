@@ -337,6 +337,7 @@ defmodule Vws.Reliability.CrashTest do
         id,
         [
           [:vws, :partition, :command_dispatched],
+          [:vws, :partition, :command, :start],
           [:vws, :partition, :command_finished],
           [:vws, :sim, :plant, :actuator],
           [:vws, :sim, :val2, :command],
@@ -357,6 +358,12 @@ defmodule Vws.Reliability.CrashTest do
 
   defp entry(key, [:vws, :partition, :command_dispatched], m),
     do: {key, :dispatched, {m.partition, m.command}, m.text}
+
+  # The command's worker runs the handler: its links name the partition process that started it.
+  defp entry(key, [:vws, :partition, :command, :start], m) do
+    {:links, links} = Process.info(self(), :links)
+    {key, :started, {m.partition, m.command}, links}
+  end
 
   defp entry(key, [:vws, :partition, :command_finished], m),
     do: {key, :finished, {m.partition, m.command}, m.status}
@@ -393,11 +400,17 @@ defmodule Vws.Reliability.CrashTest do
           not match?([{_, :done}], ends) and not match?([{_, {:error, <<_, _::binary>>}}], ends),
           do: "#{inspect(id)} #{text} ended #{inspect(Enum.map(ends, &elem(&1, 1)))}"
 
-    # a command in flight in a partition when it was killed ended ERROR
+    # a command in flight in a partition when it was killed ended ERROR: one the killed process
+    # had started, or one dispatched before the kill that no process started (the restarted
+    # partition ends it). One dispatched while the kill's DOWN was on its way to this test and
+    # started by the restarted partition was never in the killed one.
+    started = Map.new(for {_key, :started, id, links} <- rows, do: {id, links})
+
     interrupted =
-      for {at, {:partitions, p}, _pid} <- kills,
+      for {at, {:partitions, p}, pid} <- kills,
           {{t, _}, {^p, _} = id, _text} <- dispatched,
           t < at,
+          pid in Map.get(started, id, [pid]),
           {{f, _}, status} <- Map.get(finished, id, []),
           f > at,
           do: {id, status}
