@@ -12,19 +12,8 @@ defmodule Vws.Acceptance.ReleaseTest do
   @moduletag timeout: 600_000
 
   setup_all do
-    path =
-      Path.join(System.tmp_dir!(), "vws-acceptance-release-#{System.unique_integer([:positive])}")
-
-    {out, status} =
-      System.cmd("mix", ["release", "--path", path, "--overwrite"],
-        env: [{"MIX_ENV", "prod"}],
-        cd: Acceptance.root(),
-        stderr_to_stdout: true
-      )
-
-    if status != 0, do: flunk("MIX_ENV=prod mix release failed:\n#{out}")
-    on_exit(fn -> File.rm_rf!(path) end)
-    %{release: path}
+    # built once per run (`MIX_ENV=prod mix release`), shared with Vws.ReleaseTest
+    %{release: Acceptance.release()}
   end
 
   @tag :tmp_dir

@@ -91,6 +91,38 @@ defmodule Vws.Test.Acceptance do
     :ok
   end
 
+  @doc """
+  The release, built once per test run with `MIX_ENV=prod mix release` into a temporary directory
+  (removed after the suite) and shared by every test that starts it; concurrent callers wait for
+  the first one. Tests keep their own state out of it: each gives its release its own
+  `VWS_DATA_DIR`, `RELEASE_TMP` and `VWS_ID`.
+  """
+  def release do
+    key = {__MODULE__, :release}
+
+    :global.trans({key, self()}, fn ->
+      case :persistent_term.get(key, nil) do
+        nil ->
+          path = Path.join(System.tmp_dir!(), "vws-release-#{System.unique_integer([:positive])}")
+
+          {out, status} =
+            System.cmd(mix(), ["release", "--path", path, "--overwrite", "--quiet"],
+              env: [{"MIX_ENV", "prod"}],
+              cd: @root,
+              stderr_to_stdout: true
+            )
+
+          if status != 0, do: flunk("MIX_ENV=prod mix release failed:\n#{out}")
+          ExUnit.after_suite(fn _ -> File.rm_rf(path) end)
+          :persistent_term.put(key, path)
+          path
+
+        path ->
+          path
+      end
+    end)
+  end
+
   defp mix, do: System.find_executable("mix") || flunk("mix is not in PATH")
 
   ## OS processes

@@ -13,19 +13,11 @@ defmodule Vws.ReleaseTest do
   @moduletag :acceptance
   @moduletag timeout: 300_000
 
+  # The release is built once per run and shared with the other release test, which keeps its
+  # state elsewhere; this module's state (data directory with its cookie, RELEASE_TMP) lives in
+  # the release's own temporary directory, removed after the suite.
   setup_all do
-    root = Path.join(System.tmp_dir!(), "vws-release-#{System.unique_integer([:positive])}")
-
-    {out, status} =
-      System.cmd("mix", ["release", "--path", root, "--overwrite", "--quiet"],
-        env: [{"MIX_ENV", "prod"}],
-        stderr_to_stdout: true,
-        cd: File.cwd!()
-      )
-
-    assert status == 0, "mix release failed:\n" <> out
-    on_exit(fn -> File.rm_rf!(root) end)
-    %{root: root}
+    %{root: Vws.Test.Acceptance.release()}
   end
 
   defp env(root, id, extra \\ []) do

@@ -1,29 +1,13 @@
-defmodule Vws.Reliability.LineFaultsTest do
-  # The machining cycle on the simulated floor with faulty lines (issue 8, "recovery
-  # everywhere"): a bit-error rate on one link at a time, then on every link at once. Each run is
-  # audited by Vws.Sim.Soak: the cycles complete, no command is lost or run twice (in the CEC or
-  # on the equipment), and the retries that made it so are counted in telemetry. The lines are
-  # seeded: the same bits are damaged in every run. `bench/soak.exs` runs 100 cycles.
-  use ExUnit.Case, async: true
+# The machining cycle on the simulated floor with faulty lines (issue 8, "recovery
+# everywhere"): a bit-error rate on one link at a time, then on every link at once. Each run is
+# audited by Vws.Sim.Soak: the cycles complete, no command is lost or run twice (in the CEC or
+# on the equipment), and the retries that made it so are counted in telemetry. The lines are
+# seeded: the same bits are damaged in every run. `bench/soak.exs` runs 100 cycles.
+defmodule Vws.Reliability.LineFaultsTest.Audit do
+  @moduledoc false
+  import ExUnit.Assertions
 
-  alias Vws.Sim.Soak
-
-  @moduletag timeout: 300_000
-
-  # each link's bit-error rate when it is faulty alone (the lightly used hydraulic links get a
-  # higher one, so that a cycle damages them at all; the DNC link's 256-byte blocks are sent at
-  # most four times, PROTOCOLS.md §2, which a rate much above 1e-4 defeats) and the retry
-  # counter that shows the link's own recovery at work
-  @link_retries [
-    wc: {3.0e-4, :wc_resends},
-    robot: {3.0e-4, :ddcmp_retransmissions},
-    ge2000: {1.0e-4, :dnc_retries},
-    daq1: {3.0e-4, :hpib_retries},
-    hydraulic: {1.0e-3, :hpib_retries},
-    daq2: {2.0e-4, :hpib_retries}
-  ]
-
-  defp assert_clean(report, cycles) do
+  def assert_clean(report, cycles) do
     assert report.stopped == []
     assert report.completed == cycles
     assert report.commands > 0
@@ -32,31 +16,59 @@ defmodule Vws.Reliability.LineFaultsTest do
     # program bytes at the CEC, the GE-2000 and the WC, and every relay: as sent (issue 15)
     assert report.silent_differences == 0, inspect(report.silent)
   end
+end
 
-  for {link, {ber, counter}} <- @link_retries do
+# each link's bit-error rate when it is faulty alone (the lightly used hydraulic links get a
+# higher one, so that a cycle damages them at all; the DNC link's 256-byte blocks are sent at
+# most four times, PROTOCOLS.md §2, which a rate much above 1e-4 defeats) and the retry
+# counter that shows the link's own recovery at work. One module per link, so that the seven
+# runs (each mostly waiting on its simulated lines) overlap instead of queueing in one module.
+link_retries = [
+  wc: {3.0e-4, :wc_resends},
+  robot: {3.0e-4, :ddcmp_retransmissions},
+  ge2000: {1.0e-4, :dnc_retries},
+  daq1: {3.0e-4, :hpib_retries},
+  hydraulic: {1.0e-3, :hpib_retries},
+  daq2: {2.0e-4, :hpib_retries}
+]
+
+for {link, {ber, counter}} <- link_retries do
+  defmodule Module.concat(Vws.Reliability.LineFaultsTest, Macro.camelize(to_string(link))) do
+    use ExUnit.Case, async: true
+
+    import Vws.Reliability.LineFaultsTest.Audit
+    alias Vws.Sim.Soak
+
+    @moduletag timeout: 300_000
+    @link link
+    @ber ber
+    @counter counter
+
     test "BER #{ber} on the #{link} link alone: the cycle completes, nothing lost or run twice" do
       report =
-        Soak.run(
-          cycles: 1,
-          ber: unquote(ber),
-          links: [unquote(link)],
-          seed: 11,
-          time_scale: 40,
-          timeout: 30_000
-        )
+        Soak.run(cycles: 1, ber: @ber, links: [@link], seed: 11, time_scale: 40, timeout: 30_000)
 
       assert_clean(report, 1)
       # the line did damage bits on that link, and on no other
-      assert report.bits_flipped[unquote(link)] > 0
+      assert report.bits_flipped[@link] > 0
 
-      assert Enum.all?(report.bits_flipped, fn {l, n} -> l == unquote(link) or n == 0 end),
+      assert Enum.all?(report.bits_flipped, fn {l, n} -> l == @link or n == 0 end),
              inspect(report.bits_flipped)
 
-      if unquote(link) != :daq2 do
-        assert report.retries[unquote(counter)] > 0, inspect(report.retries)
+      if @link != :daq2 do
+        assert report.retries[@counter] > 0, inspect(report.retries)
       end
     end
   end
+end
+
+defmodule Vws.Reliability.LineFaultsTest do
+  use ExUnit.Case, async: true
+
+  import Vws.Reliability.LineFaultsTest.Audit
+  alias Vws.Sim.Soak
+
+  @moduletag timeout: 300_000
 
   test "BER 1e-4 on every link at once: two cycles complete, each retry counted" do
     report = Soak.run(cycles: 2, ber: 1.0e-4, seed: 3, time_scale: 40, timeout: 30_000)
