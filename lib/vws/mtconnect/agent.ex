@@ -88,6 +88,14 @@ defmodule Vws.MTConnect.Agent do
   def sample(agent, from, count, device \\ nil, opts \\ []),
     do: GenServer.call(agent, {:sample, from, count, device, opts})
 
+  @doc """
+  As `sample/5`, with the document's `nextSequence`: `{:ok, doc, next}` (for streaming).
+  """
+  @spec sample_page(agent, integer | nil, integer | nil, String.t() | nil, keyword) ::
+          {:ok, iodata, pos_integer} | {:error, 400 | 404, iodata}
+  def sample_page(agent, from, count, device \\ nil, opts \\ []),
+    do: GenServer.call(agent, {:sample, from, count, device, [{:with_next, true} | opts]})
+
   @doc "The assets document (none here). Options: `format:`."
   @spec assets(agent, keyword) :: answer
   def assets(agent, opts \\ []), do: GenServer.call(agent, {:assets, opts})
@@ -96,13 +104,6 @@ defmodule Vws.MTConnect.Agent do
   @spec error(agent, String.t(), String.t(), format) :: iodata
   def error(agent, code, text, format \\ :xml),
     do: GenServer.call(agent, {:error, code, text, format})
-
-  @doc """
-  Checks a request before it is streamed: `:ok`, or the error answer it gets (the same checks
-  as `sample/5` or `current/3`).
-  """
-  @spec check(agent, :current | :sample, map) :: :ok | {:error, 400 | 404, iodata}
-  def check(agent, request, params), do: GenServer.call(agent, {:check, request, params})
 
   @doc """
   Waits until the buffer holds an observation with sequence number at least `seq`, at most
@@ -225,35 +226,22 @@ defmodule Vws.MTConnect.Agent do
 
   def handle_call({:assets, opts}, _from, s) do
     fmt = Keyword.get(opts, :format, :xml)
-
-    {:reply,
-     {:ok, render(fmt, :assets, Map.put(header(s), :asset_buffer_size, @asset_buffer), [])}, s}
-  end
-
-  def handle_call({:error, code, text, fmt}, _from, s),
-    do: {:reply, render(fmt, :error, header(s), {code, text}), s}
-
-  def handle_call({:check, :sample, p}, _from, s) do
-    s = refresh(s)
-    fmt = Map.get(p, :format, :xml)
+    count = Keyword.get(opts, :count)
 
     reply =
-      with {:ok, _filter} <- filter(s, p[:device], p[:path], fmt),
-           :ok <- check_from(s, p[:from], fmt) do
-        :ok
+      if count != nil and count < 1 do
+        range_error(s, fmt, "count", count, 1, @asset_buffer)
+      else
+        # this agent holds no assets: an empty document (for a device it knows)
+        with {:ok, _} <- devices(s, Keyword.get(opts, :device), fmt),
+             do: {:ok, render(fmt, :assets, header(s), [])}
       end
 
     {:reply, reply, s}
   end
 
-  def handle_call({:check, :current, p}, _from, s) do
-    s = refresh(s)
-    fmt = Map.get(p, :format, :xml)
-
-    reply = with {:ok, _filter} <- filter(s, p[:device], p[:path], fmt), do: :ok
-
-    {:reply, reply, s}
-  end
+  def handle_call({:error, code, text, fmt}, _from, s),
+    do: {:reply, render(fmt, :error, header(s), {code, text}), s}
 
   def handle_call({:await, seq, timeout}, from, s) do
     if s.next > seq do
@@ -343,7 +331,8 @@ defmodule Vws.MTConnect.Agent do
       obs =
         for {seq, id, value, ts} <- rows, do: observation(Map.fetch!(s.items, id), seq, value, ts)
 
-      {:ok, render(fmt, :streams, streams_header(s, next), obs)}
+      doc = render(fmt, :streams, streams_header(s, next), obs)
+      if Keyword.get(opts, :with_next), do: {:ok, doc, next}, else: {:ok, doc}
     end
   end
 
@@ -438,7 +427,7 @@ defmodule Vws.MTConnect.Agent do
               {:ok, ids}
 
             {:error, why} ->
-              error(s, fmt, 400, "INVALID_XPATH", "the path could not be parsed: #{why}")
+              error(s, fmt, 400, "INVALID_PATH", "the path could not be parsed: #{why}")
           end
 
         device != nil ->

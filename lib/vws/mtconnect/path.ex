@@ -8,7 +8,7 @@ defmodule Vws.MTConnect.Path do
   The subset: absolute steps `/` and descendant steps `//`, an element name or `*` per step,
   predicates `[@attr="value"]` or `[@attr='value']` (several, or joined by `and` / `or`, or
   `[@attr]` for "has it"), and unions `a|b`. Anything else — functions, axes, positions — is a
-  syntax error (`INVALID_XPATH`), never ignored.
+  syntax error (`INVALID_PATH`), never ignored.
 
       iex> tree = Vws.MTConnect.Path.tree([Vws.MTConnect.Model.device("VWS")])
       iex> {:ok, ids} = Vws.MTConnect.Path.select(~s(//Chuck[@name="vise"]//DataItem[@type="CHUCK_STATE"]), tree)
@@ -73,6 +73,13 @@ defmodule Vws.MTConnect.Path do
   """
   @spec select(String.t(), node_) :: {:ok, MapSet.t()} | {:error, String.t()}
   def select(path, tree) do
+    do_select(path, tree)
+  rescue
+    # whatever this parser did not foresee is a path it cannot read, not a crash of the agent
+    e -> {:error, "unreadable (#{Exception.message(e)})"}
+  end
+
+  defp do_select(path, tree) do
     with {:ok, alternatives} <- parse(path) do
       ids =
         for steps <- alternatives,
@@ -173,7 +180,7 @@ defmodule Vws.MTConnect.Path do
 
   defp step(text, axis, acc) do
     case Regex.run(~r/^(\*|[A-Za-z_][A-Za-z0-9_.\-]*(?::[A-Za-z_][A-Za-z0-9_.\-]*)?)/, text) do
-      [name] ->
+      [name | _] ->
         rest = binary_part(text, byte_size(name), byte_size(text) - byte_size(name))
         # a namespace prefix (m:Device) is accepted and dropped
         name = name |> String.split(":") |> List.last()
