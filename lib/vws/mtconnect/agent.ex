@@ -735,15 +735,14 @@ defmodule Vws.MTConnect.Agent do
   def link_states(ws) do
     wc =
       case Vws.Inspect.wc_info(ws) do
-        %{connected: true} -> "ESTABLISHED"
-        %{state: state} when state in [:connected, "connected"] -> "ESTABLISHED"
-        %{} -> "LISTEN"
+        %{peer: peer} when peer != nil -> "ESTABLISHED"
+        %{listening: listening} when listening != nil -> "LISTEN"
         _ -> "CLOSED"
       end
 
     links =
-      for row <- Vws.Inspect.link_rows(ws), key = link_key(row.id), key != nil, into: %{} do
-        {key, connection(row.state)}
+      for row <- Vws.Inspect.link_rows(ws), key = link_key(row), key != nil, into: %{} do
+        {key, connection(key, row.state)}
       end
 
     Map.put(links, :wc, wc)
@@ -753,21 +752,19 @@ defmodule Vws.MTConnect.Agent do
     :exit, _ -> %{}
   end
 
-  defp link_key(:val), do: :val
-  defp link_key(:ge2000), do: :dnc
-  defp link_key({Vws.HPIB, _bus, 1}), do: :daq1
-  defp link_key({Vws.HPIB, _bus, _address}), do: :hydraulic
-  defp link_key(id) when is_atom(id), do: nil
-  defp link_key(_), do: nil
+  defp link_key(%{id: :val}), do: :val
+  defp link_key(%{id: :ge2000}), do: :dnc
+  defp link_key(%{id: {Vws.HPIB, _, _}, info: %{device: "DAQ #1"}}), do: :daq1
+  defp link_key(%{id: {Vws.HPIB, _, _}, info: %{device: "HYDRAULIC" <> _}}), do: :hydraulic
+  defp link_key(_row), do: nil
 
-  defp connection(state) when state in [:up, :running, :connected, :idle, :ready, :open],
-    do: "ESTABLISHED"
-
-  defp connection(state)
-       when state in [:connecting, :starting, :reconnecting, :waiting, :listening],
-       do: "LISTEN"
-
-  defp connection(_), do: "CLOSED"
+  # the VAL II layer: {lun2, activity}, lun2 :down when its DDCMP link is not running
+  defp connection(:val, {:down, _}), do: "CLOSED"
+  defp connection(:val, {_lun2, _activity}), do: "ESTABLISHED"
+  defp connection(:dnc, state) when state in [:disconnected, :down], do: "CLOSED"
+  defp connection(:dnc, state) when is_atom(state), do: "ESTABLISHED"
+  defp connection(_hpib, state) when state in [:ready, :busy], do: "ESTABLISHED"
+  defp connection(_key, _state), do: "CLOSED"
 
   defp remove(s, ws, now) do
     device = Map.fetch!(s.devices, ws)

@@ -140,6 +140,7 @@ defmodule Vws.MTConnect.JSON do
         base
         |> Map.put("type", o.item.type)
         |> put("nativeCode", code)
+        |> then(&if code, do: Map.put(&1, "conditionId", code), else: &1)
         |> then(&if text == "", do: &1, else: Map.put(&1, "value", text))
 
       v when is_number(v) ->

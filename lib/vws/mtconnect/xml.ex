@@ -205,7 +205,16 @@ defmodule Vws.MTConnect.XML do
 
         case o.value do
           {:condition, level, code, text} ->
-            attrs = attrs ++ [{"type", o.item.type}] ++ optional("nativeCode", code)
+            # an active condition names its activation (2.5: conditionId): its native code
+            attrs =
+              attrs ++
+                [{"type", o.item.type}] ++
+                optional("nativeCode", code) ++
+                if(level in ["Fault", "Warning"],
+                  do: [{"conditionId", code || o.item.id}],
+                  else: []
+                )
+
             if text == "", do: tag(level, attrs), else: element(level, attrs, [escape(text)])
 
           value ->
