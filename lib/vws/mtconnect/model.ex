@@ -132,6 +132,7 @@ defmodule Vws.MTConnect.Model do
          @avail,
          {"mode", "CONTROLLER_MODE", "ControllerMode", :event, nil, []},
          {"msg", "MESSAGE", "Message", :event, nil, []},
+         {"cmd", "MESSAGE", "Message", :event, nil, name: "command"},
          {"system", "SYSTEM", "System", :condition, nil, []}
        ],
        [
@@ -168,6 +169,7 @@ defmodule Vws.MTConnect.Model do
          {"state", "CHUCK_STATE", "ChuckState", :event, nil, []},
          {"gap", "LENGTH", "Length", :sample, "MILLIMETER", deadband: 0.5, name: "finger_gap"},
          {"msg", "MESSAGE", "Message", :event, nil, []},
+         {"cmd", "MESSAGE", "Message", :event, nil, name: "command"},
          {"system", "SYSTEM", "System", :condition, nil, []}
        ], []},
       {"Chuck", "vise", "vise",
@@ -179,6 +181,7 @@ defmodule Vws.MTConnect.Model do
          {"force", "LINEAR_FORCE", "LinearForce", :sample, "NEWTON",
           deadband: 25.0, name: "clamp_force"},
          {"msg", "MESSAGE", "Message", :event, nil, []},
+         {"cmd", "MESSAGE", "Message", :event, nil, name: "command"},
          {"system", "SYSTEM", "System", :condition, nil, []}
        ], []},
       {"Lock", "tray1", "tray1", [{"state", "LOCK_STATE", "LockState", :event, nil, []}], []},
@@ -192,6 +195,7 @@ defmodule Vws.MTConnect.Model do
          {"force2", "LINEAR_FORCE", "LinearForce", :sample, "NEWTON",
           deadband: 50.0, name: "clamp2_force"},
          {"msg", "MESSAGE", "Message", :event, nil, []},
+         {"cmd", "MESSAGE", "Message", :event, nil, name: "command"},
          {"system", "SYSTEM", "System", :condition, nil, []}
        ], []},
       link("wc", "wc_link"),
@@ -347,6 +351,7 @@ defmodule Vws.MTConnect.Model do
       "#{p}_vmc_avail" => available(vmc?),
       "#{p}_vmc_mode" => if(vmc?, do: "AUTOMATIC", else: @unavailable),
       "#{p}_vmc_msg" => message(monarch),
+      "#{p}_vmc_cmd" => command_message(status.(:monarch), cmd_in[:monarch], true),
       "#{p}_vmc_system" => vmc_condition(vmc?, report, status.(:monarch)),
       "#{p}_vmc_path_exec" => vmc_execution(monarch),
       "#{p}_vmc_path_program" => vmc_program(report, Map.get(facts, :program)),
@@ -377,6 +382,7 @@ defmodule Vws.MTConnect.Model do
       "#{p}_gripper_state" => gripper_state(text.("GRIPPER")),
       "#{p}_gripper_gap" => reading(sensors, :gripper_finger_mm),
       "#{p}_gripper_msg" => message(text.("GRIPPER")),
+      "#{p}_gripper_cmd" => command_message(status.(:gripper), cmd_in[:gripper], true),
       "#{p}_gripper_system" => command_condition(status.(:gripper), daq?),
       "#{p}_vise_avail" => available(daq?),
       "#{p}_vise_state" => vise_state(text.("VISE")),
@@ -384,6 +390,7 @@ defmodule Vws.MTConnect.Model do
       "#{p}_vise_jaw" => reading(sensors, :vise_jaw_mm),
       "#{p}_vise_force" => reading(sensors, :vise_force_n),
       "#{p}_vise_msg" => message(text.("VISE")),
+      "#{p}_vise_cmd" => command_message(status.(:fixture), cmd_in[:fixture], true),
       "#{p}_vise_system" => command_condition(status.(:fixture), daq?),
       "#{p}_tray1_state" => tray_state(text.("TRAYS"), 1),
       "#{p}_tray2_state" => tray_state(text.("TRAYS"), 2),
@@ -392,6 +399,7 @@ defmodule Vws.MTConnect.Model do
       "#{p}_pallet_force1" => pallet_force(pallet?, pallet, :force1_n),
       "#{p}_pallet_force2" => pallet_force(pallet?, pallet, :force2_n),
       "#{p}_pallet_msg" => message(text.("PALLET")),
+      "#{p}_pallet_cmd" => command_message(status.(:hydraulic), cmd_in[:hydraulic], true),
       "#{p}_pallet_system" => command_condition(status.(:hydraulic), pallet?),
       "#{p}_wc_link_conn" => Map.get(links, :wc, @unavailable),
       "#{p}_val_link_conn" => Map.get(links, :val, @unavailable),

@@ -1,0 +1,204 @@
+# The MTConnect soak of issue 19: the shipped machining cycle run again and again on the
+# simulated floor (time scale ×20 by default) while a client pages through /sample over real
+# HTTP — each page from the nextSequence of the page before — and a second client streams
+# /sample?interval=0&heartbeat=1000. Every observation's sequence number is checked: a page (or a
+# part) must hold exactly the sequence numbers from its `from` to its nextSequence - 1, so a
+# sequence number missing is a gap and one seen twice a duplicate.
+#
+#     mix run bench/mtconnect_soak.exs [--duration 3600] [--time-scale 20] [--count 100] [--pause-ms 200]
+#
+# Prints a line a minute, then one block of figures. Exits 1 on any gap, duplicate, error
+# document or cycle that did not complete.
+
+Code.require_file("support.exs", __DIR__)
+Code.require_file("../test/support/mtc_client.ex", __DIR__)
+Logger.configure(level: :error)
+
+alias Vws.Test.MTCClient
+alias Vws.WC.{Client, Runner, Script}
+
+{opts, _, _} =
+  OptionParser.parse(System.argv(),
+    strict: [duration: :integer, time_scale: :float, count: :integer, pause_ms: :integer]
+  )
+
+duration_s = Keyword.get(opts, :duration, 3600)
+time_scale = Keyword.get(opts, :time_scale, 20.0)
+count = Keyword.get(opts, :count, 100)
+pause_ms = Keyword.get(opts, :pause_ms, 200)
+ws = "VWS-SOAK"
+
+{:ok, floor} = Vws.Demo.start_shop_floor(id: ws, wc: "loopback:#{ws}", time_scale: time_scale)
+{:ok, web} = Vws.Web.start_link(port: 0)
+"http://127.0.0.1:" <> rest = Vws.Web.url(web)
+port = rest |> String.trim_trailing("/") |> String.to_integer()
+{:ok, script} = Script.parse_file(Vws.Demo.default_script())
+{:ok, client} = Client.connect(floor.wc)
+
+started = System.monotonic_time(:millisecond)
+deadline = started + duration_s * 1000
+bench = self()
+
+# the WC: cycle after cycle until the deadline
+cycler =
+  spawn_link(fn ->
+    Stream.iterate(1, &(&1 + 1))
+    |> Enum.reduce_while(:ok, fn n, _ ->
+      if System.monotonic_time(:millisecond) >= deadline do
+        {:halt, :ok}
+      else
+        s = Runner.run(client, script, poll_interval: 20)
+        send(bench, {:cycle, n, s.result, Map.get(s, :stopped)})
+        {:cont, :ok}
+      end
+    end)
+
+    send(bench, :cycles_done)
+  end)
+
+_ = cycler
+
+# the streaming client
+{:ok, _} = :application.ensure_all_started(:inets)
+{_, _, current} = MTCClient.get(port, "/current")
+start_seq = MTCClient.header(current, "nextSequence")
+
+{sref, spid, _head} =
+  MTCClient.stream(port, "/sample?interval=0&heartbeat=1000&count=#{count}&from=#{start_seq}")
+
+check = fn from, doc ->
+  seqs = doc |> MTCClient.observations() |> Enum.map(&elem(&1, 2)) |> Enum.sort()
+  next = MTCClient.header(doc, "nextSequence")
+  expected = Enum.to_list(from..(next - 1)//1)
+  gaps = length(expected -- seqs)
+  dups = length(seqs) - length(Enum.uniq(seqs)) + length((seqs -- expected) -- expected -- seqs)
+  {next, length(seqs), gaps, dups}
+end
+
+pager = fn pager, from, acc ->
+  receive do
+    {:cycle, n, result, stopped} ->
+      acc = %{
+        acc
+        | cycles: acc.cycles + 1,
+          failed: acc.failed + if(result == :completed, do: 0, else: 1)
+      }
+
+      if result != :completed,
+        do: IO.puts("  cycle #{n}: #{result} #{inspect(stopped, limit: 10)}")
+
+      pager.(pager, from, acc)
+
+    :cycles_done ->
+      {from, acc}
+
+    {:mtc_part, ^sref, doc} ->
+      {next, n, gaps, dups} = check.(acc.stream_from, doc)
+
+      acc = %{
+        acc
+        | stream_from: next,
+          parts: acc.parts + 1,
+          heartbeats: acc.heartbeats + if(n == 0, do: 1, else: 0),
+          stream_obs: acc.stream_obs + n,
+          stream_gaps: acc.stream_gaps + gaps,
+          stream_dups: acc.stream_dups + dups
+      }
+
+      pager.(pager, from, acc)
+  after
+    pause_ms ->
+      {status, _type, doc} = MTCClient.get(port, "/sample?from=#{from}&count=#{count}")
+
+      acc =
+        if status == 200 do
+          {next, n, gaps, dups} = check.(from, doc)
+
+          acc = %{
+            acc
+            | pages: acc.pages + 1,
+              obs: acc.obs + n,
+              gaps: acc.gaps + gaps,
+              dups: acc.dups + dups
+          }
+
+          acc = Map.put(acc, :from, next)
+          acc
+        else
+          IO.puts("  error document: #{doc}")
+          Map.put(%{acc | errors: acc.errors + 1}, :from, from)
+        end
+
+      now = System.monotonic_time(:millisecond)
+
+      acc =
+        if now - acc.reported >= 60_000 do
+          IO.puts(
+            "  #{div(now - started, 60_000)} min: cycles #{acc.cycles}, pages #{acc.pages}, observations #{acc.obs}, gaps #{acc.gaps}, duplicates #{acc.dups}; stream parts #{acc.parts}, gaps #{acc.stream_gaps}, duplicates #{acc.stream_dups}"
+          )
+
+          %{acc | reported: now}
+        else
+          acc
+        end
+
+      pager.(pager, acc.from, acc)
+  end
+end
+
+acc0 = %{
+  cycles: 0,
+  failed: 0,
+  pages: 0,
+  obs: 0,
+  gaps: 0,
+  dups: 0,
+  errors: 0,
+  from: start_seq,
+  stream_from: start_seq,
+  parts: 0,
+  heartbeats: 0,
+  stream_obs: 0,
+  stream_gaps: 0,
+  stream_dups: 0,
+  reported: started
+}
+
+{from, acc} = pager.(pager, start_seq, acc0)
+
+# the last page: up to what the buffer holds now
+{from, acc} =
+  Stream.repeatedly(fn -> :page end)
+  |> Enum.reduce_while({from, acc}, fn _, {from, acc} ->
+    {200, _, doc} = MTCClient.get(port, "/sample?from=#{from}&count=#{count}")
+    {next, n, gaps, dups} = check.(from, doc)
+
+    acc = %{
+      acc
+      | pages: acc.pages + 1,
+        obs: acc.obs + n,
+        gaps: acc.gaps + gaps,
+        dups: acc.dups + dups
+    }
+
+    if n == 0, do: {:halt, {next, acc}}, else: {:cont, {next, acc}}
+  end)
+
+MTCClient.stop(spid)
+{_, _, current} = MTCClient.get(port, "/current")
+elapsed = (System.monotonic_time(:millisecond) - started) / 1000
+
+IO.puts("""
+
+== bench/mtconnect_soak.exs: a client paging /sample and one streaming it through machining cycles ==
+#{Enum.join(Vws.Bench.machine(), "\n")}
+  run            #{Float.round(elapsed, 1)} s at time scale ×#{time_scale} (#{Float.round(elapsed * time_scale / 3600, 2)} simulated hours)
+  cycles         #{acc.cycles} run, #{acc.failed} did not complete
+  paging         #{acc.pages} pages of count=#{count}: #{acc.obs} observations #{start_seq}..#{from - 1}, gaps #{acc.gaps}, duplicates #{acc.dups}, error documents #{acc.errors}
+  streaming      #{acc.parts} parts (#{acc.heartbeats} heartbeats): #{acc.stream_obs} observations, gaps #{acc.stream_gaps}, duplicates #{acc.stream_dups}
+  buffer         firstSequence #{MTCClient.header(current, "firstSequence")}, nextSequence #{MTCClient.header(current, "nextSequence")}, bufferSize #{MTCClient.header(current, "bufferSize")}
+  rate           #{Float.round(acc.obs / max(elapsed, 1) * 60, 1)} observations a minute (at ×#{time_scale})
+""")
+
+if acc.gaps + acc.dups + acc.errors + acc.stream_gaps + acc.stream_dups + acc.failed > 0,
+  do: System.halt(1)
