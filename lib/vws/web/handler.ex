@@ -97,6 +97,8 @@ defmodule Vws.Web.Handler do
 
   @read ["GET", "HEAD"]
   @mtconnect ~w(probe current sample assets)
+  # the reference agent's limit (a C int) for times in ms
+  @max_ms 2_147_483_646
 
   defp route(m, [], _q, _r, _s) when m in @read,
     do: {200, "text/html; charset=utf-8", Vws.Web.Page.html()}
@@ -205,7 +207,7 @@ defmodule Vws.Web.Handler do
       p[:interval] != nil and p[:at] != nil ->
         bad(agent, p, "INVALID_REQUEST", "'at' and 'interval' cannot be given together")
 
-      p[:interval] != nil and p.interval < 0 ->
+      p[:interval] != nil and (p.interval < 0 or p.interval > @max_ms) ->
         range(agent, p, "interval", p.interval)
 
       p[:interval] != nil ->
@@ -221,10 +223,10 @@ defmodule Vws.Web.Handler do
       p[:interval] != nil and p[:to] != nil ->
         bad(agent, p, "INVALID_REQUEST", "'to' and 'interval' cannot be given together")
 
-      p[:interval] != nil and p.interval < 0 ->
+      p[:interval] != nil and (p.interval < 0 or p.interval > @max_ms) ->
         range(agent, p, "interval", p.interval)
 
-      p[:heartbeat] != nil and p.heartbeat < 1 ->
+      p[:heartbeat] != nil and (p.heartbeat < 1 or p.heartbeat > @max_ms) ->
         range(agent, p, "heartbeat", p.heartbeat)
 
       p[:interval] != nil ->
@@ -250,7 +252,7 @@ defmodule Vws.Web.Handler do
     do: {:error, 400, Agent.error(agent, code, text, p.format)}
 
   defp range(agent, p, name, value),
-    do: bad(agent, p, "OUT_OF_RANGE", "'#{name}' must not be negative, not #{value}")
+    do: bad(agent, p, "OUT_OF_RANGE", "'#{name}' must be between 0 and #{@max_ms}, not #{value}")
 
   defp known_params(request, q) do
     case Map.keys(q) -- Map.fetch!(@params, request) do

@@ -182,6 +182,8 @@ defmodule Vws.MTConnect.RequestsTest do
     error!(port, "/sample?heartbeat=100", "INVALID_REQUEST")
     error!(port, "/sample?interval=-1", "OUT_OF_RANGE")
     error!(port, "/sample?interval=10&heartbeat=0", "OUT_OF_RANGE")
+    error!(port, "/sample?interval=10&heartbeat=99999999999", "OUT_OF_RANGE")
+    error!(port, "/current?interval=99999999999", "OUT_OF_RANGE")
   end
 
   test "interval + heartbeat: a multipart/x-mixed-replace stream over TCP, with heartbeats",
