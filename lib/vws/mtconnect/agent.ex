@@ -25,9 +25,15 @@ defmodule Vws.MTConnect.Agent do
   reads is lost. Numeric samples (and the numbers in a message) are recorded only when they move
   by at least their deadband (`MINIMUM_DELTA` in the probe), so sensor noise does not flood the
   buffer. The links' connection states are read every `:interval` ms (default 250).
-  Workstations on other nodes are read as before: every `:interval` ms and before each answer,
-  all of a node's in one call (`:erpc`); a node that does not answer within `:node_timeout` ms
-  (default 1000) has every data item of its workstations made `UNAVAILABLE`.
+
+  Workstations on other nodes: a forwarder process on each such node subscribes to their change
+  notices, reads their mailboxes once and sends the agent that snapshot and then every change, so
+  their transitions are recorded as they happen too; before each answer the agent asks each
+  forwarder to confirm what it has sent, so an answer is never older than the request. Until a
+  workstation's snapshot is in (or when its forwarder is gone), it is read as before: every
+  `:interval` ms and before each answer, all of a node's in one call (`:erpc`). A node that does
+  not answer within `:node_timeout` ms (default 1000) has every data item of its workstations
+  made `UNAVAILABLE`.
 
   ## Buffer and checkpoints
 
@@ -148,6 +154,11 @@ defmodule Vws.MTConnect.Agent do
       # per workstation: what is known of it (Model.facts) and how it is read
       facts: %{},
       local: %{},
+      # other nodes' workstations: their nodes' forwarders, the ones asked to follow them, and
+      # the ones whose snapshot came in (changes recorded as they come)
+      forwarders: %{},
+      following: %{},
+      followed: MapSet.new(),
       items: Map.new(Model.items(agent_device), &{&1.id, &1}),
       buffer: :ets.new(:mtconnect_buffer, [:ordered_set, :private]),
       current: %{},
@@ -176,14 +187,34 @@ defmodule Vws.MTConnect.Agent do
     {:noreply, s |> refresh(:ask_all) |> read_links()}
   end
 
-  def handle_info({:vws_event, ws, :mailbox, {change, at}}, s) do
-    case s.local do
-      %{^ws => %{since: since}} when at >= since ->
-        facts = apply_change(Map.fetch!(s.facts, ws), change)
-        {:noreply, observe(%{s | facts: Map.put(s.facts, ws, facts)}, ws, facts, at)}
+  def handle_info({:vws_event, ws, :mailbox, {change, at}}, s),
+    do: {:noreply, notice(s, ws, change, at)}
 
-      _ ->
+  def handle_info({:mtc_snapshot, ws, facts}, s) do
+    if Map.get(s.following, ws) != nil and is_map(facts) and not MapSet.member?(s.gone, ws) do
+      s = %{s | followed: MapSet.put(s.followed, ws)}
+      {:noreply, observe_remote(s, ws, facts, System.system_time(:microsecond))}
+    else
+      {:noreply, s}
+    end
+  end
+
+  # a forwarder ended (its node went away): its workstations are read again until followed anew
+  def handle_info({:DOWN, _ref, :process, pid, _reason}, s) do
+    case Enum.find(s.forwarders, fn {_n, p} -> p == pid end) do
+      nil ->
         {:noreply, s}
+
+      {n, _} ->
+        lost = for {ws, ^pid} <- s.following, do: ws
+
+        {:noreply,
+         %{
+           s
+           | forwarders: Map.delete(s.forwarders, n),
+             following: Map.drop(s.following, lost),
+             followed: MapSet.difference(s.followed, MapSet.new(lost))
+         }}
     end
   end
 
@@ -256,6 +287,53 @@ defmodule Vws.MTConnect.Agent do
   def handle_call(:sequences, _from, s) do
     s = refresh(s)
     {:reply, %{first: s.first, last: s.next - 1, next: s.next, size: s.buffer_size}, s}
+  end
+
+  defp notice(s, ws, change, at) do
+    follows? =
+      case s.local do
+        %{^ws => %{since: since}} -> at >= since
+        _ -> MapSet.member?(s.followed, ws)
+      end
+
+    if follows? and Map.has_key?(s.facts, ws) do
+      facts = apply_change(Map.fetch!(s.facts, ws), change)
+      observe(%{s | facts: Map.put(s.facts, ws, facts)}, ws, facts, at)
+    else
+      s
+    end
+  end
+
+  # Before an answer: every change announced on another node before the request is in. Each
+  # forwarder (of a node that answers) is asked to say so after what it has forwarded; its
+  # notices then precede its answer in this mailbox, and are recorded here.
+  defp sync_remote(s) do
+    asked =
+      for {n, pid} <- s.forwarders, n not in s.unresponsive do
+        ref = make_ref()
+        send(pid, {:sync, self(), ref})
+        ref
+      end
+
+    deadline = System.monotonic_time(:millisecond) + s.node_timeout
+    Enum.each(asked, &await_synced(&1, deadline))
+    drain(s)
+  end
+
+  defp await_synced(ref, deadline) do
+    receive do
+      {:mtc_synced, ^ref} -> :ok
+    after
+      max(deadline - System.monotonic_time(:millisecond), 0) -> :timeout
+    end
+  end
+
+  defp drain(s) do
+    receive do
+      {:vws_event, ws, :mailbox, {change, at}} -> drain(notice(s, ws, change, at))
+    after
+      0 -> s
+    end
   end
 
   ## Answers
@@ -493,13 +571,87 @@ defmodule Vws.MTConnect.Agent do
     gone = Enum.reject(s.order, &(MapSet.member?(ids, &1) or MapSet.member?(s.gone, &1)))
     s = Enum.reduce(gone, s, &remove(&2, &1, now))
 
+    s = if ask == :skip_unresponsive and s.forwarders != %{}, do: sync_remote(s), else: s
+
     Enum.reduce(running, s, fn
-      {ws, :local}, s -> follow_local(s, ws, now)
-      {ws, facts}, s -> observe_remote(s, ws, facts, now)
+      {ws, :local, _node}, s ->
+        follow_local(s, ws, now)
+
+      {ws, :unreachable, _node}, s ->
+        s = %{s | followed: MapSet.delete(s.followed, ws), following: Map.delete(s.following, ws)}
+        observe_remote(s, ws, :unreachable, now)
+
+      {ws, facts, n}, s ->
+        if MapSet.member?(s.followed, ws),
+          do: ensure_device(s, ws, now),
+          else: s |> follow_remote(ws, n) |> observe_remote(ws, facts, now)
     end)
   end
 
-  # What every workstation served that runs now says: `[{id, :local | facts | :unreachable}]`
+  # A workstation of another node: its change notices reach the agent through a forwarder
+  # process on that node (one per node), which subscribes, reads the mailboxes once, and sends
+  # the agent that snapshot then every later change; until the snapshot is in, the workstation
+  # is read as before.
+  defp follow_remote(s, ws, n) do
+    {pid, s} =
+      case s.forwarders do
+        %{^n => pid} ->
+          {pid, s}
+
+        _ ->
+          pid = Node.spawn(n, __MODULE__, :forwarder, [self()])
+          Process.monitor(pid)
+          {pid, %{s | forwarders: Map.put(s.forwarders, n, pid)}}
+      end
+
+    case s.following do
+      %{^ws => ^pid} ->
+        s
+
+      _ ->
+        send(pid, {:follow, ws})
+        %{s | following: Map.put(s.following, ws, pid)}
+    end
+  end
+
+  @doc false
+  # The forwarder, on a workstation's node (see follow_remote/3). It ends with its agent.
+  def forwarder(agent) do
+    ref = Process.monitor(agent)
+    forward(agent, ref, %{})
+  end
+
+  defp forward(agent, ref, since) do
+    receive do
+      {:follow, ws} ->
+        if not Map.has_key?(since, ws), do: Vws.Events.subscribe(ws, :mailbox)
+        t = System.system_time(:microsecond)
+        send(agent, {:mtc_snapshot, ws, read(ws)})
+        forward(agent, ref, Map.put(since, ws, t))
+
+      {:vws_event, ws, :mailbox, {_change, at}} = notice ->
+        # what was written before the snapshot was read is in it already
+        case since do
+          %{^ws => t} when at >= t -> send(agent, notice)
+          _ -> :ok
+        end
+
+        forward(agent, ref, since)
+
+      {:sync, from, sync_ref} ->
+        send(from, {:mtc_synced, sync_ref})
+        forward(agent, ref, since)
+
+      {:DOWN, ^ref, :process, _, _} ->
+        :ok
+
+      _other ->
+        forward(agent, ref, since)
+    end
+  end
+
+  # What every workstation served that runs now says: `[{id, :local | facts | :unreachable,
+  # node}]`
   # in the cell's order; the other nodes' read on their node.
   defp read_cell(s, ask) do
     located = Vws.Cell.locations()
@@ -538,7 +690,7 @@ defmodule Vws.MTConnect.Agent do
       for {ws, n} <- located,
           fact = if(n in unresponsive, do: :unreachable, else: Map.get(answers, ws, :absent)),
           fact != :absent,
-          do: {ws, fact}
+          do: {ws, fact, n}
 
     {facts, %{s | unresponsive: unresponsive}}
   end
@@ -781,7 +933,12 @@ defmodule Vws.MTConnect.Agent do
           s
       end
 
-    %{s | gone: MapSet.put(s.gone, ws)}
+    %{
+      s
+      | gone: MapSet.put(s.gone, ws),
+        followed: MapSet.delete(s.followed, ws),
+        following: Map.delete(s.following, ws)
+    }
   end
 
   defp agent_item(s, type), do: Enum.find(Model.items(s.agent_device), &(&1.type == type))
