@@ -77,7 +77,27 @@ check = fn from, doc ->
   {next, length(seqs), gaps, dups}
 end
 
-pager = fn pager, from, acc ->
+# the paging client, a process of its own: a page every `pause_ms`, each from the nextSequence
+# of the page before; it reports each page to the bench
+spawn_link(fn ->
+  page = fn page, from ->
+    Process.sleep(pause_ms)
+    {status, _type, doc} = MTCClient.get(port, "/sample?from=#{from}&count=#{count}")
+
+    if status == 200 do
+      {next, n, gaps, dups} = check.(from, doc)
+      send(bench, {:page, n, gaps, dups})
+      page.(page, next)
+    else
+      send(bench, {:page_error, doc})
+      page.(page, from)
+    end
+  end
+
+  page.(page, start_seq)
+end)
+
+collect = fn collect, acc ->
   receive do
     {:cycle, n, result, stopped} ->
       acc = %{
@@ -89,54 +109,26 @@ pager = fn pager, from, acc ->
       if result != :completed,
         do: IO.puts("  cycle #{n}: #{result} #{inspect(stopped, limit: 10)}")
 
-      pager.(pager, from, acc)
+      collect.(collect, acc)
 
     :cycles_done ->
-      {from, acc}
+      acc
 
-    {:mtc_part, ^sref, doc} ->
-      {next, n, gaps, dups} = check.(acc.stream_from, doc)
-
+    {:page, n, gaps, dups} ->
       acc = %{
         acc
-        | stream_from: next,
-          parts: acc.parts + 1,
-          heartbeats: acc.heartbeats + if(n == 0, do: 1, else: 0),
-          stream_obs: acc.stream_obs + n,
-          stream_gaps: acc.stream_gaps + gaps,
-          stream_dups: acc.stream_dups + dups
+        | pages: acc.pages + 1,
+          obs: acc.obs + n,
+          gaps: acc.gaps + gaps,
+          dups: acc.dups + dups
       }
-
-      pager.(pager, from, acc)
-  after
-    pause_ms ->
-      {status, _type, doc} = MTCClient.get(port, "/sample?from=#{from}&count=#{count}")
-
-      acc =
-        if status == 200 do
-          {next, n, gaps, dups} = check.(from, doc)
-
-          acc = %{
-            acc
-            | pages: acc.pages + 1,
-              obs: acc.obs + n,
-              gaps: acc.gaps + gaps,
-              dups: acc.dups + dups
-          }
-
-          acc = Map.put(acc, :from, next)
-          acc
-        else
-          IO.puts("  error document: #{doc}")
-          Map.put(%{acc | errors: acc.errors + 1}, :from, from)
-        end
 
       now = System.monotonic_time(:millisecond)
 
       acc =
         if now - acc.reported >= 60_000 do
           IO.puts(
-            "  #{div(now - started, 60_000)} min: cycles #{acc.cycles}, pages #{acc.pages}, observations #{acc.obs}, gaps #{acc.gaps}, duplicates #{acc.dups}; stream parts #{acc.parts}, gaps #{acc.stream_gaps}, duplicates #{acc.stream_dups}"
+            "  #{div(now - started, 60_000)} min: cycles #{acc.cycles} (#{acc.failed} stopped), pages #{acc.pages}, observations #{acc.obs}, gaps #{acc.gaps}, duplicates #{acc.dups}; stream parts #{acc.parts}, gaps #{acc.stream_gaps}, duplicates #{acc.stream_dups}"
           )
 
           %{acc | reported: now}
@@ -144,7 +136,24 @@ pager = fn pager, from, acc ->
           acc
         end
 
-      pager.(pager, acc.from, acc)
+      collect.(collect, acc)
+
+    {:page_error, doc} ->
+      IO.puts("  error document: #{doc}")
+      collect.(collect, %{acc | errors: acc.errors + 1})
+
+    {:mtc_part, ^sref, doc} ->
+      {next, n, gaps, dups} = check.(acc.stream_from, doc)
+
+      collect.(collect, %{
+        acc
+        | stream_from: next,
+          parts: acc.parts + 1,
+          heartbeats: acc.heartbeats + if(n == 0, do: 1, else: 0),
+          stream_obs: acc.stream_obs + n,
+          stream_gaps: acc.stream_gaps + gaps,
+          stream_dups: acc.stream_dups + dups
+      })
   end
 end
 
@@ -166,26 +175,34 @@ acc0 = %{
   reported: started
 }
 
-{from, acc} = pager.(pager, start_seq, acc0)
+acc = collect.(collect, acc0)
 
-# the last page: up to what the buffer holds now
-{from, acc} =
-  Stream.repeatedly(fn -> :page end)
-  |> Enum.reduce_while({from, acc}, fn _, {from, acc} ->
-    {200, _, doc} = MTCClient.get(port, "/sample?from=#{from}&count=#{count}")
-    {next, n, gaps, dups} = check.(from, doc)
+# the paging client catches up with what the buffer holds now: its pages until one is empty
+catch_up = fn catch_up, acc ->
+  receive do
+    {:page, 0, gaps, dups} ->
+      %{acc | pages: acc.pages + 1, gaps: acc.gaps + gaps, dups: acc.dups + dups}
 
-    acc = %{
-      acc
-      | pages: acc.pages + 1,
-        obs: acc.obs + n,
-        gaps: acc.gaps + gaps,
-        dups: acc.dups + dups
-    }
+    {:page, n, gaps, dups} ->
+      catch_up.(catch_up, %{
+        acc
+        | pages: acc.pages + 1,
+          obs: acc.obs + n,
+          gaps: acc.gaps + gaps,
+          dups: acc.dups + dups
+      })
 
-    if n == 0, do: {:halt, {next, acc}}, else: {:cont, {next, acc}}
-  end)
+    {:page_error, _doc} ->
+      catch_up.(catch_up, %{acc | errors: acc.errors + 1})
 
+    _other ->
+      catch_up.(catch_up, acc)
+  after
+    60_000 -> acc
+  end
+end
+
+acc = catch_up.(catch_up, acc)
 MTCClient.stop(spid)
 {_, _, current} = MTCClient.get(port, "/current")
 elapsed = (System.monotonic_time(:millisecond) - started) / 1000
@@ -195,8 +212,8 @@ IO.puts("""
 == bench/mtconnect_soak.exs: a client paging /sample and one streaming it through machining cycles ==
 #{Enum.join(Vws.Bench.machine(), "\n")}
   run            #{Float.round(elapsed, 1)} s at time scale ×#{time_scale} (#{Float.round(elapsed * time_scale / 3600, 2)} simulated hours)
-  cycles         #{acc.cycles} run, #{acc.failed} did not complete
-  paging         #{acc.pages} pages of count=#{count}: #{acc.obs} observations #{start_seq}..#{from - 1}, gaps #{acc.gaps}, duplicates #{acc.dups}, error documents #{acc.errors}
+  cycles         #{acc.cycles} run, #{acc.failed} did not complete (the floor's trouble: reported above)
+  paging         #{acc.pages} pages of count=#{count}: #{acc.obs} observations from #{start_seq}, gaps #{acc.gaps}, duplicates #{acc.dups}, error documents #{acc.errors}
   streaming      #{acc.parts} parts (#{acc.heartbeats} heartbeats): #{acc.stream_obs} observations, gaps #{acc.stream_gaps}, duplicates #{acc.stream_dups}
   buffer         firstSequence #{MTCClient.header(current, "firstSequence")}, nextSequence #{MTCClient.header(current, "nextSequence")}, bufferSize #{MTCClient.header(current, "bufferSize")}
   rate           #{Float.round(acc.obs / max(elapsed, 1) * 60, 1)} observations a minute (at ×#{time_scale})
