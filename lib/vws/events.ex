@@ -82,6 +82,19 @@ defmodule Vws.Events do
     end
   end
 
+  @doc """
+  Sends `payload` to the event's subscribers as `{:vws_event, workstation, event, payload}`, like
+  `cause/3`, but without counting it or emitting telemetry: for notices that may come many times
+  a second (`:mailbox`, each change of a mailbox location, which `Vws.MTConnect.Agent` records).
+  Needs no `create/2`.
+  """
+  @spec notify(workstation, event, term) :: :ok
+  def notify(ws, event, payload) do
+    Registry.dispatch(__MODULE__, {ws, event}, fn entries ->
+      for {pid, _} <- entries, do: send(pid, {:vws_event, ws, event, payload})
+    end)
+  end
+
   @doc "How many times the event has been caused; `nil` when it was never created."
   @spec count(workstation, event) :: non_neg_integer | nil
   def count(ws, event) do

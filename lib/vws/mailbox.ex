@@ -39,6 +39,15 @@ defmodule Vws.Mailbox do
   With a journal (`Vws.Journal`), every command-status change is written to disk before it is
   written here, and a restarted workstation gets its command statuses back.
 
+  ## Change notices
+
+  Each write that changes a device-status location, a command status or a device's readings is
+  announced, after the write, to the processes subscribed to the workstation's event `:mailbox`
+  (`Vws.Events.subscribe(ws, :mailbox)`), as `{:vws_event, ws, :mailbox, {change, system_us}}`
+  where `change` is `{:device, loc, value}`, `{:command, partition, number, status, text | nil}`
+  (the text when the command is dispatched) or `{:readings, source, value}`; the notices of one
+  writer arrive in the order of its writes. The MTConnect agent records every transition so.
+
   ## LOCK/UNLOCK
 
   Every write here is one atomic ETS operation (`insert_new` for dispatch, `select_replace` for a
@@ -127,11 +136,23 @@ defmodule Vws.Mailbox do
 
   ## Device status (locations 1–14)
 
-  @doc "Writes a device-status location with the current monotonic time."
+  @doc """
+  Writes a device-status location with the current monotonic time. A value that differs from the
+  one there is announced (see "Change notices").
+  """
   @spec put_device(workstation, 1..14, term) :: :ok
   def put_device(ws, loc, value) when loc in 1..14 do
-    :ets.insert(table(ws), {{:device, loc}, value, now()})
+    table = table(ws)
+    changed? = :ets.lookup_element(table, {:device, loc}, 2) != value
+    :ets.insert(table, {{:device, loc}, value, now()})
+    if changed?, do: changed(ws, {:device, loc, value})
     :ok
+  end
+
+  # Change notices: the new value goes to whoever listens (`Vws.Events.notify/3`, event
+  # `:mailbox`) with the system time of the write, after the write.
+  defp changed(ws, change) do
+    Vws.Events.notify(ws, :mailbox, {change, System.system_time(:microsecond)})
   end
 
   @doc """
@@ -141,7 +162,16 @@ defmodule Vws.Mailbox do
   """
   @spec put_readings(workstation, atom, term) :: :ok
   def put_readings(ws, source, value) when is_atom(source) do
-    :ets.insert(table(ws), {{:readings, source}, value, now()})
+    table = table(ws)
+
+    changed? =
+      case :ets.lookup(table, {:readings, source}) do
+        [{_, ^value, _}] -> false
+        _ -> true
+      end
+
+    :ets.insert(table, {{:readings, source}, value, now()})
+    if changed?, do: changed(ws, {:readings, source, value})
     :ok
   end
 
@@ -178,6 +208,7 @@ defmodule Vws.Mailbox do
       journal(table, {:status, partition, number, :executing, text})
       :ets.insert(table, {{:cmd_in, partition}, number, text})
       :ets.insert(table, {{:command_status, partition}, number, :executing})
+      changed(ws, {:command, partition, number, :executing, text})
       :ok
     else
       case :ets.lookup(table, {:in_flight, partition}) do
@@ -212,7 +243,10 @@ defmodule Vws.Mailbox do
     case :ets.select_delete(table, [{{{:in_flight, partition}, number}, [], [true]}]) do
       1 ->
         journal(table, {:finish, partition, number, status})
-        compare_and_set_status(table, partition, number, status)
+
+        if compare_and_set_status(table, partition, number, status) == 1,
+          do: changed(ws, {:command, partition, number, status, nil})
+
         :ok
 
       0 ->
@@ -229,6 +263,7 @@ defmodule Vws.Mailbox do
     table = table(ws)
     journal(table, {:status, partition, number, status})
     :ets.insert(table, {{:command_status, partition}, number, status})
+    changed(ws, {:command, partition, number, status, nil})
     :ok
   end
 

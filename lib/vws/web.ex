@@ -36,7 +36,7 @@ defmodule Vws.Web do
       `:head_timeout`, `:idle_timeout`, `:body_timeout`, `:max_requests`, `:send_timeout` — the
       server's limits (`Vws.Web.Server`)
     * `:state_max_age` — ms the `/api/state` answer is reused for (`Vws.Web.Snapshot`, 200)
-    * `:buffer_size`, `:interval`, `:node_timeout` — the MTConnect agent's (see
+    * `:buffer_size`, `:checkpoint_frequency`, `:interval`, `:node_timeout` — the MTConnect agent's (see
       `Vws.MTConnect.Agent`)
     * `:name` — a name for the server's supervisor
   """
@@ -104,7 +104,13 @@ defmodule Vws.Web do
     children = [
       {Vws.MTConnect.Agent,
        [name: agent] ++
-         Keyword.take(opts, [:buffer_size, :interval, :node_timeout, :workstations])},
+         Keyword.take(opts, [
+           :buffer_size,
+           :checkpoint_frequency,
+           :interval,
+           :node_timeout,
+           :workstations
+         ])},
       {Task.Supervisor, name: connections, max_children: max},
       {Vws.Web.Server,
        [ref: ref, agent: agent, snapshot: snapshot, connections: connections] ++ opts},

@@ -91,7 +91,7 @@ defmodule Vws.Workstation do
     partitions =
       [
         {Vws.Partitions.VwsStatus,
-         [workstation: ws, devices: Keyword.keys(Keyword.get(opts, :devices, []))] ++
+         [workstation: ws, devices: configured(opts, partition_opts)] ++
            Keyword.get(partition_opts, :vws_status, [])}
       ] ++
         for {p, default_module} <- @partition_modules do
@@ -157,6 +157,19 @@ defmodule Vws.Workstation do
   def ok_to_proceed(ws) do
     :ok = Vws.Events.cause(ws, :ok_to_proceed)
     :ignore
+  end
+
+  # The devices this workstation has a link to: named in `devices:`, or reached through a
+  # partition's own `link:` (as `mix vws.demo` gives them) — so that their locations say
+  # "NOT READ YET" rather than "NO LINK" (the demo's robot read NO DATA (NO LINK TO VAL II)
+  # while it worked).
+  defp configured(opts, partition_opts) do
+    linked =
+      for {partition, device} <- [robot: :robot, monarch: :ge2000, hydraulic: :hydraulic],
+          Keyword.get(Keyword.get(partition_opts, partition, []), :link) != nil,
+          do: device
+
+    Enum.uniq(Keyword.keys(Keyword.get(opts, :devices, [])) ++ linked)
   end
 
   @doc """

@@ -27,7 +27,12 @@ defmodule Vws.Test.XMLLint do
       )
   end
 
-  @doc "Asserts that `xml` (iodata) validates against the schema of `kind`; returns the text."
+  @doc """
+  Asserts that `xml` (iodata) validates against the schema of `kind` (`:devices`, `:streams`,
+  `:error`, or `:assets`: the MTConnectAssets structure the standard's text asks for, in
+  `test/support/mtconnect_assets_header.xsd`, written here since the Institute's Assets schema
+  is not among the shipped ones); returns the text.
+  """
   def validate!(xml, kind) do
     xmllint =
       System.find_executable("xmllint") ||
@@ -38,7 +43,10 @@ defmodule Vws.Test.XMLLint do
     File.write!(path, text)
 
     try do
-      schema = Path.join(schema_dir(), Map.fetch!(@schemas, kind))
+      schema =
+        if kind == :assets,
+          do: Path.expand("mtconnect_assets_header.xsd", __DIR__),
+          else: Path.join(schema_dir(), Map.fetch!(@schemas, kind))
 
       {out, status} =
         System.cmd(xmllint, ["--noout", "--schema", schema, path], stderr_to_stdout: true)

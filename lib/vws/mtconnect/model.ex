@@ -3,18 +3,22 @@ defmodule Vws.MTConnect.Model do
   How a workstation is shown as an MTConnect device, and how its mailboxes read as MTConnect
   observations. Pure: no processes, no I/O.
 
-  Each workstation is one `Device` (its name is the workstation id):
+  Each workstation is one `Device` (its name is the workstation id); the tree, with every data
+  item, is in `docs/mtconnect.md`:
 
   ```
   Device <ws>                     Availability (the workstation runs)
-  ├── Controller vmc              Availability, ControllerMode, Message (MONARCH status text)
-  │   └── Path vmc_path           Execution, Program
-  ├── Controller robot            Availability, Message (WHERE_ROBOT text)
-  │   └── Path robot_path         Execution, PathPosition (x y z, mm)
-  ├── EndEffector gripper         ChuckState, Message (GRIPPER text)
-  ├── Chuck vise                  ChuckState, PartDetect, Message (VISE text)
+  ├── Controller vmc              Availability, ControllerMode, Message, command, SYSTEM condition
+  │   └── Path vmc_path           Execution, Program, PartCount, dnc_transfer
+  ├── Controller robot            Availability, ControllerMode, Message (its command), SYSTEM
+  │   ├── Path robot_path         Execution, Program, PathPosition (x y z, mm)
+  │   └── Axes arm                Linear X/Y/Z Position (mm), Rotary J1–J6 Angle (°)
+  ├── EndEffector gripper         Availability, ChuckState, finger_gap (mm), Message, command, SYSTEM
+  ├── Chuck vise                  Availability, ChuckState, PartDetect, jaw_width (mm),
+  │                               clamp_force (N), Message, command, SYSTEM
   ├── Lock tray1, Lock tray2      LockState (tray locked in position)
-  └── Clamp pallet                LockState (pallet clamped), Message (PALLET text)
+  ├── Clamp pallet                Availability, LockState, clamp1/2_force (N), Message, command, SYSTEM
+  └── Adapter wc/val/dnc/daq1/hydraulic_link   ConnectionStatus
   ```
 
   ## From mailbox texts to MTConnect values
@@ -25,7 +29,9 @@ defmodule Vws.MTConnect.Model do
   | VMC execution | MONARCH `ACTIVE` → `ACTIVE`, `IDLE` → `READY` |
   | VMC controller mode | `AUTOMATIC` (under DNC) while the VMC is available |
   | VMC program | the last `PROGRAM_SELECT(n)` commanded, else `UNAVAILABLE` |
-  | robot availability | WHERE_ROBOT holds a position, or a robot command is executing or done |
+  | robot availability | its link is up, WHERE_ROBOT holds a position, or a robot command is executing or done |
+  | robot message | its latest command, number and status (`0012 DO MOVE TRAY1 DONE`) |
+  | samples | DAQ #1's poll (jaw width, finger gap, vise force), the hydraulic controller's answer (clamp forces), WHERE_ROBOT (arm) |
   | robot execution | robot command `EXECUTING` → `ACTIVE`, `DONE`/none → `READY`, `ERROR` → `STOPPED` |
   | robot position | the first three numbers of WHERE_ROBOT (`x/y/z/…`) |
   | gripper | `…IS OPEN…` → `OPEN`; `…CLOSED…` or `FINGERS ARE…` → `CLOSED` |
@@ -47,9 +53,12 @@ defmodule Vws.MTConnect.Model do
   @type item :: %{
           id: String.t(),
           type: String.t(),
-          category: :event | :sample,
+          category: :event | :sample | :condition,
           element: String.t(),
           units: String.t() | nil,
+          name: String.t() | nil,
+          sub_type: String.t() | nil,
+          deadband: number | nil,
           component: String.t(),
           component_id: String.t(),
           component_name: String.t(),
@@ -75,59 +84,133 @@ defmodule Vws.MTConnect.Model do
           components: [component]
         }
 
-  @typedoc "What the agent read from a workstation's mailboxes."
+  @typedoc """
+  What the agent knows of a workstation, kept current from its mailboxes' change notices
+  (`Vws.Mailbox`, "Change notices"): the device-status texts by name, each partition's command
+  `{number, status}` and latest command text, the readings (`:pallet` — the hydraulic
+  controller's answer, `:monarch` — the GE-2000's status report), the device links' and WC
+  link's connection states, the VMC's program and the parts counted.
+  """
   @type facts :: %{
-          devices: %{String.t() => term},
-          commands: %{atom => {non_neg_integer | nil, term}},
-          program: String.t() | nil
+          optional(:devices) => %{String.t() => term},
+          optional(:commands) => %{atom => {non_neg_integer | nil, term}},
+          optional(:cmd_in) => %{atom => String.t() | nil},
+          optional(:readings) => %{atom => term},
+          optional(:links) => %{atom => String.t()},
+          optional(:program) => String.t() | nil,
+          optional(:part_count) => non_neg_integer,
+          optional(:transfer) => String.t() | nil
         }
 
-  # {component type, key, name, [{key, type, element, category, units}], children}
-  @tree [
-    {"Controller", "vmc", "vmc",
-     [
-       {"avail", "AVAILABILITY", "Availability", :event, nil},
-       {"mode", "CONTROLLER_MODE", "ControllerMode", :event, nil},
-       {"msg", "MESSAGE", "Message", :event, nil}
-     ],
-     [
-       {"Path", "vmc_path", "path",
-        [
-          {"exec", "EXECUTION", "Execution", :event, nil},
-          {"program", "PROGRAM", "Program", :event, nil}
-        ], []}
-     ]},
-    {"Controller", "robot", "robot",
-     [
-       {"avail", "AVAILABILITY", "Availability", :event, nil},
-       {"msg", "MESSAGE", "Message", :event, nil}
-     ],
-     [
-       {"Path", "robot_path", "path",
-        [
-          {"exec", "EXECUTION", "Execution", :event, nil},
-          {"pos", "PATH_POSITION", "PathPosition", :sample, "MILLIMETER_3D"}
-        ], []}
-     ]},
-    {"EndEffector", "gripper", "gripper",
-     [
-       {"state", "CHUCK_STATE", "ChuckState", :event, nil},
-       {"msg", "MESSAGE", "Message", :event, nil}
-     ], []},
-    {"Chuck", "vise", "vise",
-     [
-       {"state", "CHUCK_STATE", "ChuckState", :event, nil},
-       {"part", "PART_DETECT", "PartDetect", :event, nil},
-       {"msg", "MESSAGE", "Message", :event, nil}
-     ], []},
-    {"Lock", "tray1", "tray1", [{"state", "LOCK_STATE", "LockState", :event, nil}], []},
-    {"Lock", "tray2", "tray2", [{"state", "LOCK_STATE", "LockState", :event, nil}], []},
-    {"Clamp", "pallet", "pallet",
-     [
-       {"state", "LOCK_STATE", "LockState", :event, nil},
-       {"msg", "MESSAGE", "Message", :event, nil}
-     ], []}
-  ]
+  @typedoc "A value: text (events; samples as text), a number (samples), or a condition."
+  @type value :: String.t() | number | {:condition, String.t(), String.t() | nil, String.t()}
+
+  # Item specs: {key, type, element, category, units, opts}; opts: :sub_type, :deadband (the
+  # least change recorded: MTConnect's MINIMUM_DELTA filter), :name.
+  @avail {"avail", "AVAILABILITY", "Availability", :event, nil, []}
+
+  defp linear(axis),
+    do:
+      {"Linear", "robot_#{String.downcase(axis)}", axis,
+       [
+         {"pos", "POSITION", "Position", :sample, "MILLIMETER",
+          sub_type: "ACTUAL", deadband: 0.5, name: "#{String.downcase(axis)}_pos"}
+       ], []}
+
+  defp rotary(joint),
+    do:
+      {"Rotary", "robot_#{String.downcase(joint)}", joint,
+       [
+         {"angle", "ANGLE", "Angle", :sample, "DEGREE",
+          sub_type: "ACTUAL", deadband: 0.5, name: "#{String.downcase(joint)}_angle"}
+       ], []}
+
+  defp link(key, name),
+    do:
+      {"Adapter", "#{key}_link", name,
+       [{"conn", "CONNECTION_STATUS", "ConnectionStatus", :event, nil, []}], []}
+
+  # {component type, key, name, [item spec], children}
+  defp tree do
+    [
+      {"Controller", "vmc", "vmc",
+       [
+         @avail,
+         {"mode", "CONTROLLER_MODE", "ControllerMode", :event, nil, []},
+         {"msg", "MESSAGE", "Message", :event, nil, []},
+         {"cmd", "MESSAGE", "Message", :event, nil, name: "command"},
+         {"system", "SYSTEM", "System", :condition, nil, []}
+       ],
+       [
+         {"Path", "vmc_path", "path",
+          [
+            {"exec", "EXECUTION", "Execution", :event, nil, []},
+            {"program", "PROGRAM", "Program", :event, nil, []},
+            {"part_count", "PART_COUNT", "PartCount", :event, nil, sub_type: "ALL"},
+            # the DNC transfer's progress: see dnc_transfer/1
+            {"transfer", "MESSAGE", "Message", :event, nil, name: "dnc_transfer"}
+          ], []}
+       ]},
+      {"Controller", "robot", "robot",
+       [
+         @avail,
+         {"mode", "CONTROLLER_MODE", "ControllerMode", :event, nil, []},
+         {"msg", "MESSAGE", "Message", :event, nil, []},
+         {"system", "SYSTEM", "System", :condition, nil, []}
+       ],
+       [
+         {"Path", "robot_path", "path",
+          [
+            {"exec", "EXECUTION", "Execution", :event, nil, []},
+            {"program", "PROGRAM", "Program", :event, nil, []},
+            {"pos", "PATH_POSITION", "PathPosition", :sample, "MILLIMETER_3D",
+             deadband: 0.5, sub_type: "ACTUAL"}
+          ], []},
+         {"Axes", "robot_axes", "arm", [],
+          Enum.map(~w(X Y Z), &linear/1) ++ Enum.map(~w(J1 J2 J3 J4 J5 J6), &rotary/1)}
+       ]},
+      {"EndEffector", "gripper", "gripper",
+       [
+         @avail,
+         {"state", "CHUCK_STATE", "ChuckState", :event, nil, []},
+         {"gap", "LENGTH", "Length", :sample, "MILLIMETER", deadband: 0.5, name: "finger_gap"},
+         {"msg", "MESSAGE", "Message", :event, nil, []},
+         {"cmd", "MESSAGE", "Message", :event, nil, name: "command"},
+         {"system", "SYSTEM", "System", :condition, nil, []}
+       ], []},
+      {"Chuck", "vise", "vise",
+       [
+         @avail,
+         {"state", "CHUCK_STATE", "ChuckState", :event, nil, []},
+         {"part", "PART_DETECT", "PartDetect", :event, nil, []},
+         {"jaw", "LENGTH", "Length", :sample, "MILLIMETER", deadband: 0.5, name: "jaw_width"},
+         {"force", "LINEAR_FORCE", "LinearForce", :sample, "NEWTON",
+          deadband: 25.0, name: "clamp_force"},
+         {"msg", "MESSAGE", "Message", :event, nil, []},
+         {"cmd", "MESSAGE", "Message", :event, nil, name: "command"},
+         {"system", "SYSTEM", "System", :condition, nil, []}
+       ], []},
+      {"Lock", "tray1", "tray1", [{"state", "LOCK_STATE", "LockState", :event, nil, []}], []},
+      {"Lock", "tray2", "tray2", [{"state", "LOCK_STATE", "LockState", :event, nil, []}], []},
+      {"Clamp", "pallet", "pallet",
+       [
+         @avail,
+         {"state", "LOCK_STATE", "LockState", :event, nil, []},
+         {"force1", "LINEAR_FORCE", "LinearForce", :sample, "NEWTON",
+          deadband: 50.0, name: "clamp1_force"},
+         {"force2", "LINEAR_FORCE", "LinearForce", :sample, "NEWTON",
+          deadband: 50.0, name: "clamp2_force"},
+         {"msg", "MESSAGE", "Message", :event, nil, []},
+         {"cmd", "MESSAGE", "Message", :event, nil, name: "command"},
+         {"system", "SYSTEM", "System", :condition, nil, []}
+       ], []},
+      link("wc", "wc_link"),
+      link("val", "val_link"),
+      link("dnc", "dnc_link"),
+      link("daq1", "daq1_link"),
+      link("hydraulic", "hydraulic_link")
+    ]
+  end
 
   @doc """
   The MTConnect id prefix of a workstation: its id made an XML name (letters, digits, `_`, `-`,
@@ -164,10 +247,8 @@ defmodule Vws.MTConnect.Model do
       id: id,
       name: name,
       uuid: uuid,
-      items: [
-        item(ctx, "Device", id, name, {"avail", "AVAILABILITY", "Availability", :event, nil}, "")
-      ],
-      components: Enum.map(@tree, &component(ctx, &1))
+      items: [item(ctx, "Device", id, name, @avail, "")],
+      components: Enum.map(tree(), &component(ctx, &1))
     }
   end
 
@@ -183,10 +264,13 @@ defmodule Vws.MTConnect.Model do
     }
   end
 
-  defp item(ctx, ctype, cid, cname, {ikey, type, element, category, units}, key) do
+  defp item(ctx, ctype, cid, cname, {ikey, type, element, category, units, opts}, key) do
     %{
       id: if(key == "", do: "#{ctx.prefix}_#{ikey}", else: "#{ctx.prefix}_#{key}_#{ikey}"),
+      name: Keyword.get(opts, :name),
       type: type,
+      sub_type: Keyword.get(opts, :sub_type),
+      deadband: Keyword.get(opts, :deadband),
       category: category,
       element: element,
       units: units,
@@ -214,9 +298,9 @@ defmodule Vws.MTConnect.Model do
       uuid: ctx.device_uuid,
       items:
         for spec <- [
-              {"avail", "AVAILABILITY", "Availability", :event, nil},
-              {"device_added", "DEVICE_ADDED", "DeviceAdded", :event, nil},
-              {"device_removed", "DEVICE_REMOVED", "DeviceRemoved", :event, nil}
+              @avail,
+              {"device_added", "DEVICE_ADDED", "DeviceAdded", :event, nil, []},
+              {"device_removed", "DEVICE_REMOVED", "DeviceRemoved", :event, nil, []}
             ] do
           item(ctx, "Agent", "agent", "Agent", spec, "")
         end,
@@ -230,45 +314,271 @@ defmodule Vws.MTConnect.Model do
     do: items ++ Enum.flat_map(components, &items/1)
 
   @doc """
-  The value of every data item of a workstation's device, from the facts read in its mailboxes
-  (`available?` false gives every item `UNAVAILABLE`). Returns `%{item_id => value}`.
+  The value of every data item of a workstation's device from what is known of it (`nil`: the
+  workstation cannot be read, every item `UNAVAILABLE`). Returns `%{item_id => value}`.
   """
-  @spec observe(device, facts | nil) :: %{String.t() => String.t()}
-  def observe(device, nil), do: Map.new(items(device), &{&1.id, @unavailable})
+  @spec observe(device, facts | nil) :: %{String.t() => value}
+  def observe(device, nil) do
+    Map.new(items(device), fn
+      %{category: :condition} = i -> {i.id, unavailable_condition()}
+      i -> {i.id, @unavailable}
+    end)
+  end
 
   def observe(device, facts) do
-    text = fn name -> Map.get(facts.devices, name) end
+    texts = Map.get(facts, :devices, %{})
+    text = fn name -> Map.get(texts, name) end
+    commands = Map.get(facts, :commands, %{})
+    cmd_in = Map.get(facts, :cmd_in, %{})
+    readings = Map.get(facts, :readings, %{})
+    links = Map.get(facts, :links, %{})
+    status = fn p -> Map.get(commands, p, {nil, :none}) end
     monarch = text.("MONARCH")
-    where = text.("WHERE_ROBOT")
-    {_n, robot_status} = Map.get(facts.commands, :robot, {nil, :none})
+    {_n, robot_status} = status.(:robot)
+    report = readings[:monarch]
     vmc? = vmc_available?(monarch)
-    position = robot_position(where)
-    robot? = position != nil or robot_status in [:executing, :done]
+    world = robot_numbers(text.("WHERE_ROBOT"))
+    robot? = links[:val] == "ESTABLISHED" or world != nil or robot_status in [:executing, :done]
+    sensors = if match?(%Vws.DAQ.Readings{}, texts["SENSORS"]), do: texts["SENSORS"]
+    daq? = sensors != nil
+    pallet = readings[:pallet]
+    pallet? = pallet_state(text.("PALLET")) != @unavailable
     p = device.id
+
+    at = fn i ->
+      case world do
+        nums when is_list(nums) and length(nums) > i -> Enum.at(nums, i)
+        _ -> @unavailable
+      end
+    end
 
     values = %{
       "#{p}_avail" => "AVAILABLE",
       "#{p}_vmc_avail" => available(vmc?),
       "#{p}_vmc_mode" => if(vmc?, do: "AUTOMATIC", else: @unavailable),
       "#{p}_vmc_msg" => message(monarch),
+      "#{p}_vmc_cmd" => command_message(status.(:monarch), cmd_in[:monarch], true),
+      "#{p}_vmc_system" => vmc_condition(vmc?, report, status.(:monarch)),
       "#{p}_vmc_path_exec" => vmc_execution(monarch),
-      "#{p}_vmc_path_program" => facts.program || @unavailable,
+      "#{p}_vmc_path_program" => vmc_program(report, Map.get(facts, :program)),
+      "#{p}_vmc_path_part_count" =>
+        if(vmc?, do: Integer.to_string(Map.get(facts, :part_count, 0)), else: @unavailable),
+      "#{p}_vmc_path_transfer" => dnc_transfer(facts),
       "#{p}_robot_avail" => available(robot?),
-      "#{p}_robot_msg" => message(where),
+      "#{p}_robot_mode" => if(robot?, do: "AUTOMATIC", else: @unavailable),
+      "#{p}_robot_msg" => command_message(status.(:robot), cmd_in[:robot], robot?),
+      "#{p}_robot_system" => command_condition(status.(:robot), robot?),
       "#{p}_robot_path_exec" => if(robot?, do: robot_execution(robot_status), else: @unavailable),
-      "#{p}_robot_path_pos" => position || @unavailable,
+      "#{p}_robot_path_program" => robot_program(cmd_in[:robot]),
+      "#{p}_robot_path_pos" =>
+        if(world,
+          do: Enum.map_join(Enum.take(world, 3), " ", &format_number/1),
+          else: @unavailable
+        ),
+      "#{p}_robot_x_pos" => at.(0),
+      "#{p}_robot_y_pos" => at.(1),
+      "#{p}_robot_z_pos" => at.(2),
+      "#{p}_robot_j1_angle" => at.(6),
+      "#{p}_robot_j2_angle" => at.(7),
+      "#{p}_robot_j3_angle" => at.(8),
+      "#{p}_robot_j4_angle" => at.(9),
+      "#{p}_robot_j5_angle" => at.(10),
+      "#{p}_robot_j6_angle" => at.(11),
+      "#{p}_gripper_avail" => available(daq?),
       "#{p}_gripper_state" => gripper_state(text.("GRIPPER")),
+      "#{p}_gripper_gap" => reading(sensors, :gripper_finger_mm),
       "#{p}_gripper_msg" => message(text.("GRIPPER")),
+      "#{p}_gripper_cmd" => command_message(status.(:gripper), cmd_in[:gripper], true),
+      "#{p}_gripper_system" => command_condition(status.(:gripper), daq?),
+      "#{p}_vise_avail" => available(daq?),
       "#{p}_vise_state" => vise_state(text.("VISE")),
       "#{p}_vise_part" => vise_part(text.("VISE")),
+      "#{p}_vise_jaw" => reading(sensors, :vise_jaw_mm),
+      "#{p}_vise_force" => reading(sensors, :vise_force_n),
       "#{p}_vise_msg" => message(text.("VISE")),
+      "#{p}_vise_cmd" => command_message(status.(:fixture), cmd_in[:fixture], true),
+      "#{p}_vise_system" => command_condition(status.(:fixture), daq?),
       "#{p}_tray1_state" => tray_state(text.("TRAYS"), 1),
       "#{p}_tray2_state" => tray_state(text.("TRAYS"), 2),
+      "#{p}_pallet_avail" => available(pallet?),
       "#{p}_pallet_state" => pallet_state(text.("PALLET")),
-      "#{p}_pallet_msg" => message(text.("PALLET"))
+      "#{p}_pallet_force1" => pallet_force(pallet?, pallet, :force1_n),
+      "#{p}_pallet_force2" => pallet_force(pallet?, pallet, :force2_n),
+      "#{p}_pallet_msg" => message(text.("PALLET")),
+      "#{p}_pallet_cmd" => command_message(status.(:hydraulic), cmd_in[:hydraulic], true),
+      "#{p}_pallet_system" => command_condition(status.(:hydraulic), pallet?),
+      "#{p}_wc_link_conn" => Map.get(links, :wc, @unavailable),
+      "#{p}_val_link_conn" => Map.get(links, :val, @unavailable),
+      "#{p}_dnc_link_conn" => Map.get(links, :dnc, @unavailable),
+      "#{p}_daq1_link_conn" => Map.get(links, :daq1, @unavailable),
+      "#{p}_hydraulic_link_conn" => Map.get(links, :hydraulic, @unavailable)
     }
 
-    Map.new(items(device), &{&1.id, Map.get(values, &1.id, @unavailable)})
+    Map.new(items(device), fn i ->
+      default = if i.category == :condition, do: unavailable_condition(), else: @unavailable
+      {i.id, Map.get(values, i.id, default)}
+    end)
+  end
+
+  @doc """
+  The DNC transfer message: what the GE-2000 link is transferring (`facts.transfer`, text such
+  as `DOWNLOAD_GE 1200/5000 BYTES`), else `UNAVAILABLE`. This is the place for the DNC link's
+  transfer-progress notices once they are published; until then nothing fills `:transfer`.
+  """
+  @spec dnc_transfer(facts) :: String.t()
+  def dnc_transfer(facts) do
+    case Map.get(facts, :transfer) do
+      text when is_binary(text) and text != "" -> text
+      _ -> @unavailable
+    end
+  end
+
+  defp unavailable_condition, do: {:condition, "Unavailable", nil, ""}
+  defp normal_condition, do: {:condition, "Normal", nil, ""}
+
+  # the GE-2000's alarm (its status report) is a fault with the alarm number as native code;
+  # else the MONARCH command's error
+  defp vmc_condition(false, _report, _status), do: unavailable_condition()
+
+  defp vmc_condition(true, %{alarm: alarm}, _status) when is_integer(alarm) and alarm > 0,
+    do: {:condition, "Fault", Integer.to_string(alarm), "GE-2000 ALARM #{alarm}"}
+
+  defp vmc_condition(true, _report, status), do: command_condition(status, true)
+
+  @doc """
+  A partition's condition from its last command: `Fault` while that command ended `ERROR`
+  (native code: the device's own error number when the reason starts with one, as the VAL II's
+  `-601 …`, else `CEC`), `Normal` otherwise.
+
+      iex> Vws.MTConnect.Model.command_condition({7, {:error, "-601 POSITION OUT OF REACH"}}, true)
+      {:condition, "Fault", "-601", "0007 ERROR -601 POSITION OUT OF REACH"}
+      iex> Vws.MTConnect.Model.command_condition({8, :done}, true)
+      {:condition, "Normal", nil, ""}
+  """
+  @spec command_condition({integer | nil, term}, boolean) :: value
+  def command_condition(_status, false), do: unavailable_condition()
+
+  def command_condition({n, {:error, reason}}, true) when is_binary(reason) do
+    code =
+      case Regex.run(~r/^\s*(-?\d+)\b/, reason) do
+        [_, code] -> code
+        nil -> "CEC"
+      end
+
+    {:condition, "Fault", code, "#{number(n)} ERROR #{reason}"}
+  end
+
+  def command_condition(_status, true), do: normal_condition()
+
+  @doc """
+  A partition's Message: its latest command's number, text and status as the WC reads them
+  (`0012 DO MOVE TRAY1 EXECUTING`); `NO COMMAND YET` before any.
+  """
+  @spec command_message({integer | nil, term}, String.t() | nil, boolean) :: String.t()
+  def command_message({nil, _}, _text, true), do: "NO COMMAND YET"
+  def command_message({nil, _}, _text, false), do: @unavailable
+
+  def command_message({n, status}, text, _available?) do
+    [number(n), text, Vws.Mailbox.status_word(status)]
+    |> Enum.reject(&(&1 in [nil, ""]))
+    |> Enum.join(" ")
+  end
+
+  defp number(nil), do: "----"
+  defp number(n), do: n |> Integer.to_string() |> String.pad_leading(4, "0")
+
+  # the program the robot runs: the name in its last EXECUTE
+  defp robot_program(text) when is_binary(text) do
+    case Regex.run(~r/^\s*EXECUTE\s+(\S+)/, text) do
+      [_, name] -> name
+      nil -> @unavailable
+    end
+  end
+
+  defp robot_program(_), do: @unavailable
+
+  # the GE-2000's own report names the program it has (000000: none); else the last selected
+  defp vmc_program(%{program: program}, _selected) when is_binary(program) do
+    if program =~ ~r/^0*$/, do: @unavailable, else: program
+  end
+
+  defp vmc_program(_report, selected), do: selected || @unavailable
+
+  defp reading(%Vws.DAQ.Readings{} = r, signal) do
+    case Vws.DAQ.Readings.get(r, signal) do
+      v when is_number(v) -> v * 1.0
+      _ -> @unavailable
+    end
+  end
+
+  defp reading(_, _), do: @unavailable
+
+  defp pallet_force(true, %{} = pallet, key) do
+    case Map.get(pallet, key) do
+      v when is_number(v) and v < 1.0e6 -> v * 1.0
+      _ -> @unavailable
+    end
+  end
+
+  defp pallet_force(_, _, _), do: @unavailable
+
+  @doc """
+  Whether a new value of an item is worth recording after `last`: any change of an event or a
+  condition; for a sample, a move of at least its deadband (or to or from `UNAVAILABLE`); for a
+  message, a change of its words or of one of its numbers by at least 0.5 (so the ±0.1 mm
+  noise in `VISE JAWS ARE 50.0 MM APART` does not count).
+
+      iex> i = %{category: :sample, deadband: 0.5, type: "LENGTH"}
+      iex> {Vws.MTConnect.Model.changed?(i, 50.0, 50.3), Vws.MTConnect.Model.changed?(i, 50.0, 50.6)}
+      {false, true}
+      iex> m = %{category: :event, deadband: nil, type: "MESSAGE"}
+      iex> Vws.MTConnect.Model.changed?(m, "VISE JAWS ARE 50.0 MM APART", "VISE JAWS ARE 50.1 MM APART")
+      false
+  """
+  @spec changed?(item, value | nil, value) :: boolean
+  def changed?(_item, same, same), do: false
+  def changed?(_item, nil, _new), do: true
+
+  def changed?(%{category: :sample, deadband: band}, old, new)
+      when is_number(old) and is_number(new) and is_number(band),
+      do: abs(new - old) >= band
+
+  def changed?(%{category: :sample, deadband: band}, old, new)
+      when is_binary(old) and is_binary(new) and is_number(band) do
+    case {vector(old), vector(new)} do
+      {[_ | _] = a, [_ | _] = b} when length(a) == length(b) ->
+        Enum.zip(a, b) |> Enum.any?(fn {x, y} -> abs(x - y) >= band end)
+
+      _ ->
+        true
+    end
+  end
+
+  def changed?(%{type: "MESSAGE"}, old, new) when is_binary(old) and is_binary(new) do
+    {words_a, nums_a} = split_numbers(old)
+    {words_b, nums_b} = split_numbers(new)
+
+    words_a != words_b or length(nums_a) != length(nums_b) or
+      Enum.zip(nums_a, nums_b) |> Enum.any?(fn {x, y} -> abs(x - y) >= 0.5 end)
+  end
+
+  def changed?(_item, _old, _new), do: true
+
+  defp vector(text) do
+    parts = String.split(text, " ", trim: true)
+    nums = for p <- parts, {f, ""} <- [Float.parse(p)], do: f
+    if length(nums) == length(parts), do: nums, else: []
+  end
+
+  defp split_numbers(text) do
+    tokens = String.split(text, ~r/(-?\d+(?:\.\d+)?)/, include_captures: true)
+
+    Enum.reduce(tokens, {[], []}, fn t, {words, nums} ->
+      case Float.parse(t) do
+        {f, ""} -> {[:number | words], [f | nums]}
+        _ -> {[t | words], nums}
+      end
+    end)
   end
 
   defp available(true), do: "AVAILABLE"
@@ -307,6 +617,17 @@ defmodule Vws.MTConnect.Model do
   end
 
   def robot_position(_), do: nil
+
+  @doc "Every number of WHERE_ROBOT (`x/y/z/o/a/t/j1/…/j6`), or nil when the text is not a position."
+  @spec robot_numbers(term) :: [float] | nil
+  def robot_numbers(text) when is_binary(text) do
+    case numbers(String.split(text, ["/", ","])) do
+      {:ok, [_, _, _ | _] = nums} -> nums
+      _ -> nil
+    end
+  end
+
+  def robot_numbers(_), do: nil
 
   defp numbers(strings) do
     Enum.reduce_while(strings, {:ok, []}, fn s, {:ok, acc} ->
@@ -386,6 +707,7 @@ defmodule Vws.MTConnect.Model do
   @doc "A Message value: the status text itself, `UNAVAILABLE` when there is none."
   @spec message(term) :: String.t()
   def message(text) when is_binary(text) and text != "", do: text
+  def message({:no_data, why}) when is_binary(why), do: "NO DATA (#{why})"
   def message(_), do: @unavailable
 
   @doc """

@@ -43,7 +43,7 @@ defmodule Vws.MTConnect.XML do
         {"version", @version},
         {"deviceModelChangeTime", header.model_change_time},
         {"bufferSize", header.buffer_size},
-        {"assetBufferSize", 1},
+        {"assetBufferSize", Map.get(header, :asset_buffer_size, 1024)},
         {"assetCount", 0}
       ]),
       element("Devices", [], Enum.map(devices, &device/1))
@@ -91,16 +91,60 @@ defmodule Vws.MTConnect.XML do
       for i <- items do
         attrs =
           [{"id", i.id}, {"type", i.type}, {"category", category(i.category)}] ++
-            if(i.units, do: [{"units", i.units}], else: []) ++
-            if(i.type == "PATH_POSITION", do: [{"coordinateSystem", "MACHINE"}], else: [])
+            optional("name", Map.get(i, :name)) ++
+            optional("subType", Map.get(i, :sub_type)) ++
+            optional("units", i.units) ++
+            if(i.type in ["PATH_POSITION", "POSITION"],
+              do: [{"coordinateSystem", "MACHINE"}],
+              else: []
+            )
 
-        tag("DataItem", attrs)
+        case Map.get(i, :deadband) do
+          nil ->
+            tag("DataItem", attrs)
+
+          band ->
+            element("DataItem", attrs, [
+              element("Filters", [], [
+                element("Filter", [{"type", "MINIMUM_DELTA"}], [number_text(band)])
+              ])
+            ])
+        end
       end
     )
   end
 
   defp category(:event), do: "EVENT"
   defp category(:sample), do: "SAMPLE"
+  defp category(:condition), do: "CONDITION"
+
+  defp optional(_name, nil), do: []
+  defp optional(name, value), do: [{name, value}]
+
+  @doc """
+  A value as MTConnect writes it: text as it is; a number with at most three decimals (a whole
+  number without any); a condition by its text.
+
+      iex> Vws.MTConnect.XML.value_text(50.04)
+      "50.04"
+      iex> Vws.MTConnect.XML.value_text(4990.0)
+      "4990"
+  """
+  @spec value_text(term) :: String.t()
+  def value_text(v) when is_binary(v), do: v
+  def value_text(v) when is_integer(v), do: Integer.to_string(v)
+  def value_text(v) when is_float(v), do: number_text(v)
+  def value_text({:condition, _level, _code, text}), do: text
+
+  defp number_text(v) when is_integer(v), do: Integer.to_string(v)
+
+  defp number_text(v) when is_float(v) do
+    r = Float.round(v, 3)
+
+    if r == Float.round(r),
+      do: Integer.to_string(trunc(r)),
+      else: :erlang.float_to_binary(r, [:short])
+  end
 
   @doc """
   An `MTConnectStreams` document (the answer to `/current` and `/sample`): the observations
@@ -135,11 +179,12 @@ defmodule Vws.MTConnect.XML do
   defp component_streams(obs) do
     for {{type, id, name}, cobs} <-
           group(obs, &{&1.item.component, &1.item.component_id, &1.item.component_name}) do
-      {samples, events} = Enum.split_with(cobs, &(&1.item.category == :sample))
+      by = Enum.group_by(cobs, & &1.item.category)
 
       element("ComponentStream", [{"component", type}, {"componentId", id}, {"name", name}], [
-        observations("Samples", samples),
-        observations("Events", events)
+        observations("Samples", Map.get(by, :sample, [])),
+        observations("Events", Map.get(by, :event, [])),
+        observations("Condition", Map.get(by, :condition, []))
       ])
     end
   end
@@ -151,15 +196,30 @@ defmodule Vws.MTConnect.XML do
       wrapper,
       [],
       for o <- Enum.sort_by(obs, & &1.sequence) do
-        element(
-          o.item.element,
+        attrs =
           [
             {"dataItemId", o.item.id},
             {"timestamp", o.timestamp},
             {"sequence", o.sequence}
-          ],
-          [escape(o.value)]
-        )
+          ] ++ optional("name", Map.get(o.item, :name)) ++ optional("subType", o.item[:sub_type])
+
+        case o.value do
+          {:condition, level, code, text} ->
+            # an active condition names its activation (2.5: conditionId): its native code
+            attrs =
+              attrs ++
+                [{"type", o.item.type}] ++
+                optional("nativeCode", code) ++
+                if(level in ["Fault", "Warning"],
+                  do: [{"conditionId", code || o.item.id}],
+                  else: []
+                )
+
+            if text == "", do: tag(level, attrs), else: element(level, attrs, [escape(text)])
+
+          value ->
+            element(o.item.element, attrs, [escape(value_text(value))])
+        end
       end
     )
   end
@@ -191,6 +251,28 @@ defmodule Vws.MTConnect.XML do
         {"bufferSize", header.buffer_size}
       ]),
       element("Errors", [], [element("Error", [{"errorCode", code}], [escape(text)])])
+    ])
+  end
+
+  @doc """
+  An `MTConnectAssets` document (the answer to `/assets`): the header the standard asks for
+  (`instanceId`, `version`, `sender`, `creationTime`, `assetBufferSize`, `assetCount`) and the
+  assets, none on this agent (the 2.5 Assets schema is not among the shipped schemas: its shape
+  is checked by the tests against the standard's text, see `docs/mtconnect.md`).
+  """
+  @spec assets(header, [iodata]) :: iodata
+  def assets(header, assets) do
+    document("MTConnectAssets", [
+      tag("Header", [
+        {"creationTime", header.creation_time},
+        {"sender", header.sender},
+        {"instanceId", header.instance_id},
+        {"version", @version},
+        {"deviceModelChangeTime", header.model_change_time},
+        {"assetBufferSize", header.asset_buffer_size},
+        {"assetCount", length(assets)}
+      ]),
+      element("Assets", [], assets)
     ])
   end
 

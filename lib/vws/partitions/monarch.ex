@@ -264,6 +264,8 @@ defmodule Vws.Partitions.Monarch do
       case Report.parse_status(IO.iodata_to_binary(blocks)) do
         {:ok, report} ->
           word = if report.state == :active, do: "ACTIVE", else: "IDLE"
+          # the whole report (program, alarm) for the views and the MTConnect agent
+          Mailbox.put_readings(ctx.workstation, :monarch, report)
           Mailbox.put_device(ctx.workstation, @monarch_location, word)
           {:ok, report}
 

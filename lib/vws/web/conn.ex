@@ -26,6 +26,10 @@ defmodule Vws.Web.Conn do
     case read_head(socket, conf.limits, deadline) do
       {:ok, request} ->
         case answer(socket, request, conf) do
+          {:keep, {:stream, _type, _first, _more} = stream} ->
+            _ = stream(socket, stream, conf, request)
+            :gen_tcp.close(socket)
+
           {:keep, response} ->
             keep = n < conf.limits.max_requests and keep_alive?(request)
 
@@ -114,10 +118,11 @@ defmodule Vws.Web.Conn do
   defp target({:absoluteURI, _scheme, _host, _port, raw}), do: target({:abs_path, raw})
   defp target(_), do: {:error, :bad_target}
 
+  # a query that cannot be decoded is not dropped: the handler refuses it
   defp decode_query(q) do
     URI.decode_query(q)
   rescue
-    _ -> %{}
+    _ -> :invalid
   end
 
   ## Answering
@@ -258,6 +263,50 @@ defmodule Vws.Web.Conn do
     end
 
     :gen_tcp.send(socket, [head, sent])
+  end
+
+  # A stream (MTConnect `interval=`): `multipart/x-mixed-replace` in HTTP/1.1 chunks, one part
+  # per document, until the client goes away (a send fails) or `more` says `:done`.
+  defp stream(socket, {:stream, type, first, more}, conf, request) do
+    boundary = Base.encode16(:rand.bytes(16), case: :lower)
+
+    head = [
+      "HTTP/1.1 200 OK\r\ncontent-type: multipart/x-mixed-replace;boundary=",
+      boundary,
+      "\r\ntransfer-encoding: chunked\r\ncache-control: no-store\r\n",
+      "x-content-type-options: nosniff\r\nconnection: close\r\n\r\n"
+    ]
+
+    Vws.Telemetry.execute(
+      [:vws, :web, :request],
+      %{duration: System.monotonic_time() - request[:started], bytes: 0},
+      %{method: request.method, path: request.path, status: 200, port: conf.settings.port}
+    )
+
+    part = fn doc ->
+      doc = IO.iodata_to_binary(doc)
+
+      data = [
+        "--",
+        boundary,
+        "\r\ncontent-type: ",
+        type,
+        "\r\ncontent-length: ",
+        Integer.to_string(byte_size(doc)),
+        "\r\n\r\n",
+        doc,
+        "\r\n"
+      ]
+
+      size = IO.iodata_length(data)
+      :gen_tcp.send(socket, [Integer.to_string(size, 16), "\r\n", data, "\r\n"])
+    end
+
+    with :ok <- :gen_tcp.send(socket, head), :ok <- part.(first) do
+      result = more.(part)
+      _ = :gen_tcp.send(socket, "0\r\n\r\n")
+      result
+    end
   end
 
   # Closes a connection whose request (or body) was not read to its end without resetting it

@@ -96,6 +96,9 @@ defmodule Vws.Web.Handler do
   defp segments(path), do: String.split(path, "/", trim: true)
 
   @read ["GET", "HEAD"]
+  @mtconnect ~w(probe current sample assets)
+  # the reference agent's limit (a C int) for times in ms
+  @max_ms 2_147_483_646
 
   defp route(m, [], _q, _r, _s) when m in @read,
     do: {200, "text/html; charset=utf-8", Vws.Web.Page.html()}
@@ -105,12 +108,17 @@ defmodule Vws.Web.Handler do
 
   defp route("POST", @control, q, _r, _s), do: status_query(q)
 
-  defp route(m, [request], q, _r, s) when m in @read and request in ~w(probe current sample),
-    do: mtconnect(request, nil, q, s)
+  defp route(m, [request], q, r, s) when m in @read and request in @mtconnect,
+    do: mtconnect(request, nil, q, r, s)
 
-  defp route(m, [device, request], q, _r, s)
-       when m in @read and request in ~w(probe current sample) and device != "api",
-       do: mtconnect(request, device, q, s)
+  defp route(m, [device, request], q, r, s)
+       when m in @read and request in @mtconnect and device != "api",
+       do: mtconnect(request, device, q, r, s)
+
+  # any other path: the MTConnect agent's INVALID_URI, as the reference agent answers it
+  defp route(m, path, _q, r, s) when m in @read and path != ["api", "state"] and path != [] do
+    mtc_error(s, format(r, %{}), 404, "INVALID_URI", "no such request: #{r.path}")
+  end
 
   defp route(m, _path, _q, _r, _s) when m in @read, do: {404, "text/plain", "not found"}
   defp route(_m, _path, _q, _r, _s), do: {405, "text/plain", "method not allowed"}
@@ -149,43 +157,166 @@ defmodule Vws.Web.Handler do
   def secure_equal?(_a, _b), do: false
 
   ## MTConnect
+  #
+  # The parameters of each request (as the reference agent knows them). A parameter that is not
+  # one of them, a value of the wrong kind, or two that cannot go together is answered with an
+  # MTConnectError document — never with data that ignores it (docs/mtconnect.md).
 
-  defp mtconnect(request, device, q, %{agent: agent}) do
-    result =
-      case request do
-        "probe" ->
-          Agent.probe(agent, device)
+  @params %{
+    "probe" => ~w(format),
+    "current" => ~w(path at interval format),
+    "sample" => ~w(path from count to interval heartbeat format),
+    "assets" => ~w(type count removed device format)
+  }
 
-        "current" ->
-          Agent.current(agent, device)
+  defp mtconnect(_request, _device, :invalid, r, s),
+    do: mtc_error(s, format(r, %{}), 400, "INVALID_REQUEST", "the query cannot be decoded")
 
-        "sample" ->
-          with {:ok, from} <- integer(q, "from", agent),
-               {:ok, count} <- integer(q, "count", agent) do
-            Agent.sample(agent, from, count, device)
-          end
+  defp mtconnect(request, device, q, r, %{agent: agent} = s) do
+    fmt = format(r, q)
+
+    with :ok <- known_params(request, q),
+         {:ok, fmt} <- fmt,
+         {:ok, p} <- params(q) do
+      p = Map.merge(p, %{device: device || p[:device], format: fmt})
+
+      case run(request, agent, p) do
+        {:ok, doc} ->
+          {200, mime(fmt), doc}
+
+        {:stream, first, more} ->
+          {:stream, mime(fmt), first, more}
+
+        {:error, status, doc} ->
+          {status, mime(fmt), doc}
       end
-
-    case result do
-      {:ok, xml} -> {200, "application/xml", xml}
-      {:error, status, xml} -> {status, "application/xml", xml}
+    else
+      {:bad, code, text} ->
+        fmt = with({:ok, f} <- fmt, do: f, else: (_ -> :xml))
+        mtc_error(s, {:ok, fmt}, 400, code, text)
     end
   end
 
-  defp integer(q, key, agent) do
-    case Map.fetch(q, key) do
-      :error ->
-        {:ok, nil}
+  defp run("probe", agent, p), do: Agent.probe(agent, p.device, format: p.format)
 
-      {:ok, text} ->
-        case Integer.parse(String.trim(text)) do
-          {n, ""} ->
-            {:ok, n}
+  defp run("assets", agent, p),
+    do: Agent.assets(agent, format: p.format, device: p.device, count: p[:count])
 
-          _ ->
-            {:error, 400,
-             Agent.error(agent, "INVALID_REQUEST", "'#{key}' must be an integer, not #{text}")}
-        end
+  defp run("current", agent, p) do
+    cond do
+      p[:interval] != nil and p[:at] != nil ->
+        bad(agent, p, "INVALID_REQUEST", "'at' and 'interval' cannot be given together")
+
+      p[:interval] != nil and (p.interval < 0 or p.interval > @max_ms) ->
+        range(agent, p, "interval", p.interval)
+
+      p[:interval] != nil ->
+        stream(Vws.MTConnect.Stream.current(agent, p))
+
+      true ->
+        Agent.current(agent, p.device, at: p[:at], path: p[:path], format: p.format)
     end
+  end
+
+  defp run("sample", agent, p) do
+    cond do
+      p[:interval] != nil and p[:to] != nil ->
+        bad(agent, p, "INVALID_REQUEST", "'to' and 'interval' cannot be given together")
+
+      p[:interval] != nil and (p.interval < 0 or p.interval > @max_ms) ->
+        range(agent, p, "interval", p.interval)
+
+      p[:heartbeat] != nil and (p.heartbeat < 1 or p.heartbeat > @max_ms) ->
+        range(agent, p, "heartbeat", p.heartbeat)
+
+      p[:interval] != nil ->
+        p = Map.merge(%{heartbeat: 10_000}, p, fn _k, default, given -> given || default end)
+        stream(Vws.MTConnect.Stream.sample(agent, p))
+
+      p[:heartbeat] != nil ->
+        bad(agent, p, "INVALID_REQUEST", "'heartbeat' is for streaming: give 'interval' too")
+
+      true ->
+        Agent.sample(agent, p[:from], p[:count], p.device,
+          to: p[:to],
+          path: p[:path],
+          format: p.format
+        )
+    end
+  end
+
+  defp stream({:ok, first, more}), do: {:stream, first, more}
+  defp stream({:error, _, _} = error), do: error
+
+  defp bad(agent, p, code, text),
+    do: {:error, 400, Agent.error(agent, code, text, p.format)}
+
+  defp range(agent, p, name, value),
+    do: bad(agent, p, "OUT_OF_RANGE", "'#{name}' must be between 0 and #{@max_ms}, not #{value}")
+
+  defp known_params(request, q) do
+    case Map.keys(q) -- Map.fetch!(@params, request) do
+      [] ->
+        :ok
+
+      unknown ->
+        {:bad, "INVALID_REQUEST",
+         "#{request} takes no parameter #{Enum.map_join(unknown, ", ", &"'#{&1}'")}"}
+    end
+  end
+
+  @integers ~w(from count to at interval heartbeat)
+
+  defp params(q) do
+    Enum.reduce_while(q, {:ok, %{}}, fn
+      {k, v}, {:ok, acc} when k in @integers ->
+        case Integer.parse(String.trim(v)) do
+          {n, ""} -> {:cont, {:ok, Map.put(acc, String.to_atom(k), n)}}
+          _ -> {:halt, {:bad, "INVALID_REQUEST", "'#{k}' must be an integer, not '#{v}'"}}
+        end
+
+      {"path", v}, {:ok, acc} ->
+        {:cont, {:ok, Map.put(acc, :path, v)}}
+
+      {"removed", v}, {:ok, acc} when v in ["true", "false"] ->
+        {:cont, {:ok, Map.put(acc, :removed, v == "true")}}
+
+      {"removed", v}, _acc ->
+        {:halt, {:bad, "INVALID_REQUEST", "'removed' must be true or false, not '#{v}'"}}
+
+      {k, v}, {:ok, acc} when k in ["type", "device"] ->
+        {:cont, {:ok, Map.put(acc, String.to_atom(k), v)}}
+
+      {"format", _}, {:ok, acc} ->
+        {:cont, {:ok, acc}}
+    end)
+  end
+
+  # XML unless JSON is asked for: `format=json`, or an Accept header naming JSON before XML
+  defp format(_r, %{"format" => "json"}), do: {:ok, :json}
+  defp format(_r, %{"format" => "xml"}), do: {:ok, :xml}
+
+  defp format(_r, %{"format" => other}),
+    do: {:bad, "INVALID_REQUEST", "'format' must be xml or json, not '#{other}'"}
+
+  defp format(r, _q) do
+    accept = String.downcase(get_in(r, [:headers, "accept"]) || "")
+
+    json = :binary.match(accept, "json")
+    xml = :binary.match(accept, "xml")
+
+    case {json, xml} do
+      {{j, _}, {x, _}} when j < x -> {:ok, :json}
+      {{_, _}, :nomatch} -> {:ok, :json}
+      _ -> {:ok, :xml}
+    end
+  end
+
+  defp mime(:json), do: "application/json"
+  defp mime(:xml), do: "application/xml"
+
+  defp mtc_error(%{agent: agent}, fmt, status, code, text) do
+    fmt = with({:ok, f} <- fmt, do: f, else: (_ -> :xml))
+    {status, mime(fmt), Agent.error(agent, code, text, fmt)}
   end
 end

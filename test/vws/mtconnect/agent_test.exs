@@ -15,7 +15,7 @@ defmodule Vws.MTConnect.AgentTest do
 
   # {element, dataItemId, sequence, value} of every observation in a streams document
   defp observations(text) do
-    ~r{<(\w+) dataItemId="([^"]+)" timestamp="[^"]+" sequence="(\d+)">([^<]*)</\1>}
+    ~r{<(\w+) dataItemId="([^"]+)" timestamp="[^"]+" sequence="(\d+)"[^>]*>([^<]*)</\1>}
     |> Regex.scan(text, capture: :all_but_first)
     |> Enum.map(fn [el, id, seq, value] -> {el, id, String.to_integer(seq), value} end)
   end
@@ -103,29 +103,19 @@ defmodule Vws.MTConnect.AgentTest do
     assert header(text, "nextSequence") == 6
     assert header(text, "firstSequence") == 1
 
-    # the two pallet changes (each: the clamp state and the message) are the newest observations
+    # both pallet changes are recorded, in order, though no one asked between them: the
+    # agent records each change when it is announced (it sampled every 250 ms before, and the
+    # second write hid the first)
     {:ok, xml} = Agent.sample(a, next, 100)
     text = XMLLint.validate!(xml, :streams)
 
-    assert for({_, i, _, v} <- observations(text), do: {i, v}) |> Enum.sort() ==
-             Enum.sort([
-               {"#{id}_pallet_state", "UNLOCKED"},
-               {"#{id}_pallet_msg", "PALLET NOT CLAMPED"}
-             ])
-
-    # ...but only because the second write hid the first before the agent looked: two reads
-    # apart, each change gets its own sequence number
-    Mailbox.put_device(ws, 10, "PALLET CLAMPED")
-    %{next: after_first} = Agent.sequences(a)
-    Mailbox.put_device(ws, 10, "PALLET NOT CLAMPED")
-    {:ok, xml} = Agent.sample(a, after_first - 2, 100)
-
-    values =
-      for {_, i, _, v} <- observations(XMLLint.validate!(xml, :streams)),
-          i == "#{id}_pallet_state",
-          do: v
-
-    assert values == ["LOCKED", "UNLOCKED"]
+    for item <- ["#{id}_pallet_state", "#{id}_pallet_msg"] do
+      assert for({_, ^item, _, v} <- observations(text), do: v) ==
+               if(item =~ "state",
+                 do: ["LOCKED", "UNLOCKED"],
+                 else: ["PALLET CLAMPED", "PALLET NOT CLAMPED"]
+               )
+    end
 
     # from = nextSequence: nothing yet, and that is not an error
     %{next: next} = Agent.sequences(a)
@@ -133,6 +123,30 @@ defmodule Vws.MTConnect.AgentTest do
     text = XMLLint.validate!(xml, :streams)
     assert observations(text) == []
     assert header(text, "nextSequence") == next
+  end
+
+  test "every transition is recorded when it happens: 25 robot commands, 25 ACTIVE records",
+       %{ws: ws, id: id} do
+    a = agent([ws])
+    %{next: next} = Agent.sequences(a)
+
+    # no one asks the agent in between (its periodic read is a minute away)
+    for n <- 1..25 do
+      :ok = Mailbox.dispatch(ws, :robot, n, "DO MOVE TRAY1")
+      :ok = Mailbox.finish(ws, :robot, n, :done)
+    end
+
+    {:ok, xml} = Agent.sample(a, next, 1000)
+    text = XMLLint.validate!(xml, :streams)
+    exec = for {_, i, _, v} <- observations(text), i == "#{id}_robot_path_exec", do: v
+    assert Enum.count(exec, &(&1 == "ACTIVE")) == 25
+    assert Enum.count(exec, &(&1 == "READY")) == 25
+    assert Enum.dedup(exec) == exec
+
+    # in order: each message names its command
+    msgs = for {_, i, _, v} <- observations(text), i == "#{id}_robot_msg", do: v
+    assert hd(msgs) == "0001 DO MOVE TRAY1 EXECUTING"
+    assert List.last(msgs) == "0025 DO MOVE TRAY1 DONE"
   end
 
   test "a circular buffer: old observations fall out, and asking for them is OUT_OF_RANGE",
@@ -160,9 +174,11 @@ defmodule Vws.MTConnect.AgentTest do
     assert XMLLint.validate!(xml, :error) =~ ~s(errorCode="OUT_OF_RANGE")
 
     {:error, 400, xml} = Agent.sample(a, first, 0)
-    assert XMLLint.validate!(xml, :error) =~ "&apos;count&apos; must be between 1 and 25"
+    assert XMLLint.validate!(xml, :error) =~ "&apos;count&apos; must not be zero(0)"
 
-    {:error, 400, _} = Agent.sample(a, first, 26)
+    {:error, 400, xml} = Agent.sample(a, first, 26)
+    assert XMLLint.validate!(xml, :error) =~ "&apos;count&apos; must be between -25 and 25"
+    {:error, 400, _} = Agent.sample(a, first, -26)
 
     {:ok, xml} = Agent.sample(a, first, 25)
     text = XMLLint.validate!(xml, :streams)

@@ -153,4 +153,34 @@ defmodule Vws.MTConnect.CellAgentTest do
     {200, body} = get!(url <> "probe")
     assert XMLLint.validate!(body, :devices) =~ ~s(name="#{peers.b.id}")
   end
+
+  test "a workstation on another node: every transition recorded when it happens, too",
+       %{peers: peers} do
+    a = start_supervised!({Vws.MTConnect.Agent, interval: 60_000}, id: make_ref())
+    id = "ws_" <> peers.a.id
+    %{next: next} = Vws.MTConnect.Agent.sequences(a)
+    # its node's forwarder has sent the first snapshot
+    assert eventually(fn -> MapSet.member?(:sys.get_state(a).followed, peers.a.id) end, 10_000)
+
+    # 25 robot commands on peer a; the agent is not asked in between (its periodic read is a
+    # minute away)
+    for n <- 1..25 do
+      :ok = :erpc.call(peers.a.node, Mailbox, :dispatch, [peers.a.id, :robot, n, "DO MOVE TRAY1"])
+      :ok = :erpc.call(peers.a.node, Mailbox, :finish, [peers.a.id, :robot, n, :done])
+    end
+
+    # and the next answer has them all (the agent syncs with the forwarders first)
+    {:ok, xml} = Vws.MTConnect.Agent.sample(a, next, 10_000)
+    text = XMLLint.validate!(xml, :streams)
+
+    exec =
+      for [v] <-
+            Regex.scan(~r{<Execution dataItemId="#{id}_robot_path_exec"[^>]*>(\w+)<}, text,
+              capture: :all_but_first
+            ),
+          do: v
+
+    assert Enum.count(exec, &(&1 == "ACTIVE")) == 25
+    assert Enum.count(exec, &(&1 == "READY")) == 25
+  end
 end

@@ -94,7 +94,9 @@ defmodule Vws.MTConnect.ModelTest do
 
     test "without facts every item is UNAVAILABLE; with them the device is AVAILABLE" do
       d = Model.device("VWS")
-      assert d |> Model.observe(nil) |> Map.values() |> Enum.uniq() == ["UNAVAILABLE"]
+
+      assert d |> Model.observe(nil) |> Map.values() |> Enum.uniq() |> Enum.sort() ==
+               [{:condition, "Unavailable", nil, ""}, "UNAVAILABLE"]
 
       facts = %{
         devices: %{"MONARCH" => "IDLE", "PALLET" => "PALLET CLAMPED"},
