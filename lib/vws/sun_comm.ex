@@ -710,7 +710,11 @@ defmodule Vws.SunComm do
       String.trim(text) == "%" and d.count > 1 ->
         lines = Enum.reverse(d.lines)
 
-        case Mailbox.put_nc_file(s.workstation, lines) do
+        # into the program library first (issue 18), when the workstation has one
+        case with(
+               :ok <- Vws.DNC.Library.store_download(s.workstation, lines),
+               do: Mailbox.put_nc_file(s.workstation, lines)
+             ) do
           :ok ->
             # the closing line's answer: the number of lines stored, so both ends agree
             answer = {:line_ack, rem(d.count, 10_000)}

@@ -222,6 +222,27 @@ defmodule Vws.DNC.Library do
   defp check_source(_), do: {:error, :bad_source}
 
   @doc """
+  DOWNLOAD_HP's program (the lines the WC sent) as the next version of its program (named by its
+  program number), source `"wc"`: `:ok` — also when the workstation has no library, or the
+  program has no program number (then it is the NC file only, as in the seed) — or
+  `{:error, {:library, reason}}`: SUN_COMM then ends DOWNLOAD_HP with an error and keeps the old
+  NC file.
+  """
+  @spec store_download(lib, [binary]) :: :ok | {:error, {:library, term}}
+  def store_download(lib, lines) do
+    with true <- enabled?(lib),
+         {:ok, name} <- Vws.DNC.Program.file_name(lines),
+         {:ok, v} <- store(lib, name, Vws.DNC.Program.to_text(lines), source: "wc") do
+      Logger.info("program library: #{v.name} version #{v.version} stored (#{v.size} bytes)")
+      :ok
+    else
+      false -> :ok
+      {:error, reason} when reason in [:no_program_number, :bad_program_number] -> :ok
+      {:error, reason} -> {:error, {:library, reason}}
+    end
+  end
+
+  @doc """
   Stores the file at `path` as the next version (`store/4`): the program name is `opts[:name]`,
   else the program number of its text (`O1234` → `001234.PRO`). Source default `"cli"`.
   """
@@ -511,6 +532,52 @@ defmodule Vws.DNC.Library do
   def on_machine_text(:differs, _), do: "differs"
   def on_machine_text(:absent, _), do: "absent"
   def on_machine_text(:unknown, _), do: "unknown (directory not read yet)"
+
+  @doc """
+  A compare (`compare/1`, `Vws.Partitions.Monarch.compare/2`) as text lines: one per program —
+  name, latest version, its source and time, size, CRC, and on the machine — then the machine's
+  files the library does not have.
+  """
+  @spec format_compare(map) :: [String.t()]
+  def format_compare(%{read_at: read_at, programs: programs, machine_only: machine_only}) do
+    head =
+      case read_at do
+        nil -> "machine directory: not read yet"
+        at -> "machine directory read #{DateTime.to_iso8601(at)}"
+      end
+
+    rows =
+      for p <- programs do
+        v = p.latest
+
+        back =
+          case Map.get(p, :read_back) do
+            nil -> ""
+            :same -> ", read back: same"
+            :differs -> ", read back: differs"
+            {:error, reason} -> ", read back failed: #{reason}"
+          end
+
+        "#{p.name}  v#{v.version} of #{length(p.versions)}  #{DateTime.to_iso8601(v.at)}  " <>
+          "#{v.source}  #{v.size} bytes  CRC #{hex4(v.crc)}  on the machine: " <>
+          on_machine_text(p.on_machine, v.version) <> back
+      end
+
+    [head | rows] ++ Enum.map(machine_only, &"#{&1}  on the machine only")
+  end
+
+  @doc "Prints `format_compare/1` of `compare/1` (or of a compare given), for iex."
+  @spec print_compare(lib | map) :: :ok
+  def print_compare(%{programs: _} = result), do: Enum.each(format_compare(result), &IO.puts/1)
+
+  def print_compare(lib) do
+    case compare(lib) do
+      {:ok, result} -> print_compare(result)
+      {:error, reason} -> IO.puts("no library: #{inspect(reason)}")
+    end
+  end
+
+  defp hex4(crc), do: String.pad_leading(Integer.to_string(crc, 16), 4, "0")
 
   ## Files
 
