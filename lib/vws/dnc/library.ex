@@ -364,7 +364,8 @@ defmodule Vws.DNC.Library do
   def diff(lib, name, a, b) do
     with {:ok, text_a, _} <- read(lib, name, a),
          {:ok, text_b, _} <- read(lib, name, b) do
-      {:ok, List.myers_difference(String.split(text_a, "\n"), String.split(text_b, "\n"))}
+      {:ok,
+       List.myers_difference(Vws.DNC.Program.from_text(text_a), Vws.DNC.Program.from_text(text_b))}
     end
   end
 
