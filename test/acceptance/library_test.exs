@@ -36,10 +36,11 @@ defmodule Vws.Acceptance.LibraryTest do
          "imports, diffs and exports, running or stopped",
        %{tmp_dir: data} do
     wc = Acceptance.free_port()
+    http = Acceptance.free_port()
 
     serve =
       Acceptance.start(
-        ~w(mix vws.serve --wc-port #{wc} --http-port 0 --time-scale 20),
+        ~w(mix vws.serve --wc-port #{wc} --http-port #{http} --time-scale 20),
         env: env(data)
       )
 
@@ -83,6 +84,14 @@ defmodule Vws.Acceptance.LibraryTest do
     {0, out} = library(data, ["compare", "--refresh", "--endpoint", "tcp://127.0.0.1:#{wc}"])
     assert out =~ "004711.PRO  v2 of 2"
     assert out =~ "on the machine: absent"
+
+    # the dashboard shows the same, in a browser
+    if chromium = System.find_executable("chromium") || System.find_executable("chromium-browser") do
+      text = dashboard_text(chromium, "http://127.0.0.1:#{http}/")
+      assert text =~ "Program library"
+      assert text =~ ~r/1 programs, 2 versions — on the machine: 0 same, 0 differ, 1 absent/
+      assert text =~ ~r/004711\.PRO\s+2\s+v2\s+\S+\s+cli\s+\d+\s+[0-9A-F]{4}\s+absent/
+    end
 
     # stopped: the library is all on disk
     Acceptance.signal(serve, "TERM")
@@ -130,6 +139,34 @@ defmodule Vws.Acceptance.LibraryTest do
     # and the library takes the next version as if nothing happened
     {0, out} = library(data, ["--library", lib_dir, "import", "--name", "42", write(data)])
     assert out =~ ~r/stored 000042\.PRO v\d+/
+  end
+
+  # The dashboard's visible text after the page ran 3 s in headless Chromium.
+  defp dashboard_text(chromium, url) do
+    profile = Path.join(System.tmp_dir!(), "vws-chromium-#{System.unique_integer([:positive])}")
+    on_exit(fn -> File.rm_rf(profile) end)
+
+    {dom, 0} =
+      System.cmd("sh", [
+        "-c",
+        ~s(exec "$0" "$@" 2>/dev/null),
+        chromium,
+        "--headless=new",
+        "--disable-gpu",
+        "--no-sandbox",
+        "--no-first-run",
+        "--user-data-dir=" <> profile,
+        "--virtual-time-budget=3000",
+        "--dump-dom",
+        url
+      ])
+
+    dom
+    |> String.replace(~r{<script.*?</script>}s, "")
+    |> String.replace(~r{<style.*?</style>}s, "")
+    |> String.replace(~r{<[^>]+>}, " ")
+    |> String.replace("&amp;", "&")
+    |> String.replace(~r/\s+/, " ")
   end
 
   defp write(data) do

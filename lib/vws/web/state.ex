@@ -16,6 +16,10 @@ defmodule Vws.Web.State do
     * `transfers` — NC transfers under way (DOWNLOAD_HP/UPLOAD_SUN on the WC link,
       DOWNLOAD_GE/UPLOAD_GE on the DNC link): lines or blocks and bytes so far and in all,
       rate, ETA;
+    * `library` — the program library (`Vws.DNC.Library`, issue 18), nil without one: how many
+      programs and versions, when the machine's directory was last read, how many programs are
+      the same / differ / are absent on the machine, and the 30 programs stored last with
+      their latest version and where they stand on the machine;
     * `alerts` — what is wrong now: commands ended in error, devices without data, links down
       or with a last error.
 
@@ -124,6 +128,7 @@ defmodule Vws.Web.State do
       links: [],
       wc: wc(%{info: :not_answering, dialogue: []}),
       transfers: [],
+      library: nil,
       alerts: [%{where: label(ws), text: "could not be read"}],
       last_sequence: nil,
       events: []
@@ -162,10 +167,61 @@ defmodule Vws.Web.State do
       links: links,
       wc: wc,
       transfers: transfers(snapshot, now),
+      library: library(ws),
       alerts: alerts(partitions, devices, links, wc),
       last_sequence: pad4(snapshot.mailboxes.last_sequence),
       events: for({e, n} <- snapshot.mailboxes.events, do: %{event: Inspect.words(e), count: n})
     }
+  end
+
+  @library_rows 30
+
+  @doc false
+  # The library's summary and its programs stored last (all of them are read: bench/library.exs
+  # has what that costs with 10,000 programs).
+  def library(lib) do
+    with true <- Vws.DNC.Library.enabled?(lib),
+         {:ok, c} <- Vws.DNC.Library.compare(lib) do
+      words = fn p -> Vws.DNC.Library.on_machine_text(p.on_machine, p.latest.version) end
+
+      %{
+        programs: length(c.programs),
+        versions: Enum.reduce(c.programs, 0, &(length(&1.versions) + &2)),
+        read_at: c.read_at && DateTime.to_iso8601(c.read_at),
+        machine_only: c.machine_only,
+        counts:
+          Enum.frequencies_by(c.programs, fn p ->
+            case p.on_machine do
+              {:same, _} -> "same"
+              other -> to_string(other)
+            end
+          end),
+        rows:
+          c.programs
+          |> Enum.sort_by(&DateTime.to_unix(&1.latest.at, :millisecond), :desc)
+          |> Enum.take(@library_rows)
+          |> Enum.map(fn p ->
+            %{
+              name: p.name,
+              versions: length(p.versions),
+              latest: p.latest.version,
+              at: DateTime.to_iso8601(p.latest.at),
+              source: p.latest.source,
+              size: p.latest.size,
+              crc: String.pad_leading(Integer.to_string(p.latest.crc, 16), 4, "0"),
+              on_machine: words.(p),
+              on_machine_class:
+                case p.on_machine do
+                  {:same, _} -> "same"
+                  other -> to_string(other)
+                end
+            }
+          end)
+      }
+    else
+      false -> nil
+      {:error, reason} -> %{error: "could not be read: #{Inspect.words(reason)}"}
+    end
   end
 
   defp partition(r) do
