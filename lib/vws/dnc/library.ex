@@ -10,10 +10,11 @@ defmodule Vws.DNC.Library do
 
       <data directory>/library/<workstation id>/      (Vws.DataDir.library_dir/2)
       ├── 001234.PRO~000001~20261125T090000.123Z~wc~000412~BB3D    version 1: exactly its bytes
-      ├── 001234.PRO~000001 -> 001234.PRO~000001~…                 the version's number, taken
       ├── 001234.PRO~000002~20261125T093512.004Z~from+the+machine~000415~1F0C
-      ├── 001234.PRO~000002 -> …
-      └── MACHINE.DIR                      the GE-2000's directory as last read (compare)
+      ├── MACHINE.DIR                      the GE-2000's directory as last read (compare)
+      └── .v/
+          ├── 001234.PRO~000001 -> ../001234.PRO~000001~…       the version's number, taken
+          └── 001234.PRO~000002 -> ../001234.PRO~000002~…
 
   One flat directory per workstation (decision): listing 10,000 programs is one directory read
   (`bench/library.exs`). A version is a file holding exactly the program's bytes, named
@@ -27,7 +28,7 @@ defmodule Vws.DNC.Library do
 
   **Crash-safe, whole or nothing.** `store/4` writes the bytes to a hidden temporary file and
   syncs it; then takes the next version number by creating the symbolic link
-  `<program>~<version>` (which fails when that number is taken — by another process of this
+  `.v/<program>~<version>` (which fails when that number is taken — by another process of this
   node, or by `mix vws.library` in another OS process — and the next number is tried: no two
   stores ever get one number); then renames the temporary file to its version name and syncs the
   directory. A version is visible only under its full name, which appears by the rename with
@@ -60,6 +61,7 @@ defmodule Vws.DNC.Library do
   @max_bytes 16 * 1024 * 1024
   @machine "MACHINE.DIR"
   @tmp_prefix ".tmp-"
+  @numbers ".v"
 
   @typedoc "A workstation id, or `{:dir, path}` for a library directory itself."
   @type lib :: term | {:dir, Path.t()}
@@ -132,6 +134,7 @@ defmodule Vws.DNC.Library do
     end
   end
 
+  def name(n) when is_integer(n) and n in 0..999_999, do: name(Integer.to_string(n))
   def name(_), do: {:error, :bad_name}
 
   ## Storing
@@ -153,7 +156,7 @@ defmodule Vws.DNC.Library do
          {:ok, name} <- name(name),
          :ok <- check_source(source),
          :ok <- if(byte_size(bytes) <= @max_bytes, do: :ok, else: {:error, :too_large}),
-         :ok <- File.mkdir_p(dir),
+         :ok <- File.mkdir_p(Path.join(dir, @numbers)),
          tmp = Path.join(dir, "#{@tmp_prefix}#{name}-#{System.unique_integer([:positive])}"),
          :ok <- write_synced(tmp, bytes) do
       v = %{
@@ -183,12 +186,12 @@ defmodule Vws.DNC.Library do
     end
   end
 
-  # The number is taken by creating the link <name>~<version> → <version's file name>: the
+  # The number is taken by creating the link .v/<name>~<version> → <version's file name>: the
   # link's creation fails when the number is taken, in whatever process took it.
   defp take_number(dir, v, n) when n < 1_000_000 do
     v = %{v | version: n, file: file_name(%{v | version: n})}
 
-    case File.ln_s(v.file, Path.join(dir, "#{v.name}~#{pad(n, 6)}")) do
+    case File.ln_s(Path.join("..", v.file), number_link(dir, v.name, n)) do
       :ok -> {:ok, v}
       {:error, :eexist} -> take_number(dir, v, n + 1)
       error -> error
@@ -197,11 +200,14 @@ defmodule Vws.DNC.Library do
 
   defp take_number(_dir, _v, _n), do: {:error, :too_many_versions}
 
+  # .v/<name>~<version>: kept apart, so that a listing reads only the versions' own names
+  defp number_link(dir, name, n), do: Path.join([dir, @numbers, "#{name}~#{pad(n, 6)}"])
+
   # Where to start looking for a free number: after the last number taken (a link that
   # exists, whether its version was finished or not), found by halving.
   defp first_free(dir, name) do
     taken? = fn n ->
-      match?({:ok, _}, :file.read_link_info(Path.join(dir, "#{name}~#{pad(n, 6)}")))
+      match?({:ok, _}, :file.read_link_info(number_link(dir, name, n)))
     end
 
     hi = Stream.iterate(1, &(&1 * 2)) |> Enum.find(&(not taken?.(&1) or &1 >= 1_000_000))
@@ -327,8 +333,8 @@ defmodule Vws.DNC.Library do
   def version(lib, name, n) when is_integer(n) and n > 0 do
     with {:ok, dir} <- dir(lib), {:ok, name} <- name(name) do
       # the number's link names the version's file: no directory listing needed
-      with {:ok, target} <- :file.read_link(Path.join(dir, "#{name}~#{pad(n, 6)}")),
-           [v] <- parse_files([to_string(target)]),
+      with {:ok, target} <- :file.read_link(number_link(dir, name, n)),
+           [v] <- parse_files([target |> to_string() |> Path.basename()]),
            true <- v.name == name and v.version == n,
            true <- File.regular?(Path.join(dir, v.file)) do
         {:ok, v}
@@ -506,13 +512,15 @@ defmodule Vws.DNC.Library do
           }
         end
 
+      names = MapSet.new(programs, & &1.name)
+
       machine_only =
         if entries == :unknown,
           do: [],
           else:
             entries
             |> Map.keys()
-            |> Enum.reject(&(&1 in Enum.map(programs, fn p -> p.name end)))
+            |> Enum.reject(&MapSet.member?(names, &1))
             |> Enum.sort()
 
       {:ok, %{read_at: read_at, programs: rows, machine_only: machine_only}}
@@ -593,27 +601,40 @@ defmodule Vws.DNC.Library do
 
   defp ls(dir) do
     case :prim_file.list_dir(dir) do
-      {:ok, names} -> {:ok, Enum.map(names, &IO.chardata_to_string/1)}
+      # the library's own names are ASCII: list_to_binary/1 is the quick way; any other name
+      # (not the library's) is converted properly, and then skipped
+      {:ok, names} -> {:ok, Enum.map(names, &name_to_binary/1)}
       {:error, :enoent} -> {:ok, []}
       error -> error
     end
   end
 
+  defp name_to_binary(name) do
+    :erlang.list_to_binary(name)
+  rescue
+    ArgumentError -> IO.chardata_to_string(name)
+  end
+
   # Only whole version names count; the number links, temporary files, MACHINE.DIR and anything
   # foreign are skipped.
+  # (binary matches, no regular expressions: a listing parses every name of the directory)
   defp parse_files(files) do
-    for file <- files,
-        [name, n, at, source, size, crc] <- [:binary.split(file, "~", [:global])],
-        {:ok, ^name} <- [name(name)],
-        {:ok, at} <- [parse_at(at)],
-        {v, ""} when v > 0 <- [Integer.parse(n)],
-        {size, ""} <- [Integer.parse(size)],
-        {crc, ""} <- [Integer.parse(crc, 16)] do
+    for <<name::binary-10, "~", n::binary-6, "~", rest::binary>> = file <- files,
+        stored_name?(name),
+        [at, source, size, crc] <- [:binary.split(rest, "~", [:global])],
+        v when v > 0 <- [int(n, 10)],
+        size when size >= 0 <- [int(size, 10)],
+        crc when crc >= 0 <- [int(crc, 16)],
+        {:ok, at} <- [parse_at(at)] do
       %{
         name: name,
         version: v,
         at: at,
-        source: String.replace(source, "+", " "),
+        source:
+          if(:binary.match(source, "+") == :nomatch,
+            do: source,
+            else: String.replace(source, "+", " ")
+          ),
         size: size,
         crc: crc,
         file: file
@@ -651,21 +672,51 @@ defmodule Vws.DNC.Library do
     |> IO.iodata_to_binary()
   end
 
+  # a name as store/4 writes it: six digits, .PRO or .GSU
+  defp stored_name?(<<digits::binary-6, ".", ext::binary-3>>) when ext in ["PRO", "GSU"],
+    do: digits?(digits)
+
+  defp stored_name?(_), do: false
+
+  defp digits?(<<>>), do: true
+  defp digits?(<<c, rest::binary>>) when c in ?0..?9, do: digits?(rest)
+  defp digits?(_), do: false
+
+  # digits only (no sign, no blanks) as an integer, else -1
+  defp int(text, base) do
+    if base == 16 or digits?(text), do: :erlang.binary_to_integer(text, base), else: -1
+  rescue
+    ArgumentError -> -1
+  end
+
   defp parse_at(
          <<y::binary-4, mo::binary-2, d::binary-2, "T", h::binary-2, mi::binary-2, s::binary-2,
            ".", ms::binary-3, "Z">>
        ) do
-    with {:ok, date} <- Date.new(int(y), int(mo), int(d)),
-         {:ok, time} <- Time.new(int(h), int(mi), int(s), {int(ms) * 1000, 3}) do
-      DateTime.new(date, time)
+    [y, mo, d, h, mi, s, ms] = for part <- [y, mo, d, h, mi, s, ms], do: int(part, 10)
+
+    with true <- Enum.min([y, mo, d, h, mi, s, ms]) >= 0,
+         true <- :calendar.valid_date(y, mo, d) and h < 24 and mi < 60 and s < 60 do
+      {:ok,
+       %DateTime{
+         year: y,
+         month: mo,
+         day: d,
+         hour: h,
+         minute: mi,
+         second: s,
+         microsecond: {ms * 1000, 3},
+         time_zone: "Etc/UTC",
+         zone_abbr: "UTC",
+         utc_offset: 0,
+         std_offset: 0
+       }}
+    else
+      _ -> :error
     end
-  rescue
-    ArgumentError -> :error
   end
 
   defp parse_at(_), do: :error
-
-  defp int(digits), do: String.to_integer(digits)
 
   defp pad(n, width), do: String.pad_leading(Integer.to_string(n), width, "0")
 

@@ -86,8 +86,8 @@ defmodule Vws.DNC.LibraryTest do
     File.write!(Path.join(dir, ".tmp-000005.PRO-1"), "%\nO5\nHALF")
     # a crash after the number was taken, before the rename: version 2 never appears
     File.ln_s!(
-      "000005.PRO~000002~20261125T090000.000Z~wc~000009~0000",
-      Path.join(dir, "000005.PRO~000002")
+      "../000005.PRO~000002~20261125T090000.000Z~wc~000009~0000",
+      Path.join([dir, ".v", "000005.PRO~000002"])
     )
 
     {:ok, [p]} = Library.list(lib)
