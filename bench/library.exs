@@ -29,6 +29,16 @@ end
 
 ms = fn us -> :erlang.float_to_binary(us / 1000, decimals: 2) <> " ms" end
 
+# wall time (µs) and the VM's CPU time (ms, every scheduler; nothing else runs meanwhile)
+timed = fn fun ->
+  {_, _} = :erlang.statistics(:runtime)
+  {us, result} = :timer.tc(fun)
+  {_, cpu_ms} = :erlang.statistics(:runtime)
+  {us, cpu_ms, result}
+end
+
+cpu = fn list -> "CPU p50 #{Vws.Bench.pct(list, 0.5)} ms" end
+
 IO.puts("Program library, #{n} programs, in #{dir}")
 Enum.each(Vws.Bench.machine(), &IO.puts/1)
 
@@ -56,14 +66,18 @@ IO.puts(
   "  store          200 new versions into the full library: #{Vws.Bench.summary(store_more, ms)}"
 )
 
-list =
-  for _ <- 1..10 do
-    {us, {:ok, programs}} = :timer.tc(fn -> Library.list(lib) end)
-    ^n = length(programs)
-    us
-  end
+{list, list_cpu} =
+  Enum.unzip(
+    for _ <- 1..10 do
+      {us, cpu_ms, {:ok, programs}} = timed.(fn -> Library.list(lib) end)
+      ^n = length(programs)
+      {us, cpu_ms}
+    end
+  )
 
-IO.puts("  list           every program with its versions (#{n}): #{Vws.Bench.summary(list, ms)}")
+IO.puts(
+  "  list           every program with its versions (#{n}): #{Vws.Bench.summary(list, ms)}; #{cpu.(list_cpu)}"
+)
 
 versions =
   for i <- Enum.take_random(1..n, 200) do

@@ -39,10 +39,15 @@ defmodule Vws.Web.State do
   # link states that mean the link cannot be used now
   @bad_states ~w(down not_answering unreadable restarting disconnected connecting halted)
 
-  @doc "The dashboard state. Options: `:control` (whether control actions are enabled)."
+  @doc """
+  The dashboard state. Options: `:control` (whether control actions are enabled),
+  `:library_cache` (a public ETS table: the library section is then read again only when older
+  than ten times what reading it took, see `library/2`).
+  """
   @spec build(keyword) :: map
   def build(opts \\ []) do
     ids = Vws.Workstation.list()
+    cache = Keyword.get(opts, :library_cache)
 
     %{
       time: DateTime.utc_now() |> DateTime.truncate(:millisecond) |> DateTime.to_iso8601(),
@@ -52,7 +57,7 @@ defmodule Vws.Web.State do
       equipment: equipment(),
       workstations:
         ids
-        |> Task.async_stream(&workstation/1, timeout: 10_000, on_timeout: :kill_task)
+        |> Task.async_stream(&workstation(&1, cache), timeout: 10_000, on_timeout: :kill_task)
         |> Enum.zip(ids)
         |> Enum.flat_map(fn
           {{:ok, shown}, _ws} -> shown
@@ -135,14 +140,14 @@ defmodule Vws.Web.State do
     }
   end
 
-  defp workstation(ws) do
-    if Mailbox.exists?(ws), do: [workstation!(ws)], else: []
+  defp workstation(ws, cache) do
+    if Mailbox.exists?(ws), do: [workstation!(ws, cache)], else: []
   rescue
     # stopped while we read it: not shown; still there: shown, saying it could not be read
     e -> if Mailbox.exists?(ws), do: [unreadable(ws, e)], else: []
   end
 
-  defp workstation!(ws) do
+  defp workstation!(ws, cache) do
     snapshot = Inspect.snapshot(ws)
     now = System.monotonic_time(:millisecond)
     partitions = Enum.map(snapshot.partitions, &partition/1)
@@ -167,7 +172,7 @@ defmodule Vws.Web.State do
       links: links,
       wc: wc,
       transfers: transfers(snapshot, now),
-      library: library(ws),
+      library: library(ws, cache),
       alerts: alerts(partitions, devices, links, wc),
       last_sequence: pad4(snapshot.mailboxes.last_sequence),
       events: for({e, n} <- snapshot.mailboxes.events, do: %{event: Inspect.words(e), count: n})
@@ -177,8 +182,28 @@ defmodule Vws.Web.State do
   @library_rows 30
 
   @doc false
-  # The library's summary and its programs stored last (all of them are read: bench/library.exs
-  # has what that costs with 10,000 programs).
+  # The library's summary and its programs stored last. All of it is read (bench/library.exs has
+  # what that costs with 10,000 programs: a few hundred ms), so with a cache it is read again only
+  # when older than ten times what the last reading took: a small library at every build, one of
+  # 10,000 programs every few seconds — at most a tenth of the time on it, whatever the size.
+  def library(lib, nil), do: library(lib)
+
+  def library(lib, cache) do
+    now = System.monotonic_time(:millisecond)
+
+    case :ets.lookup(cache, {:library, lib}) do
+      [{_, shown, at, took}] when now - at < 10 * took ->
+        shown
+
+      _ ->
+        shown = library(lib)
+        took = System.monotonic_time(:millisecond) - now
+        :ets.insert(cache, {{:library, lib}, shown, now, took})
+        shown
+    end
+  end
+
+  @doc false
   def library(lib) do
     with true <- Vws.DNC.Library.enabled?(lib),
          {:ok, c} <- Vws.DNC.Library.compare(lib) do

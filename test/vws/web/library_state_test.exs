@@ -37,4 +37,22 @@ defmodule Vws.Web.LibraryStateTest do
     assert json =~ ~s("library":)
     assert Vws.Web.State.library(:no_such_workstation) == nil
   end
+
+  @tag :tmp_dir
+  test "with a cache, a section is read again once older than ten times its reading took", %{
+    tmp_dir: dir
+  } do
+    lib = {:dir, dir}
+    cache = :ets.new(:test_cache, [:public])
+    {:ok, _} = Library.store(lib, "1", "%\nO1\n%\n")
+    assert %{programs: 1} = Vws.Web.State.library(lib, cache)
+    # pretend the last reading took 60 s: the cached section is shown
+    [{key, shown, at, _took}] = :ets.lookup(cache, {:library, lib})
+    :ets.insert(cache, {key, shown, at, 60_000})
+    {:ok, _} = Library.store(lib, "2", "%\nO2\n%\n")
+    assert %{programs: 1} = Vws.Web.State.library(lib, cache)
+    # and once that time has passed, it is read again
+    :ets.insert(cache, {key, shown, at - 600_001, 60_000})
+    assert %{programs: 2} = Vws.Web.State.library(lib, cache)
+  end
 end

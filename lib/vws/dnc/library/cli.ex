@@ -15,7 +15,7 @@ defmodule Vws.DNC.Library.CLI do
       mix vws.library compare --refresh --endpoint tcp://127.0.0.1:7070
 
   Which library: `--library DIR`, else `library/<id>` of the data directory (`--id`, default
-  `VWS`; `$VWS_LIBRARY_DIR`, `$VWS_DATA_DIR` as for `mix vws.serve`: `Vws.DataDir`).
+  `$VWS_ID`, else `VWS`; `$VWS_LIBRARY_DIR`, `$VWS_DATA_DIR` as for `mix vws.serve`: `Vws.DataDir`).
 
   `compare` shows the machine's directory as MONARCH last read it (after every DOWNLOAD_GE, on
   `COMPARE_GE`), with the time it was read; `--refresh` first has the running workstation read
@@ -48,7 +48,8 @@ defmodule Vws.DNC.Library.CLI do
           IO.puts(usage())
           0
         else
-          lib = {:dir, opts[:library] || Vws.DataDir.library_dir(opts[:id] || "VWS", :default)}
+          id = opts[:id] || System.get_env("VWS_ID") || "VWS"
+          lib = {:dir, opts[:library] || Vws.DataDir.library_dir(id, :default)}
           run(args, opts, lib)
         end
 
