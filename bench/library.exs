@@ -95,15 +95,18 @@ entries = Map.new(files, fn {name, t} -> {name, Vws.DNC.Report.entry(name, t)} e
 {rec_us, :ok} = :timer.tc(fn -> Library.record_machine(lib, entries) end)
 IO.puts("  record         the machine's directory of #{n} entries: #{ms.(rec_us)}")
 
-compare =
-  for _ <- 1..10 do
-    {us, {:ok, c}} = :timer.tc(fn -> Library.compare(lib) end)
-    ^n = length(c.programs)
-    us
-  end
+{compare, compare_cpu} =
+  Enum.unzip(
+    for _ <- 1..10 do
+      {us, cpu_ms, {:ok, c}} = timed.(fn -> Library.compare(lib) end)
+      ^n = length(c.programs)
+      {us, cpu_ms}
+    end
+  )
 
 IO.puts(
-  "  compare        all #{n} from the recorded directory: #{Vws.Bench.summary(compare, ms)}"
+  "  compare        all #{n} from the recorded directory: " <>
+    "#{Vws.Bench.summary(compare, ms)}; #{cpu.(compare_cpu)}"
 )
 
 {:ok, c} = Library.compare(lib)
@@ -154,7 +157,11 @@ if Keyword.get(opts, :live, true) do
   Vws.Workstation.stop(id)
 end
 
-{dash_us, _} = :timer.tc(fn -> Vws.Web.State.library(lib) end)
-IO.puts("  dashboard      the library section of /api/state: #{ms.(dash_us)}")
+{dash_us, dash_cpu, _} = timed.(fn -> Vws.Web.State.library(lib) end)
+
+IO.puts(
+  "  dashboard      the library section of /api/state: #{ms.(dash_us)} (CPU #{dash_cpu} ms); " <>
+    "read again after 10x that (Vws.Web.State.library/2)"
+)
 
 File.rm_rf!(dir)
