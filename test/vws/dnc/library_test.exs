@@ -181,4 +181,24 @@ defmodule Vws.DNC.LibraryTest do
     assert c.machine_only == ["000009.PRO"]
     assert Library.on_machine_text({:same, 1}, 2) =~ "v1"
   end
+
+  test "a workstation's library outlives it: stopped and started again, every version is there",
+       %{dir: dir} do
+    id = "lib-restart-#{System.unique_integer([:positive])}"
+    %{sup: sup} = Vws.Test.Workstation.start(id: id, library: dir)
+    assert Library.dir(id) == {:ok, dir}
+    {:ok, _} = Library.store(id, "8", "%\nO8\nN1\n%\n", source: "iex")
+    {:ok, _} = Library.store(id, "8", "%\nO8\nN2\n%\n", source: "wc")
+    ref = Process.monitor(sup)
+    :ok = stop_supervised({Vws.Workstation, id})
+    assert_receive {:DOWN, ^ref, :process, _, _}, 5_000
+    assert Library.dir(id) == {:error, :no_library}
+
+    Vws.Test.Workstation.start(id: id, library: dir)
+    {:ok, [p]} = Library.list(id)
+    assert Enum.map(p.versions, &{&1.version, &1.source}) == [{1, "iex"}, {2, "wc"}]
+    assert {:ok, "%\nO8\nN1\n%\n", _} = Library.read(id, "8", 1)
+    {:ok, v} = Library.store(id, "8", "%\nO8\nN3\n%\n")
+    assert v.version == 3
+  end
 end
