@@ -20,7 +20,7 @@ alias Vws.DNC.Library
 
 n = Keyword.get(opts, :programs, 10_000)
 root = Keyword.get(opts, :dir, System.tmp_dir!())
-dir = Path.join(root, "vws-bench-library-#{System.unique_integer([:positive])}")
+dir = Path.join(root, "vws-bench-library-#{:os.getpid()}")
 lib = {:dir, dir}
 
 text = fn i, v ->

@@ -145,10 +145,20 @@ defmodule Vws.DNC.Library do
 
   Options: `:source` — who or what stored it (`"wc"`, `"cli"`, `"from the machine"`, `"iex"`;
   default `"iex"`; lower-case letters, digits, blanks, `.`, `-`, `_`, at most 32), `:at` (a
-  `DateTime`, default now).
+  `DateTime`, default now), `:only_if_changed` — when the latest version holds exactly these
+  bytes, store nothing and answer that version (default false).
   """
   @spec store(lib, term, binary, keyword) :: {:ok, version} | {:error, term}
   def store(lib, name, bytes, opts \\ []) when is_binary(bytes) do
+    with true <- Keyword.get(opts, :only_if_changed, false),
+         {:ok, ^bytes, latest} <- read(lib, name) do
+      {:ok, latest}
+    else
+      _ -> store_new(lib, name, bytes, opts)
+    end
+  end
+
+  defp store_new(lib, name, bytes, opts) do
     source = Keyword.get(opts, :source, "iex")
     at = Keyword.get_lazy(opts, :at, &DateTime.utc_now/0) |> DateTime.truncate(:millisecond)
 
@@ -229,7 +239,8 @@ defmodule Vws.DNC.Library do
 
   @doc """
   DOWNLOAD_HP's program (the lines the WC sent) as the next version of its program (named by its
-  program number), source `"wc"`: `:ok` — also when the workstation has no library, or the
+  program number), source `"wc"` — unless the latest version holds exactly these bytes (the
+  same program downloaded again is not a new version): `:ok` — also when the workstation has no library, or the
   program has no program number (then it is the NC file only, as in the seed) — or
   `{:error, {:library, reason}}`: SUN_COMM then ends DOWNLOAD_HP with an error and keeps the old
   NC file.
@@ -238,7 +249,8 @@ defmodule Vws.DNC.Library do
   def store_download(lib, lines) do
     with true <- enabled?(lib),
          {:ok, name} <- Vws.DNC.Program.file_name(lines),
-         {:ok, v} <- store(lib, name, Vws.DNC.Program.to_text(lines), source: "wc") do
+         {:ok, v} <-
+           store(lib, name, Vws.DNC.Program.to_text(lines), source: "wc", only_if_changed: true) do
       Logger.info("program library: #{v.name} version #{v.version} stored (#{v.size} bytes)")
       :ok
     else

@@ -67,6 +67,8 @@ defmodule Vws.Partitions.Monarch.LibraryTest do
     assert download_hp(peer, 1, @lines) == "DONE"
     changed = List.replace_at(@lines, 3, "N20 G01 X12 F300")
     assert download_hp(peer, 2, changed) == "DONE"
+    # the same program again is not a new version
+    assert download_hp(peer, 3, changed) == "DONE"
 
     {:ok, [v1, v2]} = Library.versions(ws, "004711.PRO")
     assert {v1.version, v1.source, v2.version} == {1, "wc", 2}
