@@ -12,6 +12,7 @@ import Config
 #   VWS_DATA_DIR      the data directory (default $XDG_STATE_HOME/vws, else ~/.local/state/vws);
 #                     the journal is in journal/<VWS_ID> of it (Vws.DataDir)
 #   VWS_JOURNAL_DIR   the command journal's directory instead; "off": no journal
+#   VWS_LIBRARY_DIR   the program library's directory instead of library/<VWS_ID>; "off": none
 #   VWS_ROBOT         the VAL II's supervisory port (tty:/dev/ttyS1?baud=9600 or tcp://…)
 #   VWS_GE2000        the GE-2000's DNC port (tty:/dev/ttyS2?baud=4800 or tcp://…)
 #   VWS_DAQ1, VWS_DAQ2, VWS_HYDRAULIC
@@ -66,6 +67,8 @@ if wc = env.("VWS_WC") do
     wc: wc,
     # on by default (issue 15): a restart forgets nothing acknowledged
     journal: Vws.DataDir.journal_dir(env.("VWS_ID") || "VWS", :default),
+    # the program library (issue 18), library/<VWS_ID> of the data directory (VWS_LIBRARY_DIR)
+    library: Vws.DataDir.library_dir(env.("VWS_ID") || "VWS", :default),
     sun_comm: [bcc: bcc, allow: env.("VWS_WC_ALLOW")],
     devices: devices
 end

@@ -22,6 +22,8 @@ defmodule Vws.Commands do
       `:disable_table`, `:release_table`, `{:execute, name}`; a location `loc` is a name or
       `{:trans, name, [x, y, z, 90.0, -90.0, t]}`
     * monarch: `:cycle_start`, `:release_table`, `:status`, `:download_hp`, `:download_ge`,
+      `{:download_ge, "NNNNNN.PRO" | "NNNNNN.GSU", :latest | version}`, `:compare_ge`,
+      `{:compare_ge, "NNNNNN.PRO" | "NNNNNN.GSU"}` (the last three ours, issue 18: the library),
       `{:upload_ge, "NNNNNN.PRO" | "NNNNNN.GSU"}`, `:upload_sun`, `{:table, [line]}`,
       `{:program_select, "NNNNNN"}`, `{:program_delete, "NNNNNN.PRO" | "NNNNNN.GSU"}`
     * gripper: `:open`, `:close`, `{:rotate, 0 | 90 | 180 | 270}`
@@ -73,6 +75,35 @@ defmodule Vws.Commands do
   defp do_parse(:monarch, "DOWNLOAD_HP"), do: {:ok, :download_hp}
   defp do_parse(:monarch, "DOWNLOAD_GE"), do: {:ok, :download_ge}
   defp do_parse(:monarch, "UPLOAD_SUN"), do: {:ok, :upload_sun}
+
+  # ours (issue 18): a program of the library, its latest version or version v
+  defp do_parse(:monarch, "DOWNLOAD_GE" <> arg) do
+    with {:ok, inner} <- parenthesised(arg) do
+      case String.split(inner, "/") do
+        [file] ->
+          with {:ok, file} <- program_file(file), do: {:ok, {:download_ge, file, :latest}}
+
+        [file, v] ->
+          with {:ok, file} <- program_file(file) do
+            case Integer.parse(v) do
+              {n, ""} when n in 1..999_999 -> {:ok, {:download_ge, file, n}}
+              _ -> {:error, "BAD VERSION #{v}"}
+            end
+          end
+
+        _ ->
+          {:error, "BAD PROGRAM FILE #{inner}"}
+      end
+    end
+  end
+
+  defp do_parse(:monarch, "COMPARE_GE"), do: {:ok, :compare_ge}
+
+  defp do_parse(:monarch, "COMPARE_GE" <> arg) do
+    with {:ok, file} <- parenthesised(arg),
+         {:ok, file} <- program_file(file),
+         do: {:ok, {:compare_ge, file}}
+  end
 
   defp do_parse(:monarch, "UPLOAD_GE" <> arg) do
     with {:ok, file} <- parenthesised(arg),

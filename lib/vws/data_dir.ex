@@ -4,9 +4,13 @@ defmodule Vws.DataDir do
   it per workstation id (decision, issue 15).
 
       $VWS_DATA_DIR                      default: $XDG_STATE_HOME/vws, else ~/.local/state/vws
-      └── journal/<workstation id>/      the command journal, the NC file and NC_UP (Vws.Journal)
+      ├── journal/<workstation id>/      the command journal, the NC file and NC_UP (Vws.Journal)
+      └── library/<workstation id>/      the program library, every version (Vws.DNC.Library)
 
-  (Issue 18 puts the program library under the same directory.)
+  The program library is on wherever the journal is by default (`mix vws.serve`, `mix vws.demo`,
+  the release), in `library/<id>` of the data directory; `VWS_LIBRARY_DIR` names it instead
+  (`off`: none), and the mix tasks' `--library DIR` / `--no-library` come before both. `mix
+  vws.library` finds it the same way, so it works on a running or a stopped workstation's library.
 
   The journal is on by default wherever the CEC runs — `mix vws.serve`, `mix vws.demo`, the
   release — in `journal/<id>` of the data directory. `VWS_JOURNAL_DIR` names the journal's
@@ -53,6 +57,45 @@ defmodule Vws.DataDir do
       nil -> Path.join([root(), "journal", segment(id)])
       "off" -> nil
       dir -> Path.expand(dir)
+    end
+  end
+
+  @doc """
+  The program library's directory of workstation `id` (`Vws.DNC.Library`), or nil for none:
+  `{:dir, path}` (`--library DIR`), `:off` (`--no-library`) or `:default` (then
+  `VWS_LIBRARY_DIR`, `off` meaning none, else `library/<id>` under `root/0`).
+
+      iex> Vws.DataDir.library_dir("VWS", {:dir, "/tmp/l"})
+      "/tmp/l"
+      iex> Vws.DataDir.library_dir("../x", :default) |> Path.basename()
+      ".._x"
+  """
+  @spec library_dir(String.t(), {:dir, Path.t()} | :off | :default) :: Path.t() | nil
+  def library_dir(_id, {:dir, dir}), do: Path.expand(dir)
+  def library_dir(_id, :off), do: nil
+
+  def library_dir(id, :default) do
+    case env("VWS_LIBRARY_DIR") do
+      nil -> Path.join([root(), "library", segment(id)])
+      "off" -> nil
+      dir -> Path.expand(dir)
+    end
+  end
+
+  @doc """
+  The choice of the mix tasks' options `--library DIR` / `--no-library` (parsed as
+  `library: :string, no_library: :boolean`).
+
+      iex> Vws.DataDir.library_choice(no_library: true)
+      :off
+  """
+  @spec library_choice(keyword) :: {:dir, Path.t()} | :off | :default
+  def library_choice(opts) do
+    cond do
+      opts[:no_library] && opts[:library] -> raise ArgumentError, "--library and --no-library"
+      opts[:no_library] -> :off
+      is_binary(opts[:library]) -> {:dir, opts[:library]}
+      true -> :default
     end
   end
 

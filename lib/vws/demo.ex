@@ -62,7 +62,7 @@ defmodule Vws.Demo do
   `[faults: [ber: 1.0e-4, …], seed: term]`, see `Vws.Sim.Floor`; `Vws.Sim.Floor.line(id, :wc)` is
   the WC's), `:supervisor` (a `DynamicSupervisor` to start the floor and the WC's line under;
   by default they are linked to the caller), `:journal` (the journal's directory, none by
-  default; `mix vws.demo` gives one). Returns where the WC reaches SUN_COMM (through its line, if any), what is
+  default; `mix vws.demo` gives one), `:library` (the program library's directory, likewise). Returns where the WC reaches SUN_COMM (through its line, if any), what is
   simulated, which links have a faulty line and which partitions have no device link.
   """
   @spec start_shop_floor(keyword) :: {:ok, shop_floor} | {:error, term}
@@ -83,6 +83,7 @@ defmodule Vws.Demo do
              wc: wc,
              sun_comm: [bcc: Keyword.get(opts, :bcc, :sum)],
              journal: Keyword.get(opts, :journal),
+             library: Keyword.get(opts, :library),
              links: Enum.flat_map(sims, & &1.links),
              partitions: merge_partitions(sims)
            ),

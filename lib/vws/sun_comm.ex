@@ -51,8 +51,9 @@ defmodule Vws.SunComm do
   0002, … until the closing `%` (a `%` as the very first line is the tape's leading rewind stop and
   is kept). A line carrying the number just stored is a resend after a damaged answer: answered
   again, not stored twice; any other number ends the command `ERROR PROGRAM LINE OUT OF ORDER`. The
-  closing `%` is answered `A` + the number of lines stored, the program is journaled as the NC file
-  and the Monarch command ends `DONE`; a resend of that closing line after the command ended is
+  closing `%` is answered `A` + the number of lines stored, the program is stored in the
+  workstation's program library (`Vws.DNC.Library.store_download/2`, when it has one) and
+  journaled as the NC file, and the Monarch command ends `DONE`; a resend of that closing line after the command ended is
   answered the same again. After acknowledging `M…UPLOAD_SUN` it sends NC_UP line by line; a line
   answered `E`, with a damaged answer, with another number or not at all is sent again (at most
   `:upload_retries` times); the command ends `DONE` when the WC has answered the closing `%` with
@@ -710,7 +711,11 @@ defmodule Vws.SunComm do
       String.trim(text) == "%" and d.count > 1 ->
         lines = Enum.reverse(d.lines)
 
-        case Mailbox.put_nc_file(s.workstation, lines) do
+        # into the program library first (issue 18), when the workstation has one
+        case with(
+               :ok <- Vws.DNC.Library.store_download(s.workstation, lines),
+               do: Mailbox.put_nc_file(s.workstation, lines)
+             ) do
           :ok ->
             # the closing line's answer: the number of lines stored, so both ends agree
             answer = {:line_ack, rem(d.count, 10_000)}

@@ -23,6 +23,8 @@ defmodule Vws.Workstation do
     * `:wc` — the WC endpoint SUN_COMM serves (`"tcp://127.0.0.1:7070"`, `"tty:/dev/ttyS0?baud=9600"`,
       `"loopback:name"`); `nil` starts SUN_COMM without a link
     * `:journal` — a directory for the command journal (`Vws.Journal`), or its options; none by default
+    * `:library` — the directory of the workstation's program library (`Vws.DNC.Library`): DOWNLOAD_HP
+      stores every program there, `DOWNLOAD_GE(nnnnnn.PRO)` sends from it; none by default
     * `:sun_comm` — further SUN_COMM options (`bcc:`, timeouts; see `Vws.SunComm`)
     * `:links` — child specs of device links, started under the links supervisor
     * `:devices` — device endpoints turned into links (see `device_links/3`):
@@ -84,6 +86,8 @@ defmodule Vws.Workstation do
     ws = Keyword.fetch!(opts, :id)
     # a member of the cell (Vws.Cell) for as long as this supervisor lives
     :ok = Vws.Cell.join(ws)
+    # the program library's directory, found by the workstation's id while it runs
+    :ok = Vws.DNC.Library.register(ws, Keyword.get(opts, :library))
 
     {device_links, partition_opts} =
       device_links(ws, Keyword.get(opts, :devices, []), Keyword.get(opts, :partitions, []))

@@ -28,6 +28,8 @@ defmodule Mix.Tasks.Vws.Demo do
     * `--id ID` — the workstation id (default `VWS-DEMO`)
     * `--journal DIR`, `--no-journal` — as for `mix vws.serve`: the journal is on by default, in
       `journal/<id>` of the data directory (`Vws.DataDir`)
+    * `--library DIR`, `--no-library` — likewise the program library (`Vws.DNC.Library`), on by
+      default in `library/<id>` of the data directory
     * `--verbose` — keep the application's info logs (by default only warnings interleave with
       the dialogue)
 
@@ -49,7 +51,9 @@ defmodule Mix.Tasks.Vws.Demo do
     seed: :integer,
     verbose: :boolean,
     journal: :string,
-    no_journal: :boolean
+    no_journal: :boolean,
+    library: :string,
+    no_library: :boolean
   ]
 
   @impl true
@@ -78,6 +82,13 @@ defmodule Mix.Tasks.Vws.Demo do
         ArgumentError -> Mix.raise("--journal DIR and --no-journal exclude each other")
       end
 
+    library =
+      try do
+        Vws.DataDir.library_dir(opts[:id] || "VWS-DEMO", Vws.DataDir.library_choice(opts))
+      rescue
+        ArgumentError -> Mix.raise("--library DIR and --no-library exclude each other")
+      end
+
     # the floor under the application's equipment supervisor, not linked to this task's process
     # (which ends under `iex -S mix vws.demo`): it stops in order with the application
     demo_opts =
@@ -86,6 +97,7 @@ defmodule Mix.Tasks.Vws.Demo do
         wc: "tcp://127.0.0.1:#{opts[:wc_port] || 0}",
         lines: lines,
         journal: journal,
+        library: library,
         supervisor: Vws.EquipmentSupervisor
       ] ++ Keyword.take(opts, [:script, :id])
 

@@ -31,6 +31,10 @@ defmodule Mix.Tasks.Vws.Serve do
       `$VWS_JOURNAL_DIR`, else `journal/<id>` of the data directory (`$VWS_DATA_DIR`, else
       `$XDG_STATE_HOME/vws`, else `~/.local/state/vws`; see `Vws.DataDir`)
     * `--no-journal` — no journal: a restart forgets every command
+    * `--library DIR` — the program library (`Vws.DNC.Library`: every program DOWNLOAD_HP brought,
+      with its versions; `mix vws.library`) in DIR. By default `$VWS_LIBRARY_DIR`, else
+      `library/<id>` of the data directory
+    * `--no-library` — no program library
     * `--bcc sum|xor` — the WC link's block check (default sum)
     * `--time-scale N` — the simulated plant runs N times faster than real time (default 1)
     * `--daq1 ENDPOINT` — DAQ #1 is real equipment there; the plant and DAQ #1 are not simulated
@@ -77,6 +81,8 @@ defmodule Mix.Tasks.Vws.Serve do
     http_token: :string,
     journal: :string,
     no_journal: :boolean,
+    library: :string,
+    no_library: :boolean,
     http_read_token: :string
   ]
 
@@ -95,6 +101,14 @@ defmodule Mix.Tasks.Vws.Serve do
     wc = opts[:wc] || "tcp://#{opts[:bind] || "127.0.0.1"}:#{opts[:wc_port] || 7070}"
     id = opts[:id] || "VWS"
     journal = Vws.DataDir.journal_dir(id, journal_choice(opts))
+
+    library =
+      try do
+        Vws.DataDir.library_dir(id, Vws.DataDir.library_choice(opts))
+      rescue
+        ArgumentError -> Mix.raise("--library DIR and --no-library exclude each other")
+      end
+
     allow = wc_allow(wc, opts[:wc_allow] || System.get_env("VWS_WC_ALLOW"))
 
     bcc =
@@ -116,7 +130,8 @@ defmodule Mix.Tasks.Vws.Serve do
            sun_comm: [bcc: bcc, allow: allow],
            devices: devices,
            partitions: [monarch: [options: monarch]],
-           journal: journal
+           journal: journal,
+           library: library
          ) do
       {:ok, _} -> :ok
       {:error, reason} -> Mix.raise("workstation #{id} did not start: #{start_error(reason)}")
@@ -130,6 +145,7 @@ defmodule Mix.Tasks.Vws.Serve do
       "Journal: #{journal || "none (--no-journal): a restart forgets every command"}"
     )
 
+    Mix.shell().info("Program library: #{library || "none (--no-library)"}")
     Mix.shell().info("Dashboard and MTConnect agent: #{start_web(opts)}")
     Mix.shell().info("Inspect it: Vws.Inspect.overview(#{inspect(id)})")
     Mix.shell().info(stop_hint(iex_running?()))

@@ -90,16 +90,35 @@ defmodule Vws.DNC.Report do
     |> String.split(["\r\n", "\n"])
     |> Enum.reject(&(String.trim(&1) == ""))
     |> Enum.reduce_while({:ok, %{}}, fn line, {:ok, acc} ->
-      case Regex.run(~r/^(\d{6}\.(?:PRO|GSU)) (\d{6}) ([0-9A-F]{4})$/, line) do
-        [_, name, size, crc] ->
-          entry = %{name: name, size: String.to_integer(size), crc: String.to_integer(crc, 16)}
-          {:cont, {:ok, Map.put(acc, name, entry)}}
-
-        nil ->
-          {:halt, {:error, {:bad_line, line}}}
+      case directory_line(line) do
+        {:ok, entry} -> {:cont, {:ok, Map.put(acc, entry.name, entry)}}
+        :error -> {:halt, {:error, {:bad_line, line}}}
       end
     end)
   end
+
+  # `nnnnnn.PRO|GSU bbbbbb cccc` by binary matching, not a regular expression: the program
+  # library reads directories of 10,000 lines (bench/library.exs)
+  defp directory_line(
+         <<number::binary-6, ".", ext::binary-3, " ", size::binary-6, " ", crc::binary-4>>
+       )
+       when ext in ["PRO", "GSU"] do
+    if all?(number, &(&1 in ?0..?9)) and all?(size, &(&1 in ?0..?9)) and
+         all?(crc, &(&1 in ?0..?9 or &1 in ?A..?F)) do
+      {:ok,
+       %{
+         name: number <> "." <> ext,
+         size: String.to_integer(size),
+         crc: String.to_integer(crc, 16)
+       }}
+    else
+      :error
+    end
+  end
+
+  defp directory_line(_line), do: :error
+
+  defp all?(bytes, ok?), do: bytes |> :binary.bin_to_list() |> Enum.all?(ok?)
 
   @doc "The tool-offset table text for `[{line, value}]` (|value| < 1000)."
   @spec offsets([{0..99, number}]) :: binary

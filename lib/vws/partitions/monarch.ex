@@ -14,6 +14,18 @@ defmodule Vws.Partitions.Monarch do
   | `CYCLE_START` | (DAQ #1 relay) then `RNL` | DONE once the machine reports ACTIVE |
   | `RELEASE_TABLE` | `RNL` | clears the table interlock; refused `ERROR MACHINE ACTIVE` |
 
+  From the program library (`Vws.DNC.Library`, ours — issue 18; the workstation's `library:`):
+
+  | command | on the link | result |
+  |---------|-------------|--------|
+  | `DOWNLOAD_GE(nnnnnn.PRO)` / `DOWNLOAD_GE(nnnnnn.PRO/v)` | `SCS`/`SNS` with the file name as command text + the program, then `RNL`, `RNF` | the library's latest version (or version v) filed under that name, verified like DOWNLOAD_GE |
+  | `COMPARE_GE` | `RNF` | the machine's directory recorded in the library: each program `same`/`differs`/`absent` |
+  | `COMPARE_GE(nnnnnn.PRO)` | `RNF`, then `RNS` + file name | DONE only when the machine holds exactly a version of the program, every byte read back; else `ERROR PROGRAM ABSENT nnnnnn.PRO`, `ERROR PROGRAM DIFFERS nnnnnn.PRO` |
+
+  Every directory MONARCH reads (also after each DOWNLOAD_GE) is recorded in the library, so
+  the dashboard and `mix vws.library` show where each program stands; `compare/2` does the
+  same from iex.
+
   `DOWNLOAD_HP` and `UPLOAD_SUN` are transfers on the WC link, carried out by SUN_COMM; they
   never reach this partition.
 
@@ -71,6 +83,7 @@ defmodule Vws.Partitions.Monarch do
   @broken_off [:nak_limit, :no_reply, :aborted, :no_response, :receive_timeout, :no_answer_to_bid]
 
   @behaviour Vws.Partition
+  require Logger
 
   alias Vws.DNC
   alias Vws.DNC.{Frame, LinkError, Program, Report}
@@ -106,6 +119,37 @@ defmodule Vws.Partitions.Monarch do
          {:ok, _report} <- verify(ctx, "DOWNLOAD OF #{file} FAILED", fn _ -> true end),
          :ok <- verify_directory(ctx, file, text) do
       :done
+    end
+  end
+
+  def execute({:download_ge, file, which}, ctx) do
+    with {:ok, text} <- library_program(ctx.workstation, file, which),
+         :ok <- if(Program.complete?(text), do: :ok, else: {:error, "#{file} HAS NO CLOSING %"}),
+         :ok <-
+           if(Program.sendable?(text),
+             do: :ok,
+             else: {:error, "#{file} HOLDS A CONTROL CHARACTER"}
+           ),
+         {:ok, max_text} <- max_text(ctx),
+         {:ok, _} <- request(ctx, :send, :part_program, file, Frame.split_text(text, max_text)),
+         {:ok, _report} <- verify(ctx, "DOWNLOAD OF #{file} FAILED", fn _ -> true end),
+         :ok <- verify_directory(ctx, file, text) do
+      :done
+    end
+  end
+
+  def execute(:compare_ge, ctx) do
+    with {:ok, _entries} <- read_directory(ctx), do: :done
+  end
+
+  def execute({:compare_ge, file}, ctx) do
+    with {:ok, versions} <- library_versions(ctx.workstation, file),
+         {:ok, entries} <- read_directory(ctx) do
+      case Vws.DNC.Library.on_machine(versions, Map.get(entries, file)) do
+        :absent -> {:error, "PROGRAM ABSENT #{file}"}
+        :differs -> {:error, "PROGRAM DIFFERS #{file}"}
+        {:same, n} -> read_back(ctx, file, n)
+      end
     end
   end
 
@@ -235,15 +279,120 @@ defmodule Vws.Partitions.Monarch do
     if Keyword.get(ctx.options, :verify, true) do
       sent = Report.entry(file, text)
 
-      with {:ok, blocks} <- request(ctx, :receive, :directory, "", []) do
-        case Report.parse_directory(IO.iodata_to_binary(blocks)) do
-          {:ok, %{^file => ^sent}} -> :ok
-          {:ok, _other} -> {:error, "PROGRAM VERIFY FAILED #{file}"}
-          {:error, _} -> {:error, "PROGRAM VERIFY FAILED #{file} BAD DIRECTORY"}
-        end
+      case read_directory(ctx) do
+        {:ok, %{^file => ^sent}} -> :ok
+        {:ok, _other} -> {:error, "PROGRAM VERIFY FAILED #{file}"}
+        {:error, :bad_directory} -> {:error, "PROGRAM VERIFY FAILED #{file} BAD DIRECTORY"}
+        {:error, _} = error -> error
       end
     else
       :ok
+    end
+  end
+
+  # RNF → the directory, recorded in the program library (when the workstation has one).
+  defp read_directory(ctx) do
+    with {:ok, blocks} <- request(ctx, :receive, :directory, "", []) do
+      case Report.parse_directory(IO.iodata_to_binary(blocks)) do
+        {:ok, entries} ->
+          if Vws.DNC.Library.enabled?(ctx.workstation) do
+            with {:error, reason} <- Vws.DNC.Library.record_machine(ctx.workstation, entries) do
+              require Logger
+
+              Logger.error(
+                "program library: the machine's directory not recorded: #{inspect(reason)}"
+              )
+            end
+          end
+
+          {:ok, entries}
+
+        {:error, _} ->
+          {:error, :bad_directory}
+      end
+    end
+  end
+
+  # RNS → every byte of the file, compared with version n of the library.
+  defp read_back(ctx, file, n) do
+    with {:ok, text} <- library_program(ctx.workstation, file, n),
+         {:ok, blocks} <- request(ctx, :receive, :part_program, file, []) do
+      if IO.iodata_to_binary(blocks) == text,
+        do: :done,
+        else: {:error, "PROGRAM DIFFERS #{file}"}
+    end
+  end
+
+  defp library_program(ws, file, which) do
+    case Vws.DNC.Library.read(ws, file, which) do
+      {:ok, text, _version} -> {:ok, text}
+      {:error, reason} -> {:error, library_error(file, which, reason)}
+    end
+  end
+
+  defp library_versions(ws, file) do
+    case Vws.DNC.Library.versions(ws, file) do
+      {:ok, versions} -> {:ok, versions}
+      {:error, reason} -> {:error, library_error(file, :latest, reason)}
+    end
+  end
+
+  defp library_error(_file, _which, :no_library), do: "NO PROGRAM LIBRARY"
+  defp library_error(file, :latest, :not_found), do: "#{file} NOT IN LIBRARY"
+  defp library_error(file, n, :not_found), do: "#{file} VERSION #{n} NOT IN LIBRARY"
+  defp library_error(file, _which, :damaged), do: "LIBRARY FILE OF #{file} DAMAGED"
+
+  defp library_error(file, _which, reason),
+    do: "#{file} NOT READ FROM LIBRARY #{reason_text(reason)}"
+
+  @doc """
+  Compares the program library of workstation `ws` with what its GE-2000 holds, from iex: reads
+  the machine's directory (`RNF`) through `ws`'s DNC link, records it in the library, and returns
+  `Vws.DNC.Library.compare/1` — each program `on_machine` `{:same, version}`, `:differs` or
+  `:absent`. With `read_back: true` (every program the directory shows the same) or
+  `read_back: [file names]` those programs are also read back whole (`RNS`) and compared byte for
+  byte: each such row gets `read_back: :same | :differs` (a `:differs` also makes it `on_machine:
+  :differs`). `Vws.DNC.Library.print_compare/1` prints the result.
+
+  Options: `:link` (default the workstation's GE-2000 link), `:check`, `:request_timeout`.
+  """
+  @spec compare(Mailbox.workstation(), keyword) :: {:ok, map} | {:error, term}
+  def compare(ws, opts \\ []) do
+    link = Keyword.get_lazy(opts, :link, fn -> Vws.Workstation.whereis(ws, :ge2000) end)
+    ctx = %{workstation: ws, link: link, options: opts}
+
+    with :ok <- if(link, do: :ok, else: {:error, "NO LINK TO GE-2000"}),
+         :ok <- if(Vws.DNC.Library.enabled?(ws), do: :ok, else: {:error, "NO PROGRAM LIBRARY"}),
+         {:ok, _entries} <- read_directory(ctx),
+         {:ok, result} <- Vws.DNC.Library.compare(ws) do
+      wanted = Keyword.get(opts, :read_back, false)
+
+      rows =
+        for row <- result.programs do
+          read_back? = wanted == true or (is_list(wanted) and row.name in wanted)
+
+          case row.on_machine do
+            {:same, n} when read_back? ->
+              case read_back(ctx, row.name, n) do
+                :done ->
+                  Map.put(row, :read_back, :same)
+
+                {:error, "PROGRAM DIFFERS" <> _} ->
+                  %{row | on_machine: :differs} |> Map.put(:read_back, :differs)
+
+                {:error, reason} ->
+                  Map.put(row, :read_back, {:error, reason})
+              end
+
+            _ ->
+              row
+          end
+        end
+
+      {:ok, %{result | programs: rows}}
+    else
+      {:error, :bad_directory} -> {:error, "BAD DIRECTORY FROM GE-2000"}
+      error -> error
     end
   end
 

@@ -240,6 +240,23 @@ defmodule Vws.Web.Page do
     }), "transfers-" + ws.id);
   }
 
+  function library(ws) {
+    const l = ws.library;
+    if (!l) return el("p", "no program library", "muted");
+    if (l.error) return el("p", l.error, "bad");
+    const d = el("div");
+    const c = l.counts;
+    d.appendChild(el("div", l.programs + " programs, " + l.versions + " versions — on the machine: " +
+      (c.same || 0) + " same, " + (c.differs || 0) + " differ, " + (c.absent || 0) + " absent" +
+      (l.machine_only.length ? ", " + l.machine_only.length + " only on the machine" : "") +
+      " — " + (l.read_at ? "machine directory read " + l.read_at : "machine directory not read yet"), "muted"));
+    if (l.rows.length) d.appendChild(table(["program", "versions", "latest", "stored", "by", "bytes", "CRC", "on the machine"],
+      l.rows.map(r => [r.name, {text: r.versions, cls: "num"}, "v" + r.latest, r.at, r.source, {text: r.size, cls: "num"}, r.crc,
+        {text: r.on_machine, cls: r.on_machine_class === "same" ? "" : (r.on_machine_class === "unknown" ? "muted" : "bad")}]),
+      "library-" + ws.id));
+    return d;
+  }
+
   function alerts(ws) {
     const log = errors[ws.id] || [];
     const now = Date.now();
@@ -279,6 +296,7 @@ defmodule Vws.Web.Page do
         {text: age(d.age_ms), cls: "nowrap"}]), "devices-" + ws.id)));
     const right = el("div");
     right.appendChild(box("NC transfers", transfers(ws)));
+    right.appendChild(box("Program library", library(ws)));
     right.appendChild(box("Interlock leases", ws.interlocks.length === 0 ? el("p", "none held", "muted") :
       table(["volume", "holder", "for", "held"], ws.interlocks.map(i => [i.what, i.holder, i.reasons, age(i.age_ms)]), "interlocks-" + ws.id)));
     const log = changes[ws.id] || [];

@@ -32,6 +32,8 @@ defmodule Vws.Web.Snapshot do
     {:ok,
      %{
        control: Keyword.get(opts, :control, false),
+       # the program library sections, read again only as often as their size allows (State)
+       library_cache: :ets.new(:vws_web_library_cache, [:public]),
        max_age: Keyword.get(opts, :max_age, 200),
        built_at: nil,
        json: nil
@@ -45,7 +47,7 @@ defmodule Vws.Web.Snapshot do
     if s.built_at != nil and now - s.built_at < s.max_age do
       {:reply, {:ok, s.json}, s}
     else
-      case build(s.control) do
+      case build(s.control, s.library_cache) do
         {:ok, json} ->
           {:reply, {:ok, json}, %{s | json: json, built_at: System.monotonic_time(:millisecond)}}
 
@@ -59,8 +61,9 @@ defmodule Vws.Web.Snapshot do
   def handle_info({:EXIT, _task, _reason}, s), do: {:noreply, s}
   def handle_info(_msg, s), do: {:noreply, s}
 
-  defp build(control) do
-    {:ok, IO.iodata_to_binary(Vws.JSON.encode(Vws.Web.State.build(control: control)))}
+  defp build(control, cache) do
+    state = Vws.Web.State.build(control: control, library_cache: cache)
+    {:ok, IO.iodata_to_binary(Vws.JSON.encode(state))}
   rescue
     e -> {:error, "the state could not be built: " <> Exception.message(e)}
   catch

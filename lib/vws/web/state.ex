@@ -16,6 +16,10 @@ defmodule Vws.Web.State do
     * `transfers` — NC transfers under way (DOWNLOAD_HP/UPLOAD_SUN on the WC link,
       DOWNLOAD_GE/UPLOAD_GE on the DNC link): lines or blocks and bytes so far and in all,
       rate, ETA;
+    * `library` — the program library (`Vws.DNC.Library`, issue 18), nil without one: how many
+      programs and versions, when the machine's directory was last read, how many programs are
+      the same / differ / are absent on the machine, and the 30 programs stored last with
+      their latest version and where they stand on the machine;
     * `alerts` — what is wrong now: commands ended in error, devices without data, links down
       or with a last error.
 
@@ -35,10 +39,15 @@ defmodule Vws.Web.State do
   # link states that mean the link cannot be used now
   @bad_states ~w(down not_answering unreadable restarting disconnected connecting halted)
 
-  @doc "The dashboard state. Options: `:control` (whether control actions are enabled)."
+  @doc """
+  The dashboard state. Options: `:control` (whether control actions are enabled),
+  `:library_cache` (a public ETS table: the library section is then read again only when older
+  than ten times what reading it took, see `library/2`).
+  """
   @spec build(keyword) :: map
   def build(opts \\ []) do
     ids = Vws.Workstation.list()
+    cache = Keyword.get(opts, :library_cache)
 
     %{
       time: DateTime.utc_now() |> DateTime.truncate(:millisecond) |> DateTime.to_iso8601(),
@@ -48,7 +57,7 @@ defmodule Vws.Web.State do
       equipment: equipment(),
       workstations:
         ids
-        |> Task.async_stream(&workstation/1, timeout: 10_000, on_timeout: :kill_task)
+        |> Task.async_stream(&workstation(&1, cache), timeout: 10_000, on_timeout: :kill_task)
         |> Enum.zip(ids)
         |> Enum.flat_map(fn
           {{:ok, shown}, _ws} -> shown
@@ -124,20 +133,21 @@ defmodule Vws.Web.State do
       links: [],
       wc: wc(%{info: :not_answering, dialogue: []}),
       transfers: [],
+      library: nil,
       alerts: [%{where: label(ws), text: "could not be read"}],
       last_sequence: nil,
       events: []
     }
   end
 
-  defp workstation(ws) do
-    if Mailbox.exists?(ws), do: [workstation!(ws)], else: []
+  defp workstation(ws, cache) do
+    if Mailbox.exists?(ws), do: [workstation!(ws, cache)], else: []
   rescue
     # stopped while we read it: not shown; still there: shown, saying it could not be read
     e -> if Mailbox.exists?(ws), do: [unreadable(ws, e)], else: []
   end
 
-  defp workstation!(ws) do
+  defp workstation!(ws, cache) do
     snapshot = Inspect.snapshot(ws)
     now = System.monotonic_time(:millisecond)
     partitions = Enum.map(snapshot.partitions, &partition/1)
@@ -162,10 +172,81 @@ defmodule Vws.Web.State do
       links: links,
       wc: wc,
       transfers: transfers(snapshot, now),
+      library: library(ws, cache),
       alerts: alerts(partitions, devices, links, wc),
       last_sequence: pad4(snapshot.mailboxes.last_sequence),
       events: for({e, n} <- snapshot.mailboxes.events, do: %{event: Inspect.words(e), count: n})
     }
+  end
+
+  @library_rows 30
+
+  @doc false
+  # The library's summary and its programs stored last. All of it is read (bench/library.exs has
+  # what that costs with 10,000 programs: a few hundred ms), so with a cache it is read again only
+  # when older than ten times what the last reading took: a small library at every build, one of
+  # 10,000 programs every few seconds — at most a tenth of the time on it, whatever the size.
+  def library(lib, nil), do: library(lib)
+
+  def library(lib, cache) do
+    now = System.monotonic_time(:millisecond)
+
+    case :ets.lookup(cache, {:library, lib}) do
+      [{_, shown, at, took}] when now - at < 10 * took ->
+        shown
+
+      _ ->
+        shown = library(lib)
+        took = System.monotonic_time(:millisecond) - now
+        :ets.insert(cache, {{:library, lib}, shown, now, took})
+        shown
+    end
+  end
+
+  @doc false
+  def library(lib) do
+    with true <- Vws.DNC.Library.enabled?(lib),
+         {:ok, c} <- Vws.DNC.Library.compare(lib) do
+      words = fn p -> Vws.DNC.Library.on_machine_text(p.on_machine, p.latest.version) end
+
+      %{
+        programs: length(c.programs),
+        versions: Enum.reduce(c.programs, 0, &(length(&1.versions) + &2)),
+        read_at: c.read_at && DateTime.to_iso8601(c.read_at),
+        machine_only: c.machine_only,
+        counts:
+          Enum.frequencies_by(c.programs, fn p ->
+            case p.on_machine do
+              {:same, _} -> "same"
+              other -> to_string(other)
+            end
+          end),
+        rows:
+          c.programs
+          |> Enum.sort_by(&DateTime.to_unix(&1.latest.at, :millisecond), :desc)
+          |> Enum.take(@library_rows)
+          |> Enum.map(fn p ->
+            %{
+              name: p.name,
+              versions: length(p.versions),
+              latest: p.latest.version,
+              at: DateTime.to_iso8601(p.latest.at),
+              source: p.latest.source,
+              size: p.latest.size,
+              crc: String.pad_leading(Integer.to_string(p.latest.crc, 16), 4, "0"),
+              on_machine: words.(p),
+              on_machine_class:
+                case p.on_machine do
+                  {:same, _} -> "same"
+                  other -> to_string(other)
+                end
+            }
+          end)
+      }
+    else
+      false -> nil
+      {:error, reason} -> %{error: "could not be read: #{Inspect.words(reason)}"}
+    end
   end
 
   defp partition(r) do

@@ -1,0 +1,175 @@
+defmodule Vws.Partitions.Monarch.LibraryTest do
+  # The program library through MONARCH (issue 18): the WC (a raw WC peer) → SUN_COMM →
+  # MONARCH → DNC link → simulated GE-2000, the library a real directory.
+  use ExUnit.Case, async: true
+
+  alias Vws.{DNC, Workstation}
+  alias Vws.DNC.Library
+  alias Vws.Partitions.Monarch
+  alias Vws.Sim.GE2000
+  alias Vws.Test.WCPeer
+  import Vws.Test.Eventually
+
+  @link_opts [reply_timeout: 300, wack_delay: 50, backoff_min: 10, backoff_max: 50]
+  @lines ["%", "O4711 (LIBRARY)", "N10 G90 G00 X0 Y0", "N20 G01 X10 F300", "N30 M30", "%"]
+
+  setup do
+    dir = Path.join(System.tmp_dir!(), "vws-monarch-lib-#{System.unique_integer([:positive])}")
+    on_exit(fn -> File.rm_rf!(dir) end)
+    sim = start_supervised!({GE2000, link: @link_opts, cycle_time: 60_000})
+
+    %{ws: ws, wc: wc} =
+      Vws.Test.Workstation.start(
+        devices: [ge2000: [endpoint: GE2000.endpoint(sim), status_interval: nil] ++ @link_opts],
+        library: dir
+      )
+
+    link = Workstation.whereis(ws, :ge2000)
+    assert eventually(fn -> DNC.info(link).state == :idle end)
+    {:ok, peer} = WCPeer.connect(wc)
+    %{ws: ws, peer: peer, sim: sim, dir: dir}
+  end
+
+  defp seq, do: rem(System.unique_integer([:positive]), 10_000)
+
+  defp monarch(peer, number, text) do
+    s = seq()
+    WCPeer.send_string(peer, s, [{"M", number, text}])
+    assert Vws.WC.Reply.decode(WCPeer.recv_line(peer)) == {:ok, {:ack, s}}
+    finished(peer)
+  end
+
+  # the command's status without its number
+  defp finished(peer) do
+    <<_number::binary-4, status::binary>> =
+      WCPeer.await_status(peer, seq(), "MONARCH_CMD", &(not (&1 =~ "EXECUTING")), 30_000)
+
+    status
+  end
+
+  defp download_hp(peer, number, lines) do
+    s = seq()
+    WCPeer.send_string(peer, s, [{"M", number, "DOWNLOAD_HP"}])
+    assert Vws.WC.Reply.decode(WCPeer.recv_line(peer)) == {:ok, {:ack, s}}
+
+    for {line, n} <- Enum.with_index(lines, 1) do
+      WCPeer.send_raw(peer, Vws.WC.Reply.encode({:line, n, line}))
+      assert Vws.WC.Reply.decode(WCPeer.recv_line(peer)) == {:ok, {:line_ack, n}}
+    end
+
+    finished(peer)
+  end
+
+  test "DOWNLOAD_HP stores every program the WC sends as a new version, source wc", %{
+    ws: ws,
+    peer: peer
+  } do
+    assert download_hp(peer, 1, @lines) == "DONE"
+    changed = List.replace_at(@lines, 3, "N20 G01 X12 F300")
+    assert download_hp(peer, 2, changed) == "DONE"
+    # the same program again is not a new version
+    assert download_hp(peer, 3, changed) == "DONE"
+
+    {:ok, [v1, v2]} = Library.versions(ws, "004711.PRO")
+    assert {v1.version, v1.source, v2.version} == {1, "wc", 2}
+    assert {:ok, text, _} = Library.read(ws, "004711.PRO", 2)
+    assert text == Vws.DNC.Program.to_text(changed)
+    # the seed's NC file is there as before
+    assert Vws.Mailbox.nc_file(ws) == changed
+  end
+
+  test "DOWNLOAD_GE(name) and DOWNLOAD_GE(name/v) send a library version, verified; the plain " <>
+         "DOWNLOAD_GE still sends the NC file",
+       %{ws: ws, peer: peer, sim: sim} do
+    v1 = "%\nO55\nN10 X1\nN20 M30\n%\n"
+    v2 = "%\nO55\nN10 X2\nN20 M30\n%\n"
+    {:ok, _} = Library.store(ws, "55", v1, source: "iex")
+    {:ok, _} = Library.store(ws, "55", v2, source: "iex")
+
+    assert monarch(peer, 1, "DOWNLOAD_GE(000055.PRO)") == "DONE"
+    assert GE2000.program(sim, "000055.PRO") == v2
+    assert monarch(peer, 2, "DOWNLOAD_GE(000055.PRO/1)") == "DONE"
+    assert GE2000.program(sim, "000055.PRO") == v1
+    # the directory read after the download is recorded: the machine holds version 1
+    {:ok, c} = Library.compare(ws)
+    assert [%{name: "000055.PRO", on_machine: {:same, 1}}] = c.programs
+
+    assert monarch(peer, 3, "DOWNLOAD_GE(000055.PRO/3)") ==
+             "ERROR 000055.PRO VERSION 3 NOT IN LIBRARY"
+
+    assert monarch(peer, 4, "DOWNLOAD_GE(000056.PRO)") == "ERROR 000056.PRO NOT IN LIBRARY"
+    assert monarch(peer, 5, "DOWNLOAD_GE(../../x)") =~ "ERROR BAD PROGRAM FILE"
+
+    assert download_hp(peer, 6, @lines) == "DONE"
+    assert monarch(peer, 7, "DOWNLOAD_GE") == "DONE"
+    assert GE2000.program(sim, "004711.PRO") == Vws.DNC.Program.to_text(@lines)
+  end
+
+  test "a library program the machine files damaged fails its verify", %{
+    ws: ws,
+    peer: peer,
+    sim: sim
+  } do
+    {:ok, _} = Library.store(ws, "66", "%\nO66\nN10 X1\n%\n")
+    :ok = GE2000.set_fault(sim, {:file_as, &String.replace(&1, "X1", "X7")})
+    assert monarch(peer, 1, "DOWNLOAD_GE(000066.PRO)") == "ERROR PROGRAM VERIFY FAILED 000066.PRO"
+    {:ok, %{programs: [row]}} = Library.compare(ws)
+    assert row.on_machine == :differs
+  end
+
+  test "compare: same / differs / absent, by directory CRC and by full read-back", %{
+    ws: ws,
+    peer: peer,
+    sim: sim
+  } do
+    same = "%\nO1\nN10 X1.000000\n%\n"
+    {:ok, _} = Library.store(ws, "1", same)
+    {:ok, _} = Library.store(ws, "2", "%\nO2\nN10 X2\n%\n")
+    {:ok, _} = Library.store(ws, "3", "%\nO3\nN10 X3\n%\n")
+    GE2000.put_program(sim, "000001.PRO", same)
+    GE2000.put_program(sim, "000002.PRO", "%\nO2\nN10 X9\n%\n")
+    GE2000.put_program(sim, "000009.PRO", "%\nO9\n%\n")
+
+    {:ok, c} = Monarch.compare(ws, read_back: true)
+
+    assert Map.new(c.programs, &{&1.name, &1.on_machine}) ==
+             %{"000001.PRO" => {:same, 1}, "000002.PRO" => :differs, "000003.PRO" => :absent}
+
+    assert Enum.find(c.programs, &(&1.name == "000001.PRO")).read_back == :same
+    assert c.machine_only == ["000009.PRO"]
+    text = Enum.join(Library.format_compare(c), "\n")
+    assert text =~ ~r/000001.PRO .*on the machine: same, read back: same/
+    assert text =~ ~r/000002.PRO .*on the machine: differs/
+    assert text =~ ~r/000003.PRO .*on the machine: absent/
+
+    # from the WC: COMPARE_GE(name) reads the program back whole
+    assert monarch(peer, 1, "COMPARE_GE(000001.PRO)") == "DONE"
+    assert monarch(peer, 2, "COMPARE_GE(000002.PRO)") == "ERROR PROGRAM DIFFERS 000002.PRO"
+    assert monarch(peer, 3, "COMPARE_GE(000003.PRO)") == "ERROR PROGRAM ABSENT 000003.PRO"
+    assert monarch(peer, 4, "COMPARE_GE(000008.PRO)") == "ERROR 000008.PRO NOT IN LIBRARY"
+    assert monarch(peer, 5, "COMPARE_GE") == "DONE"
+
+    # a difference the directory's size and CRC-16 cannot see (another text with the same
+    # CRC) is found only by the read-back
+    forged = same_crc_as(same)
+    assert forged != same and byte_size(forged) == byte_size(same)
+    GE2000.put_program(sim, "000001.PRO", forged)
+    {:ok, c} = Monarch.compare(ws)
+    assert hd(c.programs).on_machine == {:same, 1}
+    {:ok, c} = Monarch.compare(ws, read_back: ["000001.PRO"])
+    assert %{on_machine: :differs, read_back: :differs} = hd(c.programs)
+    assert monarch(peer, 6, "COMPARE_GE(000001.PRO)") == "ERROR PROGRAM DIFFERS 000001.PRO"
+  end
+
+  # "%\nO1\nN10 Xd.dddddd\n%\n" text of the same length and CRC-16/ARC as `text`
+  defp same_crc_as(text) do
+    crc = Vws.CRC16.compute(text)
+
+    Stream.iterate(0, &(&1 + 1))
+    |> Stream.map(fn i ->
+      digits = String.pad_leading(Integer.to_string(i), 7, "0")
+      "%\nO1\nN10 X" <> String.slice(digits, 0, 1) <> "." <> String.slice(digits, 1, 6) <> "\n%\n"
+    end)
+    |> Enum.find(&(Vws.CRC16.compute(&1) == crc and &1 != text))
+  end
+end
