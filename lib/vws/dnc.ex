@@ -193,16 +193,33 @@ defmodule Vws.DNC do
   def max_text(link), do: info(link).max_text
 
   @doc """
-  Makes this end misbehave, for simulators and tests (`:none` to stop):
-
-    * `:nak_once_per_block` — every block received is answered NAK the first time
-    * `:drop_replies` — the first reply to every block received is lost (the peer's ENQ gets it)
-    * `{:wack, n}` — the next `n` replies are WACK (busy) instead of the acknowledgement
-    * `:corrupt` — the first copy of every block sent has its block check damaged
-    * `:silent` — nothing is sent, and what arrives is ignored (a dead peer)
-    * `{:bid_contention, blocks}` — at the peer's next bid, bid at the same moment (and send
-      `blocks` unsolicited when this end wins)
+  The transfer under way on the link, or nil: program, direction, blocks and bytes done and in
+  all, retries, characters a second and ETA (`Vws.DNC.Progress`).
   """
-  @spec set_fault(link, fault) :: :ok
-  def set_fault(link, fault), do: :gen_statem.call(link, {:set_fault, fault})
+  @spec progress(link) :: map | nil
+  def progress(link), do: info(link).transfer
+
+  @doc """
+  Bids and sends `text_blocks` without a command block, as master (waits while the link is
+  busy). For a simulated peer that sends of its own accord.
+  """
+  @spec transmit(link, [binary]) :: :ok | {:error, term}
+  def transmit(link, text_blocks) when is_list(text_blocks),
+    do: :gen_statem.call(link, {:transmit, text_blocks})
+
+  @doc """
+  Gives `bytes` back to the credit of the `E` (download and execute) reception under way: the
+  receiver has run that much of the program (see "Drip feed" above).
+  """
+  @spec grant(link, non_neg_integer) :: :ok
+  def grant(link, bytes) when is_integer(bytes) and bytes >= 0,
+    do: :gen_statem.call(link, {:grant, bytes})
+
+  @doc false
+  # A tap between the protocol and the wire, `{module, state}` or nil: a simulator's fault
+  # injection (`Vws.Sim.GE2000.Faults`). `module.outgoing(state, bytes, transfer)` returns
+  # `{state, iodata}` (transfer: `Vws.DNC.Session.transfer/1` after the bytes were made);
+  # `module.incoming(state, bytes, session_state)` returns `{state, bytes, [{:transmit, blocks}]}`.
+  @spec set_tap(link, {module, term} | nil) :: :ok
+  def set_tap(link, tap), do: :gen_statem.call(link, {:set_tap, tap})
 end

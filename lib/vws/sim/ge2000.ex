@@ -38,13 +38,16 @@ defmodule Vws.Sim.GE2000 do
       `:cycle_time` (5 000 ms), `:plant` (`(event -> any)`)
     * `:allow` — who may connect (`Vws.Transport.Policy`; default loopback only)
     * `:pace` — `false` (default), `true` (4 800 Bd, the seed's line) or a baud rate: the
-      simulator then paces the line like the real serial link (see `Vws.DNC`, option `:pace`)
+      simulator then paces the line like the real serial link — a `Vws.Sim.Line` at that baud
+      rate (8N1: 10 bits a character) stands in front of its link, where the CEC dials, so
+      both directions carry no more than `baud / 10` characters a second (listening endpoints;
+      a `tty:` line has the pace of its device)
     * `:link` — further `Vws.DNC` options (limits, `max_text`)
 
   ## Faults (`set_fault/2`, at run time)
 
   `:nak_once_per_block`, `:drop_replies`, `{:wack, n}`, `:corrupt`, `:silent` (see
-  `Vws.DNC.set_fault/2`), `:bid_contention` (at the CEC's next bid the GE-2000 bids at the same
+  `Vws.Sim.GE2000.Faults`), `:bid_contention` (at the CEC's next bid the GE-2000 bids at the same
   moment, wins, and sends its status report unsolicited), `{:file_as, fun}` (a program received
   whole is filed as `fun.(text)`: a machine that keeps other bytes than it was sent, as a damage
   the block check missed would leave; `:none` ends it too) and `:none`.
@@ -61,6 +64,7 @@ defmodule Vws.Sim.GE2000 do
   alias Vws.DNC
   alias Vws.DNC.{Frame, Program, Report}
   alias Vws.DNC.Frame.Command
+  alias Vws.Sim.GE2000.Faults
 
   @default_baud 4800
   @alarms %{
@@ -95,6 +99,14 @@ defmodule Vws.Sim.GE2000 do
   @doc "The simulator's DNC link process."
   @spec link(GenServer.server()) :: pid
   def link(sim), do: GenServer.call(sim, :link)
+
+  @doc "The baud rate its line is paced at, or nil (not paced)."
+  @spec baud(GenServer.server()) :: pos_integer | nil
+  def baud(sim), do: GenServer.call(sim, :baud)
+
+  @doc "The paced line (`Vws.Sim.Line`) in front of its link, or nil."
+  @spec line(GenServer.server()) :: pid | nil
+  def line(sim), do: GenServer.call(sim, :line)
 
   @doc "Makes the simulated controller misbehave (see the moduledoc); `:none` to stop."
   @spec set_fault(GenServer.server(), atom | tuple) :: :ok
@@ -149,7 +161,7 @@ defmodule Vws.Sim.GE2000 do
         baud when is_integer(baud) -> baud
       end
 
-    link_opts = Keyword.merge(Keyword.get(opts, :link, []), role: :ge, owner: self(), pace: baud)
+    link_opts = Keyword.merge(Keyword.get(opts, :link, []), role: :ge, owner: self())
 
     s = %{
       endpoint: Keyword.get(opts, :endpoint, "tcp://127.0.0.1:0"),
@@ -159,6 +171,8 @@ defmodule Vws.Sim.GE2000 do
       acceptor: nil,
       link_opts: link_opts,
       link: nil,
+      baud: baud,
+      line: nil,
       max_text: Keyword.get(link_opts, :max_text, 256),
       programs: Keyword.get(opts, :programs, %{}),
       offsets: Keyword.get_lazy(opts, :offsets, &default_offsets/0),
@@ -192,18 +206,38 @@ defmodule Vws.Sim.GE2000 do
       {:noreply, %{s | link: link, bound: s.endpoint}}
     else
       {:ok, link} = DNC.start_link(s.link_opts)
+      listen = if s.baud, do: "loopback:ge2000-line-#{System.unique_integer([:positive])}"
 
-      case Vws.Transport.listen(endpoint) do
+      case Vws.Transport.listen(listen || endpoint) do
         {:ok, listener} ->
           allow = s.allow
           acceptor = spawn_link(fn -> accept_loop(listener, link, allow) end)
           bound = to_string(Vws.Transport.listener_endpoint(listener))
-          Logger.info("GE-2000 simulator listening on #{bound}")
-          {:noreply, %{s | link: link, listener: listener, acceptor: acceptor, bound: bound}}
+          s = %{s | link: link, listener: listener, acceptor: acceptor, bound: bound}
+
+          case paced_line(s, bound) do
+            {:ok, s} ->
+              Logger.info("GE-2000 simulator listening on #{s.bound}")
+              {:noreply, s}
+
+            {:error, reason} ->
+              {:stop, {:cannot_listen, s.endpoint, reason}, s}
+          end
 
         {:error, reason} ->
           {:stop, {:cannot_listen, s.endpoint, reason}, s}
       end
+    end
+  end
+
+  # The paced line: the simulator's link listens privately, and a `Vws.Sim.Line` paced at the
+  # baud rate listens where the CEC dials, as the serial cable between them.
+  defp paced_line(%{baud: nil} = s, _bound), do: {:ok, s}
+
+  defp paced_line(s, bound) do
+    case Vws.Sim.Line.start_link(listen: s.endpoint, target: bound, faults: [baud: s.baud]) do
+      {:ok, line} -> {:ok, %{s | line: line, bound: to_string(Vws.Sim.Line.endpoint(line))}}
+      {:error, reason} -> {:error, reason}
     end
   end
 
@@ -240,18 +274,22 @@ defmodule Vws.Sim.GE2000 do
   @impl true
   def handle_call(:endpoint, _from, s), do: {:reply, s.bound, s}
   def handle_call(:link, _from, s), do: {:reply, s.link, s}
+  def handle_call(:line, _from, s), do: {:reply, s.line, s}
+  def handle_call(:baud, _from, s), do: {:reply, s.baud, s}
 
   def handle_call({:set_fault, {:file_as, fun}}, _from, s) when is_function(fun, 1),
     do: {:reply, :ok, %{s | file_as: fun}}
 
   def handle_call({:set_fault, :none}, _from, s),
-    do: {:reply, DNC.set_fault(s.link, :none), %{s | file_as: nil}}
+    do: {:reply, DNC.set_tap(s.link, nil), %{s | file_as: nil}}
 
   def handle_call({:set_fault, :bid_contention}, _from, s) do
-    {:reply, DNC.set_fault(s.link, {:bid_contention, [Report.status(report(s))]}), s}
+    fault = {:bid_contention, [Report.status(report(s))]}
+    {:reply, DNC.set_tap(s.link, Faults.tap(fault)), s}
   end
 
-  def handle_call({:set_fault, fault}, _from, s), do: {:reply, DNC.set_fault(s.link, fault), s}
+  def handle_call({:set_fault, fault}, _from, s),
+    do: {:reply, DNC.set_tap(s.link, Faults.tap(fault)), s}
 
   def handle_call(:cycle_start, _from, s), do: {:reply, :ok, start_cycle(s)}
   def handle_call(:end_cycle, _from, s), do: {:reply, :ok, end_cycle_now(s)}
@@ -313,7 +351,7 @@ defmodule Vws.Sim.GE2000 do
   def handle_info({:cycle_end, n}, %{cycles: n} = s), do: {:noreply, end_cycle_now(s)}
   def handle_info({:cycle_end, _earlier}, s), do: {:noreply, s}
 
-  def handle_info({:EXIT, pid, reason}, s) when pid in [s.link, s.acceptor] do
+  def handle_info({:EXIT, pid, reason}, s) when pid in [s.link, s.acceptor, s.line] do
     {:stop, reason, s}
   end
 
