@@ -62,11 +62,9 @@ defmodule Vws.DNC do
       2 000 ms, `max_wacks` 3, `max_contention` 3 (yields running), `response_timeout` 10 000 ms
       (after our `R` command's EOT, for the peer's bid), `receive_timeout` 10 000 ms (between
       received blocks), `answer_timeout` 5 000 ms (for the owner's `answer/3`), `max_text` 256
-      bytes per block, `max_receive` 4 MiB per received transmission.
-    * `:pace` — a baud rate: the link then models the serial line between it and its peer, so
-      received bytes are taken, and sent bytes leave, no faster than `baud / char_bits` (default
-      `char_bits` 10, 8N1) characters per second. Turn it on at one end only — the simulator's —
-      to make a TCP or pty connection behave like the 4800 Bd line.
+      bytes per block, `max_receive` 4 MiB per received transmission (not for `E`, which keeps
+      nothing), `receive_buffer` (see Drip feed).
+    Pacing and fault injection are the simulators' (`Vws.Sim.GE2000`, `Vws.Sim.Line`).
 
   ## Messages to the owner
 
@@ -82,6 +80,8 @@ defmodule Vws.DNC do
     * `{:aborted, command | nil, text_blocks}` — the peer gave its transmission up (EOT right
       after our NAK or WACK): not a whole transmission, only for the record
     * `{:answer_failed, %Vws.DNC.LinkError{}}` — an answer could not be delivered
+    * `{:block, command, index, text}` — a text block of an `E` (drip feed) transmission, as it
+      is taken (index counts the command block as 1)
 
   ## Telemetry
 
@@ -93,6 +93,32 @@ defmodule Vws.DNC do
   | `[:vws, :dnc, :block_received]` | `bytes` | `link, workstation, role, block` |
   | `[:vws, :dnc, :retry]` | `count` | `link, workstation, role, kind` (`:nak_received`, `:nak_sent`, `:wack_received`, `:no_reply`, `:lost_reply`, `:duplicate_received`, `:eot_again`), `block` |
   | `[:vws, :dnc, :transmission]` | `duration` (native), `blocks`, `bytes` | `link, workstation, role, direction, result` (+ `kind`) |
+
+  | `[:vws, :dnc, :progress]` | `blocks, bytes, chars_per_s, retries` | `link, workstation, role, program, operation, direction, total_blocks, total_bytes, eta_s, ended` |
+
+  ## Transfer progress
+
+  While an NC program goes over the link (`SxS`, `RxS`, `SxE` — not the status reads), every
+  block acknowledged or taken, and the transfer's end, is published: as the telemetry event
+  `[:vws, :dnc, :progress]` above and, for a link named in a workstation, as the workstation's
+  event `:dnc_progress` on `Vws.Events`:
+
+      {:vws_event, workstation, :dnc_progress,
+       %{link, program, operation, direction, blocks, total_blocks, bytes, total_bytes,
+         chars_per_s, eta_s, retries, ended}}
+
+  (`total_*` nil for a reception; `ended` true once, when the transfer is over). `progress/1`
+  (and `info/1`'s `transfer`) give the same figures on request (`Vws.DNC.Progress`).
+
+  ## Drip feed (ours)
+
+  A `download_execute` (`E`) transmission is streamed: the receiving link hands each text block
+  to its owner as `{:block, command, index, text}` when it takes it, keeps none of them, and
+  meters them against `receive_buffer` (bytes, option; `:infinity` — no flow control — by
+  default): once less than `max_text` of it is left, the block is acknowledged WACK, and so is
+  an ENQ, until the owner gives room back with `grant/2`. The sending link waits out any number
+  of WACKs in an `E` transmission (`wack_delay` apart); in any other, `max_wacks` holds. See
+  docs/dnc-drip-feed.md.
 
   `workstation` is the id in a `Vws.Workstation` name given as `:name` (`Vws.Workstation.id_of/1`), else nil.
 
@@ -114,15 +140,6 @@ defmodule Vws.DNC do
   alias Vws.DNC.{Frame, LinkError}
 
   @type link :: :gen_statem.server_ref()
-  @type fault ::
-          :none
-          | :nak_once_per_block
-          | :drop_replies
-          | {:wack, non_neg_integer}
-          | :corrupt
-          | :silent
-          | {:bid_contention, [binary]}
-
   @doc false
   def child_spec(opts) do
     %{
@@ -183,7 +200,8 @@ defmodule Vws.DNC do
   @doc """
   The link's state (`:disconnected`, `:idle`, `:bidding`, `:sending`, `:turnaround` — waiting for
   the peer's bid after our `R` command —, `:receiving`, `:answering` — the owner preparing the
-  answer to the peer's `R` command), role, endpoint, peer, fault, block size, pacing and counters.
+  answer to the peer's `R` command), role, endpoint, peer, tap, block size, counters and the
+  transfer under way (`progress/1`).
   """
   @spec info(link) :: map
   def info(link), do: :gen_statem.call(link, :info)
@@ -214,6 +232,10 @@ defmodule Vws.DNC do
   @spec grant(link, non_neg_integer) :: :ok
   def grant(link, bytes) when is_integer(bytes) and bytes >= 0,
     do: :gen_statem.call(link, {:grant, bytes})
+
+  @doc "Makes `pid` the link's owner, told what happens on the link (see above)."
+  @spec set_owner(link, pid | nil) :: :ok
+  def set_owner(link, pid), do: :gen_statem.call(link, {:set_owner, pid})
 
   @doc false
   # A tap between the protocol and the wire, `{module, state}` or nil: a simulator's fault

@@ -55,6 +55,7 @@ defmodule Vws.DNC.Link do
     :req,
     :session,
     tap: nil,
+    progress: nil,
     connect_failures: 0
   ]
 
@@ -217,6 +218,9 @@ defmodule Vws.DNC.Link do
     {:keep_state_and_data, [{:reply, from, info}]}
   end
 
+  def handle_event({:call, from}, {:set_owner, owner}, _state, data),
+    do: {:keep_state, %{data | owner: owner}, [{:reply, from, :ok}]}
+
   def handle_event({:call, from}, {:set_tap, tap}, _state, data),
     do: {:keep_state, %{data | tap: tap}, [{:reply, from, :ok}]}
 
@@ -300,7 +304,74 @@ defmodule Vws.DNC.Link do
     data = %{data | session: session}
     data = Enum.reduce(output, data, &send_bytes(&2, &1))
     {data, actions} = Enum.reduce(events, {data, actions}, &carry_out/2)
-    {:next_state, Session.state(session), data, actions}
+    {:next_state, Session.state(session), publish_progress(data), actions}
+  end
+
+  ## Progress of an NC program's transfer: telemetry and the workstation's :dnc_progress event
+
+  @programs [:part_program, :download_execute]
+
+  defp publish_progress(data) do
+    progress =
+      case Vws.DNC.Progress.of(data.session, now()) do
+        %{command: %{operation: op}} = p when op in @programs -> p
+        _ -> nil
+      end
+
+    case {data.progress, progress} do
+      {nil, nil} ->
+        data
+
+      {last, nil} ->
+        publish(data, %{last | eta_s: nil}, true)
+        %{data | progress: nil}
+
+      {last, p} ->
+        if last == nil or {last.blocks, last.direction} != {p.blocks, p.direction},
+          do: publish(data, p, false)
+
+        %{data | progress: p}
+    end
+  end
+
+  # the payload of {:vws_event, ws, :dnc_progress, payload}, documented in Vws.DNC
+  defp publish(data, p, ended?) do
+    payload = %{
+      link: data.name,
+      program: p.program,
+      operation: p.command.operation,
+      direction: p.direction,
+      blocks: p.blocks,
+      total_blocks: p.total_blocks,
+      bytes: p.bytes,
+      total_bytes: p.total_bytes,
+      chars_per_s: p.chars_per_s,
+      eta_s: p.eta_s,
+      retries: p.retries,
+      ended: ended?
+    }
+
+    emit(
+      data,
+      :progress,
+      Map.drop(payload, [:link, :blocks, :bytes, :chars_per_s, :retries]),
+      Map.take(payload, [:blocks, :bytes, :chars_per_s, :retries])
+    )
+
+    case Vws.Workstation.id_of(data.name) do
+      nil -> :ok
+      ws -> cause_progress(ws, payload)
+    end
+  end
+
+  defp cause_progress(ws, payload) do
+    with {:error, :no_such_event} <- Vws.Events.cause(ws, :dnc_progress, payload) do
+      :ok = Vws.Events.create(ws, :dnc_progress)
+      Vws.Events.cause(ws, :dnc_progress, payload)
+    end
+  rescue
+    # the workstation's mailboxes are gone (it is stopping): nobody to tell
+    ArgumentError -> :ok
   end
 
   defp carry_out({:state_timeout, ms, tag}, {data, actions}),

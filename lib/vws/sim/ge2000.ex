@@ -43,6 +43,16 @@ defmodule Vws.Sim.GE2000 do
       both directions carry no more than `baud / 10` characters a second (listening endpoints;
       a `tty:` line has the pace of its device)
     * `:link` — further `Vws.DNC` options (limits, `max_text`)
+    * `:memory` — the block buffer of a drip feed, bytes (8 192); `:feed_rate` — characters a
+      second a drip-fed program runs at (400); `:tick` — ms between the buffer's steps (20)
+
+  ## Drip feed and the operator's programs (ours, docs/dnc-drip-feed.md)
+
+  An `SNE`/`SCE` (download and execute) transmission is run while it arrives: its text blocks go
+  into the block buffer and run out of it at `feed_rate`; when the buffer has less than a
+  block's room the link answers WACK, and acknowledges once the program has run enough of it
+  (`drip/1`). `send_program/2` is the operator sending a program from the control panel to the
+  CEC, unasked.
 
   ## Faults (`set_fault/2`, at run time)
 
@@ -67,6 +77,9 @@ defmodule Vws.Sim.GE2000 do
   alias Vws.Sim.GE2000.Faults
 
   @default_baud 4800
+  # drip feed: the block buffer, and how fast a program runs out of it (characters a second)
+  @default_memory 8_192
+  @default_feed_rate 400
   @alarms %{
     none: 0,
     no_file: 1,
@@ -99,6 +112,37 @@ defmodule Vws.Sim.GE2000 do
   @doc "The simulator's DNC link process."
   @spec link(GenServer.server()) :: pid
   def link(sim), do: GenServer.call(sim, :link)
+
+  @doc """
+  The operator at the machine sends program `name` from its directory to the CEC, unasked: the
+  GE-2000 bids with `ENQ DEL` and sends `SCS` + `name` and the program's text blocks (ours,
+  docs/dnc-drip-feed.md). Returns when the transmission is over: `:ok`, `{:error, :no_file}` or
+  the link's error. Waits while the line is busy (the CEC's command goes first).
+  """
+  @spec send_program(GenServer.server(), String.t(), timeout) :: :ok | {:error, term}
+  def send_program(sim, name, timeout \\ 60_000) do
+    case GenServer.call(sim, {:program_to_send, name}) do
+      {:ok, link, command, blocks} ->
+        case DNC.request(link, command, blocks, timeout) do
+          {:ok, _} -> :ok
+          error -> error
+        end
+
+      error ->
+        error
+    end
+  end
+
+  @doc """
+  The drip feed under way or the last one (nil if none): `%{program, state, received, ran,
+  fill, max_fill, memory, feed_rate, blocks, underruns, starved_ms, crc}` —
+  `state` `:feeding` (the program runs while it arrives), `:draining` (all arrived, the buffer
+  still runs), `:done`, `:broken` (the feed broke off: the machine stopped, alarm 7);
+  `underruns` how often the buffer ran empty while more was to come, `crc` the CRC-16/ARC of
+  all text received so far.
+  """
+  @spec drip(GenServer.server()) :: map | nil
+  def drip(sim), do: GenServer.call(sim, :drip)
 
   @doc "The baud rate its line is paced at, or nil (not paced)."
   @spec baud(GenServer.server()) :: pos_integer | nil
@@ -161,7 +205,10 @@ defmodule Vws.Sim.GE2000 do
         baud when is_integer(baud) -> baud
       end
 
-    link_opts = Keyword.merge(Keyword.get(opts, :link, []), role: :ge, owner: self())
+    memory = Keyword.get(opts, :memory, @default_memory)
+
+    link_opts =
+      Keyword.merge(Keyword.get(opts, :link, []), role: :ge, owner: self(), receive_buffer: memory)
 
     s = %{
       endpoint: Keyword.get(opts, :endpoint, "tcp://127.0.0.1:0"),
@@ -173,6 +220,11 @@ defmodule Vws.Sim.GE2000 do
       link: nil,
       baud: baud,
       line: nil,
+      memory: memory,
+      feed_rate: Keyword.get(opts, :feed_rate, @default_feed_rate),
+      tick: Keyword.get(opts, :tick, 20),
+      drip: nil,
+      last_drip: nil,
       max_text: Keyword.get(link_opts, :max_text, 256),
       programs: Keyword.get(opts, :programs, %{}),
       offsets: Keyword.get_lazy(opts, :offsets, &default_offsets/0),
@@ -275,6 +327,18 @@ defmodule Vws.Sim.GE2000 do
   def handle_call(:endpoint, _from, s), do: {:reply, s.bound, s}
   def handle_call(:link, _from, s), do: {:reply, s.link, s}
   def handle_call(:line, _from, s), do: {:reply, s.line, s}
+  def handle_call(:drip, _from, s), do: {:reply, drip_info(s.drip || s.last_drip, s), s}
+
+  def handle_call({:program_to_send, name}, _from, s) do
+    with {:ok, file} <- file_name(name),
+         {:ok, text} <- Map.fetch(s.programs, file) do
+      command = %Command{direction: :send, check: :crc, operation: :part_program, text: file}
+      {:reply, {:ok, s.link, command, Frame.split_text(text, s.max_text)}, s}
+    else
+      _ -> {:reply, {:error, :no_file}, s}
+    end
+  end
+
   def handle_call(:baud, _from, s), do: {:reply, s.baud, s}
 
   def handle_call({:set_fault, {:file_as, fun}}, _from, s) when is_function(fun, 1),
@@ -316,6 +380,26 @@ defmodule Vws.Sim.GE2000 do
   def handle_cast({:cycle_start_input, false}, s), do: {:noreply, s}
 
   @impl true
+  def handle_info({:dnc, link, {:block, %Command{} = command, _index, text}}, %{link: link} = s),
+    do: {:noreply, drip_block(s, command, text)}
+
+  def handle_info(:drip_tick, s), do: {:noreply, drip_tick(s)}
+
+  def handle_info(
+        {:dnc, link, {:received, %Command{operation: :download_execute}, _}},
+        %{link: link} = s
+      ),
+      do: {:noreply, drip_end(s, :arrived)}
+
+  def handle_info(
+        {:dnc, link, {:aborted, %Command{operation: :download_execute}, _}},
+        %{link: link} = s
+      ),
+      do: {:noreply, drip_end(s, :broken)}
+
+  def handle_info({:dnc, link, :disconnected}, %{link: link, drip: %{}} = s),
+    do: {:noreply, drip_end(s, :broken)}
+
   def handle_info({:dnc, link, {:received, command, blocks}}, %{link: link} = s) do
     text = IO.iodata_to_binary(blocks)
     s = received(command, text, s)
@@ -483,6 +567,124 @@ defmodule Vws.Sim.GE2000 do
       true -> {:error, :bad_name}
     end
   end
+
+  ## Drip feed (E, download and execute): the block buffer
+  #
+  # Text blocks of an E transmission arrive into the buffer (`memory` bytes; the link answers
+  # WACK once less than a block's room is left, see Vws.DNC.Session) and the program runs out
+  # of it at `feed_rate` characters a second, every `tick` ms; what ran is given back to the
+  # link as credit. The buffer running empty while more is to come is an underrun (the machine
+  # would dwell); the feed broken off stops the machine (alarm 7, program incomplete).
+
+  defp drip_block(%{drip: nil} = s, command, text) do
+    Logger.info("GE-2000 simulator: drip feed of #{String.trim(command.text)} started")
+
+    drip = %{
+      program: String.trim(command.text),
+      state: :feeding,
+      received: 0,
+      ran: 0,
+      fill: 0,
+      max_fill: 0,
+      blocks: 0,
+      underruns: 0,
+      starved_ms: 0,
+      empty_since: nil,
+      owed: 0.0,
+      crc: 0,
+      tail: "",
+      last_tick: now_ms()
+    }
+
+    Process.send_after(self(), :drip_tick, s.tick)
+    drip_block(%{alarm(s, :none) | drip: drip, active: true}, command, text)
+  end
+
+  defp drip_block(%{drip: drip} = s, _command, text) do
+    fill = drip.fill + byte_size(text)
+
+    drip =
+      %{
+        drip
+        | received: drip.received + byte_size(text),
+          fill: fill,
+          max_fill: max(drip.max_fill, fill),
+          blocks: drip.blocks + 1,
+          crc: Vws.CRC16.compute(text, drip.crc),
+          tail: text
+      }
+      |> fed()
+
+    %{s | drip: drip}
+  end
+
+  # the buffer got bytes again: an underrun (if any) is over
+  defp fed(%{empty_since: nil} = drip), do: drip
+
+  defp fed(drip),
+    do: %{drip | empty_since: nil, starved_ms: drip.starved_ms + now_ms() - drip.empty_since}
+
+  defp drip_tick(%{drip: nil} = s), do: s
+
+  defp drip_tick(%{drip: drip} = s) do
+    now = now_ms()
+    owed = drip.owed + s.feed_rate * (now - drip.last_tick) / 1000
+    ran = min(drip.fill, trunc(owed))
+    owed = if ran == drip.fill, do: 0.0, else: owed - ran
+    drip = %{drip | fill: drip.fill - ran, ran: drip.ran + ran, owed: owed, last_tick: now}
+    if ran > 0, do: DNC.grant(s.link, ran)
+
+    drip =
+      cond do
+        drip.fill > 0 or drip.empty_since != nil -> drip
+        drip.state == :feeding -> %{drip | empty_since: now, underruns: drip.underruns + 1}
+        true -> drip
+      end
+
+    if drip.state == :draining and drip.fill == 0 do
+      finish_drip(s, drip, :done)
+    else
+      Process.send_after(self(), :drip_tick, s.tick)
+      %{s | drip: drip}
+    end
+  end
+
+  defp drip_end(%{drip: nil} = s, _how), do: s
+
+  defp drip_end(%{drip: drip} = s, :broken), do: finish_drip(s, fed(drip), :broken)
+
+  defp drip_end(%{drip: drip} = s, :arrived) do
+    if String.ends_with?(drip.tail, "%\n") or String.ends_with?(drip.tail, "%") do
+      %{s | drip: %{fed(drip) | state: :draining}}
+    else
+      Logger.warning("GE-2000 simulator: drip feed ended without the closing %: stopped")
+      finish_drip(s, fed(drip), :broken)
+    end
+  end
+
+  defp finish_drip(s, drip, how) do
+    Logger.info("GE-2000 simulator: drip feed of #{drip.program} #{how}")
+
+    Vws.Telemetry.execute([:vws, :sim, :ge2000, :drip_feed], %{bytes: drip.received}, %{
+      workstation: s.workstation,
+      program: drip.program,
+      result: how,
+      underruns: drip.underruns
+    })
+
+    s = if how == :broken, do: alarm(s, :incomplete), else: s
+    %{s | drip: nil, last_drip: %{drip | state: how}, active: false}
+  end
+
+  defp drip_info(nil, _s), do: nil
+
+  defp drip_info(drip, s) do
+    drip
+    |> Map.drop([:owed, :tail, :last_tick, :empty_since])
+    |> Map.merge(%{memory: s.memory, feed_rate: s.feed_rate})
+  end
+
+  defp now_ms, do: System.monotonic_time(:millisecond)
 
   ## The machine
 
