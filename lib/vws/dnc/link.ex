@@ -40,6 +40,9 @@ defmodule Vws.DNC.Link do
     backoff_max: 5_000
   ]
 
+  # the transfers whose progress is published: NC programs (not the status reads)
+  @programs [:part_program, :download_execute]
+
   @doc false
   def defaults, do: @defaults
 
@@ -309,8 +312,6 @@ defmodule Vws.DNC.Link do
 
   ## Progress of an NC program's transfer: telemetry and the workstation's :dnc_progress event
 
-  @programs [:part_program, :download_execute]
-
   defp publish_progress(data) do
     progress =
       case Vws.DNC.Progress.of(data.session, now()) do
@@ -322,8 +323,8 @@ defmodule Vws.DNC.Link do
       {nil, nil} ->
         data
 
-      {last, nil} ->
-        publish(data, %{last | eta_s: nil}, true)
+      {_last, nil} ->
+        # its end was told by the core's {:transfer_end, …}
         %{data | progress: nil}
 
       {last, p} ->
@@ -335,7 +336,8 @@ defmodule Vws.DNC.Link do
   end
 
   # the payload of {:vws_event, ws, :dnc_progress, payload}, documented in Vws.DNC
-  defp publish(data, p, ended?) do
+  # ended: false while it runs; at its end, its result (:ok or the reason it failed)
+  defp publish(data, p, ended) do
     payload = %{
       link: data.name,
       program: p.program,
@@ -348,7 +350,7 @@ defmodule Vws.DNC.Link do
       chars_per_s: p.chars_per_s,
       eta_s: p.eta_s,
       retries: p.retries,
-      ended: ended?
+      ended: ended
     }
 
     emit(
@@ -407,6 +409,18 @@ defmodule Vws.DNC.Link do
   defp carry_out({:log, level, message}, acc) do
     Logger.log(level, message)
     acc
+  end
+
+  defp carry_out({:transfer_end, t, result}, {data, actions}) do
+    case t.command do
+      %{operation: op} when op in @programs ->
+        publish(data, Vws.DNC.Progress.describe(t, now()), result)
+
+      _ ->
+        :ok
+    end
+
+    {data, actions}
   end
 
   defp carry_out(:peer_alive, {data, actions}),

@@ -26,7 +26,9 @@ defmodule Vws.DNC.Progress do
     end
   end
 
-  defp describe(t, now) do
+  @doc "The progress of a `Vws.DNC.Session.transfer/1` at `now`."
+  @spec describe(map, integer) :: map
+  def describe(t, now) do
     started_ms = System.convert_time_unit(t.started, :native, :millisecond)
     elapsed = max(System.convert_time_unit(now - t.started, :native, :millisecond), 1)
     rate = t.bytes * 1000 / elapsed

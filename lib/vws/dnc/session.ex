@@ -20,6 +20,8 @@ defmodule Vws.DNC.Session do
     * `{:telemetry, event, measurements, metadata}` — `[:vws, :dnc, event]`
     * `{:log, level, message}`
     * `:peer_alive` — a frame came from the peer (the connection works)
+    * `{:transfer_end, transfer, result}` — the transfer under way is over (`transfer/1` as it
+      ended; `result` `:ok` or the reason it failed)
 
   Times are `now`, monotonic native units, given by the caller.
 
@@ -542,6 +544,7 @@ defmodule Vws.DNC.Session do
 
   # Our EOT is sent: a request of direction S is done; one of direction R turns the line round.
   defp finish_tx(%{tx: tx} = s, now) do
+    s = transfer_end(s, :ok)
     s = bump(s, :transmissions)
     s = telemetry_transmission(s, :ok, now)
 
@@ -702,6 +705,7 @@ defmodule Vws.DNC.Session do
   # what arrived is not a whole transmission and is never handed on as one. (An E reception
   # whose sender stops after a WACK of flow control gave up too.)
   defp end_reception(%{rx: %{sent: sent} = rx} = s, now) when sent in [:nak, :wack] do
+    s = transfer_end(s, :aborted)
     blocks = Enum.reverse(rx.blocks)
     s = log(s, :warning, "DNC: the peer gave up its transmission after #{rx.count} blocks")
     s = %{s | credit: :infinity}
@@ -717,6 +721,7 @@ defmodule Vws.DNC.Session do
   end
 
   defp end_reception(%{rx: rx} = s, now) do
+    s = transfer_end(s, :ok)
     blocks = Enum.reverse(rx.blocks)
     s = bump(%{s | credit: :infinity}, :receptions)
 
@@ -758,6 +763,7 @@ defmodule Vws.DNC.Session do
 
   # Ends what is in progress with an error: the caller gets it, the owner is told, all is logged.
   defp fail(s, reason, block, count, now) do
+    s = transfer_end(s, reason)
     error = %LinkError{reason: reason, block: block, count: count}
     s = log(s, :warning, "DNC transmission failed: " <> Exception.message(error))
     s = bump(s, :failures)
@@ -816,6 +822,14 @@ defmodule Vws.DNC.Session do
       blocks: tuple_size(tx.frames),
       bytes: tx.bytes
     })
+  end
+
+  # the transfer under way ends (told once, with its last figures)
+  defp transfer_end(s, result) do
+    case transfer(s) do
+      nil -> s
+      t -> event(s, {:transfer_end, t, result})
+    end
   end
 
   defp event(s, e), do: %{s | events: [e | s.events]}
