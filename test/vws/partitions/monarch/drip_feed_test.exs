@@ -146,6 +146,16 @@ defmodule Vws.Partitions.Monarch.DripFeedTest do
     :ok = Vws.Events.subscribe(ctx.ws, :dnc_progress)
     send_monarch(ctx.peer, 1, "DRIP_FEED")
     assert eventually(fn -> DNC.progress(ctx.link) != nil end)
+    # the dashboard's progress bar
+    assert eventually(fn ->
+             Enum.any?(Vws.Web.State.build().workstations, fn w ->
+               Enum.any?(
+                 Map.get(w, :transfers, []),
+                 &(&1.kind == "DRIP_FEED" and &1.percent >= 0)
+               )
+             end)
+           end)
+
     assert finished(ctx.peer) == "0001DONE"
 
     events = collect_progress([])
