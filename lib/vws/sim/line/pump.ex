@@ -21,8 +21,11 @@ defmodule Vws.Sim.Line.Pump do
   alias Vws.Sim.Line.{Counters, Faults, Schedule}
   alias Vws.Transport
 
-  # Shortest wait between two deliveries while pacing: at 9600 Bd about 10 bytes a time.
-  @min_tick_us 10_000
+  # Shortest wait between two deliveries while pacing: one character's time on the line, within
+  # 1..10 ms — so a short reply (an acknowledgement) comes out when its last bit would, not up
+  # to 10 ms late, which a stop-and-wait protocol pays on every block.
+  @min_tick_us 1_000
+  @max_tick_us 10_000
 
   def start_link(args), do: GenServer.start_link(__MODULE__, args)
 
@@ -160,10 +163,21 @@ defmodule Vws.Sim.Line.Pump do
       nil -> :ok
     end
 
-    at = max(next, now + @min_tick_us)
+    at = max(next, now + min_tick_us(state.schedule))
     tag = make_ref()
     timer = Process.send_after(self(), {:tick, tag}, div(at - now + 999, 1000))
     %{state | tick: {tag, timer, at}}
+  end
+
+  defp min_tick_us(schedule) do
+    case Schedule.settings(schedule)[:baud] do
+      nil ->
+        @max_tick_us
+
+      baud ->
+        char_us = div(Schedule.bits_per_byte(schedule) * 1_000_000, baud)
+        char_us |> max(@min_tick_us) |> min(@max_tick_us)
+    end
   end
 
   defp rearm(state) do
