@@ -63,7 +63,8 @@ defmodule Vws.Sim.Line.Pump do
       tick: nil,
       cut_timer: nil,
       reported: false,
-      dest_failed: false
+      dest_failed: false,
+      lateness: Map.get(args, :lateness)
     }
 
     {:ok, state}
@@ -122,7 +123,7 @@ defmodule Vws.Sim.Line.Pump do
         before = Faults.counters(state.faults)
         {out, faults} = Faults.apply(bytes, state.faults)
         Counters.add_faults(state.counters, state.dir, before, Faults.counters(faults))
-        schedule = Schedule.push(state.schedule, out, now())
+        schedule = Schedule.push(state.schedule, out, reaction_time(state))
         Counters.add(state.counters, state.dir, :queued, byte_size(out))
         pump(%{state | faults: faults, schedule: schedule})
       end
@@ -135,6 +136,8 @@ defmodule Vws.Sim.Line.Pump do
     {out, count, next, schedule} = Schedule.take(state.schedule, now)
     state = %{state | schedule: schedule}
     Counters.add(state.counters, state.dir, :queued, -count)
+
+    if count > 0, do: note_lateness(state, now)
 
     state =
       if count > 0 do
@@ -167,6 +170,37 @@ defmodule Vws.Sim.Line.Pump do
     tag = make_ref()
     timer = Process.send_after(self(), {:tick, tag}, div(at - now + 999, 1000))
     %{state | tick: {tag, timer, at}}
+  end
+
+  # A paced line is a model in time: bytes that came out of one direction late (our timer fired
+  # late, the scheduler was busy) reached the far end late, so what the far end sends in reply
+  # is taken to have started that much earlier — never before those bytes were due. Without
+  # this every block of a stop-and-wait protocol would pay the machine's timer lateness twice.
+  defp note_lateness(%{lateness: nil}, _now), do: :ok
+
+  defp note_lateness(%{lateness: ref, schedule: schedule, dir: dir}, now) do
+    case Schedule.last_due(schedule) do
+      nil ->
+        :ok
+
+      due ->
+        base = if dir == :to_target, do: 1, else: 3
+        :atomics.put(ref, base, due)
+        :atomics.put(ref, base + 1, max(now - due, 0))
+    end
+  end
+
+  defp reaction_time(%{lateness: nil}), do: now()
+
+  defp reaction_time(%{lateness: ref, dir: dir, schedule: schedule}) do
+    now = now()
+    base = if dir == :to_target, do: 3, else: 1
+
+    case {Schedule.settings(schedule)[:baud], :atomics.get(ref, base + 1)} do
+      {nil, _} -> now
+      {_baud, -1} -> now
+      {_baud, late} -> max(now - late, :atomics.get(ref, base))
+    end
   end
 
   defp min_tick_us(schedule) do
