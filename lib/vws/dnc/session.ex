@@ -414,6 +414,8 @@ defmodule Vws.DNC.Session do
 
   defp timeout(:receiving, :receive, s, now) do
     count = s.rx.count
+    # an E reception's blocks were handed on as they came: its owner learns it broke off
+    s = if streamed?(s.rx), do: notify(s, {:aborted, s.rx.command, []}), else: s
     s = fail(s, :receive_timeout, nil, count, now)
     %{s | state: :idle, rx: nil, credit: :infinity}
   end

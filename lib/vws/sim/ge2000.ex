@@ -165,9 +165,10 @@ defmodule Vws.Sim.GE2000 do
   def end_cycle(sim), do: GenServer.call(sim, :end_cycle)
 
   @doc """
-  The machine's state: `%{state, selected, alarm, directory, cycles, downloads}` — `cycles` the
-  cycles started, `downloads` the part programs received and filed (`SNS`/`SCS`), so a test can
-  count what the machine was made to do.
+  The machine's state: `%{state, selected, alarm, directory, cycles, downloads, drips}` —
+  `cycles` the cycles started, `downloads` the part programs received and filed (`SNS`/`SCS`),
+  `drips` the drip feeds started (`SNE`/`SCE`), so a test can count what the machine was made
+  to do.
   """
   @spec state(GenServer.server()) :: map
   def state(sim), do: GenServer.call(sim, :state)
@@ -233,6 +234,7 @@ defmodule Vws.Sim.GE2000 do
       alarm: 0,
       cycles: 0,
       downloads: 0,
+      drips: 0,
       cycle_time: Keyword.get(opts, :cycle_time, 5_000),
       plant: Keyword.get(opts, :plant),
       # false: a machine that files whatever arrived (as the old one did), for tests that show
@@ -366,7 +368,8 @@ defmodule Vws.Sim.GE2000 do
        alarm: s.alarm,
        directory: s.programs |> Map.keys() |> Enum.sort(),
        cycles: s.cycles,
-       downloads: s.downloads
+       downloads: s.downloads,
+       drips: s.drips
      }, s}
   end
 
@@ -380,10 +383,16 @@ defmodule Vws.Sim.GE2000 do
   def handle_cast({:cycle_start_input, false}, s), do: {:noreply, s}
 
   @impl true
+  # the first text block (the command block was 1) starts a new drip feed
+  def handle_info({:dnc, link, {:block, %Command{} = command, 2, text}}, %{link: link} = s),
+    do: {:noreply, s |> drip_end(:broken) |> drip_block(command, text)}
+
   def handle_info({:dnc, link, {:block, %Command{} = command, _index, text}}, %{link: link} = s),
     do: {:noreply, drip_block(s, command, text)}
 
-  def handle_info(:drip_tick, s), do: {:noreply, drip_tick(s)}
+  # (a tick of a drip feed that has ended is dropped: one tick chain per feed)
+  def handle_info({:drip_tick, n}, %{drips: n} = s), do: {:noreply, drip_tick(s)}
+  def handle_info({:drip_tick, _ended}, s), do: {:noreply, s}
 
   def handle_info(
         {:dnc, link, {:received, %Command{operation: :download_execute}, _}},
@@ -596,8 +605,9 @@ defmodule Vws.Sim.GE2000 do
       last_tick: now_ms()
     }
 
-    Process.send_after(self(), :drip_tick, s.tick)
-    drip_block(%{alarm(s, :none) | drip: drip, active: true}, command, text)
+    Process.send_after(self(), {:drip_tick, s.drips + 1}, s.tick)
+    s = %{alarm(s, :none) | drip: drip, active: true, drips: s.drips + 1}
+    drip_block(s, command, text)
   end
 
   defp drip_block(%{drip: drip} = s, _command, text) do
@@ -644,7 +654,7 @@ defmodule Vws.Sim.GE2000 do
     if drip.state == :draining and drip.fill == 0 do
       finish_drip(s, drip, :done)
     else
-      Process.send_after(self(), :drip_tick, s.tick)
+      Process.send_after(self(), {:drip_tick, s.drips}, s.tick)
       %{s | drip: drip}
     end
   end
