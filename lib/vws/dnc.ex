@@ -201,7 +201,8 @@ defmodule Vws.DNC do
   @doc """
   The link's state (`:disconnected`, `:idle`, `:bidding`, `:sending`, `:turnaround` — waiting for
   the peer's bid after our `R` command —, `:receiving`, `:answering` — the owner preparing the
-  answer to the peer's `R` command), role, endpoint, peer, tap, block size, counters and the
+  answer to the peer's `R` command), role, endpoint, peer, fault (a simulator's, `:none`), block
+  size, counters and the
   transfer under way (`progress/1`).
   """
   @spec info(link) :: map

@@ -212,7 +212,7 @@ defmodule Vws.DNC.Link do
       role: data.role,
       endpoint: data.endpoint,
       peer: data.peer,
-      tap: data.tap && elem(data.tap, 0),
+      fault: tap_fault(data.tap),
       max_text: data.limits.max_text,
       counters: Session.counters(session),
       transfer: Vws.DNC.Progress.of(session, now())
@@ -283,6 +283,13 @@ defmodule Vws.DNC.Link do
   def handle_event(type, content, state, data) do
     Logger.debug("DNC: #{inspect({type, content}, limit: 5)} unexpected in state #{state}")
     {:keep_state, %{data | session: Session.unexpected(data.session)}}
+  end
+
+  # what a simulator's tap says it does to the line (`describe/1`), for info/1
+  defp tap_fault(nil), do: :none
+
+  defp tap_fault({mod, state}) do
+    if function_exported?(mod, :describe, 1), do: mod.describe(state), else: mod
   end
 
   ## The core's results

@@ -31,6 +31,11 @@ defmodule Vws.Sim.GE2000.Faults do
   @spec tap(fault) :: {module, map}
   def tap(fault), do: {__MODULE__, %{fault: fault, done: 0, corrupted: nil}}
 
+  @doc "The fault, as `Vws.DNC.info/1` shows it."
+  @spec describe(map) :: term
+  def describe(%{fault: {:bid_contention, _blocks}}), do: :bid_contention
+  def describe(%{fault: fault}), do: fault
+
   @doc false
   def outgoing(%{fault: :silent} = st, _bytes, _transfer), do: {st, []}
 
