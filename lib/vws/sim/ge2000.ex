@@ -289,7 +289,9 @@ defmodule Vws.Sim.GE2000 do
   defp paced_line(%{baud: nil} = s, _bound), do: {:ok, s}
 
   defp paced_line(s, bound) do
-    case Vws.Sim.Line.start_link(listen: s.endpoint, target: bound, faults: [baud: s.baud]) do
+    line = [listen: s.endpoint, target: bound, faults: [baud: s.baud], reply_slack: 5]
+
+    case Vws.Sim.Line.start_link(line) do
       {:ok, line} -> {:ok, %{s | line: line, bound: to_string(Vws.Sim.Line.endpoint(line))}}
       {:error, reason} -> {:error, reason}
     end

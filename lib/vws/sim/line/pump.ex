@@ -64,7 +64,8 @@ defmodule Vws.Sim.Line.Pump do
       cut_timer: nil,
       reported: false,
       dest_failed: false,
-      lateness: Map.get(args, :lateness)
+      lateness: Map.get(args, :lateness),
+      reply_slack: Map.get(args, :reply_slack, 0) * 1_000
     }
 
     {:ok, state}
@@ -176,6 +177,8 @@ defmodule Vws.Sim.Line.Pump do
   # late, the scheduler was busy) reached the far end late, so what the far end sends in reply
   # is taken to have started that much earlier — never before those bytes were due. Without
   # this every block of a stop-and-wait protocol would pay the machine's timer lateness twice.
+  # The target's reply within `reply_slack` of its bytes coming out starts when they were due.
+  # (atomics: due, lateness, delivered at — to_target in 1..3, to_client in 4..6)
   defp note_lateness(%{lateness: nil}, _now), do: :ok
 
   defp note_lateness(%{lateness: ref, schedule: schedule, dir: dir}, now) do
@@ -184,22 +187,32 @@ defmodule Vws.Sim.Line.Pump do
         :ok
 
       due ->
-        base = if dir == :to_target, do: 1, else: 3
+        base = if dir == :to_target, do: 1, else: 4
         :atomics.put(ref, base, due)
         :atomics.put(ref, base + 1, max(now - due, 0))
+        :atomics.put(ref, base + 2, now)
     end
   end
 
   defp reaction_time(%{lateness: nil}), do: now()
 
-  defp reaction_time(%{lateness: ref, dir: dir, schedule: schedule}) do
+  defp reaction_time(%{lateness: ref, dir: dir, schedule: schedule} = state) do
     now = now()
-    base = if dir == :to_target, do: 3, else: 1
+    base = if dir == :to_target, do: 4, else: 1
 
     case {Schedule.settings(schedule)[:baud], :atomics.get(ref, base + 1)} do
-      {nil, _} -> now
-      {_baud, -1} -> now
-      {_baud, late} -> max(now - late, :atomics.get(ref, base))
+      {nil, _} ->
+        now
+
+      {_baud, -1} ->
+        now
+
+      {_baud, late} ->
+        due = :atomics.get(ref, base)
+
+        if dir == :to_client and now - :atomics.get(ref, base + 2) <= state.reply_slack,
+          do: due,
+          else: max(now - late, due)
     end
   end
 

@@ -125,8 +125,8 @@ defmodule Vws.Sim.Line.Session do
     }
 
     # where each direction tells the other how late its last bytes came out (see Pump)
-    lateness = :atomics.new(4, signed: true)
-    for i <- [2, 4], do: :atomics.put(lateness, i, -1)
+    lateness = :atomics.new(6, signed: true)
+    for i <- [2, 5], do: :atomics.put(lateness, i, -1)
 
     pumps =
       Map.new(legs, fn {dir, {source, dest}} ->
@@ -140,7 +140,8 @@ defmodule Vws.Sim.Line.Session do
             max_queue: state.max_queue,
             faults: state.faults[dir],
             seed: {state.seed, state.index, dir},
-            lateness: lateness
+            lateness: lateness,
+            reply_slack: Map.get(state, :reply_slack, 0)
           })
 
         :ok = Transport.controlling_process(source, pid)
