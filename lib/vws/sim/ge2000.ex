@@ -44,7 +44,9 @@ defmodule Vws.Sim.GE2000 do
       a `tty:` line has the pace of its device)
     * `:link` — further `Vws.DNC` options (limits, `max_text`)
     * `:memory` — the block buffer of a drip feed, bytes (8 192); `:feed_rate` — characters a
-      second a drip-fed program runs at (400); `:tick` — ms between the buffer's steps (20)
+      second a drip-fed program runs at (400); `:start_fill` — bytes buffered before the
+      program starts to run (half the memory; all of a shorter program); `:tick` — ms between
+      the buffer's steps (20)
 
   ## Drip feed and the operator's programs (ours, docs/dnc-drip-feed.md)
 
@@ -223,6 +225,7 @@ defmodule Vws.Sim.GE2000 do
       line: nil,
       memory: memory,
       feed_rate: Keyword.get(opts, :feed_rate, @default_feed_rate),
+      start_fill: Keyword.get(opts, :start_fill, div(memory, 2)),
       tick: Keyword.get(opts, :tick, 20),
       drip: nil,
       last_drip: nil,
@@ -604,6 +607,7 @@ defmodule Vws.Sim.GE2000 do
       owed: 0.0,
       crc: 0,
       tail: "",
+      running: false,
       last_tick: now_ms()
     }
 
@@ -638,7 +642,16 @@ defmodule Vws.Sim.GE2000 do
 
   defp drip_tick(%{drip: nil} = s), do: s
 
+  # The control buffers before it runs: it starts once `start_fill` bytes (half its memory by
+  # default) are in, or the whole program if it is shorter.
+  defp drip_tick(%{drip: %{running: false} = drip} = s)
+       when drip.fill < s.start_fill and drip.state == :feeding do
+    Process.send_after(self(), {:drip_tick, s.drips}, s.tick)
+    %{s | drip: %{drip | last_tick: now_ms()}}
+  end
+
   defp drip_tick(%{drip: drip} = s) do
+    drip = %{drip | running: true}
     now = now_ms()
     owed = drip.owed + s.feed_rate * (now - drip.last_tick) / 1000
     ran = min(drip.fill, trunc(owed))
@@ -692,7 +705,7 @@ defmodule Vws.Sim.GE2000 do
 
   defp drip_info(drip, s) do
     drip
-    |> Map.drop([:owed, :tail, :last_tick, :empty_since])
+    |> Map.drop([:owed, :tail, :last_tick, :empty_since, :running])
     |> Map.merge(%{memory: s.memory, feed_rate: s.feed_rate})
   end
 
