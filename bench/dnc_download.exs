@@ -27,9 +27,10 @@ lines =
   |> Stream.map(
     &"N#{&1 * 5} G01 X#{rem(&1 * 37, 1000)}.#{rem(&1, 10)} Y-#{rem(&1 * 11, 500)}.25 F300"
   )
+  # (the last line is the closing %: the GE-2000 files only a whole program, PROTOCOLS.md §2)
   |> Enum.reduce_while({["O4711"], 6}, fn line, {acc, bytes} ->
-    if bytes + byte_size(line) + 1 >= size,
-      do: {:halt, {[String.duplicate("9", max(size - bytes - 1, 0)) | acc], size}},
+    if bytes + byte_size(line) + 1 >= size - 2,
+      do: {:halt, {["%", String.duplicate("9", max(size - bytes - 3, 0)) | acc], size}},
       else: {:cont, {[line | acc], bytes + byte_size(line) + 1}}
   end)
   |> elem(0)

@@ -74,6 +74,7 @@ defmodule Vws.Commands do
   defp do_parse(:monarch, "STATUS"), do: {:ok, :status}
   defp do_parse(:monarch, "DOWNLOAD_HP"), do: {:ok, :download_hp}
   defp do_parse(:monarch, "DOWNLOAD_GE"), do: {:ok, :download_ge}
+  defp do_parse(:monarch, "DRIP_FEED"), do: {:ok, :drip_feed}
   defp do_parse(:monarch, "UPLOAD_SUN"), do: {:ok, :upload_sun}
 
   # ours (issue 18): a program of the library, its latest version or version v

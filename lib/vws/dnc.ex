@@ -62,11 +62,9 @@ defmodule Vws.DNC do
       2 000 ms, `max_wacks` 3, `max_contention` 3 (yields running), `response_timeout` 10 000 ms
       (after our `R` command's EOT, for the peer's bid), `receive_timeout` 10 000 ms (between
       received blocks), `answer_timeout` 5 000 ms (for the owner's `answer/3`), `max_text` 256
-      bytes per block, `max_receive` 4 MiB per received transmission.
-    * `:pace` — a baud rate: the link then models the serial line between it and its peer, so
-      received bytes are taken, and sent bytes leave, no faster than `baud / char_bits` (default
-      `char_bits` 10, 8N1) characters per second. Turn it on at one end only — the simulator's —
-      to make a TCP or pty connection behave like the 4800 Bd line.
+      bytes per block, `max_receive` 4 MiB per received transmission (not for `E`, which keeps
+      nothing), `receive_buffer` (see Drip feed).
+    Pacing and fault injection are the simulators' (`Vws.Sim.GE2000`, `Vws.Sim.Line`).
 
   ## Messages to the owner
 
@@ -82,6 +80,8 @@ defmodule Vws.DNC do
     * `{:aborted, command | nil, text_blocks}` — the peer gave its transmission up (EOT right
       after our NAK or WACK): not a whole transmission, only for the record
     * `{:answer_failed, %Vws.DNC.LinkError{}}` — an answer could not be delivered
+    * `{:block, command, index, text}` — a text block of an `E` (drip feed) transmission, as it
+      is taken (index counts the command block as 1)
 
   ## Telemetry
 
@@ -93,6 +93,33 @@ defmodule Vws.DNC do
   | `[:vws, :dnc, :block_received]` | `bytes` | `link, workstation, role, block` |
   | `[:vws, :dnc, :retry]` | `count` | `link, workstation, role, kind` (`:nak_received`, `:nak_sent`, `:wack_received`, `:no_reply`, `:lost_reply`, `:duplicate_received`, `:eot_again`), `block` |
   | `[:vws, :dnc, :transmission]` | `duration` (native), `blocks`, `bytes` | `link, workstation, role, direction, result` (+ `kind`) |
+
+  | `[:vws, :dnc, :progress]` | `blocks, bytes, chars_per_s, retries` | `link, workstation, role, program, operation, direction, total_blocks, total_bytes, eta_s, ended` (false, or `:ok`/the failure) |
+
+  ## Transfer progress
+
+  While an NC program goes over the link (`SxS`, `RxS`, `SxE` — not the status reads), every
+  block acknowledged or taken, and the transfer's end, is published: as the telemetry event
+  `[:vws, :dnc, :progress]` above and, for a link named in a workstation, as the workstation's
+  event `:dnc_progress` on `Vws.Events`:
+
+      {:vws_event, workstation, :dnc_progress,
+       %{link, program, operation, direction, blocks, total_blocks, bytes, total_bytes,
+         chars_per_s, eta_s, retries, ended}}
+
+  (`total_*` nil for a reception; `ended` false while it runs, and once, at its end, `:ok` or
+  the reason it failed, with its last figures). `progress/1`
+  (and `info/1`'s `transfer`) give the same figures on request (`Vws.DNC.Progress`).
+
+  ## Drip feed (ours)
+
+  A `download_execute` (`E`) transmission is streamed: the receiving link hands each text block
+  to its owner as `{:block, command, index, text}` when it takes it, keeps none of them, and
+  meters them against `receive_buffer` (bytes, option; `:infinity` — no flow control — by
+  default): once less than `max_text` of it is left, the block is acknowledged WACK, and so is
+  an ENQ, until the owner gives room back with `grant/2`. The sending link waits out any number
+  of WACKs in an `E` transmission (`wack_delay` apart); in any other, `max_wacks` holds. See
+  docs/dnc-drip-feed.md.
 
   `workstation` is the id in a `Vws.Workstation` name given as `:name` (`Vws.Workstation.id_of/1`), else nil.
 
@@ -114,15 +141,6 @@ defmodule Vws.DNC do
   alias Vws.DNC.{Frame, LinkError}
 
   @type link :: :gen_statem.server_ref()
-  @type fault ::
-          :none
-          | :nak_once_per_block
-          | :drop_replies
-          | {:wack, non_neg_integer}
-          | :corrupt
-          | :silent
-          | {:bid_contention, [binary]}
-
   @doc false
   def child_spec(opts) do
     %{
@@ -183,7 +201,9 @@ defmodule Vws.DNC do
   @doc """
   The link's state (`:disconnected`, `:idle`, `:bidding`, `:sending`, `:turnaround` — waiting for
   the peer's bid after our `R` command —, `:receiving`, `:answering` — the owner preparing the
-  answer to the peer's `R` command), role, endpoint, peer, fault, block size, pacing and counters.
+  answer to the peer's `R` command), role, endpoint, peer, fault (a simulator's, `:none`), block
+  size, counters and the
+  transfer under way (`progress/1`).
   """
   @spec info(link) :: map
   def info(link), do: :gen_statem.call(link, :info)
@@ -193,16 +213,37 @@ defmodule Vws.DNC do
   def max_text(link), do: info(link).max_text
 
   @doc """
-  Makes this end misbehave, for simulators and tests (`:none` to stop):
-
-    * `:nak_once_per_block` — every block received is answered NAK the first time
-    * `:drop_replies` — the first reply to every block received is lost (the peer's ENQ gets it)
-    * `{:wack, n}` — the next `n` replies are WACK (busy) instead of the acknowledgement
-    * `:corrupt` — the first copy of every block sent has its block check damaged
-    * `:silent` — nothing is sent, and what arrives is ignored (a dead peer)
-    * `{:bid_contention, blocks}` — at the peer's next bid, bid at the same moment (and send
-      `blocks` unsolicited when this end wins)
+  The transfer under way on the link, or nil: program, direction, blocks and bytes done and in
+  all, retries, characters a second and ETA (`Vws.DNC.Progress`).
   """
-  @spec set_fault(link, fault) :: :ok
-  def set_fault(link, fault), do: :gen_statem.call(link, {:set_fault, fault})
+  @spec progress(link) :: map | nil
+  def progress(link), do: info(link).transfer
+
+  @doc """
+  Bids and sends `text_blocks` without a command block, as master (waits while the link is
+  busy). For a simulated peer that sends of its own accord.
+  """
+  @spec transmit(link, [binary]) :: :ok | {:error, term}
+  def transmit(link, text_blocks) when is_list(text_blocks),
+    do: :gen_statem.call(link, {:transmit, text_blocks})
+
+  @doc """
+  Gives `bytes` back to the credit of the `E` (download and execute) reception under way: the
+  receiver has run that much of the program (see "Drip feed" above).
+  """
+  @spec grant(link, non_neg_integer) :: :ok
+  def grant(link, bytes) when is_integer(bytes) and bytes >= 0,
+    do: :gen_statem.call(link, {:grant, bytes})
+
+  @doc "Makes `pid` the link's owner, told what happens on the link (see above)."
+  @spec set_owner(link, pid | nil) :: :ok
+  def set_owner(link, pid), do: :gen_statem.call(link, {:set_owner, pid})
+
+  @doc false
+  # A tap between the protocol and the wire, `{module, state}` or nil: a simulator's fault
+  # injection (`Vws.Sim.GE2000.Faults`). `module.outgoing(state, bytes, transfer)` returns
+  # `{state, iodata}` (transfer: `Vws.DNC.Session.transfer/1` after the bytes were made);
+  # `module.incoming(state, bytes, session_state)` returns `{state, bytes, [{:transmit, blocks}]}`.
+  @spec set_tap(link, {module, term} | nil) :: :ok
+  def set_tap(link, tap), do: :gen_statem.call(link, {:set_tap, tap})
 end

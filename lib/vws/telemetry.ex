@@ -45,6 +45,8 @@ defmodule Vws.Telemetry do
   | `[:vws, :monarch, :request_again]` | `count` | `workstation, operation, reason` |
   | `[:vws, :dnc, :retry]` | `count` | `link, workstation, role, kind, block` |
   | `[:vws, :dnc, :transmission]` | `duration, blocks, bytes` | `link, workstation, role, direction, result` |
+  | `[:vws, :dnc, :progress]` | `blocks, bytes, chars_per_s, retries` | `link, workstation, role, program, direction, operation, total_blocks, total_bytes, eta_s, ended` (false, or `:ok`/the failure; an NC program's transfer: every block, and its end; `Vws.DNC.Progress`) |
+  | `[:vws, :monarch, :program_received]` | `bytes` | `workstation, program, from` (`:machine`), `result`: a program the operator sent from the machine |
   | `[:vws, :web, :request]` | `duration, bytes` | `method, path, status, port` |
   | `[:vws, :hpib, :connected]` / `:disconnected` | `count` | `bus, address, endpoint` (+ `reason`) |
   | `[:vws, :hpib, :timeout]` | `count` | `bus, address, endpoint, commands` |
@@ -63,6 +65,7 @@ defmodule Vws.Telemetry do
   | `[:vws, :sim, :val2, :command]` | `count` | `workstation, text`: every monitor command the simulated VAL II obeyed |
   | `[:vws, :sim, :ge2000, :command]` | `bytes` | `workstation, operation, name, alarm`: every S command the simulated GE-2000 took |
   | `[:vws, :sim, :ge2000, :cycle_start]` | `count` | `workstation, program`: every cycle the simulated GE-2000 started |
+  | `[:vws, :sim, :ge2000, :drip_feed]` | `bytes` | `workstation, program, result, underruns`: a drip feed the simulated GE-2000 ran to its end |
 
   `workstation` is the id of the workstation the event belongs to (nil for a link or simulator
   that serves none). The `[:vws, :sim, …]` events come from the simulators: what the simulated
@@ -110,6 +113,8 @@ defmodule Vws.Telemetry do
     [:vws, :monarch, :request_again],
     [:vws, :dnc, :retry],
     [:vws, :dnc, :transmission],
+    [:vws, :dnc, :progress],
+    [:vws, :monarch, :program_received],
     [:vws, :hpib, :connected],
     [:vws, :hpib, :disconnected],
     [:vws, :hpib, :timeout],
@@ -128,7 +133,8 @@ defmodule Vws.Telemetry do
     [:vws, :sim, :plant, :actuator],
     [:vws, :sim, :val2, :command],
     [:vws, :sim, :ge2000, :command],
-    [:vws, :sim, :ge2000, :cycle_start]
+    [:vws, :sim, :ge2000, :cycle_start],
+    [:vws, :sim, :ge2000, :drip_feed]
   ]
 
   @doc "Every event name listed in the moduledoc."

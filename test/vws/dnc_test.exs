@@ -638,22 +638,4 @@ defmodule Vws.DNCTest do
       assert DNC.info(link).state == :idle
     end
   end
-
-  test "pacing: bytes leave no faster than the baud rate allows", ctx do
-    {link, peer} = connected(ctx, pace: 4800)
-    block = String.duplicate("N10 G01 X1.0\n", 18)
-    task = request(link, @sns, [block])
-    expect(peer, @enq)
-    DNCPeer.send_raw(peer, @ack0)
-    expect(peer, @sns_bytes)
-    DNCPeer.send_raw(peer, @ack1)
-    started = System.monotonic_time(:millisecond)
-    expect(peer, text(block))
-    # 234 text bytes + STX ETX BCC take 494 ms at 480 characters a second (less a timer's 1 ms
-    # slack, and the moment between our ACK1 and the clock reading: 480 ms is a safe floor)
-    assert System.monotonic_time(:millisecond) - started >= 480
-    DNCPeer.send_raw(peer, @ack0)
-    expect(peer, @eot)
-    assert Task.await(task) == {:ok, []}
-  end
 end

@@ -10,6 +10,7 @@ defmodule Vws.Partitions.Monarch do
   | `PROGRAM_SELECT(nnnnnn)` | `SNK` + `nnnnnn.PRO` | selected for the next cycle start |
   | `PROGRAM_DELETE(nnnnnn.PRO\\|.GSU)` | `SND` + file name | deleted |
   | `TABLE(L1/…/Ln)` | `RNO` + `TOFFSET` | the offsets of lines L1…Ln → `TLI_TABLE` status `n/M1/…/Mn` |
+  | `DRIP_FEED` | `SCE` + the NC file, then `RNL` | drip feed (ours): the GE-2000 runs the program while it arrives, pausing the CEC with WACK; DONE once the whole program has reached the machine (it may still be running) |
   | `STATUS` | `RNL` | `MONARCH` status `ACTIVE` or `IDLE` |
   | `CYCLE_START` | (DAQ #1 relay) then `RNL` | DONE once the machine reports ACTIVE |
   | `RELEASE_TABLE` | `RNL` | clears the table interlock; refused `ERROR MACHINE ACTIVE` |
@@ -80,6 +81,8 @@ defmodule Vws.Partitions.Monarch do
   """
   # a request the line broke off is made again (see send_request/5): this many tries in all
   @request_tries 3
+  # a delete finds no file the second time; a drip-fed program has run in part
+  @not_again [:delete, :download_execute]
   @broken_off [:nak_limit, :no_reply, :aborted, :no_response, :receive_timeout, :no_answer_to_bid]
 
   @behaviour Vws.Partition
@@ -134,6 +137,25 @@ defmodule Vws.Partitions.Monarch do
          {:ok, _} <- request(ctx, :send, :part_program, file, Frame.split_text(text, max_text)),
          {:ok, _report} <- verify(ctx, "DOWNLOAD OF #{file} FAILED", fn _ -> true end),
          :ok <- verify_directory(ctx, file, text) do
+      :done
+    end
+  end
+
+  # Drip feed (ours, docs/dnc-drip-feed.md): the NC file goes as one E (download and execute)
+  # transmission that the machine runs while it arrives, pausing the CEC with WACK when its
+  # buffer is full. Never made again when the line breaks it off: the machine has run part of it.
+  def execute(:drip_feed, ctx) do
+    lines = Mailbox.nc_file(ctx.workstation)
+
+    with :ok <- if(lines == [], do: {:error, "NO NC FILE"}, else: :ok),
+         {:ok, file} <- program_file(lines),
+         :ok <- sendable(lines),
+         text = Program.to_text(lines),
+         :ok <- if(Program.complete?(text), do: :ok, else: {:error, "NC FILE HAS NO CLOSING %"}),
+         {:ok, max_text} <- max_text(ctx),
+         blocks = Frame.split_text(text, max_text),
+         {:ok, _} <- request(ctx, :send, :download_execute, file, blocks),
+         {:ok, _report} <- verify(ctx, "DRIP FEED OF #{file} FAILED", fn _ -> true end) do
       :done
     end
   end
@@ -407,6 +429,55 @@ defmodule Vws.Partitions.Monarch do
     status_report(%{workstation: ws, link: link, options: options})
   end
 
+  @doc """
+  A program the operator sent from the machine (auto-receive, ours: docs/dnc-drip-feed.md): the
+  GE-2000 bid and sent `SCS`/`SNS` + `name` and the program's text unasked. A whole program
+  (ending in its `%` line, no control characters) is handed to `store` — by default
+  `store_from_machine/3`, which keeps it as NC_UP, the program from the machine — and counted
+  (`[:vws, :monarch, :program_received]`, `from: :machine`); anything else is refused and
+  logged. This is the one place a received program is handed over (the program library takes it
+  here).
+  """
+  @spec received_program(
+          Mailbox.workstation(),
+          String.t(),
+          binary,
+          (term, String.t(), [binary] ->
+             :ok | {:error, term})
+        ) ::
+          :ok | {:error, String.t()}
+  def received_program(ws, name, text, store \\ &store_from_machine/3) do
+    lines = Program.from_text(text)
+
+    result =
+      cond do
+        not Program.complete?(text) -> {:error, "PROGRAM INCOMPLETE"}
+        Program.check_lines(lines) != :ok -> {:error, "PROGRAM HOLDS A CONTROL CHARACTER"}
+        true -> store.(ws, name, lines)
+      end
+
+    Vws.Telemetry.execute([:vws, :monarch, :program_received], %{bytes: byte_size(text)}, %{
+      workstation: ws,
+      program: name,
+      from: :machine,
+      result: if(result == :ok, do: :ok, else: :error)
+    })
+
+    case result do
+      :ok -> :ok
+      {:error, reason} when is_binary(reason) -> {:error, reason}
+      {:error, reason} -> {:error, "NOT STORED #{inspect(reason)}"}
+    end
+  end
+
+  @doc "Keeps a program received from the machine as NC_UP (the program from the machine tool)."
+  @spec store_from_machine(Mailbox.workstation(), String.t(), [binary]) :: :ok | {:error, term}
+  def store_from_machine(ws, name, lines) do
+    require Logger
+    Logger.info("MONARCH: program #{name} received from the machine (#{length(lines)} lines)")
+    Mailbox.put_nc_up(ws, lines)
+  end
+
   # RNL → the report; every report read refreshes the MONARCH device status.
   defp status_report(ctx) do
     with {:ok, blocks} <- request(ctx, :receive, :status, "", []) do
@@ -447,7 +518,7 @@ defmodule Vws.Partitions.Monarch do
         {:ok, blocks}
 
       {:error, %LinkError{reason: reason}}
-      when tries > 1 and reason in @broken_off and command.operation != :delete ->
+      when tries > 1 and reason in @broken_off and command.operation not in @not_again ->
         Vws.Telemetry.execute([:vws, :monarch, :request_again], %{count: 1}, %{
           workstation: ctx.workstation,
           operation: command.operation,

@@ -38,13 +38,28 @@ defmodule Vws.Sim.GE2000 do
       `:cycle_time` (5 000 ms), `:plant` (`(event -> any)`)
     * `:allow` — who may connect (`Vws.Transport.Policy`; default loopback only)
     * `:pace` — `false` (default), `true` (4 800 Bd, the seed's line) or a baud rate: the
-      simulator then paces the line like the real serial link (see `Vws.DNC`, option `:pace`)
+      simulator then paces the line like the real serial link — a `Vws.Sim.Line` at that baud
+      rate (8N1: 10 bits a character) stands in front of its link, where the CEC dials, so
+      both directions carry no more than `baud / 10` characters a second (listening endpoints;
+      a `tty:` line has the pace of its device)
     * `:link` — further `Vws.DNC` options (limits, `max_text`)
+    * `:memory` — the block buffer of a drip feed, bytes (8 192); `:feed_rate` — characters a
+      second a drip-fed program runs at (400); `:start_fill` — bytes buffered before the
+      program starts to run (half the memory; all of a shorter program); `:tick` — ms between
+      the buffer's steps (20)
+
+  ## Drip feed and the operator's programs (ours, docs/dnc-drip-feed.md)
+
+  An `SNE`/`SCE` (download and execute) transmission is run while it arrives: its text blocks go
+  into the block buffer and run out of it at `feed_rate`; when the buffer has less than a
+  block's room the link answers WACK, and acknowledges once the program has run enough of it
+  (`drip/1`). `send_program/2` is the operator sending a program from the control panel to the
+  CEC, unasked.
 
   ## Faults (`set_fault/2`, at run time)
 
   `:nak_once_per_block`, `:drop_replies`, `{:wack, n}`, `:corrupt`, `:silent` (see
-  `Vws.DNC.set_fault/2`), `:bid_contention` (at the CEC's next bid the GE-2000 bids at the same
+  `Vws.Sim.GE2000.Faults`), `:bid_contention` (at the CEC's next bid the GE-2000 bids at the same
   moment, wins, and sends its status report unsolicited), `{:file_as, fun}` (a program received
   whole is filed as `fun.(text)`: a machine that keeps other bytes than it was sent, as a damage
   the block check missed would leave; `:none` ends it too) and `:none`.
@@ -61,8 +76,12 @@ defmodule Vws.Sim.GE2000 do
   alias Vws.DNC
   alias Vws.DNC.{Frame, Program, Report}
   alias Vws.DNC.Frame.Command
+  alias Vws.Sim.GE2000.Faults
 
   @default_baud 4800
+  # drip feed: the block buffer, and how fast a program runs out of it (characters a second)
+  @default_memory 8_192
+  @default_feed_rate 400
   @alarms %{
     none: 0,
     no_file: 1,
@@ -96,6 +115,45 @@ defmodule Vws.Sim.GE2000 do
   @spec link(GenServer.server()) :: pid
   def link(sim), do: GenServer.call(sim, :link)
 
+  @doc """
+  The operator at the machine sends program `name` from its directory to the CEC, unasked: the
+  GE-2000 bids with `ENQ DEL` and sends `SCS` + `name` and the program's text blocks (ours,
+  docs/dnc-drip-feed.md). Returns when the transmission is over: `:ok`, `{:error, :no_file}` or
+  the link's error. Waits while the line is busy (the CEC's command goes first).
+  """
+  @spec send_program(GenServer.server(), String.t(), timeout) :: :ok | {:error, term}
+  def send_program(sim, name, timeout \\ 60_000) do
+    case GenServer.call(sim, {:program_to_send, name}) do
+      {:ok, link, command, blocks} ->
+        case DNC.request(link, command, blocks, timeout) do
+          {:ok, _} -> :ok
+          error -> error
+        end
+
+      error ->
+        error
+    end
+  end
+
+  @doc """
+  The drip feed under way or the last one (nil if none): `%{program, state, received, ran,
+  fill, max_fill, memory, feed_rate, blocks, underruns, starved_ms, crc}` —
+  `state` `:feeding` (the program runs while it arrives), `:draining` (all arrived, the buffer
+  still runs), `:done`, `:broken` (the feed broke off: the machine stopped, alarm 7);
+  `underruns` how often the buffer ran empty while more was to come, `crc` the CRC-16/ARC of
+  all text received so far.
+  """
+  @spec drip(GenServer.server()) :: map | nil
+  def drip(sim), do: GenServer.call(sim, :drip)
+
+  @doc "The baud rate its line is paced at, or nil (not paced)."
+  @spec baud(GenServer.server()) :: pos_integer | nil
+  def baud(sim), do: GenServer.call(sim, :baud)
+
+  @doc "The paced line (`Vws.Sim.Line`) in front of its link, or nil."
+  @spec line(GenServer.server()) :: pid | nil
+  def line(sim), do: GenServer.call(sim, :line)
+
   @doc "Makes the simulated controller misbehave (see the moduledoc); `:none` to stop."
   @spec set_fault(GenServer.server(), atom | tuple) :: :ok
   def set_fault(sim, fault), do: GenServer.call(sim, {:set_fault, fault})
@@ -109,9 +167,10 @@ defmodule Vws.Sim.GE2000 do
   def end_cycle(sim), do: GenServer.call(sim, :end_cycle)
 
   @doc """
-  The machine's state: `%{state, selected, alarm, directory, cycles, downloads}` — `cycles` the
-  cycles started, `downloads` the part programs received and filed (`SNS`/`SCS`), so a test can
-  count what the machine was made to do.
+  The machine's state: `%{state, selected, alarm, directory, cycles, downloads, drips}` —
+  `cycles` the cycles started, `downloads` the part programs received and filed (`SNS`/`SCS`),
+  `drips` the drip feeds started (`SNE`/`SCE`), so a test can count what the machine was made
+  to do.
   """
   @spec state(GenServer.server()) :: map
   def state(sim), do: GenServer.call(sim, :state)
@@ -149,7 +208,10 @@ defmodule Vws.Sim.GE2000 do
         baud when is_integer(baud) -> baud
       end
 
-    link_opts = Keyword.merge(Keyword.get(opts, :link, []), role: :ge, owner: self(), pace: baud)
+    memory = Keyword.get(opts, :memory, @default_memory)
+
+    link_opts =
+      Keyword.merge(Keyword.get(opts, :link, []), role: :ge, owner: self(), receive_buffer: memory)
 
     s = %{
       endpoint: Keyword.get(opts, :endpoint, "tcp://127.0.0.1:0"),
@@ -159,6 +221,14 @@ defmodule Vws.Sim.GE2000 do
       acceptor: nil,
       link_opts: link_opts,
       link: nil,
+      baud: baud,
+      line: nil,
+      memory: memory,
+      feed_rate: Keyword.get(opts, :feed_rate, @default_feed_rate),
+      start_fill: Keyword.get(opts, :start_fill, div(memory, 2)),
+      tick: Keyword.get(opts, :tick, 20),
+      drip: nil,
+      last_drip: nil,
       max_text: Keyword.get(link_opts, :max_text, 256),
       programs: Keyword.get(opts, :programs, %{}),
       offsets: Keyword.get_lazy(opts, :offsets, &default_offsets/0),
@@ -167,6 +237,7 @@ defmodule Vws.Sim.GE2000 do
       alarm: 0,
       cycles: 0,
       downloads: 0,
+      drips: 0,
       cycle_time: Keyword.get(opts, :cycle_time, 5_000),
       plant: Keyword.get(opts, :plant),
       # false: a machine that files whatever arrived (as the old one did), for tests that show
@@ -192,18 +263,40 @@ defmodule Vws.Sim.GE2000 do
       {:noreply, %{s | link: link, bound: s.endpoint}}
     else
       {:ok, link} = DNC.start_link(s.link_opts)
+      listen = if s.baud, do: "loopback:ge2000-line-#{System.unique_integer([:positive])}"
 
-      case Vws.Transport.listen(endpoint) do
+      case Vws.Transport.listen(listen || endpoint) do
         {:ok, listener} ->
           allow = s.allow
           acceptor = spawn_link(fn -> accept_loop(listener, link, allow) end)
           bound = to_string(Vws.Transport.listener_endpoint(listener))
-          Logger.info("GE-2000 simulator listening on #{bound}")
-          {:noreply, %{s | link: link, listener: listener, acceptor: acceptor, bound: bound}}
+          s = %{s | link: link, listener: listener, acceptor: acceptor, bound: bound}
+
+          case paced_line(s, bound) do
+            {:ok, s} ->
+              Logger.info("GE-2000 simulator listening on #{s.bound}")
+              {:noreply, s}
+
+            {:error, reason} ->
+              {:stop, {:cannot_listen, s.endpoint, reason}, s}
+          end
 
         {:error, reason} ->
           {:stop, {:cannot_listen, s.endpoint, reason}, s}
       end
+    end
+  end
+
+  # The paced line: the simulator's link listens privately, and a `Vws.Sim.Line` paced at the
+  # baud rate listens where the CEC dials, as the serial cable between them.
+  defp paced_line(%{baud: nil} = s, _bound), do: {:ok, s}
+
+  defp paced_line(s, bound) do
+    line = [listen: s.endpoint, target: bound, faults: [baud: s.baud], reply_slack: 5]
+
+    case Vws.Sim.Line.start_link(line) do
+      {:ok, line} -> {:ok, %{s | line: line, bound: to_string(Vws.Sim.Line.endpoint(line))}}
+      {:error, reason} -> {:error, reason}
     end
   end
 
@@ -240,18 +333,34 @@ defmodule Vws.Sim.GE2000 do
   @impl true
   def handle_call(:endpoint, _from, s), do: {:reply, s.bound, s}
   def handle_call(:link, _from, s), do: {:reply, s.link, s}
+  def handle_call(:line, _from, s), do: {:reply, s.line, s}
+  def handle_call(:drip, _from, s), do: {:reply, drip_info(s.drip || s.last_drip, s), s}
+
+  def handle_call({:program_to_send, name}, _from, s) do
+    with {:ok, file} <- file_name(name),
+         {:ok, text} <- Map.fetch(s.programs, file) do
+      command = %Command{direction: :send, check: :crc, operation: :part_program, text: file}
+      {:reply, {:ok, s.link, command, Frame.split_text(text, s.max_text)}, s}
+    else
+      _ -> {:reply, {:error, :no_file}, s}
+    end
+  end
+
+  def handle_call(:baud, _from, s), do: {:reply, s.baud, s}
 
   def handle_call({:set_fault, {:file_as, fun}}, _from, s) when is_function(fun, 1),
     do: {:reply, :ok, %{s | file_as: fun}}
 
   def handle_call({:set_fault, :none}, _from, s),
-    do: {:reply, DNC.set_fault(s.link, :none), %{s | file_as: nil}}
+    do: {:reply, DNC.set_tap(s.link, nil), %{s | file_as: nil}}
 
   def handle_call({:set_fault, :bid_contention}, _from, s) do
-    {:reply, DNC.set_fault(s.link, {:bid_contention, [Report.status(report(s))]}), s}
+    fault = {:bid_contention, [Report.status(report(s))]}
+    {:reply, DNC.set_tap(s.link, Faults.tap(fault)), s}
   end
 
-  def handle_call({:set_fault, fault}, _from, s), do: {:reply, DNC.set_fault(s.link, fault), s}
+  def handle_call({:set_fault, fault}, _from, s),
+    do: {:reply, DNC.set_tap(s.link, Faults.tap(fault)), s}
 
   def handle_call(:cycle_start, _from, s), do: {:reply, :ok, start_cycle(s)}
   def handle_call(:end_cycle, _from, s), do: {:reply, :ok, end_cycle_now(s)}
@@ -264,7 +373,8 @@ defmodule Vws.Sim.GE2000 do
        alarm: s.alarm,
        directory: s.programs |> Map.keys() |> Enum.sort(),
        cycles: s.cycles,
-       downloads: s.downloads
+       downloads: s.downloads,
+       drips: s.drips
      }, s}
   end
 
@@ -278,6 +388,32 @@ defmodule Vws.Sim.GE2000 do
   def handle_cast({:cycle_start_input, false}, s), do: {:noreply, s}
 
   @impl true
+  # the first text block (the command block was 1) starts a new drip feed
+  def handle_info({:dnc, link, {:block, %Command{} = command, 2, text}}, %{link: link} = s),
+    do: {:noreply, s |> drip_end(:broken) |> drip_block(command, text)}
+
+  def handle_info({:dnc, link, {:block, %Command{} = command, _index, text}}, %{link: link} = s),
+    do: {:noreply, drip_block(s, command, text)}
+
+  # (a tick of a drip feed that has ended is dropped: one tick chain per feed)
+  def handle_info({:drip_tick, n}, %{drips: n} = s), do: {:noreply, drip_tick(s)}
+  def handle_info({:drip_tick, _ended}, s), do: {:noreply, s}
+
+  def handle_info(
+        {:dnc, link, {:received, %Command{operation: :download_execute}, _}},
+        %{link: link} = s
+      ),
+      do: {:noreply, drip_end(s, :arrived)}
+
+  def handle_info(
+        {:dnc, link, {:aborted, %Command{operation: :download_execute}, _}},
+        %{link: link} = s
+      ),
+      do: {:noreply, drip_end(s, :broken)}
+
+  def handle_info({:dnc, link, :disconnected}, %{link: link, drip: %{}} = s),
+    do: {:noreply, drip_end(s, :broken)}
+
   def handle_info({:dnc, link, {:received, command, blocks}}, %{link: link} = s) do
     text = IO.iodata_to_binary(blocks)
     s = received(command, text, s)
@@ -313,7 +449,7 @@ defmodule Vws.Sim.GE2000 do
   def handle_info({:cycle_end, n}, %{cycles: n} = s), do: {:noreply, end_cycle_now(s)}
   def handle_info({:cycle_end, _earlier}, s), do: {:noreply, s}
 
-  def handle_info({:EXIT, pid, reason}, s) when pid in [s.link, s.acceptor] do
+  def handle_info({:EXIT, pid, reason}, s) when pid in [s.link, s.acceptor, s.line] do
     {:stop, reason, s}
   end
 
@@ -445,6 +581,135 @@ defmodule Vws.Sim.GE2000 do
       true -> {:error, :bad_name}
     end
   end
+
+  ## Drip feed (E, download and execute): the block buffer
+  #
+  # Text blocks of an E transmission arrive into the buffer (`memory` bytes; the link answers
+  # WACK once less than a block's room is left, see Vws.DNC.Session) and the program runs out
+  # of it at `feed_rate` characters a second, every `tick` ms; what ran is given back to the
+  # link as credit. The buffer running empty while more is to come is an underrun (the machine
+  # would dwell); the feed broken off stops the machine (alarm 7, program incomplete).
+
+  defp drip_block(%{drip: nil} = s, command, text) do
+    Logger.info("GE-2000 simulator: drip feed of #{String.trim(command.text)} started")
+
+    drip = %{
+      program: String.trim(command.text),
+      state: :feeding,
+      received: 0,
+      ran: 0,
+      fill: 0,
+      max_fill: 0,
+      blocks: 0,
+      underruns: 0,
+      starved_ms: 0,
+      empty_since: nil,
+      owed: 0.0,
+      crc: 0,
+      tail: "",
+      running: false,
+      last_tick: now_ms()
+    }
+
+    Process.send_after(self(), {:drip_tick, s.drips + 1}, s.tick)
+    s = %{alarm(s, :none) | drip: drip, active: true, drips: s.drips + 1}
+    drip_block(s, command, text)
+  end
+
+  defp drip_block(%{drip: drip} = s, _command, text) do
+    fill = drip.fill + byte_size(text)
+
+    drip =
+      %{
+        drip
+        | received: drip.received + byte_size(text),
+          fill: fill,
+          max_fill: max(drip.max_fill, fill),
+          blocks: drip.blocks + 1,
+          crc: Vws.CRC16.compute(text, drip.crc),
+          tail: text
+      }
+      |> fed()
+
+    %{s | drip: drip}
+  end
+
+  # the buffer got bytes again: an underrun (if any) is over
+  defp fed(%{empty_since: nil} = drip), do: drip
+
+  defp fed(drip),
+    do: %{drip | empty_since: nil, starved_ms: drip.starved_ms + now_ms() - drip.empty_since}
+
+  defp drip_tick(%{drip: nil} = s), do: s
+
+  # The control buffers before it runs: it starts once `start_fill` bytes (half its memory by
+  # default) are in, or the whole program if it is shorter.
+  defp drip_tick(%{drip: %{running: false} = drip} = s)
+       when drip.fill < s.start_fill and drip.state == :feeding do
+    Process.send_after(self(), {:drip_tick, s.drips}, s.tick)
+    %{s | drip: %{drip | last_tick: now_ms()}}
+  end
+
+  defp drip_tick(%{drip: drip} = s) do
+    drip = %{drip | running: true}
+    now = now_ms()
+    owed = drip.owed + s.feed_rate * (now - drip.last_tick) / 1000
+    ran = min(drip.fill, trunc(owed))
+    owed = if ran == drip.fill, do: 0.0, else: owed - ran
+    drip = %{drip | fill: drip.fill - ran, ran: drip.ran + ran, owed: owed, last_tick: now}
+    if ran > 0, do: DNC.grant(s.link, ran)
+
+    drip =
+      cond do
+        drip.fill > 0 or drip.empty_since != nil -> drip
+        drip.state == :feeding -> %{drip | empty_since: now, underruns: drip.underruns + 1}
+        true -> drip
+      end
+
+    if drip.state == :draining and drip.fill == 0 do
+      finish_drip(s, drip, :done)
+    else
+      Process.send_after(self(), {:drip_tick, s.drips}, s.tick)
+      %{s | drip: drip}
+    end
+  end
+
+  defp drip_end(%{drip: nil} = s, _how), do: s
+
+  defp drip_end(%{drip: drip} = s, :broken), do: finish_drip(s, fed(drip), :broken)
+
+  defp drip_end(%{drip: drip} = s, :arrived) do
+    if String.ends_with?(drip.tail, "%\n") or String.ends_with?(drip.tail, "%") do
+      %{s | drip: %{fed(drip) | state: :draining}}
+    else
+      Logger.warning("GE-2000 simulator: drip feed ended without the closing %: stopped")
+      finish_drip(s, fed(drip), :broken)
+    end
+  end
+
+  defp finish_drip(s, drip, how) do
+    Logger.info("GE-2000 simulator: drip feed of #{drip.program} #{how}")
+
+    Vws.Telemetry.execute([:vws, :sim, :ge2000, :drip_feed], %{bytes: drip.received}, %{
+      workstation: s.workstation,
+      program: drip.program,
+      result: how,
+      underruns: drip.underruns
+    })
+
+    s = if how == :broken, do: alarm(s, :incomplete), else: s
+    %{s | drip: nil, last_drip: %{drip | state: how}, active: false}
+  end
+
+  defp drip_info(nil, _s), do: nil
+
+  defp drip_info(drip, s) do
+    drip
+    |> Map.drop([:owed, :tail, :last_tick, :empty_since, :running])
+    |> Map.merge(%{memory: s.memory, feed_rate: s.feed_rate})
+  end
+
+  defp now_ms, do: System.monotonic_time(:millisecond)
 
   ## The machine
 

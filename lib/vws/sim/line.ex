@@ -82,6 +82,10 @@ defmodule Vws.Sim.Line do
     * `:faults` — settings for both directions; `:to_target`, `:to_client` — for one (applied
       after `:faults`)
     * `:max_queue` — bytes a direction may hold (default 65 536)
+    * `:reply_slack` — ms (default 0): on a paced line, bytes the target sends within this time
+      after the last bytes it was given came out are its immediate reply, taken to start when
+      those bytes were due — the simulated device reacts in no time, as a model; its process's
+      own latency is not the line's (`Vws.Sim.GE2000` sets 5)
     * `:connect_timeout` — ms to keep dialling the target for a new connection (default 2 000);
       if it cannot be reached, the accepted connection is closed
     * `:name` — a name to register the line under
@@ -106,6 +110,7 @@ defmodule Vws.Sim.Line do
       seed: Keyword.get(opts, :seed, 0),
       faults: per_dir,
       max_queue: Keyword.get(opts, :max_queue, 65_536),
+      reply_slack: Keyword.get(opts, :reply_slack, 0),
       connect_timeout: Keyword.get(opts, :connect_timeout, 2_000)
     }
 
@@ -244,6 +249,7 @@ defmodule Vws.Sim.Line do
         connect_timeout: state.connect_timeout,
         counters: state.counters,
         max_queue: state.max_queue,
+        reply_slack: state.reply_slack,
         faults: state.faults,
         seed: state.seed,
         index: n

@@ -459,14 +459,20 @@ defmodule Vws.Web.State do
     # NC programs only: the status reads of MONARCH's monitor are not transfers to follow
     dnc =
       for %{id: :ge2000, info: %{transfer: %{} = t}} <- snapshot.links,
-          kind = dnc_kind(t.command),
+          kind = dnc_kind(t),
           do: progress("GE-2000 (DNC)", kind, nil, :blocks, t, now)
 
     wc ++ dnc
   end
 
-  defp dnc_kind(%{direction: :send, operation: :part_program}), do: "DOWNLOAD_GE"
-  defp dnc_kind(%{direction: :receive, operation: :part_program}), do: "UPLOAD_GE"
+  defp dnc_kind(%{direction: :out, command: %{direction: :send, operation: :part_program}}),
+    do: "DOWNLOAD_GE"
+
+  defp dnc_kind(%{direction: :in, command: %{direction: :send, operation: :part_program}}),
+    do: "FROM THE MACHINE"
+
+  defp dnc_kind(%{command: %{direction: :receive, operation: :part_program}}), do: "UPLOAD_GE"
+  defp dnc_kind(%{command: %{operation: :download_execute}}), do: "DRIP_FEED"
   defp dnc_kind(_other), do: nil
 
   @doc false

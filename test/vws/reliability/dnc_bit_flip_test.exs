@@ -32,16 +32,24 @@ defmodule Vws.Reliability.DNCBitFlipTest do
   @program ["%", "O000012", "N10 G1X1", "%"]
   @file_name "000012.PRO"
   @old "%\nO000012\nN10 G0X9\n%\n"
+  # drip feed: a program of several text blocks (max_text 64 on both ends)
+  @drip ["%", "O000012"] ++ for(i <- 1..12, do: "N#{i * 10} G1X#{i}.5Y-#{i}") ++ ["M30", "%"]
 
   setup do
-    sim = start_supervised!({GE2000, link: @link_opts})
+    sim =
+      start_supervised!(
+        {GE2000, link: [max_text: 64] ++ @link_opts, memory: 4_096, feed_rate: 100_000, tick: 5}
+      )
+
     {:ok, relay} = FlipRelay.start_link(GE2000.endpoint(sim))
 
     %{ws: ws, wc: wc} =
       Vws.Test.Workstation.start(
         # no status monitor: the DNC traffic is the commands' alone
         devices: [
-          ge2000: [endpoint: FlipRelay.endpoint(relay), status_interval: nil] ++ @link_opts
+          ge2000:
+            [endpoint: FlipRelay.endpoint(relay), status_interval: nil, max_text: 64] ++
+              @link_opts
         ],
         partitions: [monarch: [options: [request_timeout: 20_000]]]
       )
@@ -79,6 +87,15 @@ defmodule Vws.Reliability.DNCBitFlipTest do
     end
   end
 
+  # Drip feed (E): the machine runs the program while it arrives; a line fault never makes it
+  # skip or repeat a block — DONE: it ran exactly the program; ERROR: it ran a prefix of it.
+  test "drip feed: random bursts", ctx do
+    {to_target, to_client} = traffic(ctx, :drip_feed)
+    burst = Vws.Test.FlipRelay.burst(to_target, to_client)
+    property = :proper.forall(burst, &(check!(ctx, :drip_feed, &1) in [:done, :error]))
+    assert_property(property, 60)
+  end
+
   defp traffic(ctx, kind) do
     :ok = FlipRelay.plan(ctx.relay, {:bytes, []})
     assert check!(ctx, kind, []) == :done
@@ -102,10 +119,22 @@ defmodule Vws.Reliability.DNCBitFlipTest do
       :upload ->
         :ok = GE2000.put_program(ctx.sim, @file_name, text)
         :ok = Mailbox.put_nc_up(ws, [])
+
+      :drip_feed ->
+        :ok = Mailbox.put_nc_file(ws, @drip)
     end
 
+    drips = GE2000.state(ctx.sim).drips
+
     :ok = FlipRelay.plan(ctx.relay, {:bytes, flips})
-    command = if kind == :download, do: "DOWNLOAD_GE", else: "UPLOAD_GE(#{@file_name})"
+
+    command =
+      case kind do
+        :download -> "DOWNLOAD_GE"
+        :upload -> "UPLOAD_GE(#{@file_name})"
+        :drip_feed -> "DRIP_FEED"
+      end
+
     {:ok, [{"M", n}]} = Client.send_commands(ctx.client, [{"M", command}])
     result = Client.await_command(ctx.client, "M", n, 120_000, poll_interval: 5)
 
@@ -120,10 +149,46 @@ defmodule Vws.Reliability.DNCBitFlipTest do
         assert Mailbox.nc_up(ws) == @program, "DONE with other bytes, flips #{inspect(flips)}"
         :done
 
+      {:drip_feed, result} ->
+        drip_outcome(ctx, result, drips, flips)
+
       {kind, {:error, %{reason: :command_failed, data: %{status: "ERROR " <> reason}}}}
       when reason != "" ->
         # whole or nothing: NC_UP is never part of a program
         if kind == :upload, do: assert(Mailbox.nc_up(ws) == [])
+        :error
+
+      other ->
+        flunk("#{inspect(other)}, flips #{inspect(flips)}")
+    end
+  end
+
+  defp drip_outcome(ctx, result, drips, flips) do
+    text = Program.to_text(@drip)
+
+    drip =
+      if GE2000.state(ctx.sim).drips > drips do
+        assert eventually(fn -> GE2000.drip(ctx.sim).state in [:done, :broken] end, 10_000)
+        GE2000.drip(ctx.sim)
+      end
+
+    case result do
+      :done ->
+        assert drip.state == :done and drip.received == byte_size(text) and
+                 drip.crc == Vws.CRC16.compute(text),
+               "DONE with other bytes run, flips #{inspect(flips)}: #{inspect(drip)}"
+
+        :done
+
+      {:error, %{reason: :command_failed, data: %{status: "ERROR " <> reason}}}
+      when reason != "" ->
+        # what the machine ran is the program's beginning: no block skipped or repeated
+        if drip do
+          assert drip.received <= byte_size(text) and
+                   drip.crc == Vws.CRC16.compute(binary_part(text, 0, drip.received)),
+                 "a block skipped or repeated, flips #{inspect(flips)}: #{inspect(drip)}"
+        end
+
         :error
 
       other ->

@@ -103,6 +103,32 @@ defmodule Vws.Sim.GE2000Test do
 
   test "pace: true runs the line at 4800 Bd" do
     sim = start_supervised!({GE2000, pace: true}, id: :paced)
-    assert DNC.info(GE2000.link(sim)).pace == 4800
+    assert GE2000.baud(sim) == 4800
+  end
+
+  # The line model: bytes reach the machine no faster than the baud rate carries them. Measured
+  # on the monotonic clock from before the block is sent to its acknowledgement: a lower bound,
+  # which a slow machine only makes longer (the line's own pacing is tested in simulated time
+  # in test/vws/sim/line/schedule_test.exs).
+  test "pacing: bytes reach the machine no faster than the baud rate allows" do
+    sim = start_supervised!({GE2000, pace: 4800}, id: :paced)
+    {:ok, peer} = Vws.Test.DNCPeer.connect(GE2000.endpoint(sim))
+    on_exit(fn -> if Process.alive?(peer), do: Vws.Test.DNCPeer.close(peer) end)
+    text = String.duplicate("N10 G01 X1.0\n", 18) <> "%\n"
+    command = Vws.DNC.Frame.encode(s(:part_program, "000009.PRO")) |> IO.iodata_to_binary()
+    block = Vws.DNC.Frame.encode(%Vws.DNC.Frame.Text{text: text}) |> IO.iodata_to_binary()
+
+    :ok = Vws.Test.DNCPeer.send_raw(peer, <<0x05>>)
+    assert Vws.Test.DNCPeer.recv(peer, 2) == <<0x10, ?0>>
+    :ok = Vws.Test.DNCPeer.send_raw(peer, command)
+    assert Vws.Test.DNCPeer.recv(peer, 2) == <<0x10, ?1>>
+    started = System.monotonic_time(:microsecond)
+    :ok = Vws.Test.DNCPeer.send_raw(peer, block)
+    assert Vws.Test.DNCPeer.recv(peer, 2) == <<0x10, ?0>>
+    elapsed = System.monotonic_time(:microsecond) - started
+    # the block's characters to the machine and the two of its acknowledgement back, 10 bits each
+    assert elapsed >= div((byte_size(block) + 2) * 10 * 1_000_000, 4800)
+    :ok = Vws.Test.DNCPeer.send_raw(peer, <<0x04>>)
+    assert eventually(fn -> GE2000.program(sim, "000009.PRO") == text end)
   end
 end

@@ -11,8 +11,12 @@ defmodule Vws.Partitions.Monarch.Monitor do
   waits for a download in progress and never cuts into it. When the link is down nothing is
   written, and the location's age tells a reader the reading is stale.
 
+  It is also the link's owner: a program the operator sends from the machine unasked
+  (auto-receive) is handed to `Vws.Partitions.Monarch.received_program/4` with the `:store`
+  function (default `Vws.Partitions.Monarch.store_from_machine/3`).
+
   Started by `Vws.Workstation.device_links/3` with the GE-2000's link. Options: `:workstation`,
-  `:link`, `:interval` (1 000 ms), `:check` (`:lrc`).
+  `:link`, `:interval` (1 000 ms), `:check` (`:lrc`), `:store`.
 
       iex> {:ok, pid} = Vws.Partitions.Monarch.Monitor.start_link(workstation: "none", link: :nowhere, interval: 60_000)
       iex> is_pid(pid)
@@ -37,6 +41,8 @@ defmodule Vws.Partitions.Monarch.Monitor do
       link: Keyword.fetch!(opts, :link),
       interval: Keyword.get(opts, :interval, 1_000),
       options: Keyword.take(opts, [:check]),
+      store: Keyword.get(opts, :store, &Vws.Partitions.Monarch.store_from_machine/3),
+      owner: false,
       failing: false
     }
 
@@ -46,6 +52,8 @@ defmodule Vws.Partitions.Monarch.Monitor do
 
   @impl true
   def handle_info(:read, s) do
+    s = own_link(s)
+
     result =
       if Vws.Mailbox.exists?(s.workstation),
         do: Vws.Partitions.Monarch.refresh_status(s.workstation, s.link, s.options),
@@ -62,5 +70,29 @@ defmodule Vws.Partitions.Monarch.Monitor do
         unless s.failing, do: Logger.info("MONARCH cannot read the GE-2000's status: #{reason}")
         {:noreply, %{s | failing: true}}
     end
+  end
+
+  # Programs the operator sends from the machine, unasked (auto-receive): handed to MONARCH.
+  def handle_info({:dnc, _link, {:received, %{operation: :part_program} = command, blocks}}, s) do
+    name = String.trim(command.text)
+    text = IO.iodata_to_binary(blocks)
+
+    case Vws.Partitions.Monarch.received_program(s.workstation, name, text, s.store) do
+      :ok -> :ok
+      {:error, reason} -> Logger.warning("MONARCH: program #{name} from the machine: #{reason}")
+    end
+
+    {:noreply, s}
+  end
+
+  def handle_info({:dnc, _link, _event}, s), do: {:noreply, s}
+
+  # The monitor is the link's owner: it is told what the machine sends of its own accord.
+  defp own_link(%{owner: true} = s), do: s
+
+  defp own_link(s) do
+    %{s | owner: Vws.DNC.set_owner(s.link, self()) == :ok}
+  catch
+    :exit, _ -> s
   end
 end

@@ -21,8 +21,11 @@ defmodule Vws.Sim.Line.Pump do
   alias Vws.Sim.Line.{Counters, Faults, Schedule}
   alias Vws.Transport
 
-  # Shortest wait between two deliveries while pacing: at 9600 Bd about 10 bytes a time.
-  @min_tick_us 10_000
+  # Shortest wait between two deliveries while pacing: one character's time on the line, within
+  # 1..10 ms — so a short reply (an acknowledgement) comes out when its last bit would, not up
+  # to 10 ms late, which a stop-and-wait protocol pays on every block.
+  @min_tick_us 1_000
+  @max_tick_us 10_000
 
   def start_link(args), do: GenServer.start_link(__MODULE__, args)
 
@@ -60,7 +63,9 @@ defmodule Vws.Sim.Line.Pump do
       tick: nil,
       cut_timer: nil,
       reported: false,
-      dest_failed: false
+      dest_failed: false,
+      lateness: Map.get(args, :lateness),
+      reply_slack: Map.get(args, :reply_slack, 0) * 1_000
     }
 
     {:ok, state}
@@ -119,7 +124,7 @@ defmodule Vws.Sim.Line.Pump do
         before = Faults.counters(state.faults)
         {out, faults} = Faults.apply(bytes, state.faults)
         Counters.add_faults(state.counters, state.dir, before, Faults.counters(faults))
-        schedule = Schedule.push(state.schedule, out, now())
+        schedule = Schedule.push(state.schedule, out, reaction_time(state))
         Counters.add(state.counters, state.dir, :queued, byte_size(out))
         pump(%{state | faults: faults, schedule: schedule})
       end
@@ -132,6 +137,8 @@ defmodule Vws.Sim.Line.Pump do
     {out, count, next, schedule} = Schedule.take(state.schedule, now)
     state = %{state | schedule: schedule}
     Counters.add(state.counters, state.dir, :queued, -count)
+
+    if count > 0, do: note_lateness(state, now)
 
     state =
       if count > 0 do
@@ -160,10 +167,64 @@ defmodule Vws.Sim.Line.Pump do
       nil -> :ok
     end
 
-    at = max(next, now + @min_tick_us)
+    at = max(next, now + min_tick_us(state.schedule))
     tag = make_ref()
     timer = Process.send_after(self(), {:tick, tag}, div(at - now + 999, 1000))
     %{state | tick: {tag, timer, at}}
+  end
+
+  # A paced line is a model in time: bytes that came out of one direction late (our timer fired
+  # late, the scheduler was busy) reached the far end late, so what the far end sends in reply
+  # is taken to have started that much earlier — never before those bytes were due. Without
+  # this every block of a stop-and-wait protocol would pay the machine's timer lateness twice.
+  # The target's reply within `reply_slack` of its bytes coming out starts when they were due.
+  # (atomics: due, lateness, delivered at — to_target in 1..3, to_client in 4..6)
+  defp note_lateness(%{lateness: nil}, _now), do: :ok
+
+  defp note_lateness(%{lateness: ref, schedule: schedule, dir: dir}, now) do
+    case Schedule.last_due(schedule) do
+      nil ->
+        :ok
+
+      due ->
+        base = if dir == :to_target, do: 1, else: 4
+        :atomics.put(ref, base, due)
+        :atomics.put(ref, base + 1, max(now - due, 0))
+        :atomics.put(ref, base + 2, now)
+    end
+  end
+
+  defp reaction_time(%{lateness: nil}), do: now()
+
+  defp reaction_time(%{lateness: ref, dir: dir, schedule: schedule} = state) do
+    now = now()
+    base = if dir == :to_target, do: 4, else: 1
+
+    case {Schedule.settings(schedule)[:baud], :atomics.get(ref, base + 1)} do
+      {nil, _} ->
+        now
+
+      {_baud, -1} ->
+        now
+
+      {_baud, late} ->
+        due = :atomics.get(ref, base)
+
+        if dir == :to_client and now - :atomics.get(ref, base + 2) <= state.reply_slack,
+          do: due,
+          else: max(now - late, due)
+    end
+  end
+
+  defp min_tick_us(schedule) do
+    case Schedule.settings(schedule)[:baud] do
+      nil ->
+        @max_tick_us
+
+      baud ->
+        char_us = div(Schedule.bits_per_byte(schedule) * 1_000_000, baud)
+        char_us |> max(@min_tick_us) |> min(@max_tick_us)
+    end
   end
 
   defp rearm(state) do

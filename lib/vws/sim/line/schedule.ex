@@ -51,6 +51,7 @@ defmodule Vws.Sim.Line.Schedule do
             head_start: nil,
             head_sent: 0,
             line_free: nil,
+            last_due: nil,
             clock: 0
 
   # queue: {ready_at, bytes} chunks, oldest first; queued: their bytes not yet taken. The head
@@ -211,6 +212,7 @@ defmodule Vws.Sim.Line.Schedule do
     out = done - s.head_sent
     acc = if out > 0, do: [acc | binary_part(bytes, s.head_sent, out)], else: acc
     s = %{s | queued: s.queued - out}
+    s = if out > 0, do: %{s | last_due: start + ceil_div(done * bits, s.baud)}, else: s
 
     if done == size do
       s = %{
@@ -227,6 +229,13 @@ defmodule Vws.Sim.Line.Schedule do
       {acc, count + out, next, %{s | head_start: start, head_sent: done}}
     end
   end
+
+  @doc """
+  When the last byte taken was due to be out (its last bit sent) on a paced line, or nil: what
+  `take/2` gave out later than that was late by the caller's timer.
+  """
+  @spec last_due(t) :: integer | nil
+  def last_due(%__MODULE__{last_due: due}), do: due
 
   @doc "Bytes queued and not yet taken."
   @spec queued(t) :: non_neg_integer

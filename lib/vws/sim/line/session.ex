@@ -124,6 +124,10 @@ defmodule Vws.Sim.Line.Session do
       to_client: {state.target_conn, state.client}
     }
 
+    # where each direction tells the other how late its last bytes came out (see Pump)
+    lateness = :atomics.new(6, signed: true)
+    for i <- [2, 5], do: :atomics.put(lateness, i, -1)
+
     pumps =
       Map.new(legs, fn {dir, {source, dest}} ->
         {:ok, pid} =
@@ -135,7 +139,9 @@ defmodule Vws.Sim.Line.Session do
             counters: state.counters,
             max_queue: state.max_queue,
             faults: state.faults[dir],
-            seed: {state.seed, state.index, dir}
+            seed: {state.seed, state.index, dir},
+            lateness: lateness,
+            reply_slack: Map.get(state, :reply_slack, 0)
           })
 
         :ok = Transport.controlling_process(source, pid)

@@ -1,0 +1,77 @@
+defmodule Vws.Sim.GE2000.Faults do
+  @moduledoc """
+  The simulated GE-2000's misbehaviour on its DNC line (`Vws.Sim.GE2000.set_fault/2`): a tap the
+  simulator puts between its link's protocol and the wire (`Vws.DNC.set_tap/2`), which changes
+  what goes out and what comes in. The protocol itself (`Vws.DNC.Session`) knows of no fault.
+
+    * `:nak_once_per_block` — the acknowledgement of every block received goes out as NAK the
+      first time (the block comes again; the copy is acknowledged)
+    * `:drop_replies` — the first reply to every block received is lost (the peer's ENQ gets it)
+    * `{:wack, n}` — the next `n` acknowledgements of received blocks go out as WACK (busy)
+    * `:corrupt` — the first copy of every block sent has its block check damaged (one bit)
+    * `:silent` — nothing goes out, and what comes in is ignored (a dead peer)
+    * `{:bid_contention, blocks}` — at the peer's next bid, bid at the same moment (the peer's
+      ENQ is taken for our own bid meeting it) and send `blocks` unsolicited
+  """
+
+  @type fault ::
+          :nak_once_per_block
+          | :drop_replies
+          | {:wack, non_neg_integer}
+          | :corrupt
+          | :silent
+          | {:bid_contention, [binary]}
+
+  @ack0 <<0x10, ?0>>
+  @ack1 <<0x10, ?1>>
+  @wack <<0x10, ?;>>
+  @nak <<0x15>>
+
+  @doc "The tap for `Vws.DNC.set_tap/2`: `{#{inspect(__MODULE__)}, state}`."
+  @spec tap(fault) :: {module, map}
+  def tap(fault), do: {__MODULE__, %{fault: fault, done: 0, corrupted: nil}}
+
+  @doc "The fault, as `Vws.DNC.info/1` shows it."
+  @spec describe(map) :: term
+  def describe(%{fault: {:bid_contention, _blocks}}), do: :bid_contention
+  def describe(%{fault: fault}), do: fault
+
+  @doc false
+  def outgoing(%{fault: :silent} = st, _bytes, _transfer), do: {st, []}
+
+  def outgoing(%{fault: fault} = st, bytes, transfer)
+      when bytes in [@ack0, @ack1] and fault in [:nak_once_per_block, :drop_replies] do
+    case transfer do
+      # the first reply to block n (a copy's is the same acknowledgement and passes)
+      %{direction: :in, blocks: n} when n > st.done ->
+        {%{st | done: n}, if(fault == :nak_once_per_block, do: @nak, else: [])}
+
+      %{direction: :in, blocks: n} ->
+        {%{st | done: n}, bytes}
+
+      _ ->
+        {st, bytes}
+    end
+  end
+
+  def outgoing(%{fault: {:wack, n}} = st, bytes, %{direction: :in, blocks: b})
+      when bytes in [@ack0, @ack1] and n > 0 and b > 0,
+      do: {%{st | fault: {:wack, n - 1}}, @wack}
+
+  def outgoing(%{fault: :corrupt} = st, <<first, _::binary>> = bytes, _transfer)
+      when first in [0x01, 0x02] and bytes != st.corrupted do
+    size = byte_size(bytes) - 1
+    <<head::binary-size(size), last>> = bytes
+    {%{st | corrupted: bytes}, <<head::binary, Bitwise.bxor(last, 0x01)>>}
+  end
+
+  def outgoing(st, bytes, _transfer), do: {st, bytes}
+
+  @doc false
+  def incoming(%{fault: :silent} = st, _bytes, _state), do: {st, "", []}
+
+  def incoming(%{fault: {:bid_contention, blocks}} = st, <<0x05, rest::binary>>, :idle),
+    do: {%{st | fault: :none}, rest, [{:transmit, blocks}]}
+
+  def incoming(st, bytes, _state), do: {st, bytes, []}
+end

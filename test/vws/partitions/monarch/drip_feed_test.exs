@@ -1,0 +1,209 @@
+defmodule Vws.Partitions.Monarch.DripFeedTest do
+  # Drip feed (DRIP_FEED, the E operation), auto-receive and transfer progress, end to end:
+  # the WC (a raw WC peer) → SUN_COMM → MONARCH → DNC link → simulated GE-2000.
+  use ExUnit.Case, async: true
+
+  alias Vws.{DNC, Mailbox, Workstation}
+  alias Vws.DNC.Program
+  alias Vws.Sim.GE2000
+  alias Vws.Test.WCPeer
+  import Vws.Test.Eventually
+
+  @link_opts [reply_timeout: 300, wack_delay: 50, backoff_min: 10, backoff_max: 50]
+  @memory 2_048
+
+  setup context do
+    sim_opts =
+      [
+        cycle_time: 60_000,
+        link: @link_opts,
+        memory: @memory,
+        feed_rate: Map.get(context, :feed_rate, 20_000),
+        tick: 5,
+        programs: %{"000100.PRO" => "%\nO100\nN10 G01 X1\nN20 M30\n%\n"}
+      ] ++ if(baud = context[:baud], do: [pace: baud], else: [])
+
+    sim = start_supervised!({GE2000, sim_opts})
+
+    %{ws: ws, wc: wc} =
+      Vws.Test.Workstation.start(
+        devices: [ge2000: [endpoint: GE2000.endpoint(sim)] ++ @link_opts],
+        partitions: [monarch: [options: []]]
+      )
+
+    link = Workstation.whereis(ws, :ge2000)
+    assert eventually(fn -> DNC.info(link).state == :idle end)
+    {:ok, peer} = WCPeer.connect(wc)
+    %{ws: ws, peer: peer, sim: sim, link: link}
+  end
+
+  defp seq, do: rem(System.unique_integer([:positive]), 10_000)
+
+  defp send_monarch(peer, number, text) do
+    s = seq()
+    WCPeer.send_string(peer, s, [{"M", number, text}])
+    assert Vws.WC.Reply.decode(WCPeer.recv_line(peer)) == {:ok, {:ack, s}}
+  end
+
+  defp finished(peer, timeout \\ 60_000),
+    do: WCPeer.await_status(peer, seq(), "MONARCH_CMD", &(not (&1 =~ "EXECUTING")), timeout)
+
+  defp monarch(peer, number, text, timeout \\ 60_000) do
+    send_monarch(peer, number, text)
+    finished(peer, timeout)
+  end
+
+  # An NC program of at least `bytes` bytes of short blocks, O4711.
+  defp program(bytes) do
+    count = div(bytes, 18) + 1
+
+    body = for i <- 1..count, do: "N#{i} G01 X#{rem(i * 37, 1000)}.#{rem(i, 10)} F300"
+
+    ["%", "O4711"] ++ body ++ ["M30", "%"]
+  end
+
+  defp with_nc_file(ctx, bytes) do
+    lines = program(bytes)
+    :ok = Mailbox.put_nc_file(ctx.ws, lines)
+    text = Program.to_text(lines)
+    assert byte_size(text) > bytes
+    text
+  end
+
+  defp assert_fed_exactly(sim, text) do
+    assert eventually(fn -> GE2000.drip(sim).state == :done end, 30_000)
+    drip = GE2000.drip(sim)
+    # every block once, in order: the machine ran exactly the program's bytes
+    assert drip.received == byte_size(text)
+    assert drip.ran == byte_size(text)
+    assert drip.crc == Vws.CRC16.compute(text)
+    assert drip.blocks == length(Vws.DNC.Frame.split_text(text, 256))
+    assert drip.max_fill <= @memory
+    drip
+  end
+
+  test "DRIP_FEED: a program 8 times the machine's memory is run while it arrives", ctx do
+    text = with_nc_file(ctx, 8 * @memory)
+    assert monarch(ctx.peer, 1, "DRIP_FEED") == "0001DONE"
+    assert_fed_exactly(ctx.sim, text)
+    # the machine did not store it: it ran it
+    refute "004711.PRO" in GE2000.directory(ctx.sim)
+  end
+
+  @tag feed_rate: 1_500
+  test "a machine slower than the line pauses the CEC with WACK; nothing skipped or repeated",
+       ctx do
+    text = with_nc_file(ctx, 4 * @memory)
+    assert monarch(ctx.peer, 1, "DRIP_FEED") == "0001DONE"
+    assert_fed_exactly(ctx.sim, text)
+    assert DNC.info(ctx.link).counters.wacks_received > 0
+  end
+
+  @tag baud: 9_600, feed_rate: 300
+  test "a machine slower than the paced line: its buffer never runs empty", ctx do
+    text = with_nc_file(ctx, 3 * @memory)
+    assert monarch(ctx.peer, 1, "DRIP_FEED", 120_000) == "0001DONE"
+    drip = assert_fed_exactly(ctx.sim, text)
+    assert drip.underruns == 0
+  end
+
+  for fault <- [:nak_once_per_block, :drop_replies, {:wack, 5}] do
+    test "line faults during a drip feed (#{inspect(fault)}): the program runs exactly once",
+         ctx do
+      text = with_nc_file(ctx, 3 * @memory)
+      :ok = GE2000.set_fault(ctx.sim, unquote(Macro.escape(fault)))
+      assert monarch(ctx.peer, 1, "DRIP_FEED") == "0001DONE"
+      assert_fed_exactly(ctx.sim, text)
+    end
+  end
+
+  test "a drip feed the line broke off ends ERROR and is not made again: the machine stops",
+       ctx do
+    test_pid = self()
+    handler = "drip-again-#{System.unique_integer([:positive])}"
+
+    :ok =
+      Vws.Telemetry.attach(
+        handler,
+        [:vws, :monarch, :request_again],
+        fn _, _, md, _ -> send(test_pid, {:request_again, md.operation}) end,
+        nil
+      )
+
+    on_exit(fn -> Vws.Telemetry.detach(handler) end)
+    with_nc_file(ctx, 6 * @memory)
+    send_monarch(ctx.peer, 1, "DRIP_FEED")
+    assert eventually(fn -> GE2000.drip(ctx.sim) != nil end)
+    :ok = GE2000.set_fault(ctx.sim, :silent)
+    assert finished(ctx.peer) =~ ~r/^0001ERROR DNC/
+    refute_received {:request_again, :download_execute}
+    :ok = GE2000.set_fault(ctx.sim, :none)
+    assert eventually(fn -> GE2000.drip(ctx.sim).state == :broken end, 30_000)
+  end
+
+  test "transfer progress: telemetry, the :dnc_progress event and DNC.progress/1", ctx do
+    text = with_nc_file(ctx, 4 * @memory)
+    :ok = Vws.Events.subscribe(ctx.ws, :dnc_progress)
+    send_monarch(ctx.peer, 1, "DRIP_FEED")
+    assert eventually(fn -> DNC.progress(ctx.link) != nil end)
+    # the dashboard's progress bar
+    assert eventually(fn ->
+             Enum.any?(Vws.Web.State.build().workstations, fn w ->
+               Enum.any?(
+                 Map.get(w, :transfers, []),
+                 &(&1.kind == "DRIP_FEED" and &1.percent >= 0)
+               )
+             end)
+           end)
+
+    assert finished(ctx.peer) == "0001DONE"
+
+    events = collect_progress([])
+    assert [%{ended: :ok} = last | running] = events
+    assert last.program == "004711.PRO"
+    assert last.operation == :download_execute
+    assert last.direction == :out
+    assert last.bytes == byte_size(text)
+    assert last.total_bytes == byte_size(text)
+    assert last.blocks == last.total_blocks
+    blocks = running |> Enum.reverse() |> Enum.map(& &1.blocks)
+    assert blocks == Enum.sort(blocks)
+    assert length(blocks) >= 2
+  end
+
+  defp collect_progress(acc) do
+    receive do
+      {:vws_event, _ws, :dnc_progress, %{ended: ended} = p} when ended != false -> [p | acc]
+      {:vws_event, _ws, :dnc_progress, p} -> collect_progress([p | acc])
+    after
+      10_000 -> acc
+    end
+  end
+
+  describe "auto-receive" do
+    test "the operator sends a program from the machine: MONARCH keeps it as NC_UP", ctx do
+      assert GE2000.send_program(ctx.sim, "000100.PRO") == :ok
+
+      assert eventually(fn ->
+               Mailbox.nc_up(ctx.ws) == ["%", "O100", "N10 G01 X1", "N20 M30", "%"]
+             end)
+    end
+
+    test "during a WC command: the command is not disturbed, the program is kept", ctx do
+      text = with_nc_file(ctx, 6 * @memory)
+      send_monarch(ctx.peer, 1, "DRIP_FEED")
+      assert eventually(fn -> GE2000.drip(ctx.sim) != nil end)
+      sent = Task.async(fn -> GE2000.send_program(ctx.sim, "000100.PRO") end)
+      assert finished(ctx.peer) == "0001DONE"
+      assert Task.await(sent, 30_000) == :ok
+      assert_fed_exactly(ctx.sim, text)
+
+      assert eventually(fn ->
+               Mailbox.nc_up(ctx.ws) == ["%", "O100", "N10 G01 X1", "N20 M30", "%"]
+             end)
+
+      # and the line is MONARCH's again
+      assert monarch(ctx.peer, 2, "STATUS") == "0002DONE"
+    end
+  end
+end
