@@ -233,17 +233,11 @@ defmodule Vws.DDCMP do
   """
   @spec send_data(link, iodata, keyword) :: :ok | {:error, :too_long | :not_running}
   def send_data(link, iodata, opts \\ []) do
-    bytes = IO.iodata_to_binary(iodata)
+    request = {:send, IO.iodata_to_binary(iodata), Keyword.take(opts, [:hold, :session])}
 
-    case Keyword.fetch(opts, :session) do
-      {:ok, session} when is_integer(session) ->
-        refusable_call(link, {:send_in, session, bytes})
-
-      :error ->
-        if Keyword.get(opts, :hold, true),
-          do: :gen_statem.call(link, {:send, bytes}),
-          else: refusable_call(link, {:send_now, bytes})
-    end
+    if Keyword.has_key?(opts, :session) or Keyword.get(opts, :hold, true) == false,
+      do: refusable_call(link, request),
+      else: :gen_statem.call(link, request)
   end
 
   # A link that has ended is RUNNING in no session: the refusal the caller is ready for, not an
