@@ -274,7 +274,9 @@ defmodule Vws.DDCMP do
   def stop(link, reason \\ :normal, timeout \\ :infinity),
     do: :gen_statem.stop(link, reason, timeout)
 
-  defp validate!(opts) do
+  @doc false
+  # The options checked once, by the caller, with the defaults filled in (also `Vws.VAL`'s).
+  def validate!(opts) do
     opts = Keyword.merge(@defaults, opts)
 
     case {Keyword.has_key?(opts, :endpoint), Keyword.has_key?(opts, :conn)} do
