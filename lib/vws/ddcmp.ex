@@ -277,13 +277,19 @@ defmodule Vws.DDCMP do
   @doc false
   # The options checked once, by the caller, with the defaults filled in (also `Vws.VAL`'s).
   def validate!(opts) do
-    opts = Keyword.merge(@defaults, opts)
-
     case {Keyword.has_key?(opts, :endpoint), Keyword.has_key?(opts, :conn)} do
       {true, false} -> :ok
       {false, true} -> :ok
       _ -> raise ArgumentError, "Vws.DDCMP needs exactly one of :endpoint or :conn"
     end
+
+    opts |> validate_protocol!() |> Keyword.put_new(:owner, self())
+  end
+
+  @doc false
+  # The protocol's options alone, for a process that brings its own transport (`Vws.Sim.VAL2`).
+  def validate_protocol!(opts) do
+    opts = Keyword.merge(@defaults, opts)
 
     check!(opts, :window, &(is_integer(&1) and &1 in 1..255))
     check!(opts, :rep_timeout, &(is_integer(&1) and &1 > 0))
@@ -297,7 +303,7 @@ defmodule Vws.DDCMP do
       _ -> false
     end)
 
-    Keyword.put_new(opts, :owner, self())
+    opts
   end
 
   defp check!(opts, key, valid?) do

@@ -15,28 +15,56 @@ defmodule Vws.DDCMP.Wire do
   @type meta :: %{link: term, workstation: term}
 
   @doc false
+  # Writes the frames, emits the telemetry; returns the news and the timers to arm, in order,
+  # as gen_statem generic timeouts named after them.
   @spec perform([Frame.t()], [Vws.DDCMP.Protocol.event()], Transport.Conn.t() | nil, meta) ::
           {[term], [:gen_statem.action()]}
   def perform(frames, events, conn, meta) do
+    {news, timers} = perform_raw(frames, events, conn, meta)
+
+    {news,
+     Enum.map(timers, fn
+       {name, :cancel} -> {{:timeout, name}, :cancel}
+       {name, ms} -> {{:timeout, name}, ms, name}
+     end)}
+  end
+
+  @doc false
+  # The same with the timers as `{name, ms | :cancel}`, for processes that are no gen_statem.
+  @spec perform_raw([Frame.t()], [Vws.DDCMP.Protocol.event()], Transport.Conn.t() | nil, meta) ::
+          {[term], [{atom, pos_integer | :cancel}]}
+  def perform_raw(frames, events, conn, meta) do
     write(conn, frames)
 
-    {news, actions} =
+    {news, timers} =
       Enum.reduce(events, {[], []}, fn
         {:telemetry, event, measurements, metadata}, acc ->
           telemetry(meta, event, measurements, metadata)
           acc
 
-        {:timer, name, :cancel}, {news, actions} ->
-          {news, [{{:timeout, name}, :cancel} | actions]}
+        {:timer, name, ms_or_cancel}, {news, timers} ->
+          {news, [{name, ms_or_cancel} | timers]}
 
-        {:timer, name, ms}, {news, actions} ->
-          {news, [{{:timeout, name}, ms, name} | actions]}
-
-        other, {news, actions} ->
-          {[other | news], actions}
+        other, {news, timers} ->
+          {[other | news], timers}
       end)
 
-    {Enum.reverse(news), Enum.reverse(actions)}
+    {Enum.reverse(news), Enum.reverse(timers)}
+  end
+
+  @doc false
+  # Arms and cancels timers for a plain process: `armed` maps a timer's name to its reference;
+  # it expires as `{:timeout, ref, {:ddcmp, name}}`, to be taken only while `armed[name] == ref`.
+  @spec arm(%{atom => reference}, [{atom, pos_integer | :cancel}]) :: %{atom => reference}
+  def arm(armed, timers) do
+    Enum.reduce(timers, armed, fn {name, ms_or_cancel}, armed ->
+      if ref = armed[name], do: :erlang.cancel_timer(ref)
+
+      case ms_or_cancel do
+        :cancel -> Map.delete(armed, name)
+        ms -> Map.put(armed, name, :erlang.start_timer(ms, self(), {:ddcmp, name}))
+      end
+    end)
   end
 
   @doc false
