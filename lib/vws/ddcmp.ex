@@ -4,6 +4,12 @@ defmodule Vws.DDCMP do
   §4.3.2). It turns a byte transport (`Vws.Transport`) into an ordered, error-free, exactly-once
   stream of messages between two stations, using the codec `Vws.DDCMP.Frame`.
 
+  The protocol itself — the state table below, sequence numbers, what to send, which timer to
+  arm — is the pure core `Vws.DDCMP.Protocol`; this module is a process around it that only
+  dials, reads, writes and keeps time. A process that owns a wire and speaks the layer above
+  runs the core itself, in one process: `Vws.VAL` (the CEC) and `Vws.Sim.VAL2` (the simulated
+  controller) do. This link process is for a peer that wants DDCMP alone.
+
       {:ok, link} = Vws.DDCMP.start_link(endpoint: "tty:/dev/ttyS1?baud=9600", owner: self())
       receive do {:ddcmp, ^link, :up} -> :ok end
       :ok = Vws.DDCMP.send_data(link, <<2, 1, 0, "WHERE">>)

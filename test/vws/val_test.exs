@@ -158,6 +158,38 @@ defmodule Vws.VALTest do
     assert Task.await(task) == {:ok, ""}
   end
 
+  test "request/3: the caller says what the command waits for; the text is not read for it", %{
+    val: val,
+    link: link
+  } do
+    # a program whose name a text reading could take for something else still waits for
+    # PROGRAM COMPLETE, because the caller said so
+    prompt(link)
+    task = run(fn -> VAL.execute(val, "DO") end)
+    assert sent(link) == {2, :write, 0, "EXECUTE DO"}
+    respond(link, "0")
+    assert sent(link) == {2, :reply, 0, ""}
+    assert Task.yield(task, 50) == nil
+    async(link, :program_complete, "PROGRAM COMPLETE")
+    assert sent(link) == {3, :reply, :program_complete, ""}
+    assert Task.await(task) == {:ok, ""}
+
+    # a motion said to be one waits for MOTION COMPLETE
+    prompt(link)
+    task = run(fn -> VAL.request(val, {:motion_complete, "DO MOVE SAFE"}, 2_000) end)
+    assert sent(link) == {2, :write, 0, "DO MOVE SAFE"}
+    respond(link, "0")
+    assert sent(link) == {2, :reply, 0, ""}
+    assert Task.yield(task, 50) == nil
+    assert VAL.info(val).state == {:idle, :moving}
+    async(link, :motion_complete, "MOTION COMPLETE")
+    assert sent(link) == {3, :reply, :motion_complete, ""}
+    assert Task.await(task) == {:ok, ""}
+
+    # a DO passed off as a plain monitor command would let a second motion go: refused
+    assert_raise ArgumentError, fn -> VAL.request(val, {:response, "DO MOVE SAFE"}, 100) end
+  end
+
   test "the link going down mid-command ends it ERROR; it is never re-sent", %{
     val: val,
     link: link
