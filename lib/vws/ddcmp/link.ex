@@ -15,9 +15,6 @@ defmodule Vws.DDCMP.Link do
 
   defstruct [:owner, :name, :workstation, :endpoint, :backoff, :conn, :protocol, dialled: false]
 
-  @doc false
-  def counter_names, do: Protocol.counter_names()
-
   @impl :gen_statem
   def callback_mode, do: :handle_event_function
 
