@@ -4,6 +4,12 @@ defmodule Vws.DDCMP do
   §4.3.2). It turns a byte transport (`Vws.Transport`) into an ordered, error-free, exactly-once
   stream of messages between two stations, using the codec `Vws.DDCMP.Frame`.
 
+  The protocol itself — the state table below, sequence numbers, what to send, which timer to
+  arm — is the pure core `Vws.DDCMP.Protocol`; this module is a process around it that only
+  dials, reads, writes and keeps time. A process that owns a wire and speaks the layer above
+  runs the core itself, in one process: `Vws.VAL` (the CEC) and `Vws.Sim.VAL2` (the simulated
+  controller) do. This link process is for a peer that wants DDCMP alone.
+
       {:ok, link} = Vws.DDCMP.start_link(endpoint: "tty:/dev/ttyS1?baud=9600", owner: self())
       receive do {:ddcmp, ^link, :up} -> :ok end
       :ok = Vws.DDCMP.send_data(link, <<2, 1, 0, "WHERE">>)
@@ -233,17 +239,11 @@ defmodule Vws.DDCMP do
   """
   @spec send_data(link, iodata, keyword) :: :ok | {:error, :too_long | :not_running}
   def send_data(link, iodata, opts \\ []) do
-    bytes = IO.iodata_to_binary(iodata)
+    request = {:send, IO.iodata_to_binary(iodata), Keyword.take(opts, [:hold, :session])}
 
-    case Keyword.fetch(opts, :session) do
-      {:ok, session} when is_integer(session) ->
-        refusable_call(link, {:send_in, session, bytes})
-
-      :error ->
-        if Keyword.get(opts, :hold, true),
-          do: :gen_statem.call(link, {:send, bytes}),
-          else: refusable_call(link, {:send_now, bytes})
-    end
+    if Keyword.has_key?(opts, :session) or Keyword.get(opts, :hold, true) == false,
+      do: refusable_call(link, request),
+      else: :gen_statem.call(link, request)
   end
 
   # A link that has ended is RUNNING in no session: the refusal the caller is ready for, not an
@@ -280,14 +280,22 @@ defmodule Vws.DDCMP do
   def stop(link, reason \\ :normal, timeout \\ :infinity),
     do: :gen_statem.stop(link, reason, timeout)
 
-  defp validate!(opts) do
-    opts = Keyword.merge(@defaults, opts)
-
+  @doc false
+  # The options checked once, by the caller, with the defaults filled in (also `Vws.VAL`'s).
+  def validate!(opts) do
     case {Keyword.has_key?(opts, :endpoint), Keyword.has_key?(opts, :conn)} do
       {true, false} -> :ok
       {false, true} -> :ok
       _ -> raise ArgumentError, "Vws.DDCMP needs exactly one of :endpoint or :conn"
     end
+
+    opts |> validate_protocol!() |> Keyword.put_new(:owner, self())
+  end
+
+  @doc false
+  # The protocol's options alone, for a process that brings its own transport (`Vws.Sim.VAL2`).
+  def validate_protocol!(opts) do
+    opts = Keyword.merge(@defaults, opts)
 
     check!(opts, :window, &(is_integer(&1) and &1 in 1..255))
     check!(opts, :rep_timeout, &(is_integer(&1) and &1 > 0))
@@ -301,7 +309,7 @@ defmodule Vws.DDCMP do
       _ -> false
     end)
 
-    Keyword.put_new(opts, :owner, self())
+    opts
   end
 
   defp check!(opts, key, valid?) do

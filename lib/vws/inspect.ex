@@ -144,7 +144,7 @@ defmodule Vws.Inspect do
 
         module && Code.ensure_loaded?(module) && function_exported?(module, :info, 1) ->
           case call(fn -> module.info(pid) end) do
-            %{} = info -> {Map.get(info, :state, :running), line_info(module, info)}
+            %{} = info -> {Map.get(info, :state, :running), info}
             :not_answering -> {:not_answering, nil}
             :down -> {:down, nil}
             {:unreadable, why} -> {:unreadable, %{error: why}}
@@ -164,16 +164,6 @@ defmodule Vws.Inspect do
       info: info
     }
   end
-
-  # A VAL II's own line: the DDCMP link it started (retransmissions, last error) under `:line`.
-  defp line_info(Vws.VAL, %{link: link} = info) when is_pid(link) do
-    case call(fn -> Vws.DDCMP.info(link) end) do
-      %{} = line -> Map.put(info, :line, line)
-      _ -> info
-    end
-  end
-
-  defp line_info(_module, info), do: info
 
   @doc """
   Equipment of the cell that runs on this node outside any workstation — the hydraulic

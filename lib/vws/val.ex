@@ -3,8 +3,10 @@ defmodule Vws.VAL do
   The VAL II supervisory logical-unit layer, CEC side (seed §4.3–4.4, PROTOCOLS.md §3): monitor
   commands to a Unimation VAL II controller over a `Vws.DDCMP` link.
 
-  One process per robot controller. It starts its DDCMP link (role `:active`: the CEC sends
-  STRT), and speaks VAL data messages (`Vws.VAL.Message`) over it:
+  One process per robot controller, and per wire: it dials the controller, runs the DDCMP
+  protocol itself (`Vws.DDCMP.Protocol`, role `:active`: the CEC sends STRT) and speaks VAL data
+  messages (`Vws.VAL.Message`) over it — the link's news reaches the logical units in the order
+  it happened, in the same process:
 
     * **LUN 2, monitor input/output.** After start-up the monitor sends a READ — the prompt. Only
       then does the CEC send one monitor command, as a LUN 2 WRITE (that is its reply to the
@@ -34,7 +36,9 @@ defmodule Vws.VAL do
 
   ## Requests
 
-  `command/3` sends one monitor command and waits:
+  `request/3` sends one monitor command and waits for what its caller says it waits for
+  (ROBOT knows that from the command it parsed); `command/3`, `motion/3` and `execute/3` are the
+  same for a text, a `DO` instruction and a program name. A command waits
 
     * for its numbered response (`WHERE`, `SPEED 50`, …) → `{:ok, text}`;
     * a motion instruction, `DO …`, also for MOTION COMPLETE on LUN 3 (seed §4.4: the CEC sends no
@@ -59,11 +63,13 @@ defmodule Vws.VAL do
   ## Options
 
     * `:name` — registered name of the process
-    * `:ddcmp` — options for the link (`:endpoint` or a connection, `:window`, `:rep_timeout`, …);
-      `:owner` and `:role` are set here
-    * `:link_module` — the link implementation (default `Vws.DDCMP`; tests give a fake)
+    * `:ddcmp` — options for the link, as `Vws.DDCMP`'s: `:endpoint` (required; dialled again
+      with back-off whenever the controller goes away), `:window`, `:rep_timeout`, `:backoff`,
+      `:workstation`, …; `:role` is set here. Checked by `start_link/1` (`ArgumentError`).
 
   ## Telemetry
+
+  The link's own events are `Vws.DDCMP`'s (`[:vws, :ddcmp, …]`, `link` the name of this process).
 
     * `[:vws, :val, :message]` — `%{bytes}`, `%{name, workstation, direction: :in | :out, lun,
       function, qualifier}`, every VAL data message
@@ -93,9 +99,16 @@ defmodule Vws.VAL do
     }
   end
 
-  @doc "Starts the logical-unit process and its DDCMP link. See the module doc for options."
+  @doc "Starts the process for one VAL II wire. See the module doc for options."
   @spec start_link(keyword) :: :gen_statem.start_ret()
   def start_link(opts) do
+    ddcmp = Keyword.get(opts, :ddcmp, [])
+
+    unless Keyword.has_key?(ddcmp, :endpoint),
+      do: raise(ArgumentError, "Vws.VAL needs ddcmp: [endpoint: …]")
+
+    opts = Keyword.put(opts, :ddcmp, Vws.DDCMP.validate!(Keyword.put(ddcmp, :role, :active)))
+
     case Keyword.get(opts, :name) do
       nil ->
         :gen_statem.start_link(Vws.VAL.Connection, opts, [])
@@ -114,8 +127,43 @@ defmodule Vws.VAL do
   """
   @spec command(val, String.t(), timeout) :: {:ok, String.t()} | error
   def command(val, text, timeout \\ 10_000) when is_binary(text) do
-    request(val, text, waits_for(text), timeout)
+    request(val, {waits_for(text), text}, timeout)
   end
+
+  @doc """
+  Sends one monitor command `text` and waits for its response and then for `wait`:
+  `:response` (nothing more), `:motion_complete` (a `DO` instruction) or `:program_complete`
+  (`EXECUTE`). The caller knows what it asked for; the text is not read again to learn it. A
+  `DO` or `EXECUTE` text with `:response` raises `ArgumentError`: it would let a second motion go
+  before the first completed.
+  """
+  @spec request(val, {:response | :motion_complete | :program_complete, String.t()}, timeout) ::
+          {:ok, String.t()} | error
+  def request(val, {wait, text}, timeout)
+      when wait in [:response, :motion_complete, :program_complete] and is_binary(text) do
+    if wait == :response and waits_for(text) != :response,
+      do: raise(ArgumentError, "#{inspect(text)} waits for more than its response")
+
+    deadline = if timeout == :infinity, do: :infinity, else: now() + timeout
+    # the process answers :timeout itself at the deadline; the margin only covers a dead process
+    call_timeout = if timeout == :infinity, do: :infinity, else: timeout + 1_000
+
+    try do
+      :gen_statem.call(val, {:request, text, wait, deadline}, call_timeout)
+    catch
+      :exit, {:timeout, _} ->
+        {:error, :timeout}
+
+      # not running, or ended during the call: the command's fate is unknown, never a crash here
+      :exit, {reason, _} ->
+        {:error, {:link_down, reason}}
+    end
+  end
+
+  @doc "Runs the VAL II program `name` (`EXECUTE name`) and waits for PROGRAM COMPLETE."
+  @spec execute(val, String.t(), timeout) :: {:ok, String.t()} | error
+  def execute(val, name, timeout \\ 600_000) when is_binary(name),
+    do: request(val, {:program_complete, "EXECUTE " <> name}, timeout)
 
   @doc """
   Runs a motion instruction (`"DO MOVE SAFE"`) and waits for MOTION COMPLETE. Raises
@@ -126,7 +174,7 @@ defmodule Vws.VAL do
     unless waits_for(text) == :motion_complete,
       do: raise(ArgumentError, "not a DO instruction: #{inspect(text)}")
 
-    case request(val, text, :motion_complete, timeout) do
+    case request(val, {:motion_complete, text}, timeout) do
       {:ok, _} -> :ok
       error -> error
     end
@@ -143,8 +191,8 @@ defmodule Vws.VAL do
   @doc """
   What the layer is doing: `state` `{lun2, activity}` — `lun2` is `:down` (link not running),
   `:idle` (waiting for the prompt), `:ready` or `:busy` (a command awaits its response);
-  `activity` is `:still` or `:moving` (a `DO` or program in flight) — and `link` (the DDCMP
-  link's pid), `prompt` (`{number, text}` of the outstanding prompt), `short_status` (LUN 1's
+  `activity` is `:still` or `:moving` (a `DO` or program in flight) — and `line` (the DDCMP
+  protocol's state and numbers, as `Vws.DDCMP.info/1`), `prompt` (`{number, text}` of the outstanding prompt), `short_status` (LUN 1's
   latest), `last_async` (the latest LUN 3 messages, `{code, text}`, oldest first), `queued`,
   `in_flight` (texts), `counts`.
   """
@@ -205,30 +253,12 @@ defmodule Vws.VAL do
     end
   end
 
-  @doc false
-  # what a command waits for after its response
-  def waits_for(text) do
+  # what a text command waits for after its response (for callers that hold only the text)
+  defp waits_for(text) do
     case text |> String.trim_leading() |> String.upcase() do
       "DO " <> _ -> :motion_complete
       "EXECUTE " <> _ -> :program_complete
       _ -> :response
-    end
-  end
-
-  defp request(val, text, wait, timeout) do
-    deadline = if timeout == :infinity, do: :infinity, else: now() + timeout
-    # the process answers :timeout itself at the deadline; the margin only covers a dead process
-    call_timeout = if timeout == :infinity, do: :infinity, else: timeout + 1_000
-
-    try do
-      :gen_statem.call(val, {:request, text, wait, deadline}, call_timeout)
-    catch
-      :exit, {:timeout, _} ->
-        {:error, :timeout}
-
-      # not running, or ended during the call: the command's fate is unknown, never a crash here
-      :exit, {reason, _} ->
-        {:error, {:link_down, reason}}
     end
   end
 

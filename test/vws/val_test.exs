@@ -1,23 +1,23 @@
 defmodule Vws.VALTest do
   use ExUnit.Case, async: true
 
-  alias Vws.Test.FakeDDCMP
+  alias Vws.Test.VALPeer
   alias Vws.VAL
   alias Vws.VAL.Message
 
   doctest Vws.VAL
 
-  # The test plays the VAL II controller through a fake DDCMP link.
+  # The test plays the VAL II controller through a DDCMP peer of its own (`link`).
   setup do
-    {:ok, val} = VAL.start_link(link_module: FakeDDCMP, ddcmp: [endpoint: {:test, self()}])
-    assert_receive {:fake_ddcmp, :started, link}
-    FakeDDCMP.up(link)
+    {:ok, link} = VALPeer.start_link()
+    {:ok, val} = VAL.start_link(ddcmp: [endpoint: VALPeer.endpoint(link)])
+    :ok = VALPeer.up(link)
     %{val: val, link: link}
   end
 
   defp deliver(link, lun, function, qualifier, text) do
     {:ok, m} = Message.new(lun, function, qualifier, text)
-    FakeDDCMP.deliver(link, Message.encode(m))
+    VALPeer.deliver(link, Message.encode(m))
   end
 
   defp prompt(link), do: deliver(link, 2, :read, 0, ".")
@@ -25,12 +25,12 @@ defmodule Vws.VALTest do
   defp async(link, code, text \\ ""), do: deliver(link, 3, :write, code, text)
 
   defp sent(link) do
-    assert_receive {:fake_ddcmp, ^link, {:sent, bin}}, 1_000
+    assert_receive {:val_peer, ^link, {:sent, bin}}, 1_000
     {:ok, m} = Message.decode(bin)
     {m.lun, m.function, m.qualifier, m.text}
   end
 
-  defp nothing_sent(link), do: refute_receive({:fake_ddcmp, ^link, {:sent, _}}, 50)
+  defp nothing_sent(link), do: refute_receive({:val_peer, ^link, {:sent, _}}, 50)
 
   defp run(fun), do: Task.async(fun)
 
@@ -158,6 +158,38 @@ defmodule Vws.VALTest do
     assert Task.await(task) == {:ok, ""}
   end
 
+  test "request/3: the caller says what the command waits for; the text is not read for it", %{
+    val: val,
+    link: link
+  } do
+    # a program whose name a text reading could take for something else still waits for
+    # PROGRAM COMPLETE, because the caller said so
+    prompt(link)
+    task = run(fn -> VAL.execute(val, "DO") end)
+    assert sent(link) == {2, :write, 0, "EXECUTE DO"}
+    respond(link, "0")
+    assert sent(link) == {2, :reply, 0, ""}
+    assert Task.yield(task, 50) == nil
+    async(link, :program_complete, "PROGRAM COMPLETE")
+    assert sent(link) == {3, :reply, :program_complete, ""}
+    assert Task.await(task) == {:ok, ""}
+
+    # a motion said to be one waits for MOTION COMPLETE
+    prompt(link)
+    task = run(fn -> VAL.request(val, {:motion_complete, "DO MOVE SAFE"}, 2_000) end)
+    assert sent(link) == {2, :write, 0, "DO MOVE SAFE"}
+    respond(link, "0")
+    assert sent(link) == {2, :reply, 0, ""}
+    assert Task.yield(task, 50) == nil
+    assert VAL.info(val).state == {:idle, :moving}
+    async(link, :motion_complete, "MOTION COMPLETE")
+    assert sent(link) == {3, :reply, :motion_complete, ""}
+    assert Task.await(task) == {:ok, ""}
+
+    # a DO passed off as a plain monitor command would let a second motion go: refused
+    assert_raise ArgumentError, fn -> VAL.request(val, {:response, "DO MOVE SAFE"}, 100) end
+  end
+
   test "the link going down mid-command ends it ERROR; it is never re-sent", %{
     val: val,
     link: link
@@ -165,10 +197,10 @@ defmodule Vws.VALTest do
     prompt(link)
     move = run(fn -> VAL.motion(val, "DO MOVE SAFE") end)
     assert sent(link) == {2, :write, 0, "DO MOVE SAFE"}
-    FakeDDCMP.down(link, :timeouts)
-    assert Task.await(move) == {:error, {:link_down, :timeouts}}
+    VALPeer.down(link, :too_many_failures)
+    assert Task.await(move) == {:error, {:link_down, :too_many_failures}}
 
-    FakeDDCMP.up(link)
+    VALPeer.up(link)
     prompt(link)
     nothing_sent(link)
     assert VAL.info(val).state == {:ready, :still}
@@ -178,24 +210,15 @@ defmodule Vws.VALTest do
     val: val,
     link: link
   } do
-    # everything lands in the mailbox before the process looks: request, prompt, then the down
-    :sys.suspend(val)
+    # a request waits; the prompt and the link's end come in one chunk of bytes
     task = run(fn -> VAL.command(val, "DO MOVE SAFE", 300) end)
-    wait_queue(val, 1)
-    prompt(link)
-    FakeDDCMP.down(link, :too_many_failures)
-    :sys.resume(val)
+    assert Vws.Test.Eventually.eventually(fn -> VAL.info(val).queued == 1 end)
+    {:ok, m} = Message.new(2, :read, 0, ".")
+    VALPeer.deliver_and_down(link, Message.encode(m), :too_many_failures)
 
     nothing_sent(link)
     assert Task.await(task) == {:error, :timeout}
     assert VAL.info(val).state == {:down, :still}
-  end
-
-  defp wait_queue(pid, n) do
-    assert Vws.Test.Eventually.eventually(fn ->
-             {:message_queue_len, len} = Process.info(pid, :message_queue_len)
-             len >= n
-           end)
   end
 
   test "a peer restart mid-motion ends it ERROR; the next command waits for the new prompt", %{
@@ -207,12 +230,12 @@ defmodule Vws.VALTest do
     assert sent(link) == {2, :write, 0, "DO MOVE SAFE"}
     respond(link, "0")
     assert sent(link) == {2, :reply, 0, ""}
-    FakeDDCMP.peer_restarted(link)
+    VALPeer.peer_restarted(link)
     assert Task.await(move) == {:error, :peer_restarted}
 
     where = run(fn -> VAL.command(val, "WHERE") end)
     nothing_sent(link)
-    FakeDDCMP.up(link)
+    VALPeer.up(link)
     prompt(link)
     assert sent(link) == {2, :write, 0, "WHERE"}
     respond(link, "0 W")
@@ -226,12 +249,12 @@ defmodule Vws.VALTest do
   } do
     waiting = run(fn -> VAL.command(val, "DO MOVE SAFE", 5_000) end)
     assert Vws.Test.Eventually.eventually(fn -> VAL.info(val).queued == 1 end)
-    FakeDDCMP.down(link, :closed)
+    VALPeer.down(link, :closed)
     assert Task.await(waiting) == {:error, {:link_down, :closed}}
     assert VAL.command(val, "WHERE", 5_000) == {:error, {:link_down, :closed}}
 
     # back: nothing of the above was kept to be sent, the next request goes
-    FakeDDCMP.up(link)
+    VALPeer.up(link)
     prompt(link)
     nothing_sent(link)
     task = run(fn -> VAL.command(val, "WHERE", 2_000) end)
@@ -270,11 +293,12 @@ defmodule Vws.VALTest do
     link: link
   } do
     assert VAL.reinitialise(val) == :ok
-    assert_receive {:fake_ddcmp, ^link, :restart}
+    assert_receive {:val_peer, ^link, :restart}
+    assert VAL.info(val).state == {:down, :still}
     prompt(link)
     task = run(fn -> VAL.command(val, "WHERE") end)
     nothing_sent(link)
-    FakeDDCMP.up(link)
+    VALPeer.up(link)
     nothing_sent(link)
     prompt(link)
     assert sent(link) == {2, :write, 0, "WHERE"}
@@ -298,7 +322,7 @@ defmodule Vws.VALTest do
     assert VAL.info(val).short_status == "MONITOR SPEED 50"
     deliver(link, 4, :read, 0, "?")
     assert sent(link) == {4, :write, 0, ""}
-    FakeDDCMP.deliver(link, <<2, 9, 9>>)
+    VALPeer.deliver(link, <<2, 9, 9>>)
     nothing_sent(link)
     assert VAL.info(val).counts.bad == 1
   end
@@ -319,13 +343,31 @@ defmodule Vws.VALTest do
     assert_raise ArgumentError, fn -> VAL.motion(val, "WHERE") end
   end
 
-  test "the VAL process stops when its link process dies", %{val: val, link: link} do
-    Process.flag(:trap_exit, true)
+  test "the connection dying mid-motion ends it link_down; it is never re-sent", %{
+    val: val,
+    link: link
+  } do
     prompt(link)
     move = run(fn -> VAL.motion(val, "DO MOVE SAFE") end)
     assert sent(link) == {2, :write, 0, "DO MOVE SAFE"}
-    Process.exit(link, :kill)
-    assert {:error, {:link_down, :killed}} = Task.await(move)
-    assert_receive {:EXIT, ^val, {:shutdown, {:link_exit, :killed}}}
+    VALPeer.down(link, :closed)
+    assert Task.await(move) == {:error, {:link_down, :closed}}
+
+    # dialled again and up: the move is not sent again
+    VALPeer.up(link)
+    prompt(link)
+    nothing_sent(link)
+    assert VAL.info(val).state == {:ready, :still}
+    assert %{state: :running, connected: true} = VAL.info(val).line
+  end
+
+  test "one process for the wire: the VAL process runs DDCMP itself" do
+    {:ok, peer} = VALPeer.start_link()
+    {:ok, val} = VAL.start_link(ddcmp: [endpoint: VALPeer.endpoint(peer)])
+    :ok = VALPeer.up(peer)
+    assert {:links, links} = Process.info(val, :links)
+    # the caller only: no link process of its own
+    assert links == [self()]
+    assert VAL.info(val).line.session == 1
   end
 end

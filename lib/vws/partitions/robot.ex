@@ -68,7 +68,7 @@ defmodule Vws.Partitions.Robot do
   """
   @behaviour Vws.Partition
 
-  alias Vws.{Interlock, Mailbox}
+  alias Vws.{Interlock, Mailbox, VAL}
   alias Vws.Interlock.WorkVolumes
 
   @where_location 9
@@ -89,7 +89,7 @@ defmodule Vws.Partitions.Robot do
     result = run(command, ctx)
 
     if ctx.options[:reinit] do
-      case Vws.VAL.reinitialise(ctx.link) do
+      case VAL.reinitialise(ctx.link) do
         :ok -> :ok
         {:error, :busy} -> :ok
       end
@@ -99,7 +99,7 @@ defmodule Vws.Partitions.Robot do
   end
 
   defp run(:where, ctx) do
-    with {:ok, text} <- val(Vws.VAL.command(ctx.link, "WHERE", timeout(ctx, :command))),
+    with {:ok, text} <- val(VAL.request(ctx.link, {:response, "WHERE"}, timeout(ctx, :command))),
          {:ok, %{world: world, joints: joints}} <- where(text) do
       Mailbox.put_device(ctx.workstation, @where_location, where_robot(world ++ joints))
       :done
@@ -108,16 +108,14 @@ defmodule Vws.Partitions.Robot do
 
   defp run({:speed, n}, ctx) do
     with {:ok, _} <-
-           val(Vws.VAL.command(ctx.link, "SPEED " <> number(n), timeout(ctx, :command))),
+           val(VAL.request(ctx.link, {:response, "SPEED " <> number(n)}, timeout(ctx, :command))),
          do: :done
   end
 
   defp run({:execute, name}, ctx) do
     with {:ok, %{enters: volumes, ends: ends}} <- WorkVolumes.program(work_volumes(ctx), name),
          :ok <- enter_all(ctx, volumes) do
-      text = "EXECUTE " <> name
-
-      with {:ok, _} <- val(Vws.VAL.command(ctx.link, text, timeout(ctx, :program))) do
+      with {:ok, _} <- val(VAL.execute(ctx.link, name, timeout(ctx, :program))) do
         arrived(ctx, ends)
       end
     end
@@ -129,7 +127,15 @@ defmodule Vws.Partitions.Robot do
   defp motion(command, ctx) do
     with {:ok, target} <- target(command, ctx),
          :ok <- enter(ctx, target),
-         {:ok, _} <- val(Vws.VAL.command(ctx.link, instruction(command), timeout(ctx, :motion))) do
+         # what it waits for is known from the parsed command, not read back from its text
+         {:ok, _} <-
+           val(
+             VAL.request(
+               ctx.link,
+               {:motion_complete, instruction(command)},
+               timeout(ctx, :motion)
+             )
+           ) do
       arrived(ctx, target)
     end
   end
@@ -169,7 +175,7 @@ defmodule Vws.Partitions.Robot do
   end
 
   defp where(text) do
-    case Vws.VAL.parse_where(text) do
+    case VAL.parse_where(text) do
       {:ok, where} -> {:ok, where}
       {:error, _} -> {:error, "VAL II BAD WHERE RESPONSE"}
     end

@@ -1,8 +1,8 @@
 defmodule Vws.Sim.VAL2 do
   @moduledoc """
   A simulated Unimation VAL II robot controller on its own endpoint: the supervisory port of
-  seed §4.3 — DDCMP (`Vws.DDCMP`, role `:passive`) carrying VAL data messages
-  (`Vws.VAL.Message`) — in front of a simulated arm (`Vws.Sim.VAL2.Monitor`,
+  seed §4.3 — DDCMP (`Vws.DDCMP.Protocol`, role `:passive`, run by this process itself: one
+  process per wire) carrying VAL data messages (`Vws.VAL.Message`) — in front of a simulated arm (`Vws.Sim.VAL2.Monitor`,
   `Vws.Sim.VAL2.Kinematics`) with the named locations of `priv/sims/robot_locations.exs`.
 
       {:ok, sim} = Vws.Sim.VAL2.start_link(time_scale: 0.01)
@@ -29,7 +29,7 @@ defmodule Vws.Sim.VAL2 do
 
   On LUNs 1 and 2 each message a unit initiates is numbered in its qualifier, and an answer
   must carry the number of what it answers (`Vws.VAL`, "Numbers"). An answer with a number
-  this session of the link never used is left over from before a restart (the CEC gave it to
+  this session of the link never used is left over from before a restart (a CEC that gave it to
   its link as the link was starting again): it is not obeyed, and counted as `stale`, not as a
   violation.
 
@@ -54,12 +54,13 @@ defmodule Vws.Sim.VAL2 do
     * `:time_scale` — multiplies every motion time (default 1.0; tests use ~0.001)
     * `:on_move` — `fun(map)`, see "The plant"
     * `:carrying` — the initial payload flag (`nil`: not reported)
-    * `:ddcmp` — further `Vws.DDCMP` options (`:rep_timeout`, `:window`, …)
+    * `:ddcmp` — further `Vws.DDCMP` options (`:rep_timeout`, `:window`, `:backoff` for a tty, …)
     * `:name` — registered name
   """
   use GenServer
   require Logger
 
+  alias Vws.DDCMP.{Protocol, Wire}
   alias Vws.Sim.VAL2.Monitor
   alias Vws.Transport
   alias Vws.VAL.Message
@@ -89,7 +90,8 @@ defmodule Vws.Sim.VAL2 do
 
   @doc """
   The controller's state: `location` (name of the location it is at, `nil` between names),
-  `world`, `joints`, `volume`, `speed`, `moving`, `program`, `link` (up?), `commands` (every
+  `world`, `joints`, `volume`, `speed`, `moving`, `program`, `link` (up?), `line` (the DDCMP
+  protocol's state and numbers, `Vws.DDCMP.Protocol.info/1`; nil before a connection), `commands` (every
   monitor command obeyed, in order), `violations` (CEC rule breaks), `stale` (answers left over
   from an earlier session, not obeyed), `restarts`.
   """
@@ -138,11 +140,15 @@ defmodule Vws.Sim.VAL2 do
       bound: nil,
       listener: nil,
       acceptor: nil,
-      link: nil,
+      # the wire: a connection, the DDCMP protocol on it and its armed timers
+      conn: nil,
+      protocol: nil,
+      timers: %{},
+      backoff: nil,
       up: false,
-      # the link's session (`Vws.DDCMP`, "Owner messages"): the count of its :up messages
-      link_session: 0,
-      ddcmp: Keyword.get(opts, :ddcmp, []),
+      ddcmp: Vws.DDCMP.validate_protocol!(Keyword.get(opts, :ddcmp, [])),
+      # false while a chunk's news is handled: the units send once it all is
+      pumping: true,
       time_scale: Keyword.get(opts, :time_scale, 1.0),
       on_move: Keyword.get(opts, :on_move),
       carrying: Keyword.get(opts, :carrying),
@@ -175,8 +181,10 @@ defmodule Vws.Sim.VAL2 do
         {:noreply, %{s | listener: listener, bound: bound, acceptor: acceptor}}
 
       {:error, :not_listenable} ->
-        # a tty: the link opens it, and opens it again if it goes away
-        {:noreply, start_link_on(%{s | bound: to_string(s.endpoint)}, endpoint: s.endpoint)}
+        # a tty: opened here, and opened again (with back-off) whenever it goes away
+        {min, max} = Keyword.fetch!(s.ddcmp, :backoff)
+        s = %{s | bound: to_string(s.endpoint), backoff: Vws.Backoff.new(min, max)}
+        {:noreply, dial(s)}
 
       {:error, reason} ->
         {:stop, {:listen_failed, reason}, s}
@@ -199,6 +207,7 @@ defmodule Vws.Sim.VAL2 do
       moving: m.motion != nil,
       program: m.program && m.program.name,
       link: s.up,
+      line: s.protocol && Protocol.info(s.protocol),
       commands: Enum.reverse(s.commands),
       violations: s.violations,
       stale: s.stale,
@@ -215,7 +224,7 @@ defmodule Vws.Sim.VAL2 do
     s = %{s | monitor: Monitor.restart(s.monitor, fraction(s)), motion: nil, fault: nil}
     if stopped, do: notify(s, :stopped)
     s = %{s | waiting: %{}, outbox: %{}, restarts: s.restarts + 1, up: false}
-    if s.link, do: Vws.DDCMP.restart(s.link)
+    s = if s.protocol, do: line(s, Protocol.restart(s.protocol)), else: s
     {:reply, :ok, s}
   end
 
@@ -227,56 +236,26 @@ defmodule Vws.Sim.VAL2 do
   @impl true
   def handle_info({:accepted, conn}, s) do
     s =
-      if s.link do
+      if s.conn do
         Logger.info("VAL II simulator: a new connection takes over")
-        old = s.link
-        Process.unlink(old)
-        stop_link(old)
-        %{s | link: nil, up: false}
+        Transport.close(s.conn)
+        line(%{s | conn: nil}, Protocol.disconnected(s.protocol, :taken_over))
       else
         s
       end
 
-    {:noreply, start_link_on(s, conn: conn)}
+    :ok = Transport.activate(conn)
+    {:noreply, connected(s, conn)}
   end
 
-  def handle_info({:ddcmp, link, :up}, %{link: link} = s) do
-    # every start-up: the units start afresh, LUN 2 prompts, LUN 1 tells its status
-    s = %{
-      s
-      | up: true,
-        link_session: s.link_session + 1,
-        waiting: %{},
-        session: %{},
-        outbox: Map.delete(s.outbox, @lun_monitor)
-    }
+  def handle_info(:dial, s), do: {:noreply, dial(s)}
 
-    s = enqueue(s, @lun_monitor, {:read, 0, @prompt})
-    {:noreply, s |> enqueue_status() |> pump_all()}
-  end
-
-  def handle_info({:ddcmp, link, {:down, reason}}, %{link: link} = s) do
-    Logger.info("VAL II simulator: link down (#{inspect(reason)})")
-    {:noreply, %{s | up: false, waiting: %{}}}
-  end
-
-  def handle_info({:ddcmp, link, :peer_restarted}, %{link: link} = s) do
-    Logger.info("VAL II simulator: the CEC restarted the link")
-    {:noreply, %{s | up: false, waiting: %{}}}
-  end
-
-  # data still in the mailbox from a session that has ended (restart, down) is not obeyed
-  def handle_info({:ddcmp, link, {:data, _}}, %{link: link, up: false} = s),
-    do: {:noreply, %{s | stale: s.stale + 1}}
-
-  def handle_info({:ddcmp, link, {:data, bytes}}, %{link: link} = s) do
-    case Message.decode(bytes) do
-      {:ok, m} ->
-        {:noreply, receive_message(m, s)}
-
-      {:error, e} ->
-        Logger.warning("VAL II simulator: bad VAL message: #{Exception.message(e)}")
-        {:noreply, violation(s)}
+  def handle_info({:timeout, ref, {:ddcmp, timer}}, s) do
+    if s.timers[timer] == ref do
+      s = %{s | timers: Map.delete(s.timers, timer)}
+      {:noreply, line(s, Protocol.handle_timeout(s.protocol, timer))}
+    else
+      {:noreply, s}
     end
   end
 
@@ -298,19 +277,110 @@ defmodule Vws.Sim.VAL2 do
     {:noreply, s |> enqueue(@lun_async, {:write, :error, "#{code} #{text}"}) |> pump_all()}
   end
 
-  def handle_info({:EXIT, link, reason}, %{link: link} = s) do
-    Logger.info("VAL II simulator: link ended (#{inspect(reason)})")
-    {:noreply, %{s | link: nil, up: false, waiting: %{}}}
+  def handle_info(message, %{conn: conn} = s) when conn != nil do
+    case Transport.handle_message(conn, message) do
+      {:data, bytes} ->
+        :ok = Transport.activate(conn)
+        {:noreply, line(s, Protocol.handle_bytes(s.protocol, bytes))}
+
+      :closed ->
+        {:noreply, disconnected(s, :closed)}
+
+      {:error, reason} ->
+        {:noreply, disconnected(s, {:transport, reason})}
+
+      :unknown ->
+        other_info(message, s)
+    end
   end
 
-  def handle_info({:EXIT, acceptor, reason}, %{acceptor: acceptor} = s) do
-    {:stop, reason, s}
+  def handle_info(message, s), do: other_info(message, s)
+
+  # The wire -------------------------------------------------------------------------------------
+
+  # A fresh protocol on every connection, as a controller's port after a new cable.
+  defp connected(s, conn) do
+    protocol = Protocol.new(Keyword.put(s.ddcmp, :role, :passive))
+    s = %{s | conn: conn, protocol: protocol, up: false, waiting: %{}}
+    line(s, Protocol.connect(protocol))
   end
 
-  def handle_info({:EXIT, _pid, :normal}, s), do: {:noreply, s}
-  def handle_info({:EXIT, _pid, reason}, s), do: {:stop, reason, s}
+  defp dial(s) do
+    case Transport.connect(s.endpoint) do
+      {:ok, conn} ->
+        :ok = Transport.activate(conn)
+        connected(s, conn)
 
-  def handle_info(msg, s) do
+      {:error, reason} ->
+        {delay, backoff} = Vws.Backoff.next(s.backoff)
+        Logger.info("VAL II simulator: cannot open #{s.bound} (#{inspect(reason)})")
+        Process.send_after(self(), :dial, delay)
+        %{s | backoff: backoff}
+    end
+  end
+
+  defp disconnected(s, reason) do
+    Logger.info("VAL II simulator: connection ended (#{inspect(reason)})")
+    Transport.close(s.conn)
+    s = line(%{s | conn: nil}, Protocol.disconnected(s.protocol, reason))
+
+    if s.backoff do
+      {delay, backoff} = Vws.Backoff.next(s.backoff)
+      Process.send_after(self(), :dial, delay)
+      %{s | backoff: backoff}
+    else
+      s
+    end
+  end
+
+  # A result of the protocol: frames out, timers armed, news handled in order; then the units
+  # send what may go now.
+  defp line(s, {protocol, frames, events}) do
+    meta = %{link: self(), workstation: s.workstation}
+    {news, timers} = Wire.perform_raw(frames, events, s.conn, meta)
+    s = %{s | protocol: protocol, timers: Wire.arm(s.timers, timers)}
+    pumping = s.pumping
+    s = Enum.reduce(news, %{s | pumping: false}, &news/2)
+    s = %{s | pumping: pumping}
+    if pumping and news != [], do: pump_all(s), else: s
+  end
+
+  defp news(:up, s) do
+    # every start-up: the units start afresh, LUN 2 prompts, LUN 1 tells its status
+    s = if s.backoff, do: %{s | backoff: Vws.Backoff.reset(s.backoff)}, else: s
+    s = %{s | up: true, waiting: %{}, session: %{}, outbox: Map.delete(s.outbox, @lun_monitor)}
+    s |> enqueue(@lun_monitor, {:read, 0, @prompt}) |> enqueue_status()
+  end
+
+  defp news({:down, reason}, s) do
+    Logger.info("VAL II simulator: link down (#{inspect(reason)})")
+    %{s | up: false, waiting: %{}}
+  end
+
+  defp news(:peer_restarted, s) do
+    Logger.info("VAL II simulator: the CEC restarted the link")
+    %{s | up: false, waiting: %{}}
+  end
+
+  # data after the link's end in the same chunk: from a session that has ended, not obeyed
+  defp news({:data, _bytes}, %{up: false} = s), do: %{s | stale: s.stale + 1}
+
+  defp news({:data, bytes}, s) do
+    case Message.decode(bytes) do
+      {:ok, m} ->
+        receive_message(m, s)
+
+      {:error, e} ->
+        Logger.warning("VAL II simulator: bad VAL message: #{Exception.message(e)}")
+        violation(s)
+    end
+  end
+
+  defp other_info({:EXIT, acceptor, reason}, %{acceptor: acceptor} = s), do: {:stop, reason, s}
+  defp other_info({:EXIT, _pid, :normal}, s), do: {:noreply, s}
+  defp other_info({:EXIT, _pid, reason}, s), do: {:stop, reason, s}
+
+  defp other_info(msg, s) do
     Logger.debug("VAL II simulator: ignored #{inspect(msg, limit: 5)}")
     {:noreply, s}
   end
@@ -318,21 +388,8 @@ defmodule Vws.Sim.VAL2 do
   @impl true
   def terminate(_reason, s) do
     if s.listener, do: Transport.close_listener(s.listener)
+    if s.conn, do: Transport.close(s.conn)
     :ok
-  end
-
-  # The old link may have ended by itself already — its connection closed when the CEC's
-  # went away — with its exit still on the way to us: stopping it is then nothing to do.
-  defp stop_link(link) do
-    Vws.DDCMP.stop(link)
-  catch
-    :exit, _ -> :ok
-  end
-
-  defp start_link_on(s, transport) do
-    opts = s.ddcmp |> Keyword.merge(transport) |> Keyword.merge(owner: self(), role: :passive)
-    {:ok, link} = Vws.DDCMP.start_link(opts)
-    %{s | link: link, up: false, link_session: 0, waiting: %{}}
   end
 
   ## The logical units
@@ -492,23 +549,21 @@ defmodule Vws.Sim.VAL2 do
 
   defp pump_all(s), do: Enum.reduce(Map.keys(s.outbox), s, &pump(&2, &1))
 
-  # Sends the unit's next message if it is not waiting for the CEC and the link is up.
-  #
-  # Only into the session this process knows of: `up` lags the link, which may already have
-  # restarted (even be RUNNING again) while its news waits in our mailbox behind the data being
-  # handled. What that data causes — the prompt after the CEC's REPLY, above all — must not reach
-  # the CEC in the new session, where the start-up prompts afresh: two prompts in one session
-  # would end the CEC's next command `no_response`. A refused message stays in the outbox; the
-  # coming :up decides what goes then.
-  defp pump(%{up: true} = s, lun) do
+  # Sends the unit's next message if it is not waiting for the CEC and the link is up. While a
+  # chunk's news is handled nothing is sent (`pumping: false`): what the chunk's data causes — the
+  # prompt after the CEC's REPLY, above all — goes only once the whole chunk is handled, and only
+  # if the link still runs then; a restart later in the chunk starts the units afresh instead
+  # (two prompts in one session would end the CEC's next command `no_response`).
+  defp pump(%{up: true, pumping: true} = s, lun) do
     case {s.waiting[lun], Map.get(s.outbox, lun, [])} do
       {nil, [{function, qualifier, text} | rest]} ->
         text = binary_part(text, 0, min(byte_size(text), Message.max_text()))
         {q, sent} = number(s, lun, qualifier)
         {:ok, message} = Message.new(lun, function, q, text)
 
-        case send_data(s.link, Message.encode(message), s.link_session) do
-          :ok ->
+        case Protocol.send(s.protocol, Message.encode(message), hold: false) do
+          {:ok, protocol, frames, events} ->
+            sent = line(%{sent | protocol: protocol}, {protocol, frames, events})
             wait = if function == :read, do: :input, else: :reply
             q = message.qualifier
 
@@ -529,14 +584,6 @@ defmodule Vws.Sim.VAL2 do
   end
 
   defp pump(s, _lun), do: s
-
-  # A link that has ended by itself (its connection closed) with its exit still on the way to
-  # us is not running either.
-  defp send_data(link, bytes, session) do
-    Vws.DDCMP.send_data(link, bytes, session: session)
-  catch
-    :exit, _ -> {:error, :not_running}
-  end
 
   defp violation(s), do: %{s | violations: s.violations + 1}
 

@@ -1,6 +1,13 @@
 defmodule Vws.VAL.Connection do
   @moduledoc false
-  # The gen_statem behind `Vws.VAL`. Its state is a pair {lun2, activity}:
+  # The gen_statem behind `Vws.VAL`: one process for the whole wire — the transport, the DDCMP
+  # protocol (`Vws.DDCMP.Protocol`, pure data driven from here) and the VAL II logical units
+  # above it. Bytes from the transport go to the protocol; its news (`:up`, `{:data, _}`,
+  # `{:down, _}`, `:peer_restarted`) is handled here in the order the protocol produced it, in the
+  # same callback, so the units always know the link's state as it is: no session to count, no
+  # mailbox to peek into.
+  #
+  # Its state is a pair {lun2, activity}:
   #
   #   lun2      :down   the DDCMP link is not running
   #             :idle   link up, no prompt outstanding (waiting for LUN 2 READ)
@@ -15,10 +22,17 @@ defmodule Vws.VAL.Connection do
   # Requests are queued by hand rather than postponed: each has a deadline, and a robot move
   # whose caller has given up must never be sent late, so a queued request needs its own timer
   # and can be withdrawn; a postponed event cannot.
+  #
+  # What the units send in one callback is collected in `out` and given to the protocol when the
+  # callback ends, after every piece of news it brought; a queued command goes (`dispatch/3`)
+  # only then, on the state the whole chunk left. Replies collected before the link went down or
+  # restarted within the same chunk are dropped: they answer a session that has ended.
   @behaviour :gen_statem
 
   require Logger
 
+  alias Vws.DDCMP.{Protocol, Wire}
+  alias Vws.Transport
   alias Vws.VAL.Message
 
   @lun_short_status 1
@@ -33,15 +47,20 @@ defmodule Vws.VAL.Connection do
   def init(opts) do
     Process.flag(:trap_exit, true)
     name = Keyword.get(opts, :name, self())
-    Logger.metadata(val: inspect(name), workstation: Vws.Workstation.id_of(name))
+    ddcmp = Keyword.fetch!(opts, :ddcmp)
+    workstation = Keyword.get(ddcmp, :workstation) || Vws.Workstation.id_of(name)
+    Logger.metadata(val: inspect(name), workstation: workstation)
+    {min_backoff, max_backoff} = Keyword.fetch!(ddcmp, :backoff)
 
     data = %{
       name: name,
-      link_module: Keyword.get(opts, :link_module, Vws.DDCMP),
-      link_opts: Keyword.get(opts, :ddcmp, []),
-      link: nil,
-      # the link's session (`Vws.DDCMP`, "Owner messages"): the count of its :up messages
-      session: 0,
+      endpoint: Keyword.fetch!(ddcmp, :endpoint),
+      backoff: Vws.Backoff.new(min_backoff, max_backoff),
+      conn: nil,
+      protocol: Protocol.new(Keyword.put(ddcmp, :role, :active)),
+      line_meta: %{link: name, workstation: workstation},
+      # VAL messages to give to the protocol when the callback ends
+      out: [],
       queue: [],
       lun2_request: nil,
       activity_request: nil,
@@ -54,21 +73,34 @@ defmodule Vws.VAL.Connection do
       counts: %{in: 0, out: 0, bad: 0, stale: 0, unexpected: 0, requests: 0, errors: 0}
     }
 
-    # the link is started after init returns: never block in init
-    {:ok, {:down, :still}, data, [{:next_event, :internal, :start_link}]}
+    # never dial in init: the first dial is an event
+    {:ok, {:down, :still}, data, [{{:timeout, :connect}, 0, :connect}]}
   end
 
   @impl true
-  def handle_event(:internal, :start_link, _state, data) do
-    opts = Keyword.merge(data.link_opts, owner: self(), role: :active)
-
-    case data.link_module.start_link(opts) do
-      {:ok, link} ->
-        {:keep_state, %{data | link: link}}
+  def handle_event({:timeout, :connect}, :connect, state, data) do
+    case Transport.connect(data.endpoint) do
+      {:ok, conn} ->
+        :ok = Transport.activate(conn)
+        line(state, %{data | conn: conn}, Protocol.connect(data.protocol))
 
       {:error, reason} ->
-        {:stop, {:link_start_failed, reason}}
+        {delay, backoff} = Vws.Backoff.next(data.backoff)
+
+        Wire.telemetry(data.line_meta, :connect_failed, %{count: 1, retry_in: delay}, %{
+          endpoint: to_string(data.endpoint),
+          reason: reason
+        })
+
+        protocol = %Protocol{data.protocol | last_error: {:connect, reason}}
+
+        {:keep_state, %{data | backoff: backoff, protocol: protocol},
+         [{{:timeout, :connect}, delay, :connect}]}
     end
+  end
+
+  def handle_event({:timeout, timer}, timer, state, data) when timer in [:rep, :start] do
+    line(state, data, Protocol.handle_timeout(data.protocol, timer))
   end
 
   # Requests -----------------------------------------------------------------------------------
@@ -107,7 +139,7 @@ defmodule Vws.VAL.Connection do
             do: [],
             else: [{{:timeout, {:request, ref}}, max(deadline - now(), 0), nil}]
 
-        dispatch(state, data, timer)
+        done(state, data, timer)
 
       {:error, error} ->
         {:keep_state_and_data, [{:reply, from, {:error, {:bad_command, error}}}]}
@@ -117,7 +149,10 @@ defmodule Vws.VAL.Connection do
   def handle_event({:call, from}, :info, state, data) do
     info = %{
       state: state,
-      link: data.link,
+      line:
+        data.protocol
+        |> Protocol.info()
+        |> Map.merge(%{connected: data.conn != nil, peer: data.conn && Transport.peer(data.conn)}),
       prompt: data.prompt,
       short_status: data.short_status,
       last_async: Enum.reverse(data.last_async),
@@ -137,10 +172,11 @@ defmodule Vws.VAL.Connection do
     if lun2 == :busy or activity == :moving do
       {:keep_state_and_data, [{:reply, from, {:error, :busy}}]}
     else
-      :ok = data.link_module.restart(data.link)
-      # data already on its way from the old session (a prompt) must not count: while :down,
-      # data is ignored until the link is up again
-      {:next_state, {:down, :still}, %{data | prompt: nil}, [{:reply, from, :ok}]}
+      # the link goes back through start-up ({:down, :restart} if it was running); the units wait
+      # for it and a fresh prompt
+      line({:down, :still}, %{data | prompt: nil}, Protocol.restart(data.protocol), [
+        {:reply, from, :ok}
+      ])
     end
   end
 
@@ -165,16 +201,85 @@ defmodule Vws.VAL.Connection do
     end
   end
 
-  # The link -----------------------------------------------------------------------------------
+  # The line ----------------------------------------------------------------------------------
 
-  def handle_event(:info, {:ddcmp, link, :up}, {lun2, activity}, %{link: link} = data) do
-    Logger.info("VAL II link up")
-    lun2 = if lun2 == :down, do: :idle, else: lun2
-    {:next_state, {lun2, activity}, %{data | session: data.session + 1, gone: nil}}
+  def handle_event(:info, message, state, %{conn: conn} = data) when conn != nil do
+    case Transport.handle_message(conn, message) do
+      {:data, bytes} ->
+        :ok = Transport.activate(conn)
+        line(state, data, Protocol.handle_bytes(data.protocol, bytes))
+
+      :closed ->
+        disconnected(state, data, :closed)
+
+      {:error, reason} ->
+        disconnected(state, data, {:transport, reason})
+
+      :unknown ->
+        other_info(state, message, data)
+    end
   end
 
-  def handle_event(:info, {:ddcmp, link, {:down, reason}}, _state, %{link: link} = data) do
+  def handle_event(:info, message, state, data), do: other_info(state, message, data)
+
+  def handle_event(type, content, state, data), do: unexpected(state, type, content, data)
+
+  @impl true
+  def terminate(_reason, _state, %{conn: conn}) do
+    if conn, do: Transport.close(conn)
+    :ok
+  end
+
+  defp other_info(_state, {:EXIT, _pid, reason}, _data) when reason != :normal,
+    do: {:stop, reason}
+
+  defp other_info(state, message, data), do: unexpected(state, :info, message, data)
+
+  defp unexpected(state, type, content, data) do
+    Logger.warning(
+      "unexpected #{inspect(type)} #{inspect(content, limit: 10)} in #{inspect(state)}"
+    )
+
+    {:keep_state, count(data, :unexpected)}
+  end
+
+  # The transport is gone: the protocol halts (down if it was running) and the link is dialled
+  # again after the back-off's next wait.
+  defp disconnected(state, data, reason) do
+    Transport.close(data.conn)
+    {delay, backoff} = Vws.Backoff.next(data.backoff)
+    data = %{data | conn: nil, backoff: backoff}
+
+    line(state, data, Protocol.disconnected(data.protocol, reason), [
+      {{:timeout, :connect}, delay, :connect}
+    ])
+  end
+
+  # A result of the protocol: its frames go out, its timers are armed, and its news is handled
+  # in order; then what may go now goes (`done/3`).
+  defp line(state, data, {protocol, frames, events}, actions \\ []) do
+    {news, timers} = Wire.perform(frames, events, data.conn, data.line_meta)
+    data = %{data | protocol: protocol}
+
+    {state, data, more} =
+      Enum.reduce(news, {state, data, []}, fn event, {state, data, acc} ->
+        {state, data, actions} = news(event, state, data)
+        {state, data, acc ++ actions}
+      end)
+
+    done(state, data, timers ++ actions ++ more)
+  end
+
+  defp news(:up, {lun2, activity}, data) do
+    Logger.info("VAL II link up")
+    lun2 = if lun2 == :down, do: :idle, else: lun2
+    data = %{data | gone: nil, backoff: Vws.Backoff.reset(data.backoff)}
+    {{lun2, activity}, data, []}
+  end
+
+  defp news({:down, reason}, _state, data) do
     Logger.warning("VAL II link down: #{inspect(reason)}")
+    data = drop_out(data)
     {data, actions} = fail_in_flight(data, {:link_down, reason})
 
     # A link that restarts by itself (too many failures, a restart asked for) is up again after
@@ -185,56 +290,27 @@ defmodule Vws.VAL.Connection do
         do: fail_queued(%{data | gone: reason}, {:link_down, reason}),
         else: {data, []}
 
-    dispatch({:down, :still}, %{data | prompt: nil}, actions ++ more)
+    {{:down, :still}, %{data | prompt: nil}, actions ++ more}
   end
 
-  def handle_event(:info, {:ddcmp, link, :peer_restarted}, _state, %{link: link} = data) do
+  defp news(:peer_restarted, _state, data) do
     Logger.warning("the VAL II controller restarted its link")
+    data = drop_out(data)
     {data, actions} = fail_in_flight(data, :peer_restarted)
     # the link starts up again and says :up; the units start afresh then
-    dispatch({:down, :still}, %{data | prompt: nil}, actions)
+    {{:down, :still}, %{data | prompt: nil}, actions}
   end
 
-  # The link delivers data only while running, so data met while :down is from a session that
-  # has ended (it was in the mailbox before the :down): a stale prompt must not let a command go.
-  def handle_event(:info, {:ddcmp, link, {:data, _}}, {:down, _}, %{link: link} = data) do
-    {:keep_state, count(data, :stale)}
-  end
+  # The protocol gives data only while running, and the units are :down only between a :down
+  # and the next :up: data met while :down would belong to an ended session. Never answered.
+  defp news({:data, _bytes}, {:down, _} = state, data), do: {state, count(data, :stale), []}
 
-  def handle_event(:info, {:ddcmp, link, {:data, bytes}} = event, state, %{link: link} = data) do
-    case link_trouble(link) do
-      nil ->
-        receive_data(bytes, state, data)
-
-      # the session this data belongs to has already ended: take the end first, so the data
-      # is met while :down (stale), and nothing is answered into the next session
-      trouble ->
-        {:keep_state_and_data, [{:next_event, :info, trouble}, {:next_event, :info, event}]}
+  defp news({:data, bytes}, state, data) do
+    case receive_data(bytes, state, data) do
+      {:keep_state, data} -> {state, data, []}
+      {:next_state, state, data, actions} -> {state, data, actions}
     end
   end
-
-  def handle_event(:info, {:EXIT, link, reason}, _state, %{link: link} = data) do
-    {data, actions} = fail_in_flight(data, {:link_down, reason})
-    {_data, more} = fail_queued(data, {:link_down, reason})
-    # the link process is gone: stop, and let the supervisor start both again
-    replies = for {:reply, _, _} = a <- actions ++ more, do: a
-    {:stop_and_reply, {:shutdown, {:link_exit, reason}}, replies}
-  end
-
-  def handle_event(:info, {:EXIT, _pid, reason}, _state, _data) when reason != :normal do
-    {:stop, reason}
-  end
-
-  def handle_event(type, content, state, data) do
-    Logger.warning(
-      "unexpected #{inspect(type)} #{inspect(content, limit: 10)} in #{inspect(state)}"
-    )
-
-    {:keep_state, count(data, :unexpected)}
-  end
-
-  @impl true
-  def terminate(_reason, _state, _data), do: :ok
 
   # Messages from the logical units ------------------------------------------------------------
 
@@ -260,7 +336,7 @@ defmodule Vws.VAL.Connection do
         {data, []}
       end
 
-    dispatch({:ready, activity}, %{data | prompt: {m.qualifier, m.text}}, actions)
+    {:next_state, {:ready, activity}, %{data | prompt: {m.qualifier, m.text}}, actions}
   end
 
   # LUN 2 WRITE: the numbered response to the command (or unsolicited monitor output)
@@ -270,7 +346,7 @@ defmodule Vws.VAL.Connection do
     if lun2 == :busy do
       result = Vws.VAL.parse_response(m.text)
       {data, activity, actions} = response(data, activity, result)
-      dispatch({:idle, activity}, data, actions)
+      {:next_state, {:idle, activity}, data, actions}
     else
       Logger.info("VAL II monitor output: #{inspect(m.text)}")
       {:keep_state, data}
@@ -290,7 +366,7 @@ defmodule Vws.VAL.Connection do
 
     data = %{data | last_async: Enum.take([{m.qualifier, m.text} | data.last_async], @max_async)}
     {data, activity, actions} = async(data, activity, m.qualifier, m.text)
-    dispatch({lun2, activity}, data, actions)
+    {:next_state, {lun2, activity}, data, actions}
   end
 
   # LUN 1: short status
@@ -407,24 +483,46 @@ defmodule Vws.VAL.Connection do
         dispatch(state, data, actions ++ more)
 
       {:go, request} ->
-        case link_trouble(data.link) do
-          nil -> send_request(state, data, actions, request)
-          # the link went down while we were busy: handle that first, send nothing
-          trouble -> {:next_state, state, data, actions ++ [{:next_event, :info, trouble}]}
-        end
+        send_request(state, data, actions, request)
     end
   end
 
   defp dispatch(state, data, actions), do: {:next_state, state, data, actions}
 
-  # A :down or :peer_restarted already waiting in the mailbox, taken out of it.
-  defp link_trouble(link) do
-    receive do
-      {:ddcmp, ^link, {:down, _}} = trouble -> trouble
-      {:ddcmp, ^link, :peer_restarted} = trouble -> trouble
-    after
-      0 -> nil
-    end
+  # The end of every callback that may change what can go: a queued command goes if it may, and
+  # what the units said is given to the protocol.
+  defp done(state, data, actions) do
+    {:next_state, state, data, actions} = dispatch(state, data, actions)
+    {data, line_actions} = flush_out(data)
+    # last: the timers of what went out now come after those of the protocol's earlier results
+    {:next_state, state, data, actions ++ line_actions}
+  end
+
+  defp flush_out(%{out: []} = data), do: {data, []}
+
+  defp flush_out(data) do
+    {protocol, frames, events} =
+      Enum.reduce(Enum.reverse(data.out), {data.protocol, [], []}, fn bytes, {p, fs, es} ->
+        # only while running: never into a later session (what the units say answers this one)
+        case Protocol.send(p, bytes, hold: false) do
+          {:ok, p, frames, events} ->
+            {p, fs ++ frames, es ++ events}
+
+          {:error, reason} ->
+            Logger.warning("VAL message not sent: #{inspect(reason)}")
+            {p, fs, es}
+        end
+      end)
+
+    {[], timers} = Wire.perform(frames, events, data.conn, data.line_meta)
+    {%{data | out: [], protocol: protocol}, timers}
+  end
+
+  defp drop_out(%{out: []} = data), do: data
+
+  defp drop_out(data) do
+    Logger.info("VAL II: #{length(data.out)} answer(s) to an ended session not sent")
+    %{data | out: []}
   end
 
   defp send_request({:ready, activity}, data, actions, request) do
@@ -466,14 +564,7 @@ defmodule Vws.VAL.Connection do
     bytes = Message.encode(message)
     telemetry_message(data, :out, message, IO.iodata_length(bytes))
 
-    # only into the session the message belongs to: never let a command (or a reply) reach the
-    # controller in a later session, even one the link has already started
-    case data.link_module.send_data(data.link, bytes, session: data.session) do
-      :ok -> :ok
-      other -> Logger.warning("VAL message not sent: #{inspect(other)}")
-    end
-
-    count(data, :out)
+    count(%{data | out: [bytes | data.out]}, :out)
   end
 
   # Ending requests ----------------------------------------------------------------------------

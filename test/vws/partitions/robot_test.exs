@@ -3,16 +3,17 @@ defmodule Vws.Partitions.RobotTest do
 
   alias Vws.{Events, Interlock, Mailbox}
   alias Vws.Partitions.Robot
-  alias Vws.Test.FakeDDCMP
+  alias Vws.Test.VALPeer
   alias Vws.VAL.Message
   import Vws.Test.Eventually
 
   doctest Robot
 
-  # ROBOT on a Vws.VAL whose DDCMP link is a fake: the test plays the VAL II.
+  # ROBOT on a Vws.VAL: the test plays the VAL II through a DDCMP peer of its own (`link`).
   setup context do
     ws = "robot-#{System.unique_integer([:positive])}"
     test = self()
+    {:ok, link} = VALPeer.start_link()
 
     options =
       Map.get(context, :options, []) ++
@@ -40,12 +41,11 @@ defmodule Vws.Partitions.RobotTest do
       {Vws.Workstation,
        id: ws,
        wc: nil,
-       devices: [robot: [endpoint: {:test, test}, link_module: FakeDDCMP]],
+       devices: [robot: [endpoint: VALPeer.endpoint(link)]],
        partitions: [robot: [options: options]]}
     )
 
-    assert_receive {:fake_ddcmp, :started, link}
-    FakeDDCMP.up(link)
+    :ok = VALPeer.up(link)
     %{ws: ws, link: link}
   end
 
@@ -64,13 +64,13 @@ defmodule Vws.Partitions.RobotTest do
 
   defp deliver(link, lun, function, qualifier, text) do
     {:ok, m} = Message.new(lun, function, qualifier, text)
-    FakeDDCMP.deliver(link, Message.encode(m))
+    VALPeer.deliver(link, Message.encode(m))
   end
 
   defp prompt(link), do: deliver(link, 2, :read, 0, ".")
 
   defp sent(link) do
-    assert_receive {:fake_ddcmp, ^link, {:sent, bin}}, 2_000
+    assert_receive {:val_peer, ^link, {:sent, bin}}, 2_000
     {:ok, m} = Message.decode(bin)
     {m.lun, m.function, m.qualifier, m.text}
   end
@@ -147,11 +147,11 @@ defmodule Vws.Partitions.RobotTest do
   } do
     run(ws, 13, "DO MOVE SAFE")
     answer(link, "DO MOVE SAFE", "0")
-    FakeDDCMP.down(link, :too_many_failures)
+    VALPeer.down(link, :too_many_failures)
     assert finished(ws, 13) == {:error, "VAL II LINK DOWN"}
-    FakeDDCMP.up(link)
+    VALPeer.up(link)
     prompt(link)
-    refute_receive {:fake_ddcmp, ^link, {:sent, _}}, 100
+    refute_receive {:val_peer, ^link, {:sent, _}}, 100
   end
 
   test "DISABLE_TRAYn/RELEASE_TRAYn take and give up the tray's lease in the mailbox", %{
@@ -209,7 +209,7 @@ defmodule Vws.Partitions.RobotTest do
     run(ws, 31, "DO MOVE NOWHERE")
     assert finished(ws, 31) == {:error, "INTERLOCK NO WORK VOLUME FOR NOWHERE"}
     prompt(link)
-    refute_receive {:fake_ddcmp, ^link, {:sent, _}}, 100
+    refute_receive {:val_peer, ^link, {:sent, _}}, 100
   end
 
   @tag tray_lock: :ok
@@ -239,17 +239,16 @@ defmodule Vws.Partitions.RobotTest do
     run(ws, 40, "SPEED 20")
     answer(link, "SPEED 20", "0")
     assert finished(ws, 40) == :done
-    assert_receive {:fake_ddcmp, ^link, :restart}
+    assert_receive {:val_peer, ^link, :restart}
 
     # the next command waits for the start-up and a fresh prompt
-    FakeDDCMP.down(link, :restart)
     run(ws, 41, "WHERE")
     prompt(link)
-    refute_receive {:fake_ddcmp, ^link, {:sent, _}}, 100
-    FakeDDCMP.up(link)
+    refute_receive {:val_peer, ^link, {:sent, _}}, 100
+    VALPeer.up(link)
     answer(link, "WHERE", "0 1 2 3 4 5 6 7 8 9 10 11 12")
     assert finished(ws, 41) == :done
-    assert_receive {:fake_ddcmp, ^link, :restart}
+    assert_receive {:val_peer, ^link, :restart}
   end
 
   test "a WHERE response that is not 12 numbers ends ERROR", %{ws: ws, link: link} do

@@ -234,10 +234,11 @@ defmodule Vws.Reliability.CrashTest do
   # One killer per supervisor, side by side, each with its own schedule from @seed: every
   # target @kills times, shuffled, with random gaps.
   defp campaign(ws, events) do
+    # the VAL II wire is one process (`:val`, DDCMP run inside it): killing it kills both layers
     links = for {id, _pid, _, _} <- Supervisor.which_children(WS.whereis(ws, :links)), do: id
 
     [
-      {1, Enum.map(links ++ [:ddcmp], &{:links, &1})},
+      {1, Enum.map(links, &{:links, &1})},
       {2, Enum.map(@partitions, &{:partitions, &1})}
     ]
     |> Enum.map(fn {n, targets} -> Task.async(fn -> killer(ws, events, n, targets) end) end)
@@ -298,16 +299,6 @@ defmodule Vws.Reliability.CrashTest do
   end
 
   defp pid(ws, {:partitions, p}), do: Partition.whereis(ws, p)
-
-  defp pid(ws, {:links, :ddcmp}) do
-    with val when is_pid(val) <- WS.whereis(ws, :val),
-         %{link: link} when is_pid(link) <- safe(fn -> Vws.VAL.info(val) end),
-         true <- Process.alive?(link) do
-      link
-    else
-      _ -> nil
-    end
-  end
 
   defp pid(ws, {:links, id}) do
     Enum.find_value(Supervisor.which_children(WS.whereis(ws, :links)), fn
