@@ -182,7 +182,8 @@ defmodule Vws.Workstation do
   `ge2000: endpoint` (or `ge2000: [endpoint: …, …more Vws.DNC options]`) adds a `Vws.DNC` link
   registered as `{ws, :ge2000}` (`whereis(ws, :ge2000)`) and the `Vws.Partitions.Monarch.Monitor`
   that keeps the MONARCH status current through it (`status_interval:` ms, default 1 000;
-  `nil` for none), and makes the link MONARCH's `link:` unless the partition options name one.
+  `nil`: no reads, the monitor then only owns the link so that programs sent from the machine are
+  kept), and makes the link MONARCH's `link:` unless the partition options name one.
 
   `robot: endpoint` (or `robot: [endpoint: …, ddcmp: […more Vws.DDCMP options]]`) adds a
   `Vws.VAL` registered as `{ws, :val}`, which starts its own `Vws.DDCMP` link to the VAL II, and
@@ -204,10 +205,10 @@ defmodule Vws.Workstation do
         name = via(ws, :ge2000)
         link = {Vws.DNC, [id: :ge2000, name: name] ++ link_opts}
 
-        monitor =
-          for i <- [interval],
-              i != nil,
-              do: {Vws.Partitions.Monarch.Monitor, workstation: ws, link: name, interval: i}
+        # always there: it owns the link (programs from the machine); reads only with an interval
+        monitor = [
+          {Vws.Partitions.Monarch.Monitor, workstation: ws, link: name, interval: interval}
+        ]
 
         monarch = Keyword.put_new(Keyword.get(popts, :monarch, []), :link, name)
         {links ++ [link | monitor], Keyword.put(popts, :monarch, monarch)}

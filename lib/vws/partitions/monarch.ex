@@ -470,12 +470,28 @@ defmodule Vws.Partitions.Monarch do
     end
   end
 
-  @doc "Keeps a program received from the machine as NC_UP (the program from the machine tool)."
+  @doc """
+  Keeps a program received from the machine: as a new version in the workstation's program
+  library, source `"from the machine"` (when it has a library), and as NC_UP (the program from
+  the machine tool). Not stored in the library, it is not kept as NC_UP either.
+  """
   @spec store_from_machine(Mailbox.workstation(), String.t(), [binary]) :: :ok | {:error, term}
   def store_from_machine(ws, name, lines) do
     require Logger
     Logger.info("MONARCH: program #{name} received from the machine (#{length(lines)} lines)")
-    Mailbox.put_nc_up(ws, lines)
+
+    with :ok <- library_from_machine(ws, name, lines), do: Mailbox.put_nc_up(ws, lines)
+  end
+
+  defp library_from_machine(ws, name, lines) do
+    if Vws.DNC.Library.enabled?(ws) do
+      case Vws.DNC.Library.store(ws, name, Program.to_text(lines), source: "from the machine") do
+        {:ok, _version} -> :ok
+        {:error, reason} -> {:error, "LIBRARY #{inspect(reason)}"}
+      end
+    else
+      :ok
+    end
   end
 
   # RNL → the report; every report read refreshes the MONARCH device status.

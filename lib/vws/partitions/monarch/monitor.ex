@@ -16,7 +16,8 @@ defmodule Vws.Partitions.Monarch.Monitor do
   function (default `Vws.Partitions.Monarch.store_from_machine/3`).
 
   Started by `Vws.Workstation.device_links/3` with the GE-2000's link. Options: `:workstation`,
-  `:link`, `:interval` (1 000 ms), `:check` (`:lrc`), `:store`.
+  `:link`, `:interval` (1 000 ms; `nil`: no status reads, the monitor only owns the link, so that
+  programs from the machine are still kept), `:check` (`:lrc`), `:store`.
 
       iex> {:ok, pid} = Vws.Partitions.Monarch.Monitor.start_link(workstation: "none", link: :nowhere, interval: 60_000)
       iex> is_pid(pid)
@@ -42,7 +43,8 @@ defmodule Vws.Partitions.Monarch.Monitor do
       interval: Keyword.get(opts, :interval, 1_000),
       options: Keyword.take(opts, [:check]),
       store: Keyword.get(opts, :store, &Vws.Partitions.Monarch.store_from_machine/3),
-      owner: false,
+      # the link process this monitor owns (a restarted link is owned again)
+      owner: nil,
       failing: false
     }
 
@@ -51,6 +53,11 @@ defmodule Vws.Partitions.Monarch.Monitor do
   end
 
   @impl true
+  def handle_info(:read, %{interval: nil} = s) do
+    Process.send_after(self(), :read, 1_000)
+    {:noreply, own_link(s)}
+  end
+
   def handle_info(:read, s) do
     s = own_link(s)
 
@@ -88,10 +95,17 @@ defmodule Vws.Partitions.Monarch.Monitor do
   def handle_info({:dnc, _link, _event}, s), do: {:noreply, s}
 
   # The monitor is the link's owner: it is told what the machine sends of its own accord.
-  defp own_link(%{owner: true} = s), do: s
-
   defp own_link(s) do
-    %{s | owner: Vws.DNC.set_owner(s.link, self()) == :ok}
+    case GenServer.whereis(s.link) do
+      pid when is_pid(pid) and pid == s.owner ->
+        s
+
+      pid when is_pid(pid) ->
+        if Vws.DNC.set_owner(pid, self()) == :ok, do: %{s | owner: pid}, else: s
+
+      _ ->
+        s
+    end
   catch
     :exit, _ -> s
   end

@@ -16,6 +16,7 @@ defmodule Vws.Partitions.Monarch.LibraryTest do
   setup do
     dir = Path.join(System.tmp_dir!(), "vws-monarch-lib-#{System.unique_integer([:positive])}")
     on_exit(fn -> File.rm_rf!(dir) end)
+
     sim = start_supervised!({GE2000, link: @link_opts, cycle_time: 60_000})
 
     %{ws: ws, wc: wc} =
@@ -171,5 +172,22 @@ defmodule Vws.Partitions.Monarch.LibraryTest do
       "%\nO1\nN10 X" <> String.slice(digits, 0, 1) <> "." <> String.slice(digits, 1, 6) <> "\n%\n"
     end)
     |> Enum.find(&(Vws.CRC16.compute(&1) == crc and &1 != text))
+  end
+
+  test "a program the operator sends from the machine is a new library version, source from the machine",
+       %{ws: ws, sim: sim} do
+    :ok =
+      GE2000.put_program(sim, "000100.PRO", "%\nO100 (FROM THE PANEL)\nN10 G01 X1\nN20 M30\n%\n")
+
+    assert GE2000.send_program(sim, "000100.PRO") == :ok
+    assert eventually(fn -> match?({:ok, [_]}, Library.versions(ws, "000100.PRO")) end)
+    {:ok, [v1]} = Library.versions(ws, "000100.PRO")
+    assert v1.source == "from the machine"
+
+    assert {:ok, "%\nO100 (FROM THE PANEL)\nN10 G01 X1\nN20 M30\n%\n", _} =
+             Library.read(ws, "000100.PRO")
+
+    # and, as before the library, as NC_UP
+    assert Vws.Mailbox.nc_up(ws) == ["%", "O100 (FROM THE PANEL)", "N10 G01 X1", "N20 M30", "%"]
   end
 end

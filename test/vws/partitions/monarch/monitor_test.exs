@@ -38,7 +38,7 @@ defmodule Vws.Partitions.Monarch.MonitorTest do
     assert eventually(fn -> monarch.() == "IDLE" end)
   end
 
-  test "no monitor when status_interval is nil" do
+  test "status_interval nil: a monitor that reads nothing, there to own the link (programs from the machine)" do
     {links, partitions} =
       Vws.Workstation.device_links(
         "w",
@@ -46,8 +46,9 @@ defmodule Vws.Partitions.Monarch.MonitorTest do
         []
       )
 
-    assert [{Vws.DNC, opts}] = links
+    assert [{Vws.DNC, opts}, {Vws.Partitions.Monarch.Monitor, monitor}] = links
     assert opts[:endpoint] == "tcp://h:1"
+    assert monitor[:interval] == nil
     assert partitions[:monarch][:link] == Vws.Workstation.via("w", :ge2000)
   end
 end
