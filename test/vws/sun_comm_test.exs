@@ -311,6 +311,44 @@ defmodule Vws.SunCommTest do
       assert ack?(WCPeer.recv_line(peer), 68)
     end
 
+    test "a string that ends a download is decoded once and handled decoded", %{
+      peer: peer,
+      ws: ws
+    } do
+      WCPeer.send_string(peer, 66, [{"M", 8, "DOWNLOAD_HP"}])
+      assert ack?(WCPeer.recv_line(peer), 66)
+
+      # count SUN_COMM's calls of the string decoder while it handles the string that ends
+      # the transfer (it decoded that string twice: to see that it is one, and again to run it)
+      sun_comm = Vws.Workstation.whereis(ws, :sun_comm)
+      :erlang.trace_pattern({Vws.WC.CommandString, :decode, 2}, true, [:local])
+      :erlang.trace(sun_comm, true, [:call])
+
+      try do
+        WCPeer.send_string(peer, 67, [{"V", 1, "ON"}])
+        assert ack?(WCPeer.recv_line(peer), 67)
+      after
+        :erlang.trace(sun_comm, false, [:call])
+        :erlang.trace_pattern({Vws.WC.CommandString, :decode, 2}, false, [:local])
+      end
+
+      decodes =
+        Stream.repeatedly(fn ->
+          receive do
+            {:trace, ^sun_comm, :call, {Vws.WC.CommandString, :decode, [line, _]}} -> line
+          after
+            0 -> nil
+          end
+        end)
+        |> Enum.take_while(& &1)
+
+      assert [line] = decodes
+      assert line =~ ~r/^\*0067\*V0001ON\*/
+
+      assert WCPeer.status(peer, 68, 35, "MONARCH_CMD") ==
+               "0008ERROR COMMAND STRING FROM THE WC DURING DOWNLOAD AFTER 0 LINES"
+    end
+
     test "UPLOAD_SUN whose acknowledgement was lost: acknowledged again, sent from line 1", %{
       peer: peer,
       ws: ws
