@@ -480,8 +480,13 @@ defmodule Vws.SunCommTest do
     start_supervised!({Vws.SunComm, workstation: ws, wc: "loopback:wc-#{ws}"})
     assert {:error, _} = Vws.Transport.connect("loopback:wc-#{ws}")
     assert Vws.SunComm.info(ws).listening == nil
+    assert Vws.SunComm.await_listening(ws, 50) == nil
 
+    # await_listening/2 is woken by the :wc_listening event SUN_COMM causes as it opens
+    waiter = Task.async(fn -> Vws.SunComm.await_listening(ws, 30_000) end)
     :ok = Events.cause(ws, :ok_to_proceed)
+    assert %Vws.Endpoint{} = listening = Task.await(waiter, 30_000)
+    assert to_string(listening) =~ "loopback:wc-#{ws}"
     {:ok, peer} = WCPeer.connect("loopback:wc-#{ws}")
     assert WCPeer.status(peer, 1, 1, "GRIPPER_CMD") == "0000NONE"
   end
