@@ -135,6 +135,10 @@ defmodule Vws.SunComm do
   ]
 
   @doc false
+  # `{:validated, opts}`: options the caller checked already (`Vws.Workstation`)
+  def child_spec({:validated, opts}),
+    do: %{id: :sun_comm, start: {__MODULE__, :start_validated, [opts]}, shutdown: 5_000}
+
   def child_spec(opts) do
     %{id: :sun_comm, start: {__MODULE__, :start_link, [opts]}, shutdown: 5_000}
   end
@@ -145,9 +149,11 @@ defmodule Vws.SunComm do
   an address that is not loopback without an allow-list.
   """
   @spec start_link(keyword) :: :gen_statem.start_ret()
-  def start_link(opts) do
-    opts = validate_options!(opts)
+  def start_link(opts), do: opts |> validate_options!() |> start_validated()
 
+  @doc false
+  # Options that `validate_options!/1` returned.
+  def start_validated(opts) do
     case check_listen(opts[:wc], opts[:allow]) do
       :ok ->
         :gen_statem.start_link(name(opts[:workstation]), Server, Map.new(opts), [])
