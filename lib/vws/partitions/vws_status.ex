@@ -66,12 +66,9 @@ defmodule Vws.Partitions.VwsStatus do
 
   ## Telemetry
 
-  | event | measurements | metadata |
-  |-------|--------------|----------|
-  | `[:vws, :vws_status, :poll]` | `started_at` (µs, monotonic), `lateness` (µs after its time), `duration` (µs until answered), `handling` (µs spent in VWS_STATUS) | `workstation, seq, result` |
-  | `[:vws, :vws_status, :missed]` | `count` | `workstation, reason` (`:busy` or `:held_up`) |
-  | `[:vws, :vws_status, :stale]` | `count` | `workstation, reason` |
-  | `[:vws, :vws_status, :actuation_retry]` | `count` | `workstation, reason, try` |
+  `[:vws, :vws_status, :poll | :missed | :stale | :actuation_retry]`, with their measurements
+  and metadata in the catalogue of `Vws.Telemetry`. At every write of location 11 it causes
+  the workstation's `:sensors` event (`Vws.Events`), which `await/4` waits on.
   """
   use GenServer
   require Logger

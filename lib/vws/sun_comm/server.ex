@@ -600,13 +600,12 @@ defmodule Vws.SunComm.Server do
         {data, nil}
 
       :ok ->
-        telemetry(
-          data,
-          :command_dispatched,
-          %{count: 1},
-          %{partition: set, command: number, text: text},
-          :partition
-        )
+        Vws.Telemetry.execute([:vws, :partition, :command_dispatched], %{count: 1}, %{
+          workstation: ws,
+          partition: set,
+          command: number,
+          text: text
+        })
 
         case set == :monarch && Vws.Commands.parse(:monarch, text) do
           {:ok, :download_hp} ->
@@ -841,9 +840,9 @@ defmodule Vws.SunComm.Server do
 
   ## Helpers
 
-  defp telemetry(data, event, measurements, metadata, component \\ :sun_comm) do
+  defp telemetry(data, event, measurements, metadata) do
     Vws.Telemetry.execute(
-      [:vws, component, event],
+      [:vws, :sun_comm, event],
       measurements,
       Map.put(metadata, :workstation, data.workstation)
     )
