@@ -123,6 +123,43 @@ defmodule Vws.SunCommTest do
              "0011ERROR TEST FAILURE"
   end
 
+  test "a Monarch command is parsed once, by MONARCH: SUN_COMM only recognises the transfers",
+       %{peer: peer, ws: ws} do
+    sun_comm = Vws.Workstation.whereis(ws, :sun_comm)
+    monarch = Vws.Partition.whereis(ws, :monarch)
+    # a pattern set before its module is loaded is lost
+    Code.ensure_loaded!(Vws.Commands)
+    :erlang.trace_pattern({Vws.Commands, :parse, 2}, true, [:local])
+    :erlang.trace(sun_comm, true, [:call])
+    # MONARCH parses in the process it runs each command in
+    :erlang.trace(monarch, true, [:call, :set_on_spawn])
+
+    try do
+      WCPeer.send_string(peer, 70, [{"M", 3, "TABLE(1/2/3)"}])
+      assert ack?(WCPeer.recv_line(peer), 70)
+
+      assert WCPeer.await_status(peer, 35, "MONARCH_CMD", &(&1 =~ "ERROR")) ==
+               "0003ERROR NO LINK TO GE-2000"
+    after
+      :erlang.trace(sun_comm, false, [:call])
+      :erlang.trace(monarch, false, [:call, :set_on_spawn])
+      :erlang.trace_pattern({Vws.Commands, :parse, 2}, false, [:local])
+    end
+
+    parses =
+      Stream.repeatedly(fn ->
+        receive do
+          {:trace, pid, :call, {Vws.Commands, :parse, [:monarch, text]}} -> {pid, text}
+        after
+          0 -> nil
+        end
+      end)
+      |> Enum.take_while(& &1)
+
+    assert [{pid, "TABLE(1/2/3)"}] = parses
+    assert pid != sun_comm
+  end
+
   @tag :held
   test "rule 4: a retransmitted string is acknowledged again and not executed twice", %{
     peer: peer
@@ -321,6 +358,7 @@ defmodule Vws.SunCommTest do
       # count SUN_COMM's calls of the string decoder while it handles the string that ends
       # the transfer (it decoded that string twice: to see that it is one, and again to run it)
       sun_comm = Vws.Workstation.whereis(ws, :sun_comm)
+      Code.ensure_loaded!(Vws.WC.CommandString)
       :erlang.trace_pattern({Vws.WC.CommandString, :decode, 2}, true, [:local])
       :erlang.trace(sun_comm, true, [:call])
 

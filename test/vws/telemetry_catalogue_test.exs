@@ -88,6 +88,7 @@ defmodule Vws.TelemetryCatalogueTest do
   describe "on a run" do
     test "every event of a whole machining cycle is in the catalogue, with its measurements" do
       id = "catalogue-#{System.unique_integer([:positive])}"
+      Code.ensure_loaded!(Vws.Telemetry)
       :erlang.trace_pattern({Vws.Telemetry, :execute, 3}, true, [:local])
       :erlang.trace(:all, true, [:call])
 

@@ -607,11 +607,13 @@ defmodule Vws.SunComm.Server do
           text: text
         })
 
-        case set == :monarch && Vws.Commands.parse(:monarch, text) do
-          {:ok, :download_hp} ->
+        # the two transfers SUN_COMM carries out are recognised here; every other command is
+        # parsed once, by its partition
+        case set == :monarch && Vws.Commands.transfer(text) do
+          :download_hp ->
             {data, {:download, number}}
 
-          {:ok, :upload_sun} ->
+          :upload_sun ->
             {data, {:upload, number}}
 
           _ ->

@@ -44,6 +44,7 @@ defmodule Vws.Partitions.VwsStatusTest do
           end
         end)
 
+      Code.ensure_loaded!(VwsStatus)
       :erlang.trace_pattern({VwsStatus, :readings, 1}, true, [:local])
       :erlang.trace(waiter, true, [:call])
       send(waiter, :go)
