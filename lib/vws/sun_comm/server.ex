@@ -105,11 +105,7 @@ defmodule Vws.SunComm.Server do
   def command(:enter, _old, _data), do: :keep_state_and_data
   def command(:internal, :open, data), do: open(data)
 
-  def command(:internal, {:line, {:error, error}}, data),
-    do:
-      step(
-        {:command, reject(record(data, :in, "<#{Exception.message(error)}>"), error.reason), []}
-      )
+  def command(:internal, {:line, {:error, error}}, data), do: damaged_line(:command, error, data)
 
   def command(:internal, {:line, line}, data),
     do: step(command_line(line, record(data, :in, line)))
@@ -121,10 +117,7 @@ defmodule Vws.SunComm.Server do
   def download(:enter, _old, _data), do: :keep_state_and_data
 
   def download(:internal, {:line, {:error, error}}, data),
-    do:
-      step(
-        {:download, reject(record(data, :in, "<#{Exception.message(error)}>"), error.reason), []}
-      )
+    do: damaged_line(:download, error, data)
 
   def download(:internal, {:line, line}, data) do
     data = record(data, :in, line)
@@ -148,11 +141,7 @@ defmodule Vws.SunComm.Server do
   # UPLOAD_SUN: numbered program lines to the WC, each answered before the next.
   def upload(:enter, _old, _data), do: :keep_state_and_data
 
-  def upload(:internal, {:line, {:error, error}}, data),
-    do:
-      step(
-        {:upload, reject(record(data, :in, "<#{Exception.message(error)}>"), error.reason), []}
-      )
+  def upload(:internal, {:line, {:error, error}}, data), do: damaged_line(:upload, error, data)
 
   def upload(:internal, {:line, line}, data) do
     data = record(data, :in, line)
@@ -166,6 +155,11 @@ defmodule Vws.SunComm.Server do
   def upload(:state_timeout, :no_answer, data), do: step(resend_upload_line(data))
 
   def upload(type, content, data), do: common(type, content, :upload, data)
+
+  # A line the decoder could not take (too long): answered E, the state unchanged.
+  defp damaged_line(state, error, data),
+    do:
+      step({state, reject(record(data, :in, "<#{Exception.message(error)}>"), error.reason), []})
 
   ## Events of every state
 
