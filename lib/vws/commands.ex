@@ -34,11 +34,29 @@ defmodule Vws.Commands do
   @type partition :: Vws.Mailbox.partition()
   @type result :: {:ok, term} | {:error, :unknown | String.t()}
 
+  # the Monarch commands that are transfers on the WC link, carried out by SUN_COMM itself
+  @transfers %{"DOWNLOAD_HP" => :download_hp, "UPLOAD_SUN" => :upload_sun}
+
   @doc "Parses a command of a partition's set."
   @spec parse(partition, String.t()) :: result
   def parse(partition, text) when is_binary(text) do
-    do_parse(partition, text |> String.trim() |> String.upcase())
+    do_parse(partition, normalise(text))
   end
+
+  @doc """
+  The transfer a Monarch command's text asks SUN_COMM for — `:download_hp` or `:upload_sun` —
+  or nil for every other text. SUN_COMM recognises these two words and nothing else: every
+  other command is parsed once, by its partition.
+
+      iex> Vws.Commands.transfer(" download_hp")
+      :download_hp
+      iex> Vws.Commands.transfer("TABLE(1/2)")
+      nil
+  """
+  @spec transfer(String.t()) :: :download_hp | :upload_sun | nil
+  def transfer(text) when is_binary(text), do: Map.get(@transfers, normalise(text))
+
+  defp normalise(text), do: text |> String.trim() |> String.upcase()
 
   # Robot (App. I B)
   defp do_parse(:robot, "WHERE"), do: {:ok, :where}
@@ -72,10 +90,12 @@ defmodule Vws.Commands do
   defp do_parse(:monarch, "CYCLE_START"), do: {:ok, :cycle_start}
   defp do_parse(:monarch, "RELEASE_TABLE"), do: {:ok, :release_table}
   defp do_parse(:monarch, "STATUS"), do: {:ok, :status}
-  defp do_parse(:monarch, "DOWNLOAD_HP"), do: {:ok, :download_hp}
+
+  defp do_parse(:monarch, text) when is_map_key(@transfers, text),
+    do: {:ok, Map.fetch!(@transfers, text)}
+
   defp do_parse(:monarch, "DOWNLOAD_GE"), do: {:ok, :download_ge}
   defp do_parse(:monarch, "DRIP_FEED"), do: {:ok, :drip_feed}
-  defp do_parse(:monarch, "UPLOAD_SUN"), do: {:ok, :upload_sun}
 
   # ours (issue 18): a program of the library, its latest version or version v
   defp do_parse(:monarch, "DOWNLOAD_GE" <> arg) do

@@ -87,7 +87,7 @@ defmodule Vws.Demo do
              links: Enum.flat_map(sims, & &1.links),
              partitions: merge_partitions(sims)
            ),
-         {:ok, listening} <- wait_listening(id, 100),
+         {:ok, listening} <- wait_listening(id, 2_000),
          {:ok, wc} <- wc_line(id, to_string(listening), lines, opts[:supervisor]) do
       unlinked =
         for {partition, module} <- @partition_devices,
@@ -140,11 +140,9 @@ defmodule Vws.Demo do
     with {:ok, line} <- started, do: {:ok, to_string(Vws.Sim.Line.endpoint(line))}
   end
 
-  defp wait_listening(_id, 0), do: {:error, :sun_comm_not_listening}
-
-  defp wait_listening(id, n) do
-    case Vws.SunComm.listening(id) do
-      nil -> Process.sleep(20) && wait_listening(id, n - 1)
+  defp wait_listening(id, timeout) do
+    case Vws.SunComm.await_listening(id, timeout) do
+      nil -> {:error, :sun_comm_not_listening}
       endpoint -> {:ok, endpoint}
     end
   end

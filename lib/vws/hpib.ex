@@ -178,26 +178,17 @@ defmodule Vws.HPIB do
   def info(pid) when is_pid(pid), do: :gen_statem.call(pid, :info)
   def info({bus, address}), do: :gen_statem.call(name(bus, address), :info)
 
-  @doc "Waits until the device is connected (for start-up and tests): `:ok` or `:timeout`."
+  @doc """
+  Waits until the device is connected (for start-up and tests): `:ok` or `:timeout`. The device
+  process answers when it reaches `:ready` (the request waits, postponed, in its other states);
+  a device that is not started answers `:timeout`.
+  """
   @spec await_connected(device, non_neg_integer) :: :ok | :timeout
   def await_connected(device, timeout) do
-    deadline = System.monotonic_time(:millisecond) + timeout
-
-    Stream.repeatedly(fn ->
-      connected =
-        try do
-          info(device).state in [:ready, :busy]
-        catch
-          :exit, _ -> false
-        end
-
-      cond do
-        connected -> :ok
-        System.monotonic_time(:millisecond) > deadline -> :timeout
-        true -> Process.sleep(5) && nil
-      end
-    end)
-    |> Enum.find(& &1)
+    server = if is_pid(device), do: device, else: name(elem(device, 0), elem(device, 1))
+    :gen_statem.call(server, :await_connected, timeout)
+  catch
+    :exit, _ -> :timeout
   end
 
   defp request({_bus, _address}, commands, timeout) when is_list(commands) and commands != [] do

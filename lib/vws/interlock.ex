@@ -32,8 +32,10 @@ defmodule Vws.Interlock do
   (atomic), reads the entries of every holder it must exclude, and — with its own request still
   posted — runs the caller's physical `:check` (the conditions of the rule: machine idle, table
   parked …). If nothing is in the way the request becomes the lease; else the request is
-  withdrawn and tried again every `:retry_ms` (default 250, with a little jitter so that two
-  requesters cannot stay in step) until `timeout` ms have passed, and the call ends
+  withdrawn and tried again when a lease on the volume ends (`release/4` causes the
+  workstation's `:interlock` event, which the waiting requester is subscribed to) and at the
+  latest every `:retry_ms` (default 250, with a little jitter so that two requesters cannot stay
+  in step; the conditions of the check change without an event) until `timeout` ms have passed, and the call ends
   `{:error, "INTERLOCK <VOLUME> HELD BY <HOLDER>"}` or `{:error, "INTERLOCK <VOLUME> <why>"}`
   with what the check read last.
 
@@ -124,7 +126,28 @@ defmodule Vws.Interlock do
       deadline: deadline
     }
 
-    try_acquire(config)
+    if timeout > 0 do
+      # woken by a lease that ends (release/4) instead of only by the next try
+      Vws.Events.create(ws, :interlock)
+      :ok = Vws.Events.subscribe(ws, :interlock)
+
+      try do
+        try_acquire(config)
+      after
+        Vws.Events.unsubscribe(ws, :interlock)
+        flush_releases(ws)
+      end
+    else
+      try_acquire(config)
+    end
+  end
+
+  defp flush_releases(ws) do
+    receive do
+      {:vws_event, ^ws, :interlock, _volume} -> flush_releases(ws)
+    after
+      0 -> :ok
+    end
   end
 
   defp try_acquire(c) do
@@ -190,9 +213,20 @@ defmodule Vws.Interlock do
           emit(:refused, c, %{why: why})
           {:error, "INTERLOCK #{name(c.volume)} #{why}"}
         else
-          Process.sleep(min(left, jitter(c.retry_ms)))
+          await_release(c, min(left, jitter(c.retry_ms)))
           try_acquire(%{c | tries: c.tries + 1})
         end
+    end
+  end
+
+  # Until a lease on the volume ends (the event release/4 causes) or `ms` pass: the conditions
+  # of `:check` (the machine idle, the table parked) change without an event, so they are read
+  # again at every try, four times a second as in the seed.
+  defp await_release(%{workstation: ws, volume: volume}, ms) do
+    receive do
+      {:vws_event, ^ws, :interlock, ^volume} -> :ok
+    after
+      ms -> :ok
     end
   end
 
@@ -268,8 +302,13 @@ defmodule Vws.Interlock do
         _ = journal(%{table: table, volume: volume, holder: holder}, reasons)
 
         case reasons do
-          [] -> :ets.delete_object(table, {key, lease})
-          reasons -> :ets.insert(table, {key, %{lease | reasons: reasons}})
+          [] ->
+            :ets.delete_object(table, {key, lease})
+            # wakes the requesters waiting in acquire/5 (an event never created: none wait)
+            _ = Vws.Events.cause(ws, :interlock, volume)
+
+          reasons ->
+            :ets.insert(table, {key, %{lease | reasons: reasons}})
         end
 
         Vws.Telemetry.execute([:vws, :interlock, :released], %{count: 1}, %{

@@ -1,7 +1,156 @@
 defmodule Vws.Telemetry do
+  # THE catalogue: every event the code emits, with its measurements and metadata. The
+  # moduledoc's table is made from it, `events/0` and `attach_default_handler/0` read it, and
+  # test/vws/telemetry_catalogue_test.exs fails on an event emitted in lib/ that is not here.
+  # Each entry: {event, measurements, metadata, what it means}; a metadata key in brackets
+  # (`{:optional, key}`) is there only sometimes.
+  @catalogue [
+    {[:vws, :sun_comm, :string_received], [:bytes], [:workstation, :sequence, :commands],
+     "an intact command string from the WC"},
+    {[:vws, :sun_comm, :string_rejected], [:bytes], [:workstation, :reason],
+     "a line answered `E` (bad BCC, malformed, empty, too long, unfinished, journal down …)"},
+    {[:vws, :sun_comm, :retransmission], [:count], [:workstation, :sequence],
+     "a string received again (rule 4): acknowledged again, nothing run"},
+    {[:vws, :sun_comm, :reply_sent], [:bytes], [:workstation, :kind],
+     "an answer to the WC (`kind`: `:ack`, `:nak`, `:status`, `:line`, `:line_ack`)"},
+    {[:vws, :sun_comm, :rule_broken], [:count], [:workstation, :sequence, :rule],
+     "an intact string that breaks a Parser rule: nothing in it runs"},
+    {[:vws, :sun_comm, :wc_connected], [:count], [:workstation, :peer],
+     "a WC connection (or tty) became the link"},
+    {[:vws, :sun_comm, :wc_disconnected], [:count], [:workstation, :peer, :reason],
+     "the WC link ended (`reason`: `:taken_over` or why it was lost)"},
+    {[:vws, :sun_comm, :wc_refused], [:count], [:workstation, :peer, :current],
+     "a new WC connection refused while the current WC (`current`) is not silent"},
+    {[:vws, :sun_comm, :nc_line], [:bytes], [:workstation, :direction],
+     "an NC program line stored (`:in`, DOWNLOAD_HP) or sent (`:out`, UPLOAD_SUN)"},
+    {[:vws, :transport, :refused], [:count], [:peer, :listener],
+     "a connection the listener's allow-list does not let in (`Vws.Transport.Policy`)"},
+    {[:vws, :partition, :command_dispatched], [:count],
+     [:workstation, :partition, :command, :text], "a command written to CMD_IN by SUN_COMM"},
+    {[:vws, :partition, :command, :start], [:system_time, :monotonic_time],
+     [:workstation, :partition, :command, :text], "a partition starts a command (span)"},
+    {[:vws, :partition, :command, :stop], [:duration, :monotonic_time],
+     [:workstation, :partition, :command, :text, :result], "the command ended (span)"},
+    {[:vws, :partition, :command, :exception], [:duration, :monotonic_time],
+     [:workstation, :partition, :command, :text, :kind, :reason, :stacktrace],
+     "the command raised (span)"},
+    {[:vws, :partition, :command_finished], [:duration],
+     [:workstation, :partition, :command, :status],
+     "a command status set DONE or ERROR (`duration` native; 0 for SUN_COMM's transfers)"},
+    {[:vws, :partition, :cleaned_up], [:count],
+     [:workstation, :partition, :command, :text, :status],
+     "the safe clean-up of a command a restart interrupted"},
+    {[:vws, :events, :caused], [:count], [:workstation, :event], "CAUSE EVENT (`Vws.Events`)"},
+    {[:vws, :val, :message], [:bytes],
+     [:name, :workstation, :direction, :lun, :function, :qualifier, :text],
+     "a VAL II logical-unit message"},
+    {[:vws, :val, :request_finished], [:duration], [:name, :workstation, :text, :result],
+     "a VAL II request answered or failed (`duration` native)"},
+    {[:vws, :val, :async], [:count], [:name, :workstation, :code, :text], "every LUN 3 message"},
+    {[:vws, :ddcmp, :frame_sent], [:count],
+     [:link, :workstation, :type, :num, :resp, :bytes, :subtype, :rcvr, :sndr],
+     "a DDCMP frame sent, with the frame's fields"},
+    {[:vws, :ddcmp, :frame_received], [:count],
+     [:link, :workstation, :type, :num, :resp, :bytes, :subtype, :rcvr, :sndr],
+     "a DDCMP frame received, with the frame's fields"},
+    {[:vws, :ddcmp, :nak], [:count], [:link, :workstation, :direction, :reason, :resp],
+     "a NAK sent or received"},
+    {[:vws, :ddcmp, :rep], [:count], [:link, :workstation, :direction, :num],
+     "a REP sent or received"},
+    {[:vws, :ddcmp, :retransmission], [:count, :bytes], [:link, :workstation, :num],
+     "a data message sent again"},
+    {[:vws, :ddcmp, :receive_error], [:count], [:link, :workstation, :reason, :num],
+     "a damaged frame received"},
+    {[:vws, :ddcmp, :state_change], [:count], [:link, :workstation, :from, :to],
+     "the link's state changed"},
+    {[:vws, :ddcmp, :link_down], [:count], [:link, :workstation, :reason], "the link went down"},
+    {[:vws, :ddcmp, :connect_failed], [:count, :retry_in],
+     [:link, :workstation, :endpoint, :reason],
+     "the transport could not be opened (`retry_in` ms)"},
+    {[:vws, :dnc, :connected], [:count], [:link, :workstation, :role, :peer],
+     "the GE-2000 DNC link connected"},
+    {[:vws, :dnc, :disconnected], [:count], [:link, :workstation, :role, :peer, :reason],
+     "the DNC link disconnected"},
+    {[:vws, :dnc, :connect_failed], [:count, :retry_in],
+     [:link, :workstation, :role, :endpoint, :reason],
+     "the DNC transport could not be opened (`retry_in` ms)"},
+    {[:vws, :dnc, :block_sent], [:bytes], [:link, :workstation, :role, :block, :retransmission],
+     "a DNC block sent"},
+    {[:vws, :dnc, :block_received], [:bytes], [:link, :workstation, :role, :block],
+     "a DNC block received"},
+    {[:vws, :dnc, :retry], [:count], [:link, :workstation, :role, :kind, :block],
+     "a DNC block or bid tried again"},
+    {[:vws, :dnc, :transmission], [:duration, :blocks, :bytes],
+     [:link, :workstation, :role, :direction, :kind, :result],
+     "a whole DNC transmission ended (`kind` on `:out`)"},
+    {[:vws, :dnc, :progress], [:blocks, :bytes, :chars_per_s, :retries],
+     [
+       :link,
+       :workstation,
+       :role,
+       :program,
+       :operation,
+       :direction,
+       :total_blocks,
+       :total_bytes,
+       :eta_s,
+       :ended
+     ],
+     "an NC program's transfer: after every block, and once at its end (`ended`: `:ok` or why)"},
+    {[:vws, :monarch, :request_again], [:count], [:workstation, :operation, :reason],
+     "MONARCH made a DNC request again after the line broke it off"},
+    {[:vws, :web, :request], [:duration, :bytes], [:method, :path, :status, :port],
+     "an HTTP request answered (dashboard, MTConnect agent)"},
+    {[:vws, :hpib, :connected], [:count], [:bus, :address, :endpoint],
+     "an HPIB device connected"},
+    {[:vws, :hpib, :disconnected], [:count], [:bus, :address, :endpoint, :reason],
+     "an HPIB device disconnected"},
+    {[:vws, :hpib, :timeout], [:count], [:bus, :address, :endpoint, :commands],
+     "an HPIB request not answered in time"},
+    {[:vws, :hpib, :retry], [:count], [:bus, :address, :endpoint, :commands, :reason, :try],
+     "an HPIB request made again"},
+    {[:vws, :hpib, :connect_failed], [:count, :retry_in], [:bus, :address, :endpoint, :reason],
+     "an HPIB device could not be reached (`retry_in` ms)"},
+    {[:vws, :vws_status, :poll], [:started_at, :lateness, :duration, :handling],
+     [:workstation, :seq, :result],
+     "a poll of DAQ #1 (µs: `started_at` monotonic, `lateness` after its time, `duration` until answered, `handling` in VWS_STATUS)"},
+    {[:vws, :vws_status, :missed], [:count], [:workstation, :reason],
+     "poll times skipped (`:busy` or `:held_up`)"},
+    {[:vws, :vws_status, :stale], [:count], [:workstation, :reason],
+     "the readings went stale: NO DATA written"},
+    {[:vws, :vws_status, :actuation_retry], [:count], [:workstation, :reason, :try],
+     "relays set again after a read-back not as commanded"},
+    {[:vws, :hydraulic_controller, :relay_corrected], [:count], [:device],
+     "a DAQ #2 slot read back not as intended, set right"},
+    {[:vws, :interlock, :acquired], [:wait_ms, :tries], [:workstation, :volume, :holder, :reason],
+     "a work-volume lease taken"},
+    {[:vws, :interlock, :refused], [:wait_ms, :tries],
+     [:workstation, :volume, :holder, :reason, :why], "a lease refused at its time limit"},
+    {[:vws, :interlock, :released], [:count], [:workstation, :volume, :holder, :reason],
+     "a reason of a lease given up (`reason`: `:all` or one)"},
+    {[:vws, :sim, :plant, :actuator], [:count], [:workstation, :daq, :channel, :signal, :action],
+     "every relay a simulated DAQ wrote (`action`: `:close`/`:open`)"},
+    {[:vws, :sim, :val2, :command], [:count], [:workstation, :text],
+     "every monitor command the simulated VAL II obeyed"},
+    {[:vws, :monarch, :program_received], [:bytes], [:workstation, :program, :from, :result],
+     "a program the operator sent from the machine (`from: :machine`), kept or refused"},
+    {[:vws, :sim, :ge2000, :command], [:bytes], [:workstation, :operation, :name, :alarm],
+     "every S command the simulated GE-2000 took"},
+    {[:vws, :sim, :ge2000, :cycle_start], [:count], [:workstation, :program],
+     "every cycle the simulated GE-2000 started"},
+    {[:vws, :sim, :ge2000, :drip_feed], [:bytes], [:workstation, :program, :result, :underruns],
+     "a drip feed the simulated GE-2000 ran to its end"}
+  ]
+
+  @table Enum.map_join(@catalogue, "\n", fn {event, measurements, metadata, what} ->
+           keys = &Enum.map_join(&1, ", ", fn k -> "`#{k}`" end)
+           "| `#{inspect(event)}` | #{keys.(measurements)} | #{keys.(metadata)} | #{what} |"
+         end)
+
   @moduledoc """
   The one seam between VWS and telemetry, with the contract of the `:telemetry` library
-  (`execute/3`, `span/3`, `attach/4`, `attach_many/4`, `detach/1`).
+  (`execute/3`, `span/3`, `attach/4`, `attach_many/4`, `detach/1`), and the catalogue of every
+  event VWS emits.
 
   When `:telemetry` is loaded (a deployment that has the hex package), every call is delegated to
   it. Otherwise handlers are kept here, in `:persistent_term` (attaching is rare, emitting is
@@ -10,62 +159,15 @@ defmodule Vws.Telemetry do
 
   ## Events
 
-  Spans emit `prefix ++ [:start]` (measurements `%{system_time, monotonic_time}`),
-  `prefix ++ [:stop]` (`%{duration, monotonic_time}`) and `prefix ++ [:exception]`
-  (`%{duration, monotonic_time}`, metadata adds `:kind, :reason, :stacktrace`).
+  Names are `[:vws, component, happening]` for points and `[:vws, component, thing, :start |
+  :stop | :exception]` for spans: `:start` measures `system_time, monotonic_time`, `:stop` and
+  `:exception` `duration, monotonic_time` (native units), `:exception` adds `kind, reason,
+  stacktrace` to the metadata. This table is the whole list (`catalogue/0`); a test fails on an
+  event emitted in `lib/` that it does not name, and on measurements other than these.
 
-  | event | measurements | metadata |
-  |-------|--------------|----------|
-  | `[:vws, :sun_comm, :string_received]` | `bytes` | `workstation, sequence, commands` |
-  | `[:vws, :sun_comm, :string_rejected]` | `bytes` | `workstation, reason` |
-  | `[:vws, :sun_comm, :retransmission]` | `count` | `workstation, sequence` |
-  | `[:vws, :sun_comm, :reply_sent]` | `bytes` | `workstation, kind` |
-  | `[:vws, :sun_comm, :rule_broken]` | `count` | `workstation, sequence, rule` |
-  | `[:vws, :sun_comm, :wc_connected]` / `:wc_disconnected` | `count` | `workstation, peer` |
-  | `[:vws, :sun_comm, :nc_line]` | `bytes` | `workstation, direction` |
-  | `[:vws, :partition, :command_dispatched]` | `count` | `workstation, partition, command, text` |
-  | `[:vws, :partition, :command, :start / :stop / :exception]` | span | `workstation, partition, command, text` (+ `result` on stop) |
-  | `[:vws, :partition, :command_finished]` | `duration` (native) | `workstation, partition, command, status` |
-  | `[:vws, :events, :caused]` | `count` | `workstation, event` |
-  | `[:vws, :val, :message]` | `bytes` | `name, workstation, direction, lun, function, qualifier, text` |
-  | `[:vws, :val, :request_finished]` | `duration` (native) | `name, workstation, text, result` |
-  | `[:vws, :val, :async]` | `count` | `name, workstation, code, text` (every LUN 3 message) |
-  | `[:vws, :ddcmp, :frame_sent]` / `:frame_received` | `count` | `link, workstation` + the frame's fields |
-  | `[:vws, :ddcmp, :nak]` | `count` | `link, workstation, direction, reason, resp` |
-  | `[:vws, :ddcmp, :rep]` | `count` | `link, workstation, direction, num` |
-  | `[:vws, :ddcmp, :retransmission]` | `count, bytes` | `link, workstation, num` |
-  | `[:vws, :ddcmp, :receive_error]` | `count` | `link, workstation, reason, num` |
-  | `[:vws, :ddcmp, :state_change]` | `count` | `link, workstation, from, to` |
-  | `[:vws, :ddcmp, :link_down]` | `count` | `link, workstation, reason` |
-  | `[:vws, :ddcmp, :connect_failed]` | `count, retry_in` (ms) | `link, workstation, endpoint, reason` |
-  | `[:vws, :dnc, :connected]` / `:disconnected` | `count` | `link, workstation, role, peer` (+ `reason`) |
-  | `[:vws, :dnc, :connect_failed]` | `count, retry_in` (ms) | `link, workstation, role, endpoint, reason` |
-  | `[:vws, :dnc, :block_sent]` | `bytes` | `link, workstation, role, block, retransmission` |
-  | `[:vws, :dnc, :block_received]` | `bytes` | `link, workstation, role, block` |
-  | `[:vws, :monarch, :request_again]` | `count` | `workstation, operation, reason` |
-  | `[:vws, :dnc, :retry]` | `count` | `link, workstation, role, kind, block` |
-  | `[:vws, :dnc, :transmission]` | `duration, blocks, bytes` | `link, workstation, role, direction, result` |
-  | `[:vws, :dnc, :progress]` | `blocks, bytes, chars_per_s, retries` | `link, workstation, role, program, direction, operation, total_blocks, total_bytes, eta_s, ended` (false, or `:ok`/the failure; an NC program's transfer: every block, and its end; `Vws.DNC.Progress`) |
-  | `[:vws, :monarch, :program_received]` | `bytes` | `workstation, program, from` (`:machine`), `result`: a program the operator sent from the machine |
-  | `[:vws, :web, :request]` | `duration, bytes` | `method, path, status, port` |
-  | `[:vws, :hpib, :connected]` / `:disconnected` | `count` | `bus, address, endpoint` (+ `reason`) |
-  | `[:vws, :hpib, :timeout]` | `count` | `bus, address, endpoint, commands` |
-  | `[:vws, :hpib, :retry]` | `count` | `bus, address, endpoint, commands, reason, try` |
-  | `[:vws, :hpib, :connect_failed]` | `count, retry_in` (ms) | `bus, address, endpoint, reason` |
-  | `[:vws, :vws_status, :poll]` | `started_at, lateness, duration, handling` (µs) | `workstation, seq, result` |
-  | `[:vws, :vws_status, :missed]` | `count` | `workstation, reason` |
-  | `[:vws, :vws_status, :stale]` | `count` | `workstation, reason` |
-  | `[:vws, :vws_status, :actuation_retry]` | `count` | `workstation, reason, try` |
-  | `[:vws, :partition, :cleaned_up]` | `count` | `workstation, partition, command, text, status`: the safe clean-up of a command a restart interrupted |
-  | `[:vws, :hydraulic_controller, :relay_corrected]` | `count` | `device`: a DAQ #2 slot read back not as intended, set right |
-  | `[:vws, :interlock, :acquired]` | `wait_ms, tries` | `workstation, volume, holder, reason` |
-  | `[:vws, :interlock, :refused]` | `wait_ms, tries` | `workstation, volume, holder, reason, why` |
-  | `[:vws, :interlock, :released]` | `count` | `workstation, volume, holder, reason` (`:all` or one) |
-  | `[:vws, :sim, :plant, :actuator]` | `count` | `workstation, daq, channel, signal, action` (`:close`/`:open`): every relay a simulated DAQ wrote |
-  | `[:vws, :sim, :val2, :command]` | `count` | `workstation, text`: every monitor command the simulated VAL II obeyed |
-  | `[:vws, :sim, :ge2000, :command]` | `bytes` | `workstation, operation, name, alarm`: every S command the simulated GE-2000 took |
-  | `[:vws, :sim, :ge2000, :cycle_start]` | `count` | `workstation, program`: every cycle the simulated GE-2000 started |
-  | `[:vws, :sim, :ge2000, :drip_feed]` | `bytes` | `workstation, program, result, underruns`: a drip feed the simulated GE-2000 ran to its end |
+  | event | measurements | metadata | what |
+  |-------|--------------|----------|------|
+  #{@table}
 
   `workstation` is the id of the workstation the event belongs to (nil for a link or simulator
   that serves none). The `[:vws, :sim, …]` events come from the simulators: what the simulated
@@ -77,69 +179,25 @@ defmodule Vws.Telemetry do
 
   @type event_name :: [atom, ...]
   @type handler_function :: (event_name, map, map, term -> any)
+  @type entry :: %{
+          event: event_name,
+          measurements: [atom],
+          metadata: [atom],
+          description: String.t()
+        }
 
-  @events [
-    [:vws, :sun_comm, :string_received],
-    [:vws, :sun_comm, :string_rejected],
-    [:vws, :sun_comm, :retransmission],
-    [:vws, :sun_comm, :reply_sent],
-    [:vws, :sun_comm, :rule_broken],
-    [:vws, :sun_comm, :wc_connected],
-    [:vws, :sun_comm, :wc_disconnected],
-    [:vws, :sun_comm, :nc_line],
-    [:vws, :partition, :command_dispatched],
-    [:vws, :partition, :command, :start],
-    [:vws, :partition, :command, :stop],
-    [:vws, :partition, :command, :exception],
-    [:vws, :partition, :command_finished],
-    [:vws, :events, :caused],
-    [:vws, :val, :message],
-    [:vws, :val, :request_finished],
-    [:vws, :val, :async],
-    [:vws, :ddcmp, :frame_sent],
-    [:vws, :ddcmp, :frame_received],
-    [:vws, :ddcmp, :nak],
-    [:vws, :ddcmp, :rep],
-    [:vws, :ddcmp, :retransmission],
-    [:vws, :ddcmp, :receive_error],
-    [:vws, :ddcmp, :state_change],
-    [:vws, :ddcmp, :link_down],
-    [:vws, :ddcmp, :connect_failed],
-    [:vws, :dnc, :connected],
-    [:vws, :dnc, :disconnected],
-    [:vws, :dnc, :connect_failed],
-    [:vws, :dnc, :block_sent],
-    [:vws, :dnc, :block_received],
-    [:vws, :monarch, :request_again],
-    [:vws, :dnc, :retry],
-    [:vws, :dnc, :transmission],
-    [:vws, :dnc, :progress],
-    [:vws, :monarch, :program_received],
-    [:vws, :hpib, :connected],
-    [:vws, :hpib, :disconnected],
-    [:vws, :hpib, :timeout],
-    [:vws, :hpib, :retry],
-    [:vws, :hpib, :connect_failed],
-    [:vws, :vws_status, :poll],
-    [:vws, :vws_status, :missed],
-    [:vws, :vws_status, :stale],
-    [:vws, :vws_status, :actuation_retry],
-    [:vws, :hydraulic_controller, :relay_corrected],
-    [:vws, :partition, :cleaned_up],
-    [:vws, :web, :request],
-    [:vws, :interlock, :acquired],
-    [:vws, :interlock, :refused],
-    [:vws, :interlock, :released],
-    [:vws, :sim, :plant, :actuator],
-    [:vws, :sim, :val2, :command],
-    [:vws, :sim, :ge2000, :command],
-    [:vws, :sim, :ge2000, :cycle_start],
-    [:vws, :sim, :ge2000, :drip_feed]
-  ]
+  @events Enum.map(@catalogue, &elem(&1, 0))
 
-  @doc "Every event name listed in the moduledoc."
+  @doc "Every event name of the catalogue."
   @spec events() :: [event_name]
   def events, do: @events
+
+  @doc "The catalogue: every event with its measurements, metadata and meaning."
+  @spec catalogue() :: [entry]
+  def catalogue do
+    for {event, measurements, metadata, what} <- @catalogue,
+        do: %{event: event, measurements: measurements, metadata: metadata, description: what}
+  end
 
   # Asked once per node: looking for a module that is not there costs a code-path search (~0.6 ms).
   defp telemetry? do

@@ -35,6 +35,10 @@ defmodule Vws.Workstation do
       `[hydraulic: "tcp://host:port"]` puts the hydraulic controller on the HPIB and links HYDRAULIC
       and the PALLET status to it
     * `:partitions` — per partition, keyword options: `[robot: [link: …, module: …, options: …]]`
+
+  `start_link/1` checks these options, and the `sun_comm:` ones against `Vws.SunComm`'s schema,
+  before anything starts: an unknown option or a bad value raises `Vws.Options.Error` naming it
+  (`start/1` returns it as `{:error, {%Vws.Options.Error{}, stacktrace}}`).
   """
   use Supervisor
 
@@ -59,10 +63,26 @@ defmodule Vws.Workstation do
     }
   end
 
+  @schema [
+    id: [type: :any, required: true],
+    wc: [type: {:or, [nil, :string]}, default: nil],
+    journal: [type: {:or, [nil, :string, :keyword_list]}, default: nil],
+    library: [type: {:or, [nil, :string]}, default: nil],
+    sun_comm: [type: :keyword_list, default: []],
+    links: [type: :list, default: []],
+    devices: [type: :keyword_list, default: []],
+    partitions: [type: :keyword_list, default: []]
+  ]
+
   @spec start_link(keyword) :: Supervisor.on_start()
   def start_link(opts) do
-    id = Keyword.fetch!(opts, :id)
-    Supervisor.start_link(__MODULE__, opts, name: via(id, :workstation))
+    opts = Vws.Options.validate!(opts, @schema, "workstation")
+    # SUN_COMM's options too, here in the caller, once: its child gets them checked
+    sun_comm =
+      Vws.SunComm.validate_options!([workstation: opts[:id], wc: opts[:wc]] ++ opts[:sun_comm])
+
+    opts = Keyword.put(opts, :sun_comm, sun_comm)
+    Supervisor.start_link(__MODULE__, opts, name: via(opts[:id], :workstation))
   end
 
   @doc false
@@ -148,8 +168,7 @@ defmodule Vws.Workstation do
           # caused here, in the start sequence, before SUN_COMM starts: a process started to
           # cause it could run after SUN_COMM, and start/1 return before SUN_COMM had it
           %{id: :ok_to_proceed, restart: :transient, start: {__MODULE__, :ok_to_proceed, [ws]}},
-          {Vws.SunComm,
-           [workstation: ws, wc: Keyword.get(opts, :wc)] ++ Keyword.get(opts, :sun_comm, [])}
+          Vws.SunComm.child_spec({:validated, Keyword.fetch!(opts, :sun_comm)})
         ]
 
     Supervisor.init(children, strategy: :rest_for_one, max_restarts: 10, max_seconds: 5)

@@ -138,6 +138,47 @@ defmodule Vws.HPIBTest do
     assert Task.await(task) == {:ok, [false]}
   end
 
+  test "await_connected waits for the device to connect, without asking it over and over", ctx do
+    dev = start_device(ctx)
+    me = self()
+
+    waiter =
+      spawn_link(fn ->
+        receive do
+          {:go, limit} -> send(me, {:awaited, HPIB.await_connected(dev, limit)})
+        end
+      end)
+
+    # the waiter's requests to the device: one, answered when it is connected (it asked for its
+    # state every 5 ms)
+    :erlang.trace_pattern({:gen_statem, :call, 3}, true, [:local])
+    :erlang.trace(waiter, true, [:call])
+
+    try do
+      send(waiter, {:go, 30_000})
+      Process.sleep(100)
+      refute_received {:awaited, _}
+      _listener = instrument(ctx)
+      assert_receive {:awaited, :ok}, 30_000
+    after
+      :erlang.trace_pattern({:gen_statem, :call, 3}, false, [:local])
+    end
+
+    calls =
+      Stream.repeatedly(fn ->
+        receive do
+          {:trace, ^waiter, :call, {:gen_statem, :call, [_, request, _]}} -> request
+        after
+          0 -> nil
+        end
+      end)
+      |> Enum.take_while(& &1)
+
+    assert calls == [:await_connected]
+    # not started: no wait at all
+    assert HPIB.await_connected({"no-such-bus", 9}, 5_000) == :timeout
+  end
+
   test "no answer in time: a timeout error, the connection is dropped and made again", ctx do
     listener = instrument(ctx)
     dev = start_device(ctx, retries: 0)

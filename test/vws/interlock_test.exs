@@ -32,6 +32,38 @@ defmodule Vws.InterlockTest do
     assert Interlock.compatible?(:table, :fixture, :robot)
   end
 
+  test "a waiting requester is woken by the release, not by its next try", %{ws: ws} do
+    :ok = Interlock.acquire(ws, :tray1, :mhs, 0)
+    me = self()
+
+    # a try every minute: only the release's event can let it in within the bound below
+    spawn_link(fn ->
+      send(me, {:acquired, Interlock.acquire(ws, :tray1, :robot, 120_000, retry_ms: 60_000)})
+    end)
+
+    # it has tried once and waits (its request withdrawn, the MHS's lease in the way)
+    Process.sleep(50)
+    refute_received {:acquired, _}
+    :ok = Interlock.release(ws, :tray1, :mhs, :all)
+    assert_receive {:acquired, :ok}, 10_000
+    assert Interlock.holders(ws, :tray1) == [:robot]
+    # a reason given up that leaves the lease in place wakes nobody: still excluded
+    :ok = Interlock.acquire(ws, :tray1, :robot, 0, as: :inside)
+    :ok = Interlock.release(ws, :tray1, :robot, :inside)
+    assert Interlock.acquire(ws, :tray1, :mhs, 0) == {:error, "INTERLOCK TRAY1 HELD BY ROBOT"}
+  end
+
+  test "an unverifiable wait still ends at its time limit, denied", %{ws: ws} do
+    :ok = Interlock.acquire(ws, :tray1, :mhs, 0)
+    started = System.monotonic_time(:millisecond)
+
+    assert Interlock.acquire(ws, :tray1, :robot, 300, retry_ms: 100) ==
+             {:error, "INTERLOCK TRAY1 HELD BY MHS"}
+
+    assert System.monotonic_time(:millisecond) - started >= 300
+    refute_received {:vws_event, ^ws, :interlock, _}
+  end
+
   test "reasons: a lease ends when its last reason is given up", %{ws: ws} do
     :ok = Interlock.acquire(ws, :table, :robot, 0, as: :disabled)
     :ok = Interlock.acquire(ws, :table, :robot, 0, as: :inside)

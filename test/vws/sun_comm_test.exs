@@ -123,6 +123,43 @@ defmodule Vws.SunCommTest do
              "0011ERROR TEST FAILURE"
   end
 
+  test "a Monarch command is parsed once, by MONARCH: SUN_COMM only recognises the transfers",
+       %{peer: peer, ws: ws} do
+    sun_comm = Vws.Workstation.whereis(ws, :sun_comm)
+    monarch = Vws.Partition.whereis(ws, :monarch)
+    # a pattern set before its module is loaded is lost
+    Code.ensure_loaded!(Vws.Commands)
+    :erlang.trace_pattern({Vws.Commands, :parse, 2}, true, [:local])
+    :erlang.trace(sun_comm, true, [:call])
+    # MONARCH parses in the process it runs each command in
+    :erlang.trace(monarch, true, [:call, :set_on_spawn])
+
+    try do
+      WCPeer.send_string(peer, 70, [{"M", 3, "TABLE(1/2/3)"}])
+      assert ack?(WCPeer.recv_line(peer), 70)
+
+      assert WCPeer.await_status(peer, 35, "MONARCH_CMD", &(&1 =~ "ERROR")) ==
+               "0003ERROR NO LINK TO GE-2000"
+    after
+      :erlang.trace(sun_comm, false, [:call])
+      :erlang.trace(monarch, false, [:call, :set_on_spawn])
+      :erlang.trace_pattern({Vws.Commands, :parse, 2}, false, [:local])
+    end
+
+    parses =
+      Stream.repeatedly(fn ->
+        receive do
+          {:trace, pid, :call, {Vws.Commands, :parse, [:monarch, text]}} -> {pid, text}
+        after
+          0 -> nil
+        end
+      end)
+      |> Enum.take_while(& &1)
+
+    assert [{pid, "TABLE(1/2/3)"}] = parses
+    assert pid != sun_comm
+  end
+
   @tag :held
   test "rule 4: a retransmitted string is acknowledged again and not executed twice", %{
     peer: peer
@@ -311,6 +348,45 @@ defmodule Vws.SunCommTest do
       assert ack?(WCPeer.recv_line(peer), 68)
     end
 
+    test "a string that ends a download is decoded once and handled decoded", %{
+      peer: peer,
+      ws: ws
+    } do
+      WCPeer.send_string(peer, 66, [{"M", 8, "DOWNLOAD_HP"}])
+      assert ack?(WCPeer.recv_line(peer), 66)
+
+      # count SUN_COMM's calls of the string decoder while it handles the string that ends
+      # the transfer (it decoded that string twice: to see that it is one, and again to run it)
+      sun_comm = Vws.Workstation.whereis(ws, :sun_comm)
+      Code.ensure_loaded!(Vws.WC.CommandString)
+      :erlang.trace_pattern({Vws.WC.CommandString, :decode, 2}, true, [:local])
+      :erlang.trace(sun_comm, true, [:call])
+
+      try do
+        WCPeer.send_string(peer, 67, [{"V", 1, "ON"}])
+        assert ack?(WCPeer.recv_line(peer), 67)
+      after
+        :erlang.trace(sun_comm, false, [:call])
+        :erlang.trace_pattern({Vws.WC.CommandString, :decode, 2}, false, [:local])
+      end
+
+      decodes =
+        Stream.repeatedly(fn ->
+          receive do
+            {:trace, ^sun_comm, :call, {Vws.WC.CommandString, :decode, [line, _]}} -> line
+          after
+            0 -> nil
+          end
+        end)
+        |> Enum.take_while(& &1)
+
+      assert [line] = decodes
+      assert line =~ ~r/^\*0067\*V0001ON\*/
+
+      assert WCPeer.status(peer, 68, 35, "MONARCH_CMD") ==
+               "0008ERROR COMMAND STRING FROM THE WC DURING DOWNLOAD AFTER 0 LINES"
+    end
+
     test "UPLOAD_SUN whose acknowledgement was lost: acknowledged again, sent from line 1", %{
       peer: peer,
       ws: ws
@@ -442,8 +518,13 @@ defmodule Vws.SunCommTest do
     start_supervised!({Vws.SunComm, workstation: ws, wc: "loopback:wc-#{ws}"})
     assert {:error, _} = Vws.Transport.connect("loopback:wc-#{ws}")
     assert Vws.SunComm.info(ws).listening == nil
+    assert Vws.SunComm.await_listening(ws, 50) == nil
 
+    # await_listening/2 is woken by the :wc_listening event SUN_COMM causes as it opens
+    waiter = Task.async(fn -> Vws.SunComm.await_listening(ws, 30_000) end)
     :ok = Events.cause(ws, :ok_to_proceed)
+    assert %Vws.Endpoint{} = listening = Task.await(waiter, 30_000)
+    assert to_string(listening) =~ "loopback:wc-#{ws}"
     {:ok, peer} = WCPeer.connect("loopback:wc-#{ws}")
     assert WCPeer.status(peer, 1, 1, "GRIPPER_CMD") == "0000NONE"
   end

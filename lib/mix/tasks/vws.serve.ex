@@ -137,7 +137,7 @@ defmodule Mix.Tasks.Vws.Serve do
       {:error, reason} -> Mix.raise("workstation #{id} did not start: #{start_error(reason)}")
     end
 
-    listening = wait_listening(id, 50)
+    listening = Vws.SunComm.await_listening(id, 1_000)
     Mix.shell().info("VWS workstation #{id}: SUN_COMM waits for the WC on #{listening || wc}")
     Mix.shell().info("GE-2000 DNC link: #{ge2000}")
 
@@ -270,15 +270,6 @@ defmodule Mix.Tasks.Vws.Serve do
   defp start_error({:already_started, _pid}), do: "a workstation with this id already runs here"
   defp start_error(reason) when is_binary(reason), do: reason
   defp start_error(reason), do: inspect(reason)
-
-  defp wait_listening(_id, 0), do: nil
-
-  defp wait_listening(id, n) do
-    case Vws.SunComm.listening(id) do
-      nil -> Process.sleep(20) && wait_listening(id, n - 1)
-      endpoint -> endpoint
-    end
-  end
 
   defp iex_running?, do: Code.ensure_loaded?(IEx) and IEx.started?()
 

@@ -36,6 +36,12 @@ defmodule Vws.DDCMP.Protocol do
       true
   """
 
+  # what this core returns as {:telemetry, name, …} its process emits as [:vws, :ddcmp, name]
+  @telemetry_prefix [:vws, :ddcmp]
+
+  @doc false
+  def telemetry_prefix, do: @telemetry_prefix
+
   import Bitwise
 
   alias Vws.DDCMP.{Error, Frame}

@@ -1,5 +1,11 @@
 defmodule Vws.DDCMP.Wire do
   @moduledoc false
+
+  # emits the telemetry its core (Vws.DDCMP.Protocol, @telemetry_prefix) returns
+  @telemetry_relay true
+
+  @doc false
+  def telemetry_relay?, do: @telemetry_relay
   # What a process that owns a DDCMP line (`Vws.DDCMP.Link`, `Vws.VAL.Connection`,
   # `Vws.Sim.VAL2`) does with the result of a `Vws.DDCMP.Protocol` call: the I/O the pure core
   # leaves out. Frames are encoded and written to the transport as one chunk, telemetry points are

@@ -1,5 +1,11 @@
 defmodule Vws.DNC.Link do
   @moduledoc false
+
+  # emits the telemetry its core (Vws.DNC.Session, @telemetry_prefix) returns
+  @telemetry_relay true
+
+  @doc false
+  def telemetry_relay?, do: @telemetry_relay
   # The process of one DNC Level 2 line; documented in Vws.DNC (its facade). The protocol is
   # Vws.DNC.Session, a pure core: this gen_statem only does the I/O around it — the connection,
   # the timers the core asks for, the caller's deadline, replies and the owner's messages.
@@ -409,7 +415,7 @@ defmodule Vws.DNC.Link do
   end
 
   defp carry_out({:telemetry, name, measurements, metadata}, {data, actions}) do
-    emit(data, name, metadata, measurements)
+    relay(data, name, metadata, measurements)
     {data, actions}
   end
 
@@ -496,14 +502,19 @@ defmodule Vws.DNC.Link do
   defp notify(%{owner: owner}, msg), do: send(owner, {:dnc, self(), msg})
 
   defp emit(data, event, metadata, measurements \\ %{count: 1}) do
-    Vws.Telemetry.execute(
-      [:vws, :dnc, event],
-      measurements,
-      Map.merge(metadata, %{
-        link: data.name,
-        role: data.role,
-        workstation: Vws.Workstation.id_of(data.name)
-      })
-    )
+    Vws.Telemetry.execute([:vws, :dnc, event], measurements, link_metadata(data, metadata))
+  end
+
+  # what the session core returned (its names are checked at the core: @telemetry_prefix)
+  defp relay(data, name, metadata, measurements) do
+    Vws.Telemetry.execute([:vws, :dnc, name], measurements, link_metadata(data, metadata))
+  end
+
+  defp link_metadata(data, metadata) do
+    Map.merge(metadata, %{
+      link: data.name,
+      role: data.role,
+      workstation: Vws.Workstation.id_of(data.name)
+    })
   end
 end

@@ -35,6 +35,12 @@ defmodule Vws.DNC.Session do
   (the machine runs the program at its own pace); in every other transmission `max_wacks` holds.
   """
 
+  # what this core returns as {:telemetry, name, …} its process emits as [:vws, :dnc, name]
+  @telemetry_prefix [:vws, :dnc]
+
+  @doc false
+  def telemetry_prefix, do: @telemetry_prefix
+
   alias Vws.DNC.{Frame, LinkError}
   alias Vws.DNC.Frame.{Command, Text}
 

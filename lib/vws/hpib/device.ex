@@ -388,6 +388,13 @@ defmodule Vws.HPIB.Device do
     {:keep_state_and_data, [{:reply, from, info}]}
   end
 
+  # Vws.HPIB.await_connected/2: answered once connected, postponed until then
+  defp common(state, {:call, from}, :await_connected, _data) do
+    if state in [:ready, :busy],
+      do: {:keep_state_and_data, [{:reply, from, :ok}]},
+      else: {:keep_state_and_data, :postpone}
+  end
+
   defp common(_state, :info, msg, _data) do
     Logger.debug("HPIB device: unexpected message #{inspect(msg, limit: 10)}")
     :keep_state_and_data

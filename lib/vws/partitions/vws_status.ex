@@ -66,12 +66,9 @@ defmodule Vws.Partitions.VwsStatus do
 
   ## Telemetry
 
-  | event | measurements | metadata |
-  |-------|--------------|----------|
-  | `[:vws, :vws_status, :poll]` | `started_at` (µs, monotonic), `lateness` (µs after its time), `duration` (µs until answered), `handling` (µs spent in VWS_STATUS) | `workstation, seq, result` |
-  | `[:vws, :vws_status, :missed]` | `count` | `workstation, reason` (`:busy` or `:held_up`) |
-  | `[:vws, :vws_status, :stale]` | `count` | `workstation, reason` |
-  | `[:vws, :vws_status, :actuation_retry]` | `count` | `workstation, reason, try` |
+  `[:vws, :vws_status, :poll | :missed | :stale | :actuation_retry]`, with their measurements
+  and metadata in the catalogue of `Vws.Telemetry`. At every write of location 11 it causes
+  the workstation's `:sensors` event (`Vws.Events`), which `await/4` waits on.
   """
   use GenServer
   require Logger
@@ -164,7 +161,23 @@ defmodule Vws.Partitions.VwsStatus do
     check = if is_function(check, 1), do: fn r, _prev -> check.(r) end, else: check
     deadline = System.monotonic_time(:millisecond) + timeout_ms
     acc = %{prev: nil, read: nil, no_data: nil, confirming: false}
-    do_await(ws, since, deadline, timeout_ms, check, acc)
+    # subscribed before the first read: a reading written after it wakes us
+    :ok = Vws.Events.subscribe(ws, :sensors)
+
+    try do
+      do_await(ws, since, deadline, timeout_ms, check, acc)
+    after
+      Vws.Events.unsubscribe(ws, :sensors)
+      flush_sensor_events(ws)
+    end
+  end
+
+  defp flush_sensor_events(ws) do
+    receive do
+      {:vws_event, ^ws, :sensors, _} -> flush_sensor_events(ws)
+    after
+      0 -> :ok
+    end
   end
 
   defp do_await(ws, since, deadline, timeout_ms, check, acc) do
@@ -190,6 +203,8 @@ defmodule Vws.Partitions.VwsStatus do
           {:wait, %{acc | no_data: why}}
       end
 
+    now = System.monotonic_time(:millisecond)
+
     cond do
       verdict == :ok ->
         :ok
@@ -197,14 +212,20 @@ defmodule Vws.Partitions.VwsStatus do
       match?({:fail, _}, verdict) ->
         {:error, elem(verdict, 1)}
 
-      System.monotonic_time(:millisecond) > deadline ->
+      now > deadline ->
         # what was read says most; failing that, why nothing could be read
         {:error,
          acc.read || acc.no_data ||
            "#{@device} NOT ANSWERING (NO FRESH READING IN #{timeout_ms} MS)"}
 
       true ->
-        Process.sleep(2)
+        # the next write of location 11 (a reading, or NO DATA) — or the deadline, passed
+        receive do
+          {:vws_event, ^ws, :sensors, _} -> :ok
+        after
+          deadline - now + 1 -> :ok
+        end
+
         do_await(ws, since, deadline, timeout_ms, check, acc)
     end
   end
@@ -364,6 +385,8 @@ defmodule Vws.Partitions.VwsStatus do
     Logger.metadata(workstation: ws, partition: :vws_status)
     opts = Keyword.merge(@defaults, opts)
     link = Keyword.get(opts, :link)
+    # caused at every write of location 11: what await/4 waits on
+    Vws.Events.create(ws, :sensors)
 
     configured = Keyword.get(opts, :devices, [])
 
@@ -564,7 +587,7 @@ defmodule Vws.Partitions.VwsStatus do
 
           texts = DeviceStatus.texts(readings, min_force_n: s.min_force_n)
           Enum.each(texts, fn {loc, text} -> Mailbox.put_device(s.workstation, loc, text) end)
-          Mailbox.put_device(s.workstation, @sensors_location, readings)
+          put_sensors(s.workstation, readings)
 
           # the stale readings' warning ends here, with how often it was repeated
           Vws.LogLimit.clear(:stale, "VWS_STATUS: #{@device} answers again")
@@ -654,7 +677,13 @@ defmodule Vws.Partitions.VwsStatus do
 
   defp write_no_data(ws, why) do
     for loc <- @text_locations, do: Mailbox.put_device(ws, loc, DeviceStatus.no_data(why))
-    Mailbox.put_device(ws, @sensors_location, {:no_data, why})
+    put_sensors(ws, {:no_data, why})
+  end
+
+  # Location 11, and the event that wakes whoever awaits a reading (await/4).
+  defp put_sensors(ws, value) do
+    Mailbox.put_device(ws, @sensors_location, value)
+    Vws.Events.cause(ws, :sensors)
   end
 
   ## Actuations

@@ -27,6 +27,60 @@ defmodule Vws.Partitions.VwsStatusTest do
       assert VwsStatus.actuate(ws, vacuum_motor: :close) == {:error, "NO LINK TO DAQ #1"}
       assert VwsStatus.stats(ws).link == nil
     end
+
+    test "await waits on VWS_STATUS's writes, not by reading the mailbox over and over" do
+      %{ws: ws} = Workstation.start()
+      # nothing is written after the start (no link): the await reads location 11 when it
+      # begins and once more at its deadline — the sleep-polling loop read it every 2 ms
+      me = self()
+
+      waiter =
+        spawn_link(fn ->
+          receive do
+            :go ->
+              started = System.monotonic_time(:millisecond)
+              result = VwsStatus.await(ws, 0, 300, fn _r -> :ok end)
+              send(me, {:awaited, result, System.monotonic_time(:millisecond) - started})
+          end
+        end)
+
+      Code.ensure_loaded!(VwsStatus)
+      :erlang.trace_pattern({VwsStatus, :readings, 1}, true, [:local])
+      :erlang.trace(waiter, true, [:call])
+      send(waiter, :go)
+
+      try do
+        assert_receive {:awaited, {:error, "NO LINK TO DAQ #1"}, waited}, 5_000
+        # the same time limit
+        assert waited >= 300
+      after
+        :erlang.trace_pattern({VwsStatus, :readings, 1}, false, [:local])
+      end
+
+      reads =
+        Stream.repeatedly(fn ->
+          receive do
+            {:trace, _, :call, {VwsStatus, :readings, [^ws]}} -> :read
+          after
+            0 -> nil
+          end
+        end)
+        |> Enum.take_while(& &1)
+
+      assert length(reads) == 2
+    end
+  end
+
+  describe "await" do
+    test "a fresh reading written by VWS_STATUS wakes the await; two in a row confirm" do
+      %{ws: ws} = DAQFloor.start(vws_status: [poll_ms: 20])
+      since = System.monotonic_time(:microsecond)
+      started = System.monotonic_time(:millisecond)
+      assert VwsStatus.await(ws, since, 5_000, fn _r -> :ok end) == :ok
+      # two polls of 20 ms, however late: well before the 5 s limit
+      assert System.monotonic_time(:millisecond) - started < 4_000
+      refute_received {:vws_event, ^ws, :sensors, _}
+    end
   end
 
   describe "polling" do
