@@ -167,7 +167,11 @@ defmodule Vws.DNC.Library do
          :ok <- check_source(source),
          :ok <- if(byte_size(bytes) <= @max_bytes, do: :ok, else: {:error, :too_large}),
          :ok <- File.mkdir_p(Path.join(dir, @numbers)),
-         tmp = Path.join(dir, "#{@tmp_prefix}#{name}-#{System.unique_integer([:positive])}"),
+         tmp =
+           Path.join(
+             dir,
+             "#{@tmp_prefix}#{name}-#{:os.getpid()}-#{System.unique_integer([:positive])}"
+           ),
          :ok <- write_synced(tmp, bytes) do
       v = %{
         name: name,
@@ -290,7 +294,7 @@ defmodule Vws.DNC.Library do
   @spec export(lib, term, pos_integer | :latest, Path.t()) :: {:ok, version} | {:error, term}
   def export(lib, name, version \\ :latest, path) do
     with {:ok, bytes, v} <- read(lib, name, version) do
-      tmp = path <> ".tmp-#{System.unique_integer([:positive])}"
+      tmp = path <> ".tmp-#{:os.getpid()}-#{System.unique_integer([:positive])}"
 
       with :ok <- write_synced(tmp, bytes), :ok <- :file.rename(tmp, path) do
         {:ok, v}
@@ -441,7 +445,12 @@ defmodule Vws.DNC.Library do
       ]
 
       path = Path.join(dir, @machine)
-      tmp = Path.join(dir, "#{@tmp_prefix}#{@machine}-#{System.unique_integer([:positive])}")
+
+      tmp =
+        Path.join(
+          dir,
+          "#{@tmp_prefix}#{@machine}-#{:os.getpid()}-#{System.unique_integer([:positive])}"
+        )
 
       with :ok <- write_synced(tmp, IO.iodata_to_binary(text)),
            :ok <- :file.rename(tmp, path) do
