@@ -83,13 +83,19 @@ defmodule Vws.DNC.Library do
 
   @doc """
   Makes `dir` the library of workstation `ws` for as long as the calling process lives (the
-  workstation's supervisor calls it as it starts; `nil` for none).
+  workstation's supervisor calls it as it starts; `nil` for none), and removes the temporary
+  files of stores that crashed more than an hour ago (`tidy/2`).
   """
   @spec register(term, Path.t() | nil) :: :ok
   def register(_ws, nil), do: :ok
 
   def register(ws, dir) do
     {:ok, _} = Registry.register(Vws.Registry, {ws, :library}, Path.expand(dir))
+
+    with {:error, reason} <- tidy({:dir, dir}) do
+      Logger.warning("program library #{dir}: not tidied (#{inspect(reason)})")
+    end
+
     :ok
   end
 
