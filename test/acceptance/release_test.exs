@@ -17,7 +17,7 @@ defmodule Vws.Acceptance.ReleaseTest do
   end
 
   @tag :tmp_dir
-  test "the release: started from its environment, a WC command to DONE on DAQ #1, HTTP, bin/vws-wc, logs to a file at info, SIGTERM stops it cleanly",
+  test "the release: started from its environment, a WC command to DONE on DAQ #1, HTTP, bin/vws-wc, bin/vws-library, logs to a file at info, SIGTERM stops it cleanly",
        %{release: release, tmp_dir: tmp} do
     ws = "REL#{System.unique_integer([:positive])}"
 
@@ -30,6 +30,7 @@ defmodule Vws.Acceptance.ReleaseTest do
     wc = Acceptance.free_port()
     http = Acceptance.free_port()
     log_dir = Path.join(tmp, "log")
+    data = Path.join(tmp, "data")
 
     proc =
       Acceptance.start([Path.join(release, "bin/vws"), "start"],
@@ -40,6 +41,7 @@ defmodule Vws.Acceptance.ReleaseTest do
           {"VWS_GE2000", Vws.Sim.GE2000.endpoint(Vws.Sim.Floor.ge2000(ws))},
           {"VWS_HTTP_PORT", "#{http}"},
           {"VWS_LOG_DIR", log_dir},
+          {"VWS_DATA_DIR", data},
           {"RELEASE_DISTRIBUTION", "none"},
           {"RELEASE_COOKIE", "acceptance-#{System.unique_integer([:positive])}"}
         ]
@@ -75,6 +77,31 @@ defmodule Vws.Acceptance.ReleaseTest do
     assert {200, current} = Acceptance.http_get(http, "/current")
     assert current =~ ~s(name="VWS1")
     assert {200, _state} = Acceptance.http_get(http, "/api/state")
+
+    # the release's program library (issue 18): a program imported with bin/vws-library, sent
+    # by name from the WC, and the machine found holding it
+    program = Path.join(tmp, "4711.nc")
+    File.write!(program, "%\nO4711\nN10 G00 X0 Y0\nN20 M30\n%\n")
+
+    library = fn args ->
+      p =
+        Acceptance.start([Path.join(release, "bin/vws-library") | args],
+          env: [{"VWS_ID", "VWS1"}, {"VWS_DATA_DIR", data}]
+        )
+
+      {Acceptance.await_exit(p, 60_000), Acceptance.output(p)}
+    end
+
+    assert {0, out} = library.(["import", program])
+    assert out =~ "stored 004711.PRO v1"
+    assert Acceptance.wc_request(wc, "*0003*M0001DOWNLOAD_GE(004711.PRO)*") =~ ~r/^05A0003\d{3}$/
+    deadline = System.monotonic_time(:millisecond) + 60_000
+
+    assert Acceptance.await_command(wc, "MONARCH_CMD", 4, 1, deadline) =~
+             ~r/^\d\dS\d{4}0001DONE\d{3}$/
+
+    assert {0, out} = library.(["list"])
+    assert out =~ ~r/004711\.PRO  v1 of 1 .* cli .* on the machine: same$/m
 
     Acceptance.signal(proc, "TERM")
     status = Acceptance.await_exit(proc, 30_000)

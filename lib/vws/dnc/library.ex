@@ -83,13 +83,19 @@ defmodule Vws.DNC.Library do
 
   @doc """
   Makes `dir` the library of workstation `ws` for as long as the calling process lives (the
-  workstation's supervisor calls it as it starts; `nil` for none).
+  workstation's supervisor calls it as it starts; `nil` for none), and removes the temporary
+  files of stores that crashed more than an hour ago (`tidy/2`).
   """
   @spec register(term, Path.t() | nil) :: :ok
   def register(_ws, nil), do: :ok
 
   def register(ws, dir) do
     {:ok, _} = Registry.register(Vws.Registry, {ws, :library}, Path.expand(dir))
+
+    with {:error, reason} <- tidy({:dir, dir}) do
+      Logger.warning("program library #{dir}: not tidied (#{inspect(reason)})")
+    end
+
     :ok
   end
 
@@ -167,7 +173,11 @@ defmodule Vws.DNC.Library do
          :ok <- check_source(source),
          :ok <- if(byte_size(bytes) <= @max_bytes, do: :ok, else: {:error, :too_large}),
          :ok <- File.mkdir_p(Path.join(dir, @numbers)),
-         tmp = Path.join(dir, "#{@tmp_prefix}#{name}-#{System.unique_integer([:positive])}"),
+         tmp =
+           Path.join(
+             dir,
+             "#{@tmp_prefix}#{name}-#{:os.getpid()}-#{System.unique_integer([:positive])}"
+           ),
          :ok <- write_synced(tmp, bytes) do
       v = %{
         name: name,
@@ -290,7 +300,7 @@ defmodule Vws.DNC.Library do
   @spec export(lib, term, pos_integer | :latest, Path.t()) :: {:ok, version} | {:error, term}
   def export(lib, name, version \\ :latest, path) do
     with {:ok, bytes, v} <- read(lib, name, version) do
-      tmp = path <> ".tmp-#{System.unique_integer([:positive])}"
+      tmp = path <> ".tmp-#{:os.getpid()}-#{System.unique_integer([:positive])}"
 
       with :ok <- write_synced(tmp, bytes), :ok <- :file.rename(tmp, path) do
         {:ok, v}
@@ -441,7 +451,12 @@ defmodule Vws.DNC.Library do
       ]
 
       path = Path.join(dir, @machine)
-      tmp = Path.join(dir, "#{@tmp_prefix}#{@machine}-#{System.unique_integer([:positive])}")
+
+      tmp =
+        Path.join(
+          dir,
+          "#{@tmp_prefix}#{@machine}-#{:os.getpid()}-#{System.unique_integer([:positive])}"
+        )
 
       with :ok <- write_synced(tmp, IO.iodata_to_binary(text)),
            :ok <- :file.rename(tmp, path) do

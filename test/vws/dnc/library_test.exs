@@ -1,5 +1,6 @@
 defmodule Vws.DNC.LibraryTest do
   use ExUnit.Case, async: true
+  use Vws.PropCase
 
   alias Vws.DNC.Library
 
@@ -192,7 +193,8 @@ defmodule Vws.DNC.LibraryTest do
     ref = Process.monitor(sup)
     :ok = stop_supervised({Vws.Workstation, id})
     assert_receive {:DOWN, ^ref, :process, _, _}, 5_000
-    assert Library.dir(id) == {:error, :no_library}
+    # (the registry forgets a dead process a moment after it died)
+    assert Vws.Test.Eventually.eventually(fn -> Library.dir(id) == {:error, :no_library} end)
 
     Vws.Test.Workstation.start(id: id, library: dir)
     {:ok, [p]} = Library.list(id)
@@ -200,5 +202,52 @@ defmodule Vws.DNC.LibraryTest do
     assert {:ok, "%\nO8\nN1\n%\n", _} = Library.read(id, "8", 1)
     {:ok, v} = Library.store(id, "8", "%\nO8\nN3\n%\n")
     assert v.version == 3
+  end
+
+  test "property: any name is a GE-2000 file name or refused, and a store never writes outside " <>
+         "the library directory",
+       %{lib: lib, dir: dir} do
+    parts =
+      :proper_types.oneof([
+        ~c"..",
+        ~c"/",
+        ~c".",
+        ~c"~",
+        ~c"PRO",
+        ~c"gsu",
+        ~c"O",
+        ~c"0",
+        ~c"12",
+        ~c"\0"
+      ])
+
+    name =
+      :proper_types.list(
+        :proper_types.oneof([parts, :proper_types.list(:proper_types.range(0, 255))])
+      )
+
+    property =
+      :proper.forall(name, fn chunks ->
+        text = chunks |> List.flatten() |> :erlang.list_to_binary()
+
+        case Library.name(text) do
+          {:ok, n} ->
+            n =~ ~r/^\d{6}\.(PRO|GSU)$/ and match?({:ok, _}, Library.store(lib, text, "x"))
+
+          {:error, :bad_name} ->
+            Library.store(lib, text, "x") == {:error, :bad_name}
+        end
+      end)
+
+    assert_property(property, 300)
+    # everything stored is inside the directory, and only under version names
+    parent = Path.dirname(dir)
+
+    assert Path.wildcard(Path.join(parent, "*"))
+           |> Enum.filter(&String.starts_with?(&1, dir))
+           |> length() == 1
+
+    {:ok, files} = File.ls(dir)
+    assert Enum.all?(files, &(&1 == ".v" or &1 =~ ~r/^\d{6}\.(PRO|GSU)~\d{6}~/))
   end
 end

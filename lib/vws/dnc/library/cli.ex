@@ -1,6 +1,7 @@
 defmodule Vws.DNC.Library.CLI do
   @moduledoc """
-  The program library on the command line (`mix vws.library`): works on the library's directory
+  The program library on the command line (`mix vws.library`; `bin/vws-library` in a release,
+  with the same options): works on the library's directory
   itself, so on a running workstation's library as well as on a stopped one's (`Vws.DNC.Library`
   keeps stores from several OS processes apart).
 
@@ -56,6 +57,15 @@ defmodule Vws.DNC.Library.CLI do
       {_, _, invalid} ->
         usage_error("unknown options #{inspect(invalid)}")
     end
+  end
+
+  @doc false
+  # For the release's bin/vws-library (bin/vws eval takes no arguments: they come as
+  # VWS_CLI_ARG_<i> environment variables, VWS_CLI_ARGC of them); halts with the exit status.
+  def release_main do
+    argc = String.to_integer(System.get_env("VWS_CLI_ARGC", "0"))
+    argv = for i <- 0..(argc - 1)//1, do: System.get_env("VWS_CLI_ARG_#{i}", "")
+    System.halt(main(argv))
   end
 
   defp run(["list"], _opts, lib), do: print_compare(lib)
