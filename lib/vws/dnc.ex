@@ -94,7 +94,7 @@ defmodule Vws.DNC do
   | `[:vws, :dnc, :retry]` | `count` | `link, workstation, role, kind` (`:nak_received`, `:nak_sent`, `:wack_received`, `:no_reply`, `:lost_reply`, `:duplicate_received`, `:eot_again`), `block` |
   | `[:vws, :dnc, :transmission]` | `duration` (native), `blocks`, `bytes` | `link, workstation, role, direction, result` (+ `kind`) |
 
-  `workstation` is the id in a `Vws.Workstation` name given as `:name` (`Vws.Workstation.id_of/1`), else nil.
+  `workstation` is the id in a `Vws.Workstation` name given as `:name` (`Vws.Names.id_of/1`), else nil.
 
   ## Example
 

@@ -65,7 +65,7 @@ defmodule Vws.Journal do
   @spec start_link(keyword) :: GenServer.on_start()
   def start_link(opts) do
     ws = Keyword.fetch!(opts, :workstation)
-    GenServer.start_link(__MODULE__, opts, name: Vws.Workstation.via(ws, :journal))
+    GenServer.start_link(__MODULE__, opts, name: Vws.Names.via(ws, :journal))
   end
 
   @doc """

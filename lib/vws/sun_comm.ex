@@ -101,7 +101,7 @@ defmodule Vws.SunComm do
   @spec start_link(keyword) :: GenServer.on_start()
   def start_link(opts) do
     ws = Keyword.fetch!(opts, :workstation)
-    GenServer.start_link(__MODULE__, opts, name: Vws.Workstation.via(ws, :sun_comm))
+    GenServer.start_link(__MODULE__, opts, name: Vws.Names.via(ws, :sun_comm))
   end
 
   @doc """
@@ -109,7 +109,7 @@ defmodule Vws.SunComm do
   counters.
   """
   @spec info(term) :: map
-  def info(ws), do: GenServer.call(Vws.Workstation.via(ws, :sun_comm), :info)
+  def info(ws), do: GenServer.call(Vws.Names.via(ws, :sun_comm), :info)
 
   @doc "The endpoint SUN_COMM listens on (with the real port when port 0 was asked), or nil."
   @spec listening(term) :: Vws.Endpoint.t() | nil
@@ -117,7 +117,7 @@ defmodule Vws.SunComm do
 
   @doc "The most recent lines of the WC dialogue, oldest first: `{monotonic_ms, :in | :out, line}`."
   @spec dialogue(term) :: [{integer, :in | :out, binary}]
-  def dialogue(ws), do: GenServer.call(Vws.Workstation.via(ws, :sun_comm), :dialogue)
+  def dialogue(ws), do: GenServer.call(Vws.Names.via(ws, :sun_comm), :dialogue)
 
   ## Server
 

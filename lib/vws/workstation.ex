@@ -36,7 +36,7 @@ defmodule Vws.Workstation do
   """
   use Supervisor
 
-  alias Vws.Mailbox
+  alias Vws.{Mailbox, Names}
 
   @partition_modules [
     robot: Vws.Partitions.Robot,
@@ -60,24 +60,8 @@ defmodule Vws.Workstation do
   @spec start_link(keyword) :: Supervisor.on_start()
   def start_link(opts) do
     id = Keyword.fetch!(opts, :id)
-    Supervisor.start_link(__MODULE__, opts, name: via(id, :workstation))
+    Supervisor.start_link(__MODULE__, opts, name: Names.via(id, :workstation))
   end
-
-  @doc false
-  def via(id, role), do: {:via, Registry, {Vws.Registry, {id, role}}}
-
-  @doc """
-  The workstation id inside a name made for one of its parts (a link's `{:via, Registry, …}`
-  name), or nil for any other name: telemetry metadata of links carries it.
-
-      iex> Vws.Workstation.id_of({:via, Registry, {Vws.Registry, {"VWS-1", :ge2000}}})
-      "VWS-1"
-      iex> Vws.Workstation.id_of(self())
-      nil
-  """
-  @spec id_of(term) :: term | nil
-  def id_of({:via, Registry, {Vws.Registry, {id, _role}}}), do: id
-  def id_of(_name), do: nil
 
   @impl true
   def init(opts) do
@@ -123,7 +107,12 @@ defmodule Vws.Workstation do
               {Supervisor, :start_link,
                [
                  Keyword.get(opts, :links, []) ++ device_links,
-                 [strategy: :one_for_one, max_restarts: 50, max_seconds: 5, name: via(ws, :links)]
+                 [
+                   strategy: :one_for_one,
+                   max_restarts: 50,
+                   max_seconds: 5,
+                   name: Names.via(ws, :links)
+                 ]
                ]}
           },
           %{
@@ -137,7 +126,7 @@ defmodule Vws.Workstation do
                    strategy: :one_for_one,
                    max_restarts: 50,
                    max_seconds: 5,
-                   name: via(ws, :partitions)
+                   name: Names.via(ws, :partitions)
                  ]
                ]}
           },
@@ -184,7 +173,7 @@ defmodule Vws.Workstation do
       {:ge2000, spec}, {links, popts} ->
         link_opts = if is_binary(spec), do: [endpoint: spec], else: spec
         {interval, link_opts} = Keyword.pop(link_opts, :status_interval, 1_000)
-        name = via(ws, :ge2000)
+        name = Names.via(ws, :ge2000)
         link = {Vws.DNC, [id: :ge2000, name: name] ++ link_opts}
 
         monitor =
@@ -201,7 +190,7 @@ defmodule Vws.Workstation do
         ddcmp =
           Keyword.merge(Keyword.get(spec, :ddcmp, []), endpoint: spec[:endpoint], workstation: ws)
 
-        name = via(ws, :val)
+        name = Names.via(ws, :val)
 
         val =
           {Vws.VAL, [id: :val, name: name, ddcmp: ddcmp] ++ Keyword.take(spec, [:link_module])}
@@ -265,18 +254,11 @@ defmodule Vws.Workstation do
     end
   end
 
-  @doc "The ids of the workstations running on this node."
+  @doc "The ids of the workstations running on this node (`Vws.Names.workstations/0`)."
   @spec list() :: [term]
-  def list do
-    Registry.select(Vws.Registry, [{{{:"$1", :workstation}, :_, :_}, [], [:"$1"]}]) |> Enum.sort()
-  end
+  defdelegate list, to: Names, as: :workstations
 
   @doc "The pid of a workstation's supervisor or one of its parts (`:links`, `:partitions`, a partition, `:sun_comm`)."
   @spec whereis(term, atom) :: pid | nil
-  def whereis(id, role \\ :workstation) do
-    case Registry.lookup(Vws.Registry, {id, role}) do
-      [{pid, _}] -> pid
-      [] -> nil
-    end
-  end
+  defdelegate whereis(id, role \\ :workstation), to: Names
 end

@@ -107,7 +107,7 @@ defmodule Vws.DNC.Link do
     Logger.metadata(
       dnc_link: o[:name] || self(),
       dnc_role: role,
-      workstation: Vws.Workstation.id_of(o[:name])
+      workstation: Vws.Names.id_of(o[:name])
     )
 
     pace = pace_ns(o[:pace], o[:char_bits])
@@ -1086,7 +1086,7 @@ defmodule Vws.DNC.Link do
       Map.merge(metadata, %{
         link: data.name,
         role: data.role,
-        workstation: Vws.Workstation.id_of(data.name)
+        workstation: Vws.Names.id_of(data.name)
       })
     )
   end

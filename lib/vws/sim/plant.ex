@@ -186,7 +186,7 @@ defmodule Vws.Sim.Plant do
      %{
        model: Model.new(config, Keyword.get(opts, :seed, 0)),
        # the workstation in a {:via, Registry, {Vws.Registry, {ws, role}}} name, for telemetry
-       workstation: Vws.Workstation.id_of(Keyword.get(opts, :name)),
+       workstation: Vws.Names.id_of(Keyword.get(opts, :name)),
        time_scale: scale,
        last: now(),
        on_relay: Keyword.get(opts, :on_relay),

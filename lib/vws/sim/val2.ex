@@ -156,7 +156,7 @@ defmodule Vws.Sim.VAL2 do
       motion: nil,
       fault: nil,
       commands: [],
-      workstation: Vws.Workstation.id_of(Keyword.get(opts, :name)),
+      workstation: Vws.Names.id_of(Keyword.get(opts, :name)),
       violations: 0,
       restarts: 0
     }

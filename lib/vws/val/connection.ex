@@ -33,7 +33,7 @@ defmodule Vws.VAL.Connection do
   def init(opts) do
     Process.flag(:trap_exit, true)
     name = Keyword.get(opts, :name, self())
-    Logger.metadata(val: inspect(name), workstation: Vws.Workstation.id_of(name))
+    Logger.metadata(val: inspect(name), workstation: Vws.Names.id_of(name))
 
     data = %{
       name: name,
@@ -283,7 +283,7 @@ defmodule Vws.VAL.Connection do
 
     Vws.Telemetry.execute([:vws, :val, :async], %{count: 1}, %{
       name: data.name,
-      workstation: Vws.Workstation.id_of(data.name),
+      workstation: Vws.Names.id_of(data.name),
       code: m.qualifier,
       text: m.text
     })
@@ -541,7 +541,7 @@ defmodule Vws.VAL.Connection do
       %{duration: System.monotonic_time() - request.started},
       %{
         name: data.name,
-        workstation: Vws.Workstation.id_of(data.name),
+        workstation: Vws.Names.id_of(data.name),
         text: request.text,
         result: result
       }
@@ -551,7 +551,7 @@ defmodule Vws.VAL.Connection do
   defp telemetry_message(data, direction, m, bytes) do
     Vws.Telemetry.execute([:vws, :val, :message], %{bytes: bytes}, %{
       name: data.name,
-      workstation: Vws.Workstation.id_of(data.name),
+      workstation: Vws.Names.id_of(data.name),
       direction: direction,
       lun: m.lun,
       function: m.function,
