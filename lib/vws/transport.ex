@@ -1,7 +1,10 @@
 defmodule Vws.Transport do
   @moduledoc """
-  Byte links to equipment — TCP, a serial tty, or an in-memory loopback — behind one API (and
-  `cell:` endpoints, which find a workstation's WC link anywhere in the cell, `Vws.Transport.Cell`).
+  Byte links to equipment — TCP, a serial tty, or an in-memory loopback — behind one API.
+
+  A `cell:<id>` endpoint names a workstation, not a place: it is resolved above this layer
+  (`Vws.Cell.connect/2`), which passes the transport that reaches the workstation as the
+  `transport:` option of `connect/2`. Without one, connecting to it is `{:error, :not_resolved}`.
 
   This module is both the behaviour every transport implements and the facade protocol code
   calls. The facade picks the transport from the endpoint (`Vws.Endpoint`), so a driver written
@@ -110,13 +113,15 @@ defmodule Vws.Transport do
 
   TCP dials `host:port` (option `timeout`, default 5000 ms); tty opens the device; loopback
   connects to the listener registered under the name. The caller becomes the controlling process
-  and must `activate/1` to receive.
+  and must `activate/1` to receive. `transport:` names the transport module to use instead of
+  the endpoint's own (how a `cell:` endpoint, resolved above this layer, is connected).
   """
   @spec connect(endpoint(), keyword()) :: {:ok, Conn.t()} | {:error, term()}
   def connect(endpoint, opts \\ []) do
-    with {:ok, endpoint} <- to_endpoint(endpoint) do
-      module = module_for(endpoint)
+    {module, opts} = Keyword.pop(opts, :transport)
 
+    with {:ok, endpoint} <- to_endpoint(endpoint),
+         {:ok, module} <- connecting_module(module, endpoint) do
       with {:ok, handle} <- module.connect(endpoint, opts) do
         {:ok, %Conn{module: module, handle: handle, endpoint: endpoint}}
       end
@@ -133,9 +138,8 @@ defmodule Vws.Transport do
   """
   @spec listen(endpoint(), keyword()) :: {:ok, Listener.t()} | {:error, term()}
   def listen(endpoint, opts \\ []) do
-    with {:ok, endpoint} <- to_endpoint(endpoint) do
-      module = module_for(endpoint)
-
+    with {:ok, endpoint} <- to_endpoint(endpoint),
+         {:ok, module} <- listening_module(endpoint) do
       with {:ok, handle} <- module.listen(endpoint, opts) do
         {:ok,
          %Listener{module: module, handle: handle, endpoint: module.listener_endpoint(handle)}}
@@ -289,12 +293,28 @@ defmodule Vws.Transport do
   @spec peer(Conn.t()) :: String.t()
   def peer(%Conn{module: module, handle: handle}), do: module.peer(handle)
 
-  @doc "The transport module serving an endpoint."
-  @spec module_for(Endpoint.t()) :: module()
+  @doc "The transport module serving an endpoint; nil for a `cell:` endpoint (resolved above)."
+  @spec module_for(Endpoint.t()) :: module() | nil
   def module_for(%Endpoint{kind: :tcp}), do: Vws.Transport.TCP
   def module_for(%Endpoint{kind: :tty}), do: Vws.Transport.Serial
   def module_for(%Endpoint{kind: :loopback}), do: Vws.Transport.Loopback
-  def module_for(%Endpoint{kind: :cell}), do: Vws.Transport.Cell
+  def module_for(%Endpoint{kind: :cell}), do: nil
+
+  defp connecting_module(nil, endpoint) do
+    case module_for(endpoint) do
+      nil -> {:error, :not_resolved}
+      module -> {:ok, module}
+    end
+  end
+
+  defp connecting_module(module, _endpoint) when is_atom(module), do: {:ok, module}
+
+  defp listening_module(endpoint) do
+    case module_for(endpoint) do
+      nil -> {:error, :not_listenable}
+      module -> {:ok, module}
+    end
+  end
 
   defp to_endpoint(%Endpoint{} = endpoint), do: {:ok, endpoint}
   defp to_endpoint(string), do: Endpoint.parse(string)

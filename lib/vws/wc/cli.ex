@@ -116,7 +116,7 @@ defmodule Vws.WC.CLI do
   defp run({:send, string}, opts) do
     line = if String.ends_with?(string, "*"), do: frame(string, bcc(opts)), else: string
 
-    with {:ok, conn} <- Vws.Transport.connect(endpoint(opts)),
+    with {:ok, conn} <- Vws.Cell.connect(endpoint(opts)),
          :ok <- Vws.Transport.activate(conn) do
       try do
         say(opts, "→ #{Vws.Demo.printable(line)}")

@@ -474,7 +474,7 @@ defmodule Vws.WC.Client.Connection do
     if data.conn, do: Transport.close(data.conn)
     data = %{data | conn: nil, decoder: LineDecoder.new(max_line: @max_line)}
 
-    case Transport.connect(data.endpoint) do
+    case Vws.Cell.connect(data.endpoint) do
       {:ok, conn} ->
         Transport.activate(conn)
         data = bump(%{data | conn: conn}, :reconnects)
