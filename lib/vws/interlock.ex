@@ -410,7 +410,7 @@ defmodule Vws.Interlock do
   # Durable before it counts (`Vws.Journal`, when the workstation has one): a lease written
   # with its reasons, `[]` when it ends. A lease that cannot be made durable is not granted.
   defp journal(%{table: table, volume: volume, holder: holder}, reasons) do
-    case Vws.Journal.record(table, {:lease, volume, holder, reasons}) do
+    case Mailbox.record(table, {:lease, volume, holder, reasons}) do
       :ok ->
         :ok
 
@@ -420,18 +420,39 @@ defmodule Vws.Interlock do
     end
   end
 
-  @doc false
-  # A lease the journal restored after a restart (`Vws.Journal`): held, for `reasons`, by no
-  # process of this life of the workstation.
-  def restored_lease(volume, holder, reasons) do
-    {key(volume, holder),
-     %{
-       state: :held,
-       pid: nil,
-       since: now(),
-       order: System.unique_integer([:monotonic]),
-       reasons: reasons
-     }}
+  @doc """
+  The held leases of a mailbox table as `[{volume, holder, reasons}]`, the earliest first: what
+  the journal (`Vws.Journal`) keeps of them.
+  """
+  @spec leases(:ets.tid()) :: [{volume, holder, [atom]}]
+  def leases(table) do
+    for {{:interlock, volume, holder}, %{state: :held} = lease} <-
+          :ets.match_object(table, {{:interlock, :_, :_}, :_}) do
+      {lease.order, {volume, holder, lease.reasons}}
+    end
+    |> Enum.sort()
+    |> Enum.map(&elem(&1, 1))
+  end
+
+  @doc """
+  Puts back leases the journal restored after a restart (`leases/1`'s form), in that order:
+  held, for their reasons, by no process of this life of the workstation.
+  """
+  @spec restore(:ets.tid(), [{volume, holder, [atom]}]) :: :ok
+  def restore(table, leases) do
+    for {volume, holder, reasons} <- leases do
+      lease = %{
+        state: :held,
+        pid: nil,
+        since: now(),
+        order: System.unique_integer([:monotonic]),
+        reasons: reasons
+      }
+
+      :ets.insert(table, {key(volume, holder), lease})
+    end
+
+    :ok
   end
 
   defp add(reasons, reason), do: if(reason in reasons, do: reasons, else: reasons ++ [reason])

@@ -37,7 +37,11 @@ defmodule Vws.Mailbox do
   ## Durability
 
   With a journal (`Vws.Journal`), every command-status change is written to disk before it is
-  written here, and a restarted workstation gets its command statuses back.
+  written here, and a restarted workstation gets its command statuses back. The mailbox does not
+  know the journal: a *recorder* — a module with the callbacks below, attached to the table with
+  `attach_recorder/2` — is given every change first (`record/2`, `store_lines` for the programs);
+  without one, nothing is recorded. The journal reads and restores the mailboxes through
+  `dump/1` and `load/2`, never through the table's keys.
 
   ## LOCK/UNLOCK
 
@@ -47,6 +51,12 @@ defmodule Vws.Mailbox do
   """
 
   require Logger
+
+  @doc "Makes `record` durable (the command journal); `{:error, reason}` when it could not."
+  @callback record(:ets.tid(), record :: tuple) :: :ok | {:error, term}
+
+  @doc "Stores a program (`:nc_file` or `:nc_up`) durably, whole or not at all."
+  @callback store_lines(:ets.tid(), :nc_file | :nc_up, [binary]) :: :ok | {:error, term}
 
   @type workstation :: term
   @type partition :: :robot | :monarch | :gripper | :fixture | :vacuum | :hydraulic
@@ -232,9 +242,39 @@ defmodule Vws.Mailbox do
     :ok
   end
 
+  @doc """
+  Attaches the recorder (a module with this module's callbacks, `Vws.Journal`) that is given
+  every change before it is visible.
+  """
+  @spec attach_recorder(:ets.tid(), module) :: :ok
+  def attach_recorder(table, module) when is_atom(module) do
+    :ets.insert(table, {:recorder, module})
+    :ok
+  end
+
+  @doc """
+  Gives `record` to the table's recorder (`attach_recorder/2`): `:ok` when it is durable or there
+  is no recorder, `{:error, reason}` when it could not be made durable. Used by everything that
+  keeps its state in the mailbox table (the interlock's leases too).
+  """
+  @spec record(:ets.tid(), tuple) :: :ok | {:error, term}
+  def record(table, record) do
+    case :ets.lookup(table, :recorder) do
+      [] -> :ok
+      [{:recorder, module}] -> module.record(table, record)
+    end
+  end
+
+  defp store_lines(table, key, lines) do
+    case :ets.lookup(table, :recorder) do
+      [] -> :ok
+      [{:recorder, module}] -> module.store_lines(table, key, lines)
+    end
+  end
+
   # Durable before visible: the journal (when the workstation has one) gets the change first.
   defp journal(table, record) do
-    case Vws.Journal.record(table, record) do
+    case record(table, record) do
       :ok ->
         :ok
 
@@ -303,7 +343,7 @@ defmodule Vws.Mailbox do
 
   @doc """
   Replaces the NC file (the program downloaded from the WC). With a journal the program is on
-  disk first (`Vws.Journal.store_lines/3`); `{:error, reason}` when it could not be made durable
+  disk first (the recorder's `store_lines`, `Vws.Journal.store_lines/3`); `{:error, reason}` when it could not be made durable
   (the mailbox keeps the old program then).
   """
   @spec put_nc_file(workstation, [binary]) :: :ok | {:error, term}
@@ -324,7 +364,7 @@ defmodule Vws.Mailbox do
   defp put_lines(ws, key, lines) when is_list(lines) do
     table = table(ws)
 
-    case Vws.Journal.store_lines(table, key, lines) do
+    case store_lines(table, key, lines) do
       :ok ->
         :ets.insert(table, {key, lines})
         :ok
@@ -338,6 +378,61 @@ defmodule Vws.Mailbox do
   defp get_lines(ws, key) do
     [{_, lines}] = :ets.lookup(table(ws), key)
     lines
+  end
+
+  ## Dump and load (for the journal)
+
+  @typedoc "The restorable part of the mailboxes (`dump/1`)."
+  @type dump :: %{
+          partitions: %{
+            partition => %{
+              number: 0..9999 | nil,
+              status: status,
+              cmd_in: {0..9999 | nil, String.t() | nil}
+            }
+          },
+          last_string: {non_neg_integer | nil, binary | nil},
+          unknown: %{String.t() => {0..9999 | nil, status}}
+        }
+
+  @doc """
+  The restorable part of the mailboxes: per partition its last command's number and status and
+  its CMD_IN, the last string, and the statuses of unknown set letters.
+  """
+  @spec dump(:ets.tid()) :: dump
+  def dump(table) do
+    partitions =
+      Map.new(@partitions, fn p ->
+        [{_, number, status}] = :ets.lookup(table, {:command_status, p})
+        [{_, in_number, in_text}] = :ets.lookup(table, {:cmd_in, p})
+        {p, %{number: number, status: status, cmd_in: {in_number, in_text}}}
+      end)
+
+    [{_, seq, line}] = :ets.lookup(table, :last_string)
+
+    unknown =
+      for {{:unknown_status, letter}, n, status} <-
+            :ets.match_object(table, {{:unknown_status, :_}, :_, :_}),
+          into: %{},
+          do: {letter, {n, status}}
+
+    %{partitions: partitions, last_string: {seq, line}, unknown: unknown}
+  end
+
+  @doc "Writes a `dump/1` back into the mailboxes (nothing is recorded)."
+  @spec load(:ets.tid(), dump) :: :ok
+  def load(table, %{partitions: partitions, last_string: {seq, line}, unknown: unknown}) do
+    for {p, %{number: number, status: status, cmd_in: {in_n, in_text}}} <- partitions do
+      :ets.insert(table, {{:command_status, p}, number, status})
+      :ets.insert(table, {{:cmd_in, p}, in_n, in_text})
+    end
+
+    :ets.insert(table, {:last_string, seq, line})
+
+    for {letter, {n, status}} <- unknown,
+        do: :ets.insert(table, {{:unknown_status, letter}, n, status})
+
+    :ok
   end
 
   ## Inspection
