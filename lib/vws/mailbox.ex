@@ -435,114 +435,12 @@ defmodule Vws.Mailbox do
     :ok
   end
 
-  ## Inspection
-
-  @doc """
-  A snapshot of every mailbox as plain data (for iex, the dashboard and tests).
-  """
-  @spec snapshot(workstation) :: map
-  def snapshot(ws) do
-    devices =
-      for loc <- 1..14 do
-        {value, age} = get_device(ws, loc)
-        %{location: loc, name: device_name(loc), value: value, age_ms: age}
-      end
-
-    commands =
-      for p <- @partitions do
-        {number, status} = command_status(ws, p)
-        {in_number, in_text} = cmd_in(ws, p)
-
-        %{
-          location: command_location(p),
-          partition: p,
-          number: number,
-          status: status,
-          cmd_in: {in_number, in_text},
-          in_flight: in_flight(ws, p)
-        }
-      end
-
-    {seq, _} = last_string(ws)
-
-    %{
-      workstation: ws,
-      devices: devices,
-      commands: commands,
-      last_sequence: seq,
-      nc_file: nc_file(ws),
-      nc_up: nc_up(ws),
-      interlocks: Vws.Interlock.held(ws),
-      events: Vws.Events.list(ws)
-    }
-  end
-
-  @doc """
-  Prints a workstation's mailboxes as a table (from iex: `Vws.Mailbox.print("VWS1")`).
-  """
-  @spec print(workstation) :: :ok
-  def print(ws) do
-    IO.puts(format(ws))
-  end
-
-  @doc "The table `print/1` prints, as a string."
-  @spec format(workstation) :: String.t()
-  def format(ws) do
-    s = snapshot(ws)
-
-    device_rows =
-      for d <- s.devices do
-        [pad(d.location, 4), pad(d.name, 12), pad(age(d), 9), text(d.value)]
-      end
-
-    command_rows =
-      for c <- s.commands do
-        {in_n, in_text} = c.cmd_in
-
-        [
-          pad(c.location, 4),
-          pad(String.upcase(to_string(c.partition)), 10),
-          pad(number(c.number), 6),
-          pad(status_word(c.status), 24),
-          pad(if(c.in_flight, do: number(c.in_flight), else: "-"), 10),
-          if(in_n, do: "#{number(in_n)} #{in_text}", else: "-")
-        ]
-      end
-
-    [
-      "VWS mailboxes of workstation #{inspect(ws)}   last string: #{number(s.last_sequence)}",
-      "",
-      "DEVICE STATUS",
-      "loc name         age      value",
-      Enum.map(device_rows, &Enum.join/1),
-      "",
-      "COMMAND STATUS",
-      "loc partition  last   status                  in flight CMD_IN",
-      Enum.map(command_rows, &Enum.join/1),
-      "",
-      "NC file: #{length(s.nc_file)} lines   NC_UP: #{length(s.nc_up)} lines",
-      "INTERLOCKS: " <> Vws.Interlock.format(ws),
-      "EVENTS: " <> Enum.map_join(s.events, "  ", fn {e, n} -> "#{e}=#{n}" end)
-    ]
-    |> List.flatten()
-    |> Enum.join("\n")
-  end
-
   @doc "The status word of a command status as the WC reads it."
   @spec status_word(status) :: String.t()
   def status_word(:none), do: "NONE"
   def status_word(:executing), do: "EXECUTING"
   def status_word(:done), do: "DONE"
   def status_word({:error, reason}), do: "ERROR " <> reason
-
-  defp number(nil), do: "----"
-  defp number(n), do: n |> Integer.to_string() |> String.pad_leading(4, "0")
-  defp pad(v, n), do: v |> to_string() |> String.pad_trailing(n)
-  defp age(%{value: nil}), do: "-"
-  defp age(%{age_ms: ms}) when ms < 10_000, do: "#{ms}ms"
-  defp age(%{age_ms: ms}), do: "#{div(ms, 1000)}s"
-  defp text(nil), do: "(no data)"
-  defp text(v), do: device_text(v)
 
   @doc """
   A device-status value in words, as a person reads it: the text itself; `{:no_data, why}` as
