@@ -75,8 +75,6 @@ defmodule Vws.Interlock do
   require Logger
 
   alias Vws.Mailbox
-  alias Vws.DAQ.DeviceStatus
-  alias Vws.Partitions.VwsStatus
 
   @type volume :: :table | :tray1 | :tray2 | atom
   @type holder :: :robot | :fixture | :monarch | :mhs | atom
@@ -92,7 +90,6 @@ defmodule Vws.Interlock do
   @shared %{table: [[:robot, :fixture]]}
 
   @retry_ms 250
-  @monarch_location 8
 
   @doc """
   Takes `volume` for `holder` by the M1/M2 procedure (see the moduledoc), trying again every
@@ -341,61 +338,6 @@ defmodule Vws.Interlock do
         |> Enum.map_join(" ", fn [%{volume: v} | _] = group ->
           "#{name(v)}=" <> Enum.map_join(group, ",", &name(&1.holder))
         end)
-    end
-  end
-
-  ## Conditions read from the plant
-
-  @doc """
-  The physical conditions of rules 1a and 3a — the machine tool idle and its table at park —
-  as a `:check` for `acquire/5`. What cannot be read denies:
-
-    * the `MONARCH` status (location 8, kept by MONARCH's monitor) must say `IDLE` and be at
-      most `:machine_stale_ms` old (default 3 000): else `MACHINE ACTIVE`,
-      `MACHINE STATUS NO DATA (…)`, `MACHINE STATUS STALE (n MS OLD)`;
-    * the park switch must read closed in a poll of DAQ #1 *requested after this call* (so
-      after the request was posted), waited for at most `:sensor_timeout_ms` (default 500):
-      else `NOT IN PARK POSITION`, `NO DATA (…)` as VWS_STATUS has it, or
-      `PARK SWITCH NOT READ (…)`.
-  """
-  @spec table_conditions(Mailbox.workstation(), keyword) :: (() -> :ok | {:error, String.t()})
-  def table_conditions(ws, opts \\ []) do
-    machine_stale = Keyword.get(opts, :machine_stale_ms, 3_000)
-    sensor_timeout = Keyword.get(opts, :sensor_timeout_ms, 500)
-
-    fn ->
-      with :ok <- machine_idle(ws, machine_stale) do
-        table_parked(ws, sensor_timeout)
-      end
-    end
-  end
-
-  defp machine_idle(ws, stale_ms) do
-    case Mailbox.get_device(ws, @monarch_location) do
-      {"IDLE", age} when age <= stale_ms -> :ok
-      {"IDLE", age} -> {:error, "MACHINE STATUS STALE (#{age} MS OLD)"}
-      {"ACTIVE", age} when age <= stale_ms -> {:error, "MACHINE ACTIVE"}
-      {"ACTIVE", age} -> {:error, "MACHINE STATUS STALE (#{age} MS OLD)"}
-      {nil, _} -> {:error, "MACHINE STATUS NO DATA"}
-      {other, _} when is_binary(other) -> {:error, "MACHINE STATUS " <> other}
-      {other, _} -> {:error, "MACHINE STATUS " <> inspect(other)}
-    end
-  end
-
-  defp table_parked(ws, timeout_ms) do
-    since = System.monotonic_time(:microsecond)
-
-    case VwsStatus.await(ws, since, timeout_ms, fn r ->
-           case DeviceStatus.table(r) do
-             "TABLE IN PARK POSITION" -> :ok
-             text -> {:fail, text}
-           end
-         end) do
-      :ok -> :ok
-      {:error, "TABLE " <> text} -> {:error, text}
-      {:error, "NO DATA " <> _ = text} -> {:error, text}
-      # "DAQ #1 NOT ANSWERING (NO FRESH READING IN 500 MS)": the first words say it
-      {:error, why} -> {:error, "PARK SWITCH NOT READ (#{why |> String.split(" (") |> hd()})"}
     end
   end
 
