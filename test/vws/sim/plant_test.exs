@@ -5,7 +5,7 @@ defmodule Vws.Sim.PlantTest do
 
   doctest Vws.Sim.Plant
 
-  # Conversions of priv/sims/plant.exs, written out here so the tests read like a shop engineer
+  # Conversions of priv/plant.exs, written out here so the tests read like a shop engineer
   # reading a voltmeter.
   @closed_v 5.0
   @switch_noise 0.02
