@@ -332,15 +332,15 @@ defmodule Vws.Inspect do
         [
           pad(c.location, 4),
           pad(String.upcase(to_string(c.partition)), 10),
-          pad(pad4(c.number), 6),
+          pad(number(c.number), 6),
           pad(Mailbox.status_word(c.status), 24),
-          pad(if(c.in_flight, do: pad4(c.in_flight), else: "-"), 10),
-          if(in_n, do: "#{pad4(in_n)} #{in_text}", else: "-")
+          pad(if(c.in_flight, do: number(c.in_flight), else: "-"), 10),
+          if(in_n, do: "#{number(in_n)} #{in_text}", else: "-")
         ]
       end
 
     [
-      "VWS mailboxes of workstation #{inspect(ws)}   last string: #{pad4(s.last_sequence)}",
+      "VWS mailboxes of workstation #{inspect(ws)}   last string: #{number(s.last_sequence)}",
       "",
       "DEVICE STATUS",
       "loc name         age      value",
@@ -405,14 +405,14 @@ defmodule Vws.Inspect do
       for r <- partition_rows(ws) do
         current =
           case r.current do
-            %{number: n, text: t, running_ms: ms} -> "#{pad4(n)} #{t} (#{ms} ms)"
+            %{number: n, text: t, running_ms: ms} -> "#{number(n)} #{t} (#{ms} ms)"
             nil -> "-"
           end
 
         [
           String.upcase(to_string(r.partition)),
           to_string(r.state),
-          "#{pad4(r.number)} #{Mailbox.status_word(r.status)}",
+          "#{number(r.number)} #{Mailbox.status_word(r.status)}",
           current,
           count(r.done),
           count(r.errors),
@@ -777,8 +777,8 @@ defmodule Vws.Inspect do
   defp count(nil), do: "-"
   defp count(n), do: to_string(n)
 
-  defp pad4(nil), do: "----"
-  defp pad4(n), do: n |> Integer.to_string() |> String.pad_leading(4, "0")
+  defp number(nil), do: "----"
+  defp number(n), do: Vws.WC.Command.pad4(n)
 
   defp arrow(:in), do: "→"
   defp arrow(:out), do: "←"

@@ -89,7 +89,7 @@ defmodule Vws.SunComm do
   require Logger
 
   alias Vws.{Events, Mailbox, Transport}
-  alias Vws.WC.{CommandString, LineDecoder, Reply}
+  alias Vws.WC.{Command, CommandString, LineDecoder, Reply}
 
   @dialogue_length 200
 
@@ -625,7 +625,7 @@ defmodule Vws.SunComm do
     case Mailbox.dispatch(ws, set, number, text) do
       {:busy, previous} ->
         Logger.warning("#{set} command #{number} refused: command #{previous} still in flight")
-        Mailbox.put_status(ws, set, number, {:error, "BUSY #{pad4(previous)}"})
+        Mailbox.put_status(ws, set, number, {:error, "BUSY #{Command.pad4(previous)}"})
         s
 
       :ok ->
@@ -799,7 +799,10 @@ defmodule Vws.SunComm do
 
       _ ->
         # a damaged answer, or one naming another line: this line is not known to be stored
-        Logger.warning("during UPLOAD_SUN the WC sent #{inspect(line)}; expected A#{pad4(this)}")
+        Logger.warning(
+          "during UPLOAD_SUN the WC sent #{inspect(line)}; expected A#{Command.pad4(this)}"
+        )
+
         resend_upload_line(s, u)
     end
   end
@@ -905,7 +908,6 @@ defmodule Vws.SunComm do
   end
 
   defp bump(counters, key), do: Map.update!(counters, key, &(&1 + 1))
-  defp pad4(n), do: n |> Integer.to_string() |> String.pad_leading(4, "0")
 
   # an NC transfer's progress for info/1: lines and bytes so far, the totals when known (an
   # upload's; a download's length is not announced), and its start (monotonic ms)
