@@ -55,16 +55,17 @@ defmodule Vws.Transport do
   ## Implementing a transport
 
   A transport module implements the callbacks below; they are named like the facade functions
-  and take the transport's own `handle` instead of a `Vws.Transport.Conn`. Errors are returned
-  as `{:error, reason}` with the `:inet`-style atoms where one fits (`:closed`, `:timeout`,
-  `:econnrefused`, `:eaddrinuse`, `:not_owner`).
+  and take the transport's own `handle` instead of a `Vws.Transport.Conn`. A transport returns
+  its errors as `{:error, reason}` with the `:inet`-style atoms where one fits (`:closed`,
+  `:timeout`, `:econnrefused`, `:eaddrinuse`, `:not_owner`); the facade hands every one of them
+  to its caller as `{:error, %Vws.Transport.Error{reason: reason}}` (see there for every reason).
   """
 
   import Kernel, except: [send: 2]
   require Logger
 
   alias Vws.Endpoint
-  alias Vws.Transport.{Conn, Listener}
+  alias Vws.Transport.{Conn, Error, Listener}
 
   @typedoc "A transport's own value for one connection."
   @type handle :: term()
@@ -74,6 +75,8 @@ defmodule Vws.Transport do
   @type endpoint :: Endpoint.t() | String.t()
   @typedoc "What a message to the controlling process meant for the connection."
   @type message_result :: {:data, binary()} | :closed | {:error, term()} | :unknown
+  @typedoc "What the facade returns when a transport fails (`Vws.Transport.Error`)."
+  @type error :: {:error, Error.t() | Vws.Endpoint.Error.t()}
 
   @doc "Opens a connection to `endpoint`; the caller becomes its controlling process."
   @callback connect(Endpoint.t(), keyword()) :: {:ok, handle()} | {:error, term()}
@@ -116,7 +119,7 @@ defmodule Vws.Transport do
   and must `activate/1` to receive. `transport:` names the transport module to use instead of
   the endpoint's own (how a `cell:` endpoint, resolved above this layer, is connected).
   """
-  @spec connect(endpoint(), keyword()) :: {:ok, Conn.t()} | {:error, term()}
+  @spec connect(endpoint(), keyword()) :: {:ok, Conn.t()} | error()
   def connect(endpoint, opts \\ []) do
     {module, opts} = Keyword.pop(opts, :transport)
 
@@ -126,6 +129,7 @@ defmodule Vws.Transport do
         {:ok, %Conn{module: module, handle: handle, endpoint: endpoint}}
       end
     end
+    |> Error.wrap()
   end
 
   @doc """
@@ -136,7 +140,7 @@ defmodule Vws.Transport do
   (`{:error, :eaddrinuse}` if taken). A tty cannot listen: `{:error, :not_listenable}`. The
   listener is closed when the calling process exits.
   """
-  @spec listen(endpoint(), keyword()) :: {:ok, Listener.t()} | {:error, term()}
+  @spec listen(endpoint(), keyword()) :: {:ok, Listener.t()} | error()
   def listen(endpoint, opts \\ []) do
     with {:ok, endpoint} <- to_endpoint(endpoint),
          {:ok, module} <- listening_module(endpoint) do
@@ -145,6 +149,7 @@ defmodule Vws.Transport do
          %Listener{module: module, handle: handle, endpoint: module.listener_endpoint(handle)}}
       end
     end
+    |> Error.wrap()
   end
 
   @doc "The endpoint a listener is bound to, with the real port when port 0 was asked for."
@@ -157,11 +162,12 @@ defmodule Vws.Transport do
   The caller becomes the controlling process of the returned connection; hand it on with
   `controlling_process/2`.
   """
-  @spec accept(Listener.t(), timeout()) :: {:ok, Conn.t()} | {:error, :timeout | term()}
+  @spec accept(Listener.t(), timeout()) :: {:ok, Conn.t()} | error()
   def accept(%Listener{module: module, handle: handle, endpoint: endpoint}, timeout) do
     with {:ok, conn_handle} <- module.accept(handle, timeout) do
       {:ok, %Conn{module: module, handle: conn_handle, endpoint: endpoint}}
     end
+    |> Error.wrap()
   end
 
   @doc """
@@ -258,17 +264,18 @@ defmodule Vws.Transport do
   def close_listener(%Listener{module: module, handle: handle}), do: module.close_listener(handle)
 
   @doc "Sends `data`; blocks while the peer is far behind (TCP and loopback)."
-  @spec send(Conn.t(), iodata()) :: :ok | {:error, term()}
-  def send(%Conn{module: module, handle: handle}, data), do: module.send(handle, data)
+  @spec send(Conn.t(), iodata()) :: :ok | error()
+  def send(%Conn{module: module, handle: handle}, data),
+    do: module.send(handle, data) |> Error.wrap()
 
   @doc "Closes the connection. Always `:ok`, also when it was already closed."
   @spec close(Conn.t()) :: :ok
   def close(%Conn{module: module, handle: handle}), do: module.close(handle)
 
   @doc "Hands the connection to `pid`; must be called by the current controlling process."
-  @spec controlling_process(Conn.t(), pid()) :: :ok | {:error, term()}
+  @spec controlling_process(Conn.t(), pid()) :: :ok | error()
   def controlling_process(%Conn{module: module, handle: handle}, pid),
-    do: module.controlling_process(handle, pid)
+    do: module.controlling_process(handle, pid) |> Error.wrap()
 
   @doc """
   Arms delivery of the next chunk of received bytes (or of the close) to the controlling process.
@@ -285,9 +292,10 @@ defmodule Vws.Transport do
   `{:error, reason}` (the connection is unusable after it), or `:unknown` when the message does
   not belong to this connection.
   """
-  @spec handle_message(Conn.t(), term()) :: message_result()
+  @spec handle_message(Conn.t(), term()) ::
+          {:data, binary()} | :closed | {:error, Error.t()} | :unknown
   def handle_message(%Conn{module: module, handle: handle}, msg),
-    do: module.handle_message(handle, msg)
+    do: module.handle_message(handle, msg) |> Error.wrap()
 
   @doc "A printable description of the other end, for logs."
   @spec peer(Conn.t()) :: String.t()

@@ -174,7 +174,7 @@ defmodule Vws.Sim.VAL2 do
         Logger.info("VAL II simulator listening on #{bound}")
         {:noreply, %{s | listener: listener, bound: bound, acceptor: acceptor}}
 
-      {:error, :not_listenable} ->
+      {:error, %Transport.Error{reason: :not_listenable}} ->
         # a tty: the link opens it, and opens it again if it goes away
         {:noreply, start_link_on(%{s | bound: to_string(s.endpoint)}, endpoint: s.endpoint)}
 

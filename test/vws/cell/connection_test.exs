@@ -15,10 +15,14 @@ defmodule Vws.Cell.ConnectionTest do
   end
 
   test "a cell endpoint cannot listen; an unknown workstation cannot be reached" do
-    assert Transport.listen("cell:x") == {:error, :not_listenable}
-    assert Vws.Cell.connect("cell:no-such-workstation") == {:error, :not_found}
+    assert Transport.listen("cell:x") == {:error, %Vws.Transport.Error{reason: :not_listenable}}
+
+    assert Vws.Cell.connect("cell:no-such-workstation") ==
+             {:error, %Vws.Transport.Error{reason: :not_found}}
+
     # the transports know nothing of the cell: resolving is done above them
-    assert Transport.connect("cell:no-such-workstation") == {:error, :not_resolved}
+    assert Transport.connect("cell:no-such-workstation") ==
+             {:error, %Vws.Transport.Error{reason: :not_resolved}}
   end
 
   test "the bytes are those of a direct link, both ways" do
