@@ -254,6 +254,37 @@ defmodule Vws.Workstation do
     end
   end
 
+  ## Equipment outside the CEC
+
+  @outside_holders [:mhs]
+
+  @doc """
+  Asks for a work volume on behalf of equipment outside the CEC that shares it — the
+  material-handling system before it moves a tray (seed §2.3.8, rules 2a and 2b) — by the same
+  procedure the partitions use (`Vws.Interlock.acquire/5`; options `:retry_ms`). This is what
+  such equipment (`Vws.Sim.MHS`) may do, and all: it holds leases only in its own name (`:mhs`),
+  never a partition's, and a workstation that is not running grants nothing
+  (`{:error, "NO ANSWER FROM THE CEC"}`).
+  """
+  @spec acquire_volume(term, Vws.Interlock.volume(), atom, non_neg_integer, keyword) ::
+          :ok | {:error, String.t()}
+  def acquire_volume(ws, volume, holder, timeout, opts \\ []) when holder in @outside_holders do
+    if Mailbox.exists?(ws) do
+      Vws.Interlock.acquire(ws, volume, holder, timeout, Keyword.take(opts, [:retry_ms]))
+    else
+      {:error, "NO ANSWER FROM THE CEC"}
+    end
+  rescue
+    # the mailboxes went away between the look and the lease: the workstation is stopping
+    ArgumentError -> {:error, "NO ANSWER FROM THE CEC"}
+  end
+
+  @doc "Gives back a work volume taken with `acquire_volume/5`."
+  @spec release_volume(term, Vws.Interlock.volume(), atom) :: :ok
+  def release_volume(ws, volume, holder) when holder in @outside_holders do
+    if Mailbox.exists?(ws), do: Vws.Interlock.release(ws, volume, holder), else: :ok
+  end
+
   @doc "The ids of the workstations running on this node (`Vws.Names.workstations/0`)."
   @spec list() :: [term]
   defdelegate list, to: Names, as: :workstations
