@@ -34,8 +34,10 @@ defmodule Vws.Cell do
 
   ## Reaching a workstation's WC link from anywhere
 
-  `wc_endpoint/1` gives `cell:<id>` (`Vws.Transport.Cell`), which `Vws.WC.Client.connect/2` (or
-  any `Vws.Transport` user) dials from any node of the cell. Connecting resolves the id now —
+  `wc_endpoint/1` gives `cell:<id>`, which `Vws.WC.Client.connect/2` (or any caller of
+  `connect/2` here) dials from any node of the cell. The transports know nothing of the cell:
+  `connect/2` resolves `cell:` endpoints through `Vws.Cell.Connection` and passes every other
+  endpoint to `Vws.Transport.connect/2` as it is. Connecting resolves the id now —
   so a client that reopens its link finds the workstation again, wherever it was restarted —
   and then:
 
@@ -209,6 +211,25 @@ defmodule Vws.Cell do
       do: {:ok, %Endpoint{kind: :cell, name: id}},
       else: {:error, :not_found}
   end
+
+  @doc """
+  Connects to `endpoint` as `Vws.Transport.connect/2` does, resolving a `cell:<id>` endpoint
+  first (see the moduledoc): the WC link of that workstation wherever it runs in the cell.
+  Errors of a cell endpoint: `:not_found`, `:not_listening` (a client retries), `:not_reachable`,
+  or those of the transport reached.
+  """
+  @spec connect(Vws.Transport.endpoint(), keyword) ::
+          {:ok, Vws.Transport.Conn.t()} | {:error, term}
+  def connect(endpoint, opts \\ []) do
+    case endpoint do
+      %Endpoint{kind: :cell} -> connect_cell(endpoint, opts)
+      "cell:" <> _ -> connect_cell(endpoint, opts)
+      _ -> Vws.Transport.connect(endpoint, opts)
+    end
+  end
+
+  defp connect_cell(endpoint, opts),
+    do: Vws.Transport.connect(endpoint, Keyword.put(opts, :transport, Vws.Cell.Connection))
 
   @doc """
   Where workstation `id`'s SUN_COMM listens: its node and the endpoint it is bound to.

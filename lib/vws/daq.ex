@@ -5,8 +5,8 @@ defmodule Vws.DAQ do
   switch states. Pure: the VWS_STATUS partition (`Vws.Partitions.VwsStatus`) sends what this
   module builds over `Vws.HPIB` and hands the answers back to it.
 
-  The channel map is the one the plant simulator is wired by, `priv/sims/plant.exs`
-  (`Vws.Sim.Plant.Config`): a real DAQ is wired the same way, or configured with its own file.
+  The channel map is `priv/plant.exs` (`Vws.DAQ.ChannelMap`), the one the plant simulator is
+  wired by too: a real DAQ is wired the same way, or configured with its own file.
   Slot 1 channels of kind switch, pot and spare are read in one `MEAS:VOLT:DC?`, gauges in one
   `MEAS:RES?`; slot 2 relays are driven with `ROUT:OPEN`/`ROUT:CLOS` and the whole slot is
   confirmed with `ROUT:CLOS?` (PROTOCOLS.md §4 "Relays are verified whole").
@@ -39,14 +39,14 @@ defmodule Vws.DAQ do
   """
 
   alias Vws.DAQ.Readings
-  alias Vws.Sim.Plant.Config
+  alias Vws.DAQ.ChannelMap
 
   @overload_at 1.0e37
 
   @type signal :: atom
   @type action :: :open | :close
   @type t :: %__MODULE__{
-          daq: Config.daq(),
+          daq: ChannelMap.daq(),
           volt_channels: [pos_integer],
           ohm_channels: [pos_integer],
           sensors: %{pos_integer => map},
@@ -59,7 +59,7 @@ defmodule Vws.DAQ do
   @doc "A driver for one DAQ of the channel map; see the options above."
   @spec new(keyword) :: t
   def new(opts \\ []) do
-    config = Config.load(Keyword.get(opts, :channel_map, Config.default_path()))
+    config = ChannelMap.load(Keyword.get(opts, :channel_map, ChannelMap.default_path()))
     daq = Keyword.get(opts, :daq, :daq1)
 
     entries = for {{^daq, channel}, entry} <- config.channels, into: %{}, do: {channel, entry}

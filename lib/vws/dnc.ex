@@ -121,7 +121,7 @@ defmodule Vws.DNC do
   of WACKs in an `E` transmission (`wack_delay` apart); in any other, `max_wacks` holds. See
   docs/dnc-drip-feed.md.
 
-  `workstation` is the id in a `Vws.Workstation` name given as `:name` (`Vws.Workstation.id_of/1`), else nil.
+  `workstation` is the id in a `Vws.Workstation` name given as `:name` (`Vws.Names.id_of/1`), else nil.
 
   ## Example
 

@@ -12,7 +12,7 @@ defmodule Vws.Endpoint do
       absolute path (`/dev/ttyUSB0`) means the same as `tty:/dev/ttyUSB0`;
     * `loopback:name` — an in-memory pair inside this node (see `Vws.Transport.Loopback`);
     * `cell:id` — the WC link of workstation `id`, wherever it runs in the cell of connected
-      nodes (see `Vws.Cell` and `Vws.Transport.Cell`); it can be connected to, not listened on.
+      nodes (see `Vws.Cell.connect/2`, which resolves it above the transports); it can be connected to, not listened on.
 
   `to_string/1` gives the canonical form, which parses back to the same endpoint:
 

@@ -42,14 +42,56 @@ defmodule Vws.Inspect do
   ## Data
 
   @doc """
+  A snapshot of every mailbox (`Vws.Mailbox`) as plain data: device status 1–14, command status
+  34–39 with CMD_IN and the command in flight, the last string, the programs, the interlock
+  leases and the events caused.
+  """
+  @spec mailbox_snapshot(workstation) :: map
+  def mailbox_snapshot(ws) do
+    devices =
+      for loc <- 1..14 do
+        {value, age} = Mailbox.get_device(ws, loc)
+        %{location: loc, name: Mailbox.device_name(loc), value: value, age_ms: age}
+      end
+
+    commands =
+      for p <- Mailbox.partitions() do
+        {number, status} = Mailbox.command_status(ws, p)
+        {in_number, in_text} = Mailbox.cmd_in(ws, p)
+
+        %{
+          location: Mailbox.command_location(p),
+          partition: p,
+          number: number,
+          status: status,
+          cmd_in: {in_number, in_text},
+          in_flight: Mailbox.in_flight(ws, p)
+        }
+      end
+
+    {seq, _} = Mailbox.last_string(ws)
+
+    %{
+      workstation: ws,
+      devices: devices,
+      commands: commands,
+      last_sequence: seq,
+      nc_file: Mailbox.nc_file(ws),
+      nc_up: Mailbox.nc_up(ws),
+      interlocks: Vws.Interlock.held(ws),
+      events: Events.list(ws)
+    }
+  end
+
+  @doc """
   Everything about a workstation as plain data: `%{workstation, mailboxes, partitions, links,
-  interlocks, wc: %{info, dialogue}}` (`mailboxes` is `Vws.Mailbox.snapshot/1`).
+  interlocks, wc: %{info, dialogue}}` (`mailboxes` is `mailbox_snapshot/1`).
   """
   @spec snapshot(workstation) :: map
   def snapshot(ws) do
     %{
       workstation: ws,
-      mailboxes: Mailbox.snapshot(ws),
+      mailboxes: mailbox_snapshot(ws),
       partitions: partition_rows(ws),
       links: link_rows(ws),
       interlocks: interlock_rows(ws),
@@ -259,9 +301,59 @@ defmodule Vws.Inspect do
 
   ## Printed views
 
-  @doc "Prints the mailboxes (`Vws.Mailbox.print/1`)."
+  @doc "Prints the mailboxes (from iex: `Vws.Inspect.mailboxes(\"VWS1\")`)."
   @spec mailboxes(workstation) :: :ok
-  def mailboxes(ws), do: Mailbox.print(ws)
+  def mailboxes(ws), do: IO.puts(format_mailboxes(ws))
+
+  @doc "The table `mailboxes/1` prints, as a string."
+  @spec format_mailboxes(workstation) :: String.t()
+  def format_mailboxes(ws) do
+    s = mailbox_snapshot(ws)
+
+    device_rows =
+      for d <- s.devices do
+        [pad(d.location, 4), pad(d.name, 12), pad(device_age(d), 9), device_value(d.value)]
+      end
+
+    command_rows =
+      for c <- s.commands do
+        {in_n, in_text} = c.cmd_in
+
+        [
+          pad(c.location, 4),
+          pad(String.upcase(to_string(c.partition)), 10),
+          pad(number(c.number), 6),
+          pad(Mailbox.status_word(c.status), 24),
+          pad(if(c.in_flight, do: number(c.in_flight), else: "-"), 10),
+          if(in_n, do: "#{number(in_n)} #{in_text}", else: "-")
+        ]
+      end
+
+    [
+      "VWS mailboxes of workstation #{inspect(ws)}   last string: #{number(s.last_sequence)}",
+      "",
+      "DEVICE STATUS",
+      "loc name         age      value",
+      Enum.map(device_rows, &Enum.join/1),
+      "",
+      "COMMAND STATUS",
+      "loc partition  last   status                  in flight CMD_IN",
+      Enum.map(command_rows, &Enum.join/1),
+      "",
+      "NC file: #{length(s.nc_file)} lines   NC_UP: #{length(s.nc_up)} lines",
+      "INTERLOCKS: " <> Vws.Interlock.format(ws),
+      "EVENTS: " <> Enum.map_join(s.events, "  ", fn {e, n} -> "#{e}=#{n}" end)
+    ]
+    |> List.flatten()
+    |> Enum.join("\n")
+  end
+
+  defp pad(v, n), do: v |> to_string() |> String.pad_trailing(n)
+  defp device_age(%{value: nil}), do: "-"
+  defp device_age(%{age_ms: ms}) when ms < 10_000, do: "#{ms}ms"
+  defp device_age(%{age_ms: ms}), do: "#{div(ms, 1000)}s"
+  defp device_value(nil), do: "(no data)"
+  defp device_value(v), do: Mailbox.device_text(v)
 
   @doc "Prints the partitions table."
   @spec partitions(workstation) :: :ok
@@ -285,7 +377,7 @@ defmodule Vws.Inspect do
     IO.puts(
       Enum.join(
         [
-          Mailbox.format(ws),
+          format_mailboxes(ws),
           format_partitions(ws),
           format_links(ws),
           format_interlocks(ws),
@@ -303,14 +395,14 @@ defmodule Vws.Inspect do
       for r <- partition_rows(ws) do
         current =
           case r.current do
-            %{number: n, text: t, running_ms: ms} -> "#{pad4(n)} #{t} (#{ms} ms)"
+            %{number: n, text: t, running_ms: ms} -> "#{number(n)} #{t} (#{ms} ms)"
             nil -> "-"
           end
 
         [
           String.upcase(to_string(r.partition)),
           to_string(r.state),
-          "#{pad4(r.number)} #{Mailbox.status_word(r.status)}",
+          "#{number(r.number)} #{Mailbox.status_word(r.status)}",
           current,
           count(r.done),
           count(r.errors),
@@ -675,8 +767,8 @@ defmodule Vws.Inspect do
   defp count(nil), do: "-"
   defp count(n), do: to_string(n)
 
-  defp pad4(nil), do: "----"
-  defp pad4(n), do: n |> Integer.to_string() |> String.pad_leading(4, "0")
+  defp number(nil), do: "----"
+  defp number(n), do: Vws.WC.Command.pad4(n)
 
   defp arrow(:in), do: "→"
   defp arrow(:out), do: "←"

@@ -77,8 +77,6 @@ defmodule Vws.Interlock do
   require Logger
 
   alias Vws.Mailbox
-  alias Vws.DAQ.DeviceStatus
-  alias Vws.Partitions.VwsStatus
 
   @type volume :: :table | :tray1 | :tray2 | atom
   @type holder :: :robot | :fixture | :monarch | :mhs | atom
@@ -94,7 +92,6 @@ defmodule Vws.Interlock do
   @shared %{table: [[:robot, :fixture]]}
 
   @retry_ms 250
-  @monarch_location 8
 
   @doc """
   Takes `volume` for `holder` by the M1/M2 procedure (see the moduledoc), trying again every
@@ -383,61 +380,6 @@ defmodule Vws.Interlock do
     end
   end
 
-  ## Conditions read from the plant
-
-  @doc """
-  The physical conditions of rules 1a and 3a — the machine tool idle and its table at park —
-  as a `:check` for `acquire/5`. What cannot be read denies:
-
-    * the `MONARCH` status (location 8, kept by MONARCH's monitor) must say `IDLE` and be at
-      most `:machine_stale_ms` old (default 3 000): else `MACHINE ACTIVE`,
-      `MACHINE STATUS NO DATA (…)`, `MACHINE STATUS STALE (n MS OLD)`;
-    * the park switch must read closed in a poll of DAQ #1 *requested after this call* (so
-      after the request was posted), waited for at most `:sensor_timeout_ms` (default 500):
-      else `NOT IN PARK POSITION`, `NO DATA (…)` as VWS_STATUS has it, or
-      `PARK SWITCH NOT READ (…)`.
-  """
-  @spec table_conditions(Mailbox.workstation(), keyword) :: (() -> :ok | {:error, String.t()})
-  def table_conditions(ws, opts \\ []) do
-    machine_stale = Keyword.get(opts, :machine_stale_ms, 3_000)
-    sensor_timeout = Keyword.get(opts, :sensor_timeout_ms, 500)
-
-    fn ->
-      with :ok <- machine_idle(ws, machine_stale) do
-        table_parked(ws, sensor_timeout)
-      end
-    end
-  end
-
-  defp machine_idle(ws, stale_ms) do
-    case Mailbox.get_device(ws, @monarch_location) do
-      {"IDLE", age} when age <= stale_ms -> :ok
-      {"IDLE", age} -> {:error, "MACHINE STATUS STALE (#{age} MS OLD)"}
-      {"ACTIVE", age} when age <= stale_ms -> {:error, "MACHINE ACTIVE"}
-      {"ACTIVE", age} -> {:error, "MACHINE STATUS STALE (#{age} MS OLD)"}
-      {nil, _} -> {:error, "MACHINE STATUS NO DATA"}
-      {other, _} when is_binary(other) -> {:error, "MACHINE STATUS " <> other}
-      {other, _} -> {:error, "MACHINE STATUS " <> inspect(other)}
-    end
-  end
-
-  defp table_parked(ws, timeout_ms) do
-    since = System.monotonic_time(:microsecond)
-
-    case VwsStatus.await(ws, since, timeout_ms, fn r ->
-           case DeviceStatus.table(r) do
-             "TABLE IN PARK POSITION" -> :ok
-             text -> {:fail, text}
-           end
-         end) do
-      :ok -> :ok
-      {:error, "TABLE " <> text} -> {:error, text}
-      {:error, "NO DATA " <> _ = text} -> {:error, text}
-      # "DAQ #1 NOT ANSWERING (NO FRESH READING IN 500 MS)": the first words say it
-      {:error, why} -> {:error, "PARK SWITCH NOT READ (#{why |> String.split(" (") |> hd()})"}
-    end
-  end
-
   ## Helpers
 
   @doc "The name of a volume or holder as an error text shows it: `:tray1` → `TRAY1`."
@@ -449,7 +391,7 @@ defmodule Vws.Interlock do
   # Durable before it counts (`Vws.Journal`, when the workstation has one): a lease written
   # with its reasons, `[]` when it ends. A lease that cannot be made durable is not granted.
   defp journal(%{table: table, volume: volume, holder: holder}, reasons) do
-    case Vws.Journal.record(table, {:lease, volume, holder, reasons}) do
+    case Mailbox.record(table, {:lease, volume, holder, reasons}) do
       :ok ->
         :ok
 
@@ -459,18 +401,39 @@ defmodule Vws.Interlock do
     end
   end
 
-  @doc false
-  # A lease the journal restored after a restart (`Vws.Journal`): held, for `reasons`, by no
-  # process of this life of the workstation.
-  def restored_lease(volume, holder, reasons) do
-    {key(volume, holder),
-     %{
-       state: :held,
-       pid: nil,
-       since: now(),
-       order: System.unique_integer([:monotonic]),
-       reasons: reasons
-     }}
+  @doc """
+  The held leases of a mailbox table as `[{volume, holder, reasons}]`, the earliest first: what
+  the journal (`Vws.Journal`) keeps of them.
+  """
+  @spec leases(:ets.tid()) :: [{volume, holder, [atom]}]
+  def leases(table) do
+    for {{:interlock, volume, holder}, %{state: :held} = lease} <-
+          :ets.match_object(table, {{:interlock, :_, :_}, :_}) do
+      {lease.order, {volume, holder, lease.reasons}}
+    end
+    |> Enum.sort()
+    |> Enum.map(&elem(&1, 1))
+  end
+
+  @doc """
+  Puts back leases the journal restored after a restart (`leases/1`'s form), in that order:
+  held, for their reasons, by no process of this life of the workstation.
+  """
+  @spec restore(:ets.tid(), [{volume, holder, [atom]}]) :: :ok
+  def restore(table, leases) do
+    for {volume, holder, reasons} <- leases do
+      lease = %{
+        state: :held,
+        pid: nil,
+        since: now(),
+        order: System.unique_integer([:monotonic]),
+        reasons: reasons
+      }
+
+      :ets.insert(table, {key(volume, holder), lease})
+    end
+
+    :ok
   end
 
   defp add(reasons, reason), do: if(reason in reasons, do: reasons, else: reasons ++ [reason])

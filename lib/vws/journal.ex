@@ -55,7 +55,10 @@ defmodule Vws.Journal do
   use GenServer
   require Logger
 
-  alias Vws.Mailbox
+  alias Vws.{Interlock, Mailbox}
+
+  # the mailbox's recorder: every change is given here before it is visible
+  @behaviour Vws.Mailbox
 
   @interrupted {:error, "INTERRUPTED BY RESTART"}
 
@@ -65,7 +68,7 @@ defmodule Vws.Journal do
   @spec start_link(keyword) :: GenServer.on_start()
   def start_link(opts) do
     ws = Keyword.fetch!(opts, :workstation)
-    GenServer.start_link(__MODULE__, opts, name: Vws.Workstation.via(ws, :journal))
+    GenServer.start_link(__MODULE__, opts, name: Vws.Names.via(ws, :journal))
   end
 
   @doc """
@@ -77,6 +80,7 @@ defmodule Vws.Journal do
   DOWN` because the VAL II's link is being stopped with them — is not what the equipment did.
   The command stays in flight in the journal and answers `ERROR INTERRUPTED BY RESTART`.
   """
+  @impl Vws.Mailbox
   @spec record(:ets.tid(), tuple) :: :ok | {:error, term}
   def record(table, record) do
     case :ets.lookup(table, :journal) do
@@ -123,6 +127,7 @@ defmodule Vws.Journal do
   Stores a program (`:nc_file` or `:nc_up`) in the journal's directory, whole or not at all, and
   syncs it to disk. Does nothing when the workstation has no journal.
   """
+  @impl Vws.Mailbox
   @spec store_lines(:ets.tid(), :nc_file | :nc_up, [binary]) :: :ok | {:error, term}
   def store_lines(table, key, lines) when key in [:nc_file, :nc_up] do
     case :ets.lookup(table, :journal_dir) do
@@ -212,6 +217,7 @@ defmodule Vws.Journal do
     :ok = :disk_log.log(log, {:snapshot, state_of(table)})
     :ok = :disk_log.sync(log)
     :ets.insert(table, {:journal, log, Keyword.get(opts, :snapshot_every, 500), self()})
+    :ok = Mailbox.attach_recorder(table, __MODULE__)
     {:ok, %{workstation: ws, log: log, dir: dir}}
   end
 
@@ -284,54 +290,23 @@ defmodule Vws.Journal do
 
   ## Restoring
 
-  # The restorable state: per partition {number, status, cmd_in}, and the last string.
-  defp state_of(table) do
-    partitions =
-      Map.new(Mailbox.partitions(), fn p ->
-        [{_, number, status}] = :ets.lookup(table, {:command_status, p})
-        [{_, in_number, in_text}] = :ets.lookup(table, {:cmd_in, p})
-        {p, %{number: number, status: status, cmd_in: {in_number, in_text}}}
-      end)
-
-    [{_, seq, line}] = :ets.lookup(table, :last_string)
-
-    unknown =
-      for {{:unknown_status, letter}, n, status} <-
-            :ets.match_object(table, {{:unknown_status, :_}, :_, :_}),
-          into: %{},
-          do: {letter, {n, status}}
-
-    # the leases, the earliest first: `[{volume, holder, reasons}]`
-    leases =
-      for {{:interlock, volume, holder}, %{state: :held} = lease} <-
-            :ets.match_object(table, {{:interlock, :_, :_}, :_}) do
-        {lease.order, {volume, holder, lease.reasons}}
-      end
-      |> Enum.sort()
-      |> Enum.map(&elem(&1, 1))
-
-    %{partitions: partitions, last_string: {seq, line}, leases: leases, unknown: unknown}
-  end
+  # The restorable state: the mailboxes' (per partition {number, status, cmd_in}, the last
+  # string, unknown set letters) and the interlock's leases, the earliest first.
+  defp state_of(table), do: Map.put(Mailbox.dump(table), :leases, Interlock.leases(table))
 
   defp restore(_table, []), do: :ok
 
   defp restore(table, records) do
     state = Enum.reduce(records, state_of(table), &apply_record/2)
 
-    for {p, %{number: number, status: status, cmd_in: {in_n, in_text}}} <- state.partitions do
-      status = if status == :executing, do: @interrupted, else: status
-      :ets.insert(table, {{:command_status, p}, number, status})
-      :ets.insert(table, {{:cmd_in, p}, in_n, in_text})
-    end
+    partitions =
+      Map.new(state.partitions, fn
+        {p, %{status: :executing} = c} -> {p, %{c | status: @interrupted}}
+        other -> other
+      end)
 
-    {seq, line} = state.last_string
-    :ets.insert(table, {:last_string, seq, line})
-
-    for {letter, {n, status}} <- state.unknown,
-        do: :ets.insert(table, {{:unknown_status, letter}, n, status})
-
-    for {volume, holder, reasons} <- state.leases,
-        do: :ets.insert(table, Vws.Interlock.restored_lease(volume, holder, reasons))
+    :ok = Mailbox.load(table, %{state | partitions: partitions})
+    :ok = Interlock.restore(table, state.leases)
 
     interrupted = for {p, %{status: :executing, number: n}} <- state.partitions, do: {p, n}
 

@@ -37,7 +37,11 @@ defmodule Vws.Mailbox do
   ## Durability
 
   With a journal (`Vws.Journal`), every command-status change is written to disk before it is
-  written here, and a restarted workstation gets its command statuses back.
+  written here, and a restarted workstation gets its command statuses back. The mailbox does not
+  know the journal: a *recorder* — a module with the callbacks below, attached to the table with
+  `attach_recorder/2` — is given every change first (`record/2`, `store_lines` for the programs);
+  without one, nothing is recorded. The journal reads and restores the mailboxes through
+  `dump/1` and `load/2`, never through the table's keys.
 
   ## Change notices
 
@@ -56,6 +60,12 @@ defmodule Vws.Mailbox do
   """
 
   require Logger
+
+  @doc "Makes `record` durable (the command journal); `{:error, reason}` when it could not."
+  @callback record(:ets.tid(), record :: tuple) :: :ok | {:error, term}
+
+  @doc "Stores a program (`:nc_file` or `:nc_up`) durably, whole or not at all."
+  @callback store_lines(:ets.tid(), :nc_file | :nc_up, [binary]) :: :ok | {:error, term}
 
   @type workstation :: term
   @type partition :: :robot | :monarch | :gripper | :fixture | :vacuum | :hydraulic
@@ -267,9 +277,39 @@ defmodule Vws.Mailbox do
     :ok
   end
 
+  @doc """
+  Attaches the recorder (a module with this module's callbacks, `Vws.Journal`) that is given
+  every change before it is visible.
+  """
+  @spec attach_recorder(:ets.tid(), module) :: :ok
+  def attach_recorder(table, module) when is_atom(module) do
+    :ets.insert(table, {:recorder, module})
+    :ok
+  end
+
+  @doc """
+  Gives `record` to the table's recorder (`attach_recorder/2`): `:ok` when it is durable or there
+  is no recorder, `{:error, reason}` when it could not be made durable. Used by everything that
+  keeps its state in the mailbox table (the interlock's leases too).
+  """
+  @spec record(:ets.tid(), tuple) :: :ok | {:error, term}
+  def record(table, record) do
+    case :ets.lookup(table, :recorder) do
+      [] -> :ok
+      [{:recorder, module}] -> module.record(table, record)
+    end
+  end
+
+  defp store_lines(table, key, lines) do
+    case :ets.lookup(table, :recorder) do
+      [] -> :ok
+      [{:recorder, module}] -> module.store_lines(table, key, lines)
+    end
+  end
+
   # Durable before visible: the journal (when the workstation has one) gets the change first.
   defp journal(table, record) do
-    case Vws.Journal.record(table, record) do
+    case record(table, record) do
       :ok ->
         :ok
 
@@ -338,7 +378,7 @@ defmodule Vws.Mailbox do
 
   @doc """
   Replaces the NC file (the program downloaded from the WC). With a journal the program is on
-  disk first (`Vws.Journal.store_lines/3`); `{:error, reason}` when it could not be made durable
+  disk first (the recorder's `store_lines`, `Vws.Journal.store_lines/3`); `{:error, reason}` when it could not be made durable
   (the mailbox keeps the old program then).
   """
   @spec put_nc_file(workstation, [binary]) :: :ok | {:error, term}
@@ -359,7 +399,7 @@ defmodule Vws.Mailbox do
   defp put_lines(ws, key, lines) when is_list(lines) do
     table = table(ws)
 
-    case Vws.Journal.store_lines(table, key, lines) do
+    case store_lines(table, key, lines) do
       :ok ->
         :ets.insert(table, {key, lines})
         :ok
@@ -375,97 +415,59 @@ defmodule Vws.Mailbox do
     lines
   end
 
-  ## Inspection
+  ## Dump and load (for the journal)
 
-  @doc """
-  A snapshot of every mailbox as plain data (for iex, the dashboard and tests).
-  """
-  @spec snapshot(workstation) :: map
-  def snapshot(ws) do
-    devices =
-      for loc <- 1..14 do
-        {value, age} = get_device(ws, loc)
-        %{location: loc, name: device_name(loc), value: value, age_ms: age}
-      end
-
-    commands =
-      for p <- @partitions do
-        {number, status} = command_status(ws, p)
-        {in_number, in_text} = cmd_in(ws, p)
-
-        %{
-          location: command_location(p),
-          partition: p,
-          number: number,
-          status: status,
-          cmd_in: {in_number, in_text},
-          in_flight: in_flight(ws, p)
+  @typedoc "The restorable part of the mailboxes (`dump/1`)."
+  @type dump :: %{
+          partitions: %{
+            partition => %{
+              number: 0..9999 | nil,
+              status: status,
+              cmd_in: {0..9999 | nil, String.t() | nil}
+            }
+          },
+          last_string: {non_neg_integer | nil, binary | nil},
+          unknown: %{String.t() => {0..9999 | nil, status}}
         }
-      end
-
-    {seq, _} = last_string(ws)
-
-    %{
-      workstation: ws,
-      devices: devices,
-      commands: commands,
-      last_sequence: seq,
-      nc_file: nc_file(ws),
-      nc_up: nc_up(ws),
-      interlocks: Vws.Interlock.held(ws),
-      events: Vws.Events.list(ws)
-    }
-  end
 
   @doc """
-  Prints a workstation's mailboxes as a table (from iex: `Vws.Mailbox.print("VWS1")`).
+  The restorable part of the mailboxes: per partition its last command's number and status and
+  its CMD_IN, the last string, and the statuses of unknown set letters.
   """
-  @spec print(workstation) :: :ok
-  def print(ws) do
-    IO.puts(format(ws))
+  @spec dump(:ets.tid()) :: dump
+  def dump(table) do
+    partitions =
+      Map.new(@partitions, fn p ->
+        [{_, number, status}] = :ets.lookup(table, {:command_status, p})
+        [{_, in_number, in_text}] = :ets.lookup(table, {:cmd_in, p})
+        {p, %{number: number, status: status, cmd_in: {in_number, in_text}}}
+      end)
+
+    [{_, seq, line}] = :ets.lookup(table, :last_string)
+
+    unknown =
+      for {{:unknown_status, letter}, n, status} <-
+            :ets.match_object(table, {{:unknown_status, :_}, :_, :_}),
+          into: %{},
+          do: {letter, {n, status}}
+
+    %{partitions: partitions, last_string: {seq, line}, unknown: unknown}
   end
 
-  @doc "The table `print/1` prints, as a string."
-  @spec format(workstation) :: String.t()
-  def format(ws) do
-    s = snapshot(ws)
+  @doc "Writes a `dump/1` back into the mailboxes (nothing is recorded)."
+  @spec load(:ets.tid(), dump) :: :ok
+  def load(table, %{partitions: partitions, last_string: {seq, line}, unknown: unknown}) do
+    for {p, %{number: number, status: status, cmd_in: {in_n, in_text}}} <- partitions do
+      :ets.insert(table, {{:command_status, p}, number, status})
+      :ets.insert(table, {{:cmd_in, p}, in_n, in_text})
+    end
 
-    device_rows =
-      for d <- s.devices do
-        [pad(d.location, 4), pad(d.name, 12), pad(age(d), 9), text(d.value)]
-      end
+    :ets.insert(table, {:last_string, seq, line})
 
-    command_rows =
-      for c <- s.commands do
-        {in_n, in_text} = c.cmd_in
+    for {letter, {n, status}} <- unknown,
+        do: :ets.insert(table, {{:unknown_status, letter}, n, status})
 
-        [
-          pad(c.location, 4),
-          pad(String.upcase(to_string(c.partition)), 10),
-          pad(number(c.number), 6),
-          pad(status_word(c.status), 24),
-          pad(if(c.in_flight, do: number(c.in_flight), else: "-"), 10),
-          if(in_n, do: "#{number(in_n)} #{in_text}", else: "-")
-        ]
-      end
-
-    [
-      "VWS mailboxes of workstation #{inspect(ws)}   last string: #{number(s.last_sequence)}",
-      "",
-      "DEVICE STATUS",
-      "loc name         age      value",
-      Enum.map(device_rows, &Enum.join/1),
-      "",
-      "COMMAND STATUS",
-      "loc partition  last   status                  in flight CMD_IN",
-      Enum.map(command_rows, &Enum.join/1),
-      "",
-      "NC file: #{length(s.nc_file)} lines   NC_UP: #{length(s.nc_up)} lines",
-      "INTERLOCKS: " <> Vws.Interlock.format(ws),
-      "EVENTS: " <> Enum.map_join(s.events, "  ", fn {e, n} -> "#{e}=#{n}" end)
-    ]
-    |> List.flatten()
-    |> Enum.join("\n")
+    :ok
   end
 
   @doc "The status word of a command status as the WC reads it."
@@ -474,15 +476,6 @@ defmodule Vws.Mailbox do
   def status_word(:executing), do: "EXECUTING"
   def status_word(:done), do: "DONE"
   def status_word({:error, reason}), do: "ERROR " <> reason
-
-  defp number(nil), do: "----"
-  defp number(n), do: n |> Integer.to_string() |> String.pad_leading(4, "0")
-  defp pad(v, n), do: v |> to_string() |> String.pad_trailing(n)
-  defp age(%{value: nil}), do: "-"
-  defp age(%{age_ms: ms}) when ms < 10_000, do: "#{ms}ms"
-  defp age(%{age_ms: ms}), do: "#{div(ms, 1000)}s"
-  defp text(nil), do: "(no data)"
-  defp text(v), do: device_text(v)
 
   @doc """
   A device-status value in words, as a person reads it: the text itself; `{:no_data, why}` as

@@ -74,5 +74,5 @@ defmodule Vws.Status do
   defp unknown_set_letter(_name), do: nil
 
   defp number_text(nil), do: "0000"
-  defp number_text(n), do: n |> Integer.to_string() |> String.pad_leading(4, "0")
+  defp number_text(n), do: Vws.WC.Command.pad4(n)
 end

@@ -1,7 +1,10 @@
 defmodule Vws.Transport do
   @moduledoc """
-  Byte links to equipment — TCP, a serial tty, or an in-memory loopback — behind one API (and
-  `cell:` endpoints, which find a workstation's WC link anywhere in the cell, `Vws.Transport.Cell`).
+  Byte links to equipment — TCP, a serial tty, or an in-memory loopback — behind one API.
+
+  A `cell:<id>` endpoint names a workstation, not a place: it is resolved above this layer
+  (`Vws.Cell.connect/2`), which passes the transport that reaches the workstation as the
+  `transport:` option of `connect/2`. Without one, connecting to it is `{:error, :not_resolved}`.
 
   This module is both the behaviour every transport implements and the facade protocol code
   calls. The facade picks the transport from the endpoint (`Vws.Endpoint`), so a driver written
@@ -52,16 +55,17 @@ defmodule Vws.Transport do
   ## Implementing a transport
 
   A transport module implements the callbacks below; they are named like the facade functions
-  and take the transport's own `handle` instead of a `Vws.Transport.Conn`. Errors are returned
-  as `{:error, reason}` with the `:inet`-style atoms where one fits (`:closed`, `:timeout`,
-  `:econnrefused`, `:eaddrinuse`, `:not_owner`).
+  and take the transport's own `handle` instead of a `Vws.Transport.Conn`. A transport returns
+  its errors as `{:error, reason}` with the `:inet`-style atoms where one fits (`:closed`,
+  `:timeout`, `:econnrefused`, `:eaddrinuse`, `:not_owner`); the facade hands every one of them
+  to its caller as `{:error, %Vws.Transport.Error{reason: reason}}` (see there for every reason).
   """
 
   import Kernel, except: [send: 2]
   require Logger
 
   alias Vws.Endpoint
-  alias Vws.Transport.{Conn, Listener}
+  alias Vws.Transport.{Conn, Error, Listener}
 
   @typedoc "A transport's own value for one connection."
   @type handle :: term()
@@ -71,6 +75,8 @@ defmodule Vws.Transport do
   @type endpoint :: Endpoint.t() | String.t()
   @typedoc "What a message to the controlling process meant for the connection."
   @type message_result :: {:data, binary()} | :closed | {:error, term()} | :unknown
+  @typedoc "What the facade returns when a transport fails (`Vws.Transport.Error`)."
+  @type error :: {:error, Error.t() | Vws.Endpoint.Error.t()}
 
   @doc "Opens a connection to `endpoint`; the caller becomes its controlling process."
   @callback connect(Endpoint.t(), keyword()) :: {:ok, handle()} | {:error, term()}
@@ -110,17 +116,20 @@ defmodule Vws.Transport do
 
   TCP dials `host:port` (option `timeout`, default 5000 ms); tty opens the device; loopback
   connects to the listener registered under the name. The caller becomes the controlling process
-  and must `activate/1` to receive.
+  and must `activate/1` to receive. `transport:` names the transport module to use instead of
+  the endpoint's own (how a `cell:` endpoint, resolved above this layer, is connected).
   """
-  @spec connect(endpoint(), keyword()) :: {:ok, Conn.t()} | {:error, term()}
+  @spec connect(endpoint(), keyword()) :: {:ok, Conn.t()} | error()
   def connect(endpoint, opts \\ []) do
-    with {:ok, endpoint} <- to_endpoint(endpoint) do
-      module = module_for(endpoint)
+    {module, opts} = Keyword.pop(opts, :transport)
 
+    with {:ok, endpoint} <- to_endpoint(endpoint),
+         {:ok, module} <- connecting_module(module, endpoint) do
       with {:ok, handle} <- module.connect(endpoint, opts) do
         {:ok, %Conn{module: module, handle: handle, endpoint: endpoint}}
       end
     end
+    |> Error.wrap()
   end
 
   @doc """
@@ -131,16 +140,16 @@ defmodule Vws.Transport do
   (`{:error, :eaddrinuse}` if taken). A tty cannot listen: `{:error, :not_listenable}`. The
   listener is closed when the calling process exits.
   """
-  @spec listen(endpoint(), keyword()) :: {:ok, Listener.t()} | {:error, term()}
+  @spec listen(endpoint(), keyword()) :: {:ok, Listener.t()} | error()
   def listen(endpoint, opts \\ []) do
-    with {:ok, endpoint} <- to_endpoint(endpoint) do
-      module = module_for(endpoint)
-
+    with {:ok, endpoint} <- to_endpoint(endpoint),
+         {:ok, module} <- listening_module(endpoint) do
       with {:ok, handle} <- module.listen(endpoint, opts) do
         {:ok,
          %Listener{module: module, handle: handle, endpoint: module.listener_endpoint(handle)}}
       end
     end
+    |> Error.wrap()
   end
 
   @doc "The endpoint a listener is bound to, with the real port when port 0 was asked for."
@@ -153,11 +162,12 @@ defmodule Vws.Transport do
   The caller becomes the controlling process of the returned connection; hand it on with
   `controlling_process/2`.
   """
-  @spec accept(Listener.t(), timeout()) :: {:ok, Conn.t()} | {:error, :timeout | term()}
+  @spec accept(Listener.t(), timeout()) :: {:ok, Conn.t()} | error()
   def accept(%Listener{module: module, handle: handle, endpoint: endpoint}, timeout) do
     with {:ok, conn_handle} <- module.accept(handle, timeout) do
       {:ok, %Conn{module: module, handle: conn_handle, endpoint: endpoint}}
     end
+    |> Error.wrap()
   end
 
   @doc """
@@ -254,17 +264,18 @@ defmodule Vws.Transport do
   def close_listener(%Listener{module: module, handle: handle}), do: module.close_listener(handle)
 
   @doc "Sends `data`; blocks while the peer is far behind (TCP and loopback)."
-  @spec send(Conn.t(), iodata()) :: :ok | {:error, term()}
-  def send(%Conn{module: module, handle: handle}, data), do: module.send(handle, data)
+  @spec send(Conn.t(), iodata()) :: :ok | error()
+  def send(%Conn{module: module, handle: handle}, data),
+    do: module.send(handle, data) |> Error.wrap()
 
   @doc "Closes the connection. Always `:ok`, also when it was already closed."
   @spec close(Conn.t()) :: :ok
   def close(%Conn{module: module, handle: handle}), do: module.close(handle)
 
   @doc "Hands the connection to `pid`; must be called by the current controlling process."
-  @spec controlling_process(Conn.t(), pid()) :: :ok | {:error, term()}
+  @spec controlling_process(Conn.t(), pid()) :: :ok | error()
   def controlling_process(%Conn{module: module, handle: handle}, pid),
-    do: module.controlling_process(handle, pid)
+    do: module.controlling_process(handle, pid) |> Error.wrap()
 
   @doc """
   Arms delivery of the next chunk of received bytes (or of the close) to the controlling process.
@@ -281,20 +292,37 @@ defmodule Vws.Transport do
   `{:error, reason}` (the connection is unusable after it), or `:unknown` when the message does
   not belong to this connection.
   """
-  @spec handle_message(Conn.t(), term()) :: message_result()
+  @spec handle_message(Conn.t(), term()) ::
+          {:data, binary()} | :closed | {:error, Error.t()} | :unknown
   def handle_message(%Conn{module: module, handle: handle}, msg),
-    do: module.handle_message(handle, msg)
+    do: module.handle_message(handle, msg) |> Error.wrap()
 
   @doc "A printable description of the other end, for logs."
   @spec peer(Conn.t()) :: String.t()
   def peer(%Conn{module: module, handle: handle}), do: module.peer(handle)
 
-  @doc "The transport module serving an endpoint."
-  @spec module_for(Endpoint.t()) :: module()
+  @doc "The transport module serving an endpoint; nil for a `cell:` endpoint (resolved above)."
+  @spec module_for(Endpoint.t()) :: module() | nil
   def module_for(%Endpoint{kind: :tcp}), do: Vws.Transport.TCP
   def module_for(%Endpoint{kind: :tty}), do: Vws.Transport.Serial
   def module_for(%Endpoint{kind: :loopback}), do: Vws.Transport.Loopback
-  def module_for(%Endpoint{kind: :cell}), do: Vws.Transport.Cell
+  def module_for(%Endpoint{kind: :cell}), do: nil
+
+  defp connecting_module(nil, endpoint) do
+    case module_for(endpoint) do
+      nil -> {:error, :not_resolved}
+      module -> {:ok, module}
+    end
+  end
+
+  defp connecting_module(module, _endpoint) when is_atom(module), do: {:ok, module}
+
+  defp listening_module(endpoint) do
+    case module_for(endpoint) do
+      nil -> {:error, :not_listenable}
+      module -> {:ok, module}
+    end
+  end
 
   defp to_endpoint(%Endpoint{} = endpoint), do: {:ok, endpoint}
   defp to_endpoint(string), do: Endpoint.parse(string)

@@ -76,7 +76,7 @@ defmodule Vws.VAL do
     * `[:vws, :val, :request_finished]` — `%{duration}` (native), `%{name, workstation, text, result}`
     * `[:vws, :val, :async]` — `%{count: 1}`, `%{name, workstation, code, text}`, every LUN 3 message
 
-  `workstation` is the id in a `Vws.Workstation` name (`Vws.Workstation.id_of/1`), else nil.
+  `workstation` is the id in a `Vws.Workstation` name (`Vws.Names.id_of/1`), else nil.
   """
 
   @type val :: GenServer.server()

@@ -42,7 +42,7 @@ defmodule Vws.Workstation do
   """
   use Supervisor
 
-  alias Vws.Mailbox
+  alias Vws.{Mailbox, Names}
 
   @partition_modules [
     robot: Vws.Partitions.Robot,
@@ -82,24 +82,8 @@ defmodule Vws.Workstation do
       Vws.SunComm.validate_options!([workstation: opts[:id], wc: opts[:wc]] ++ opts[:sun_comm])
 
     opts = Keyword.put(opts, :sun_comm, sun_comm)
-    Supervisor.start_link(__MODULE__, opts, name: via(opts[:id], :workstation))
+    Supervisor.start_link(__MODULE__, opts, name: Names.via(opts[:id], :workstation))
   end
-
-  @doc false
-  def via(id, role), do: {:via, Registry, {Vws.Registry, {id, role}}}
-
-  @doc """
-  The workstation id inside a name made for one of its parts (a link's `{:via, Registry, …}`
-  name), or nil for any other name: telemetry metadata of links carries it.
-
-      iex> Vws.Workstation.id_of({:via, Registry, {Vws.Registry, {"VWS-1", :ge2000}}})
-      "VWS-1"
-      iex> Vws.Workstation.id_of(self())
-      nil
-  """
-  @spec id_of(term) :: term | nil
-  def id_of({:via, Registry, {Vws.Registry, {id, _role}}}), do: id
-  def id_of(_name), do: nil
 
   @impl true
   def init(opts) do
@@ -147,7 +131,12 @@ defmodule Vws.Workstation do
               {Supervisor, :start_link,
                [
                  Keyword.get(opts, :links, []) ++ device_links,
-                 [strategy: :one_for_one, max_restarts: 50, max_seconds: 5, name: via(ws, :links)]
+                 [
+                   strategy: :one_for_one,
+                   max_restarts: 50,
+                   max_seconds: 5,
+                   name: Names.via(ws, :links)
+                 ]
                ]}
           },
           %{
@@ -161,7 +150,7 @@ defmodule Vws.Workstation do
                    strategy: :one_for_one,
                    max_restarts: 50,
                    max_seconds: 5,
-                   name: via(ws, :partitions)
+                   name: Names.via(ws, :partitions)
                  ]
                ]}
           },
@@ -221,7 +210,7 @@ defmodule Vws.Workstation do
       {:ge2000, spec}, {links, popts} ->
         link_opts = if is_binary(spec), do: [endpoint: spec], else: spec
         {interval, link_opts} = Keyword.pop(link_opts, :status_interval, 1_000)
-        name = via(ws, :ge2000)
+        name = Names.via(ws, :ge2000)
         link = {Vws.DNC, [id: :ge2000, name: name] ++ link_opts}
 
         # always there: it owns the link (programs from the machine); reads only with an interval
@@ -238,7 +227,7 @@ defmodule Vws.Workstation do
         ddcmp =
           Keyword.merge(Keyword.get(spec, :ddcmp, []), endpoint: spec[:endpoint], workstation: ws)
 
-        name = via(ws, :val)
+        name = Names.via(ws, :val)
 
         val =
           {Vws.VAL, [id: :val, name: name, ddcmp: ddcmp] ++ Keyword.take(spec, [:link_module])}
@@ -302,18 +291,42 @@ defmodule Vws.Workstation do
     end
   end
 
-  @doc "The ids of the workstations running on this node."
-  @spec list() :: [term]
-  def list do
-    Registry.select(Vws.Registry, [{{{:"$1", :workstation}, :_, :_}, [], [:"$1"]}]) |> Enum.sort()
+  ## Equipment outside the CEC
+
+  @outside_holders [:mhs]
+
+  @doc """
+  Asks for a work volume on behalf of equipment outside the CEC that shares it — the
+  material-handling system before it moves a tray (seed §2.3.8, rules 2a and 2b) — by the same
+  procedure the partitions use (`Vws.Interlock.acquire/5`; options `:retry_ms`). This is what
+  such equipment (`Vws.Sim.MHS`) may do, and all: it holds leases only in its own name (`:mhs`),
+  never a partition's, and a workstation that is not running grants nothing
+  (`{:error, "NO ANSWER FROM THE CEC"}`).
+  """
+  @spec acquire_volume(term, Vws.Interlock.volume(), atom, non_neg_integer, keyword) ::
+          :ok | {:error, String.t()}
+  def acquire_volume(ws, volume, holder, timeout, opts \\ []) when holder in @outside_holders do
+    if Mailbox.exists?(ws) do
+      Vws.Interlock.acquire(ws, volume, holder, timeout, Keyword.take(opts, [:retry_ms]))
+    else
+      {:error, "NO ANSWER FROM THE CEC"}
+    end
+  rescue
+    # the mailboxes went away between the look and the lease: the workstation is stopping
+    ArgumentError -> {:error, "NO ANSWER FROM THE CEC"}
   end
+
+  @doc "Gives back a work volume taken with `acquire_volume/5`."
+  @spec release_volume(term, Vws.Interlock.volume(), atom) :: :ok
+  def release_volume(ws, volume, holder) when holder in @outside_holders do
+    if Mailbox.exists?(ws), do: Vws.Interlock.release(ws, volume, holder), else: :ok
+  end
+
+  @doc "The ids of the workstations running on this node (`Vws.Names.workstations/0`)."
+  @spec list() :: [term]
+  defdelegate list, to: Names, as: :workstations
 
   @doc "The pid of a workstation's supervisor or one of its parts (`:links`, `:partitions`, a partition, `:sun_comm`)."
   @spec whereis(term, atom) :: pid | nil
-  def whereis(id, role \\ :workstation) do
-    case Registry.lookup(Vws.Registry, {id, role}) do
-      [{pid, _}] -> pid
-      [] -> nil
-    end
-  end
+  defdelegate whereis(id, role \\ :workstation), to: Names
 end

@@ -7,6 +7,8 @@ defmodule Vws.Acceptance.DashboardTest do
   # async tests on a two-core machine; the sync phase runs this test alone
   use ExUnit.Case, async: false
 
+  import Vws.WC.Command, only: [pad4: 1]
+
   alias Vws.Test.Acceptance
   alias Vws.WC.{Client, Reply}
 
@@ -157,8 +159,6 @@ defmodule Vws.Acceptance.DashboardTest do
   end
 
   defp nc_line(n, text), do: IO.iodata_to_binary(Reply.encode({:line, n, text}))
-
-  defp pad4(n), do: n |> Integer.to_string() |> String.pad_leading(4, "0")
 
   defp chromium_args(budget_ms) do
     [

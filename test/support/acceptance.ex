@@ -55,6 +55,7 @@ defmodule Vws.Test.Acceptance do
   """
 
   import ExUnit.Assertions
+  import Vws.WC.Command, only: [pad4: 1]
 
   @root Path.expand("../..", __DIR__)
 
@@ -418,8 +419,6 @@ defmodule Vws.Test.Acceptance do
         await_command(port, status, seq + 1, number, deadline)
     end
   end
-
-  defp pad4(n), do: String.pad_leading(Integer.to_string(n), 4, "0")
 
   @doc """
   Connects to the WC link on `127.0.0.1:port` (retrying until `timeout`), sends `data` framed

@@ -102,7 +102,7 @@ defmodule Vws.Test.DAQFloor do
     WCPeer.send_string(peer, seq, [{letter, number, text}])
     assert WCPeer.recv_line(peer) =~ "05A"
     name = Map.fetch!(@set_names, letter)
-    prefix = number |> Integer.to_string() |> String.pad_leading(4, "0")
+    prefix = Vws.WC.Command.pad4(number)
 
     answer =
       WCPeer.await_status(

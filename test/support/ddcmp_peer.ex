@@ -62,7 +62,7 @@ defmodule Vws.Test.DDCMPPeer do
         send(state.test, {:peer_connected, self()})
         {:noreply, %{state | conn: conn, decoder: Frame.new(max_data: state.max_data)}}
 
-      {:error, :timeout} ->
+      {:error, %Vws.Transport.Error{reason: :timeout}} ->
         send(self(), :accept)
         {:noreply, state}
     end

@@ -73,7 +73,7 @@ defmodule Vws.Test.DDCMPRelay do
               :ok = Transport.activate(conn)
               put_in(state.conns[side], conn)
 
-            {:error, :timeout} ->
+            {:error, %Vws.Transport.Error{reason: :timeout}} ->
               state
           end
         end

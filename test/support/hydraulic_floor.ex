@@ -79,7 +79,7 @@ defmodule Vws.Test.HydraulicFloor do
     seq = rem(System.unique_integer([:positive]), 10_000)
     WCPeer.send_string(peer, seq, [{"H", number, text}])
     assert WCPeer.recv_line(peer) =~ "05A"
-    prefix = number |> Integer.to_string() |> String.pad_leading(4, "0")
+    prefix = Vws.WC.Command.pad4(number)
 
     answer =
       WCPeer.await_status(

@@ -112,7 +112,7 @@ defmodule Vws.TransportConformance do
             send(test, {:result, Transport.controlling_process(server, self())})
           end)
 
-          assert_receive {:result, {:error, :not_owner}}
+          assert_receive {:result, {:error, %Vws.Transport.Error{reason: :not_owner}}}
         end
 
         test "1 MB in uneven chunks arrives intact and in order, both ways", ctx do
@@ -142,7 +142,8 @@ defmodule Vws.TransportConformance do
         end
 
         test "accept times out when nobody connects", %{listener: listener} do
-          assert Transport.accept(listener, 50) == {:error, :timeout}
+          assert Transport.accept(listener, 50) ==
+                   {:error, %Vws.Transport.Error{reason: :timeout}}
         end
 
         test "a closed listener accepts no more connections", ctx do

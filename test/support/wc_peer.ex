@@ -93,7 +93,7 @@ defmodule Vws.Test.WCPeer do
   defp connect_retrying(endpoint, timeout) do
     deadline = System.monotonic_time(:millisecond) + timeout
 
-    Stream.repeatedly(fn -> Transport.connect(endpoint) end)
+    Stream.repeatedly(fn -> Vws.Cell.connect(endpoint) end)
     |> Enum.reduce_while(nil, fn
       {:ok, conn}, _ ->
         {:halt, {:ok, conn}}

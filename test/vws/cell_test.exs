@@ -51,6 +51,6 @@ defmodule Vws.CellTest do
     %{ws: ws} = Workstation.start(wc: nil, partitions: ObedientPartition.partitions())
     assert Cell.resolve(ws) == {:error, :not_listening}
     assert {:ok, endpoint} = Cell.wc_endpoint(ws)
-    assert Vws.Transport.connect(endpoint) == {:error, :not_listening}
+    assert Vws.Cell.connect(endpoint) == {:error, %Vws.Transport.Error{reason: :not_listening}}
   end
 end

@@ -8,7 +8,7 @@ defmodule Vws.DAQTest do
   doctest Vws.DAQ.Readings
   doctest Vws.DAQ.DeviceStatus
 
-  # Channel map of priv/sims/plant.exs, written out: slot 1 channel => volts of a state.
+  # Channel map of priv/plant.exs, written out: slot 1 channel => volts of a state.
   @closed 5.0
   @open 0.0
   @overload 9.9e37

@@ -197,7 +197,7 @@ defmodule Vws.FloodTest do
     test "SUN_COMM takes 20 MB without a LF and 16 MB of pinning lines in bounded memory" do
       %{ws: ws, wc: wc} = Workstation.start(partitions: ObedientPartition.partitions())
       assert eventually(fn -> Vws.SunComm.listening(ws) != nil end)
-      sun_comm = GenServer.whereis(Vws.Workstation.via(ws, :sun_comm))
+      sun_comm = GenServer.whereis(Vws.Names.via(ws, :sun_comm))
       {:ok, peer} = WCPeer.connect(wc)
 
       noise = Stream.map(garbage(20), &:binary.replace(&1, "\n", " ", [:global]))

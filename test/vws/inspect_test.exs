@@ -203,7 +203,7 @@ defmodule Vws.InspectTest do
 
     %{ws: ws, wc: wc} = Vws.Test.Workstation.start(devices: [robot: Vws.Sim.VAL2.endpoint(sim)])
 
-    val = Vws.Workstation.via(ws, :val)
+    val = Vws.Names.via(ws, :val)
     assert Vws.Test.Eventually.eventually(fn -> Vws.VAL.ready?(val) end, 10_000)
     {:ok, peer} = WCPeer.connect(wc)
     {:ok, device} = StringIO.open("")

@@ -219,7 +219,7 @@ defmodule Vws.InterlockTest do
   end
 
   test "the table's conditions deny what they cannot read", %{ws: ws} do
-    check = Interlock.table_conditions(ws, machine_stale_ms: 100, sensor_timeout_ms: 50)
+    check = Vws.Partitions.TableConditions.check(ws, machine_stale_ms: 100, sensor_timeout_ms: 50)
     assert check.() == {:error, "MACHINE STATUS NO DATA"}
     Mailbox.put_device(ws, 8, "NO DATA (NO LINK TO GE-2000)")
     assert check.() == {:error, "MACHINE STATUS NO DATA (NO LINK TO GE-2000)"}

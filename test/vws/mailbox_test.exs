@@ -57,16 +57,16 @@ defmodule Vws.MailboxTest do
   test "the iex table shows every location", %{ws: ws} do
     :ok = Mailbox.dispatch(ws, :robot, 9, "DO MOVE SAFE")
     Mailbox.put_device(ws, 3, "VISE IS UNLOCKED PART NOT IN VISE")
-    text = Mailbox.format(ws)
+    text = Vws.Inspect.format_mailboxes(ws)
     assert text =~ "34  ROBOT     0009  EXECUTING"
     assert text =~ "0009 DO MOVE SAFE"
     assert text =~ "VISE IS UNLOCKED PART NOT IN VISE"
     assert text =~ "ok_to_proceed=0"
     assert text =~ "INTERLOCKS: NONE"
     :ok = Vws.Interlock.acquire(ws, :table, :robot, 0)
-    assert Mailbox.format(ws) =~ "INTERLOCKS: TABLE=ROBOT"
-    assert [%{volume: :table, holder: :robot}] = Mailbox.snapshot(ws).interlocks
-    assert ExUnit.CaptureIO.capture_io(fn -> Mailbox.print(ws) end) =~ "COMMAND STATUS"
+    assert Vws.Inspect.format_mailboxes(ws) =~ "INTERLOCKS: TABLE=ROBOT"
+    assert [%{volume: :table, holder: :robot}] = Vws.Inspect.mailbox_snapshot(ws).interlocks
+    assert ExUnit.CaptureIO.capture_io(fn -> Vws.Inspect.mailboxes(ws) end) =~ "COMMAND STATUS"
   end
 
   test "locked/2 serialises read-modify-write sections", %{ws: ws} do

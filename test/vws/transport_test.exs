@@ -18,7 +18,8 @@ defmodule Vws.TransportTest do
   end
 
   test "a tty cannot listen" do
-    assert Transport.listen("tty:/dev/ttyS0") == {:error, :not_listenable}
+    assert Transport.listen("tty:/dev/ttyS0") ==
+             {:error, %Vws.Transport.Error{reason: :not_listenable}}
   end
 
   test "every transport implements the whole behaviour" do

@@ -125,7 +125,7 @@ defmodule Vws.WCLinkPolicyTest do
     # closed unanswered). Forced here: SUN_COMM is held while the newcomer's acceptance and
     # then the old connection's close are queued, in that order.
     %{ws: ws, wc: wc} = start([])
-    sun_comm = GenServer.whereis(Vws.Workstation.via(ws, :sun_comm))
+    sun_comm = GenServer.whereis(Vws.Names.via(ws, :sun_comm))
     {:ok, first} = WCPeer.connect(wc)
     assert WCPeer.status(first, 1, 1, "ROBOT_CMD") == "0000NONE"
 

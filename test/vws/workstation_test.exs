@@ -119,4 +119,19 @@ defmodule Vws.WorkstationTest do
       assert Partition.whereis(ws, :robot) == pid
     end
   end
+
+  test "equipment outside the CEC takes work volumes in its own name only" do
+    %{ws: ws} = Workstation.start()
+    assert WS.acquire_volume(ws, :tray1, :mhs, 0) == :ok
+    assert Vws.Interlock.holder(ws, :tray1) == :mhs
+    assert WS.acquire_volume(ws, :tray1, :mhs, 0) == :ok
+    # never a partition's name: the MHS cannot take or give back the robot's lease
+    assert_raise FunctionClauseError, fn -> WS.acquire_volume(ws, :table, :robot, 0) end
+    assert_raise FunctionClauseError, fn -> WS.release_volume(ws, :tray1, :robot) end
+    assert WS.release_volume(ws, :tray1, :mhs) == :ok
+    assert Vws.Interlock.held(ws) == []
+
+    assert WS.acquire_volume("no-such-workstation", :tray1, :mhs, 0) ==
+             {:error, "NO ANSWER FROM THE CEC"}
+  end
 end

@@ -267,6 +267,10 @@ defmodule Mix.Tasks.Vws.Serve do
   defp start_error({:failed_to_start_child, _child, reason}), do: start_error(reason)
   defp start_error({%{__exception__: true} = e, _stacktrace}), do: Exception.message(e)
   defp start_error(%{__exception__: true} = e), do: Exception.message(e)
+
+  defp start_error({:cannot_listen, endpoint, %{__exception__: true} = e}),
+    do: "cannot listen on #{endpoint}: #{Exception.message(e)}"
+
   defp start_error({:already_started, _pid}), do: "a workstation with this id already runs here"
   defp start_error(reason) when is_binary(reason), do: reason
   defp start_error(reason), do: inspect(reason)

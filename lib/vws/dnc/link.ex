@@ -94,7 +94,7 @@ defmodule Vws.DNC.Link do
     Logger.metadata(
       dnc_link: o[:name] || self(),
       dnc_role: role,
-      workstation: Vws.Workstation.id_of(o[:name])
+      workstation: Vws.Names.id_of(o[:name])
     )
 
     limits =
@@ -373,7 +373,7 @@ defmodule Vws.DNC.Link do
       Map.take(payload, [:blocks, :bytes, :chars_per_s, :retries])
     )
 
-    case Vws.Workstation.id_of(data.name) do
+    case Vws.Names.id_of(data.name) do
       nil -> :ok
       ws -> cause_progress(ws, payload)
     end
@@ -514,7 +514,7 @@ defmodule Vws.DNC.Link do
     Map.merge(metadata, %{
       link: data.name,
       role: data.role,
-      workstation: Vws.Workstation.id_of(data.name)
+      workstation: Vws.Names.id_of(data.name)
     })
   end
 end

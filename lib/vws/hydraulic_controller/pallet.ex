@@ -3,7 +3,7 @@ defmodule Vws.HydraulicController.Pallet do
   What the hydraulic controller does on DAQ #2 (seed §5, App. I F): the pallet's two positioning
   rams and two swing ("swivel-rocker") clamps, driven through the relays of DAQ #2's slot 2 and
   checked on its X/Y microswitches and clamp-force gauges (channel map: the `daq2` unit of
-  `priv/sims/plant.exs`, read with `Vws.DAQ`).
+  `priv/plant.exs`, read with `Vws.DAQ`).
 
   Each operation is a list of steps run in order, every one confirmed by the sensors — on two
   readings in a row, as one may be damaged on the line — before the next starts (seed §6,

@@ -29,7 +29,7 @@ defmodule Vws.Partitions.Fixture do
 
     * `OPEN` and `CLOSE` take it for the vise motion (reason `:vise`) before a valve moves, on the
       conditions of rule 3a — the machine idle and the table parked, as read
-      (`Vws.Interlock.table_conditions/2`) — and give that reason up when the sensors confirm
+      (`Vws.Partitions.TableConditions.check/2`) — and give that reason up when the sensors confirm
       the vise at its end. A vise command that fails leaves the vise where the sensors cannot
       vouch for it: both valves are switched off (the vise holds) and the table stays held
       (rule 3b: no cycle may start) until a later `OPEN`/`CLOSE` succeeds or `RELEASE_TABLE`
@@ -120,7 +120,7 @@ defmodule Vws.Partitions.Fixture do
 
     Interlock.acquire(ctx.workstation, :table, :fixture, Keyword.get(opts, :timeout, 10_000),
       as: reason,
-      check: Interlock.table_conditions(ctx.workstation, opts),
+      check: Vws.Partitions.TableConditions.check(ctx.workstation, opts),
       retry_ms: Keyword.get(opts, :retry_ms, 250)
     )
   end

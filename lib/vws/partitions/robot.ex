@@ -32,7 +32,7 @@ defmodule Vws.Partitions.Robot do
       and gives its lease up (rule 2b: the MHS may move it again).
     * `DISABLE_TABLE` takes the table's volume, shared with FIXTURE but never with MONARCH's
       cycle, on the conditions of rule 1a: the machine idle and the table parked, as read
-      (`Vws.Interlock.table_conditions/2`). `RELEASE_TABLE` gives it up (rule 1b: a cycle may
+      (`Vws.Partitions.TableConditions.check/2`). `RELEASE_TABLE` gives it up (rule 1b: a cycle may
       start).
     * Every `DO MOVE`/`MOVES`/`APPRO`/`APPROS` into a volume first takes that volume for the arm
       (reason `:inside`) by the same procedure and on the same conditions, unless it is held
@@ -63,7 +63,7 @@ defmodule Vws.Partitions.Robot do
     * `:command_timeout` (default 10 s), `:motion_timeout` (120 s), `:program_timeout` (600 s),
       in ms.
     * `:interlock` — `timeout` (ms a lease is tried for, default 10 000), `retry_ms` (250),
-      `machine_stale_ms`, `sensor_timeout_ms` (see `Vws.Interlock.table_conditions/2`).
+      `machine_stale_ms`, `sensor_timeout_ms` (see `Vws.Partitions.TableConditions.check/2`).
     * `:work_volumes` — a map or a path in the shape of `priv/work_volumes.exs` (the default).
   """
   @behaviour Vws.Partition
@@ -271,7 +271,10 @@ defmodule Vws.Partitions.Robot do
   end
 
   defp conditions(ctx, :table) do
-    Interlock.table_conditions(ctx.workstation, Keyword.get(ctx.options, :interlock, []))
+    Vws.Partitions.TableConditions.check(
+      ctx.workstation,
+      Keyword.get(ctx.options, :interlock, [])
+    )
   end
 
   defp conditions(_ctx, _volume), do: fn -> :ok end

@@ -244,7 +244,7 @@ defmodule Vws.Sim.GE2000 do
       # what MONARCH's directory check catches
       whole_programs_only: Keyword.get(opts, :whole_programs_only, true),
       file_as: nil,
-      workstation: Vws.Workstation.id_of(Keyword.get(opts, :name))
+      workstation: Vws.Names.id_of(Keyword.get(opts, :name))
     }
 
     {:ok, s, {:continue, :open}}

@@ -2,7 +2,7 @@ defmodule Vws.Sim.Plant do
   @moduledoc """
   The simulated shop floor of one workstation: vise, gripper and indexer, vacuum, the two trays,
   the machine table, the pallet and the cycle-start relay, seen through the channels of DAQ #1
-  and DAQ #2 as mapped in `priv/sims/plant.exs` (`Vws.Sim.Plant.Config`).
+  and DAQ #2 as mapped in `priv/plant.exs` (`Vws.DAQ.ChannelMap`).
 
   The DAQ simulators call `read_voltage/3`, `read_resistance/3`, `close_channel/3`,
   `open_channel/3` and `channel_closed?/3`, one per SCPI query; the robot and GE-2000 simulators
@@ -33,10 +33,11 @@ defmodule Vws.Sim.Plant do
   """
   use GenServer
 
-  alias Vws.Sim.Plant.{Config, Model}
+  alias Vws.DAQ.ChannelMap
+  alias Vws.Sim.Plant.Model
 
   @type plant :: GenServer.server()
-  @type channel :: pos_integer | {Config.daq(), pos_integer}
+  @type channel :: pos_integer | {ChannelMap.daq(), pos_integer}
   @type channel_error :: :unknown_channel | :not_a_sensor | :not_an_actuator
 
   @doc false
@@ -49,7 +50,7 @@ defmodule Vws.Sim.Plant do
 
     * `:name` — a GenServer name (any number of plants may run on a node);
     * `:time_scale` — simulated seconds per real second (default 1.0; 0 = only `advance/2`);
-    * `:config` — a path, or a map merged over `priv/sims/plant.exs` (default: that file);
+    * `:config` — a path, or a map merged over `priv/plant.exs` (default: that file);
     * `:seed` — seeds the sensor noise (default 0), so runs are repeatable;
     * `:on_relay` — `fun(signal, energised?)`, called when an actuator's device is switched on or
       off (a relay, or a stuck valve coming free): the wire to equipment outside the plant, such
@@ -83,7 +84,7 @@ defmodule Vws.Sim.Plant do
   def channel_closed?(plant, channel), do: call(plant, {:channel_closed?, address(channel)})
 
   @doc "Opens every relay of one DAQ, as its `*RST` does."
-  @spec open_all(plant, Config.daq()) :: :ok
+  @spec open_all(plant, ChannelMap.daq()) :: :ok
   def open_all(plant, daq \\ :daq1), do: call(plant, {:open_all, daq})
 
   @doc """
@@ -98,7 +99,7 @@ defmodule Vws.Sim.Plant do
     * `:sensor_open_circuit`, `channel: n` (with `daq:`, default `:daq1`) or `signal: name` —
       the channel reads `overload` (9.9e37) for volts and ohms.
 
-  Signals are the names of `priv/sims/plant.exs` (`:vise_close_valve`, `:table_park`, …).
+  Signals are the names of `priv/plant.exs` (`:vise_close_valve`, `:table_park`, …).
   """
   @spec inject_fault(plant, Model.fault(), keyword) ::
           :ok | {:error, :unknown_fault | :bad_options}
@@ -158,12 +159,12 @@ defmodule Vws.Sim.Plant do
   so a test can tell that a command did not run twice.
   """
   @spec writes(plant) :: %{
-          {Config.daq(), pos_integer} => %{close: non_neg_integer, open: non_neg_integer}
+          {ChannelMap.daq(), pos_integer} => %{close: non_neg_integer, open: non_neg_integer}
         }
   def writes(plant), do: call(plant, :writes)
 
   @doc "The loaded channel map and constants."
-  @spec config(plant) :: Config.t()
+  @spec config(plant) :: ChannelMap.t()
   def config(plant), do: call(plant, :config)
 
   defp call(plant, request), do: GenServer.call(plant, request)
@@ -175,7 +176,7 @@ defmodule Vws.Sim.Plant do
 
   @impl true
   def init(opts) do
-    config = Config.load(Keyword.get(opts, :config, Config.default_path()))
+    config = ChannelMap.load(Keyword.get(opts, :config, ChannelMap.default_path()))
     scale = Keyword.get(opts, :time_scale, 1.0)
 
     unless is_number(scale) and scale >= 0 do
@@ -186,7 +187,7 @@ defmodule Vws.Sim.Plant do
      %{
        model: Model.new(config, Keyword.get(opts, :seed, 0)),
        # the workstation in a {:via, Registry, {Vws.Registry, {ws, role}}} name, for telemetry
-       workstation: Vws.Workstation.id_of(Keyword.get(opts, :name)),
+       workstation: Vws.Names.id_of(Keyword.get(opts, :name)),
        time_scale: scale,
        last: now(),
        on_relay: Keyword.get(opts, :on_relay),
@@ -240,7 +241,7 @@ defmodule Vws.Sim.Plant do
 
   defp written({daq, channel} = address, kind, state) do
     signal =
-      case Config.entry(state.model.config, address) do
+      case ChannelMap.entry(state.model.config, address) do
         %{signal: signal} -> signal
         _ -> nil
       end

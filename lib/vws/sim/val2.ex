@@ -162,7 +162,7 @@ defmodule Vws.Sim.VAL2 do
       motion: nil,
       fault: nil,
       commands: [],
-      workstation: Vws.Workstation.id_of(Keyword.get(opts, :name)),
+      workstation: Vws.Names.id_of(Keyword.get(opts, :name)),
       violations: 0,
       restarts: 0
     }
@@ -180,7 +180,7 @@ defmodule Vws.Sim.VAL2 do
         Logger.info("VAL II simulator listening on #{bound}")
         {:noreply, %{s | listener: listener, bound: bound, acceptor: acceptor}}
 
-      {:error, :not_listenable} ->
+      {:error, %Transport.Error{reason: :not_listenable}} ->
         # a tty: opened here, and opened again (with back-off) whenever it goes away
         {min, max} = Keyword.fetch!(s.ddcmp, :backoff)
         s = %{s | bound: to_string(s.endpoint), backoff: Vws.Backoff.new(min, max)}

@@ -58,7 +58,7 @@ defmodule Vws.Transport.Loopback do
   cell) registered as `name`, as `connect/2` does, except that the connection's process runs on
   the caller's node and watches the listener and, once accepted, the acceptor: if their node
   goes away (or they exit) the caller receives the close, as from any peer that closed. Used by
-  `Vws.Transport.Cell` to carry a WC link over Erlang distribution.
+  `Vws.Cell.Connection` to carry a WC link over Erlang distribution.
   """
   @spec connect_listener(pid(), term(), keyword()) :: {:ok, t()} | {:error, term()}
   def connect_listener(listener, name, opts \\ []) when is_pid(listener) do

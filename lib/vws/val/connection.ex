@@ -48,7 +48,7 @@ defmodule Vws.VAL.Connection do
     Process.flag(:trap_exit, true)
     name = Keyword.get(opts, :name, self())
     ddcmp = Keyword.fetch!(opts, :ddcmp)
-    workstation = Keyword.get(ddcmp, :workstation) || Vws.Workstation.id_of(name)
+    workstation = Keyword.get(ddcmp, :workstation) || Vws.Names.id_of(name)
     Logger.metadata(val: inspect(name), workstation: workstation)
     {min_backoff, max_backoff} = Keyword.fetch!(ddcmp, :backoff)
 
@@ -359,7 +359,7 @@ defmodule Vws.VAL.Connection do
 
     Vws.Telemetry.execute([:vws, :val, :async], %{count: 1}, %{
       name: data.name,
-      workstation: Vws.Workstation.id_of(data.name),
+      workstation: Vws.Names.id_of(data.name),
       code: m.qualifier,
       text: m.text
     })
@@ -632,7 +632,7 @@ defmodule Vws.VAL.Connection do
       %{duration: System.monotonic_time() - request.started},
       %{
         name: data.name,
-        workstation: Vws.Workstation.id_of(data.name),
+        workstation: Vws.Names.id_of(data.name),
         text: request.text,
         result: result
       }
@@ -642,7 +642,7 @@ defmodule Vws.VAL.Connection do
   defp telemetry_message(data, direction, m, bytes) do
     Vws.Telemetry.execute([:vws, :val, :message], %{bytes: bytes}, %{
       name: data.name,
-      workstation: Vws.Workstation.id_of(data.name),
+      workstation: Vws.Names.id_of(data.name),
       direction: direction,
       lun: m.lun,
       function: m.function,

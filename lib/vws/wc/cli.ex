@@ -116,7 +116,7 @@ defmodule Vws.WC.CLI do
   defp run({:send, string}, opts) do
     line = if String.ends_with?(string, "*"), do: frame(string, bcc(opts)), else: string
 
-    with {:ok, conn} <- Vws.Transport.connect(endpoint(opts)),
+    with {:ok, conn} <- Vws.Cell.connect(endpoint(opts)),
          :ok <- Vws.Transport.activate(conn) do
       try do
         say(opts, "→ #{Vws.Demo.printable(line)}")
@@ -268,9 +268,12 @@ defmodule Vws.WC.CLI do
   end
 
   defp unreachable(opts, reason) do
-    IO.puts("cannot reach the controller at #{endpoint(opts)}: #{inspect(reason)}")
+    IO.puts("cannot reach the controller at #{endpoint(opts)}: #{reason_text(reason)}")
     2
   end
+
+  defp reason_text(%{__exception__: true} = error), do: Exception.message(error)
+  defp reason_text(reason), do: inspect(reason)
 
   defp receive_line(conn, decoder, timeout) do
     receive do
@@ -287,7 +290,7 @@ defmodule Vws.WC.CLI do
             {:error, "the controller closed the link"}
 
           {:error, reason} ->
-            {:error, inspect(reason)}
+            {:error, reason_text(reason)}
 
           :unknown ->
             receive_line(conn, decoder, timeout)

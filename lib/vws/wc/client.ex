@@ -106,7 +106,7 @@ defmodule Vws.WC.Client do
   end
 
   defp do_connect(endpoint, deadline) do
-    case Vws.Transport.connect(endpoint) do
+    case Vws.Cell.connect(endpoint) do
       {:ok, conn} ->
         {:ok, conn}
 

@@ -44,19 +44,19 @@ defmodule Vws.WC.ClientError do
   def message(%__MODULE__{reason: :bad_request, data: why}), do: "request not sent: #{why}"
 
   def message(%__MODULE__{reason: :nak, data: %{sequence: seq, tries: tries}}),
-    do: "the CEC answered E (bad block check) to all #{tries} tries of string #{pad4(seq)}"
+    do: "the CEC answered E (bad block check) to all #{tries} tries of string #{number(seq)}"
 
   def message(%__MODULE__{reason: :timeout, data: %{sequence: seq, tries: tries}}),
-    do: "no reply from the CEC to string #{pad4(seq)} after #{tries} tries"
+    do: "no reply from the CEC to string #{number(seq)} after #{tries} tries"
 
   def message(%__MODULE__{reason: :closed}),
     do: "the link to the CEC (SUN_COMM) is closed and could not be opened again"
 
   def message(%__MODULE__{reason: :command_failed, data: %{set: set, number: n, status: status}}),
-    do: "#{set} command #{pad4(n)} ended #{status}"
+    do: "#{set} command #{number(n)} ended #{status}"
 
   def message(%__MODULE__{reason: :command_timeout, data: %{set: set, number: n} = d}) do
-    "#{set} command #{pad4(n)} was not DONE within #{d.ms} ms; last status answer #{inspect(d.last)}"
+    "#{set} command #{number(n)} was not DONE within #{d.ms} ms; last status answer #{inspect(d.last)}"
   end
 
   def message(%__MODULE__{reason: :bad_status, data: text}),
@@ -68,6 +68,6 @@ defmodule Vws.WC.ClientError do
   def message(%__MODULE__{reason: reason, data: data}),
     do: "WC client error #{inspect(reason)}: #{inspect(data)}"
 
-  defp pad4(n) when is_integer(n), do: n |> Integer.to_string() |> String.pad_leading(4, "0")
-  defp pad4(n), do: inspect(n)
+  defp number(n) when is_integer(n), do: Vws.WC.Command.pad4(n)
+  defp number(n), do: inspect(n)
 end

@@ -133,8 +133,13 @@ defmodule Vws.WC.Command do
 
   def digits(_field), do: :error
 
-  @doc false
-  # A number as the four digits the wire carries.
+  @doc """
+  A number as the four digits the wire carries (command, sequence and line numbers). The one
+  place this is written: replies, the WC client, the dashboard and the iex views all use it.
+
+      iex> Vws.WC.Command.pad4(42)
+      "0042"
+  """
   @spec pad4(0..9999) :: binary
   def pad4(n) when is_integer(n) and n in 0..9999,
     do: n |> Integer.to_string() |> String.pad_leading(4, "0")

@@ -77,7 +77,7 @@ defmodule Vws.Web.State do
           wc_connected: Map.get(w, :wc_connected, false),
           in_flight:
             for {p, {n, :executing}} <- Map.get(w, :commands, %{}) do
-              "#{String.upcase(to_string(p))} #{pad4(n)}"
+              "#{String.upcase(to_string(p))} #{number(n)}"
             end
         }
       end
@@ -174,7 +174,7 @@ defmodule Vws.Web.State do
       transfers: transfers(snapshot, now),
       library: library(ws, cache),
       alerts: alerts(partitions, devices, links, wc),
-      last_sequence: pad4(snapshot.mailboxes.last_sequence),
+      last_sequence: number(snapshot.mailboxes.last_sequence),
       events: for({e, n} <- snapshot.mailboxes.events, do: %{event: Inspect.words(e), count: n})
     }
   end
@@ -255,12 +255,12 @@ defmodule Vws.Web.State do
     %{
       name: String.upcase(to_string(r.partition)),
       state: Inspect.words(r.state),
-      number: pad4(r.number),
+      number: number(r.number),
       status: status,
       status_class: status |> String.split(" ") |> hd() |> String.downcase(),
-      in_flight: pad4(r.in_flight),
+      in_flight: number(r.in_flight),
       cmd_in: r.cmd_in,
-      current: r.current && "#{pad4(r.current.number)} #{r.current.text}",
+      current: r.current && "#{number(r.current.number)} #{r.current.text}",
       running_ms: r.current && r.current.running_ms,
       done: r.done,
       errors: r.errors,
@@ -494,7 +494,7 @@ defmodule Vws.Web.State do
     %{
       link: link,
       kind: kind,
-      number: pad4(number),
+      number: number(number),
       unit: to_string(unit),
       done: done,
       total: total,
@@ -536,6 +536,6 @@ defmodule Vws.Web.State do
   # The text a workstation id is shown (and addressed) by.
   def label(ws), do: Vws.MTConnect.Model.device_name(ws)
 
-  defp pad4(nil), do: nil
-  defp pad4(n), do: n |> Integer.to_string() |> String.pad_leading(4, "0")
+  defp number(nil), do: nil
+  defp number(n), do: Vws.WC.Command.pad4(n)
 end

@@ -45,7 +45,7 @@ defmodule Vws.Partitions.RobotE2ETest do
     WCPeer.await_status(peer, 39, "ROBOT_CMD", &(&1 =~ ~r/^#{pad(number)}(DONE|ERROR)/), 10_000)
   end
 
-  defp pad(n), do: n |> Integer.to_string() |> String.pad_leading(4, "0")
+  defp pad(n), do: Vws.WC.Command.pad4(n)
 
   # Seed Table 1 (steps 1, 2, 4, 5), then WHERE and an error from the controller.
   defp table1(peer, sim) do

@@ -26,6 +26,8 @@ defmodule Vws.Reliability.ReconnectTest do
   """
   use ExUnit.Case, async: true
 
+  import Vws.WC.Command, only: [pad4: 1]
+
   doctest Vws.Backoff
 
   import Vws.Test.Eventually
@@ -348,6 +350,4 @@ defmodule Vws.Reliability.ReconnectTest do
       assert t1 - t0 >= delay, "an attempt came #{t1 - t0} ms after one announcing #{delay} ms"
     end
   end
-
-  defp pad4(n), do: n |> Integer.to_string() |> String.pad_leading(4, "0")
 end

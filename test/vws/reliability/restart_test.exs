@@ -19,6 +19,8 @@ defmodule Vws.Reliability.RestartTest do
   """
   use ExUnit.Case, async: true
 
+  import Vws.WC.Command, only: [pad4: 1]
+
   import Vws.Test.Eventually
 
   alias Vws.{Interlock, Mailbox, Workstation}
@@ -518,6 +520,4 @@ defmodule Vws.Reliability.RestartTest do
     :ok = :gen_tcp.close(socket)
     port
   end
-
-  defp pad4(n), do: n |> Integer.to_string() |> String.pad_leading(4, "0")
 end

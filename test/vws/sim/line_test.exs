@@ -94,7 +94,7 @@ defmodule Vws.Sim.LineTest do
       :ok = Transport.close(client)
       # the server (busy sending) sees "bye", then the close
       assert {"bye", end_} = recv_until_closed(server)
-      assert end_ in [:closed, {:error, :econnreset}]
+      assert end_ in [:closed, {:error, %Vws.Transport.Error{reason: :econnreset}}]
       Task.shutdown(chatter, :brutal_kill)
     end
   end
@@ -213,9 +213,9 @@ defmodule Vws.Sim.LineTest do
       :ok = Transport.send(server, pattern(500))
       assert {received, end_} = recv_until_closed(client)
       assert received == binary_part(pattern(500), 0, 50)
-      assert end_ in [:closed, {:error, :econnreset}]
+      assert end_ in [:closed, {:error, %Vws.Transport.Error{reason: :econnreset}}]
       :ok = Transport.activate(server)
-      assert next(server) in [:closed, {:error, :econnreset}]
+      assert next(server) in [:closed, {:error, %Vws.Transport.Error{reason: :econnreset}}]
     end
 
     test "on command: both ends see the link closed; new connections are relayed" do

@@ -18,6 +18,8 @@ defmodule Vws.Sim.LineWCTest do
   """
   use ExUnit.Case, async: true
 
+  import Vws.WC.Command, only: [pad4: 1]
+
   alias Vws.{Mailbox, SunComm}
   alias Vws.Sim.Line
   alias Vws.Test.{ObedientPartition, Workstation}
@@ -92,6 +94,4 @@ defmodule Vws.Sim.LineWCTest do
     assert Client.info(client).counters.resends > 5
     assert info.disconnects == 0
   end
-
-  defp pad4(n), do: n |> Integer.to_string() |> String.pad_leading(4, "0")
 end

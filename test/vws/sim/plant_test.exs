@@ -5,7 +5,7 @@ defmodule Vws.Sim.PlantTest do
 
   doctest Vws.Sim.Plant
 
-  # Conversions of priv/sims/plant.exs, written out here so the tests read like a shop engineer
+  # Conversions of priv/plant.exs, written out here so the tests read like a shop engineer
   # reading a voltmeter.
   @closed_v 5.0
   @switch_noise 0.02
@@ -440,7 +440,7 @@ defmodule Vws.Sim.PlantWritesTest do
 
   test "Plant.writes/1 and the [:vws, :sim, :plant, :actuator] events count the same writes" do
     ws = "plant-writes-#{System.unique_integer([:positive])}"
-    plant = start_supervised!({Plant, time_scale: 0, name: Vws.Workstation.via(ws, :plant)})
+    plant = start_supervised!({Plant, time_scale: 0, name: Vws.Names.via(ws, :plant)})
     test = self()
     handler = {__MODULE__, ws}
 

@@ -7,11 +7,12 @@ defmodule Vws.Transport.LoopbackTest do
   def fresh_name, do: "loopback:test-#{System.unique_integer([:positive])}"
 
   test "connecting to a name nobody listens on is refused" do
-    assert Transport.connect(fresh_name()) == {:error, :econnrefused}
+    assert Transport.connect(fresh_name()) ==
+             {:error, %Vws.Transport.Error{reason: :econnrefused}}
   end
 
   test "a name can be listened on once; closing the listener frees it", ctx do
-    assert Transport.listen(ctx.endpoint) == {:error, :eaddrinuse}
+    assert Transport.listen(ctx.endpoint) == {:error, %Vws.Transport.Error{reason: :eaddrinuse}}
     :ok = Transport.close_listener(ctx.listener)
     {:ok, again} = Transport.listen(ctx.endpoint)
     :ok = Transport.close_listener(again)
@@ -29,7 +30,10 @@ defmodule Vws.Transport.LoopbackTest do
 
     assert_receive :listening
     assert_receive {:DOWN, ^monitor, :process, ^pid, :normal}
-    wait_until(fn -> Transport.connect(name) == {:error, :econnrefused} end)
+
+    wait_until(fn ->
+      Transport.connect(name) == {:error, %Vws.Transport.Error{reason: :econnrefused}}
+    end)
   end
 
   test "connections not yet accepted are closed with the listener" do
@@ -37,7 +41,7 @@ defmodule Vws.Transport.LoopbackTest do
     {:ok, client} = Transport.connect(Transport.listener_endpoint(listener))
     :ok = Transport.close_listener(listener)
     assert_closed(client)
-    assert Transport.accept(listener, 100) == {:error, :closed}
+    assert Transport.accept(listener, 100) == {:error, %Vws.Transport.Error{reason: :closed}}
   end
 
   test "connect succeeds before accept, like a TCP backlog, and keeps what was sent" do
@@ -45,7 +49,7 @@ defmodule Vws.Transport.LoopbackTest do
     endpoint = Transport.listener_endpoint(listener)
     {:ok, c1} = Transport.connect(endpoint)
     {:ok, _c2} = Transport.connect(endpoint)
-    assert Transport.connect(endpoint) == {:error, :econnrefused}
+    assert Transport.connect(endpoint) == {:error, %Vws.Transport.Error{reason: :econnrefused}}
     :ok = Transport.send(c1, "early")
     {:ok, s1} = Transport.accept(listener, 1000)
     assert recv_exactly(s1, 5) == "early"
@@ -101,7 +105,7 @@ defmodule Vws.Transport.LoopbackTest do
     pair = client.handle.pair
     wait_until(fn -> not :queue.is_empty(:sys.get_state(pair).server.writers) end)
     :ok = Transport.close(server)
-    assert Task.await(sender) == {:error, :closed}
+    assert Task.await(sender) == {:error, %Vws.Transport.Error{reason: :closed}}
   end
 
   test "thousands of pairs are cheap and leave nothing behind" do

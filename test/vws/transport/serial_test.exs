@@ -44,7 +44,7 @@ defmodule Vws.Transport.SerialTest do
       assert Transport.close(conn) == :ok
       refute Serial.os_alive?(socat_pid(conn))
       assert Transport.close(conn) == :ok
-      assert Transport.send(conn, "x") == {:error, :closed}
+      assert Transport.send(conn, "x") == {:error, %Vws.Transport.Error{reason: :closed}}
     end
   end
 
@@ -93,7 +93,9 @@ defmodule Vws.Transport.SerialTest do
 
     assert Transport.controlling_process(end_b, new_owner) == :ok
     refute end_b.handle.port in elem(Process.info(self(), :links), 1)
-    assert Transport.controlling_process(end_b, self()) == {:error, :not_owner}
+
+    assert Transport.controlling_process(end_b, self()) ==
+             {:error, %Vws.Transport.Error{reason: :not_owner}}
 
     :ok = Transport.send(end_a, "hello")
     send(new_owner, :go)
@@ -152,7 +154,7 @@ defmodule Vws.Transport.SerialTest do
     assert Transport.handle_message(end_a, {port_a, {:exit_status, 0}}) == :closed
 
     assert Transport.handle_message(end_a, {port_a, {:exit_status, 1}}) ==
-             {:error, {:socat_exit, 1}}
+             {:error, %Vws.Transport.Error{reason: {:socat_exit, 1}}}
 
     assert Transport.handle_message(end_a, {:EXIT, port_a, :normal}) == :closed
     assert Transport.handle_message(end_b, {port_a, {:data, "x"}}) == :unknown
@@ -164,14 +166,18 @@ defmodule Vws.Transport.SerialTest do
   test "devices that cannot be opened are refused at connect", ctx do
     regular = Path.join(ctx.dir, "not-a-tty")
     File.write!(regular, "")
-    assert Transport.connect("tty:#{ctx.dir}/missing") == {:error, :enoent}
-    assert Transport.connect("tty:#{regular}") == {:error, :not_a_tty}
+
+    assert Transport.connect("tty:#{ctx.dir}/missing") ==
+             {:error, %Vws.Transport.Error{reason: :enoent}}
+
+    assert Transport.connect("tty:#{regular}") ==
+             {:error, %Vws.Transport.Error{reason: :not_a_tty}}
 
     assert Transport.connect("tty:#{ctx.a}", backend: :modem) ==
-             {:error, {:unknown_backend, :modem}}
+             {:error, %Vws.Transport.Error{reason: {:unknown_backend, :modem}}}
 
     assert Transport.connect("tty:#{ctx.a}", socat: "/nonexistent/socat") ==
-             {:error, :socat_not_found}
+             {:error, %Vws.Transport.Error{reason: :socat_not_found}}
   end
 
   test "without Circuits.UART, :auto means socat" do

@@ -18,7 +18,7 @@ defmodule Vws.Transport.TCPTest do
     assert socket == server.handle
 
     assert Transport.handle_message(server, {:tcp_error, socket, :etimedout}) ==
-             {:error, :etimedout}
+             {:error, %Vws.Transport.Error{reason: :etimedout}}
   end
 
   test "peer names the remote address", %{client: client, endpoint: endpoint} do
@@ -27,11 +27,13 @@ defmodule Vws.Transport.TCPTest do
 
   test "connect to a port nobody listens on is refused", %{listener: listener, endpoint: endpoint} do
     :ok = Transport.close_listener(listener)
-    assert Transport.connect(endpoint, timeout: 1000) == {:error, :econnrefused}
+
+    assert Transport.connect(endpoint, timeout: 1000) ==
+             {:error, %Vws.Transport.Error{reason: :econnrefused}}
   end
 
   test "listening twice on one port with reuseaddr still fails while the first listens",
        %{endpoint: endpoint} do
-    assert {:error, :eaddrinuse} = Transport.listen(endpoint)
+    assert {:error, %Vws.Transport.Error{reason: :eaddrinuse}} = Transport.listen(endpoint)
   end
 end

@@ -4,7 +4,7 @@ defmodule Vws.Sim.Plant.Model do
   simulated time elapsed before each call. Nothing here reads a clock; tests may drive it with
   exact time steps.
 
-      iex> m = Vws.Sim.Plant.Model.new(Vws.Sim.Plant.Config.load(), 1)
+      iex> m = Vws.Sim.Plant.Model.new(Vws.DAQ.ChannelMap.load(), 1)
       iex> {:ok, m} = Vws.Sim.Plant.Model.close_channel(m, :daq1, 206)
       iex> m = Vws.Sim.Plant.Model.advance(m, 2.0)
       iex> Vws.Sim.Plant.Model.snapshot(m).vise.jaw_mm
@@ -47,20 +47,20 @@ defmodule Vws.Sim.Plant.Model do
     * `:part_dropped` — the gripper opened on a part with no free place under it.
   """
 
-  alias Vws.Sim.Plant.Config
+  alias Vws.DAQ.ChannelMap
 
   @eps 1.0e-6
 
-  @type daq :: Config.daq()
+  @type daq :: ChannelMap.daq()
   @type where :: :vise | :gripper | :tray1 | :tray2
   @type fault :: :stuck_valve | :broken_switch | :no_part | :weak_clamp | :sensor_open_circuit
   @type collision :: %{kind: atom, at_s: float, detail: map}
 
   @type t :: %__MODULE__{
-          config: Config.t(),
+          config: ChannelMap.t(),
           rand: :rand.state(),
           t: float,
-          relays: MapSet.t(Config.address()),
+          relays: MapSet.t(ChannelMap.address()),
           faults: %{{fault, term} => map},
           vise: %{jaw_mm: float, force_n: float},
           gripper: %{finger_mm: float, indexer_deg: float},
@@ -108,7 +108,7 @@ defmodule Vws.Sim.Plant.Model do
   position and unlocked, table parked, pallet rams retracted and clamps released, no parts,
   robot in `:safe`. `seed` makes the sensor noise reproducible.
   """
-  @spec new(Config.t(), integer) :: t
+  @spec new(ChannelMap.t(), integer) :: t
   def new(config, seed) do
     m = config.motion
     travel = m.tray_travel_mm * 1.0
@@ -380,7 +380,7 @@ defmodule Vws.Sim.Plant.Model do
   """
   @spec energised(t) :: MapSet.t(atom)
   def energised(m) do
-    for signal <- Map.fetch!(Config.signals(), :actuator),
+    for signal <- Map.fetch!(ChannelMap.signals(), :actuator),
         actuator?(m, signal),
         into: MapSet.new(),
         do: signal
@@ -394,7 +394,7 @@ defmodule Vws.Sim.Plant.Model do
   end
 
   defp relay?(m, signal) do
-    case Config.channel(m.config, signal) do
+    case ChannelMap.channel(m.config, signal) do
       nil -> false
       address -> MapSet.member?(m.relays, address)
     end
@@ -495,7 +495,7 @@ defmodule Vws.Sim.Plant.Model do
   def read_voltage(m, daq, channel) do
     address = {daq, channel}
 
-    case Config.entry(m.config, address) do
+    case ChannelMap.entry(m.config, address) do
       nil ->
         {{:error, :unknown_channel}, m}
 
@@ -519,7 +519,7 @@ defmodule Vws.Sim.Plant.Model do
   def read_resistance(m, daq, channel) do
     address = {daq, channel}
 
-    case Config.entry(m.config, address) do
+    case ChannelMap.entry(m.config, address) do
       nil ->
         {{:error, :unknown_channel}, m}
 
@@ -589,7 +589,7 @@ defmodule Vws.Sim.Plant.Model do
   def channel_closed?(m, daq, channel) do
     address = {daq, channel}
 
-    case Config.entry(m.config, address) do
+    case ChannelMap.entry(m.config, address) do
       nil -> {:error, :unknown_channel}
       %{kind: :actuator} -> {:ok, MapSet.member?(m.relays, address)}
       _ -> {:error, :not_an_actuator}
@@ -597,7 +597,7 @@ defmodule Vws.Sim.Plant.Model do
   end
 
   defp set_relay(m, address, closed?) do
-    case Config.entry(m.config, address) do
+    case ChannelMap.entry(m.config, address) do
       nil ->
         {{:error, :unknown_channel}, m}
 
@@ -652,11 +652,11 @@ defmodule Vws.Sim.Plant.Model do
     address =
       case {Keyword.get(opts, :signal), Keyword.get(opts, :channel)} do
         {nil, channel} -> {Keyword.get(opts, :daq, :daq1), channel}
-        {signal, nil} -> Config.channel(m.config, signal)
+        {signal, nil} -> ChannelMap.channel(m.config, signal)
         _ -> nil
       end
 
-    case address && Config.entry(m.config, address) do
+    case address && ChannelMap.entry(m.config, address) do
       %{kind: kind} when kind != :actuator ->
         {:ok, put_fault(m, {:sensor_open_circuit, address}, %{})}
 
@@ -670,7 +670,7 @@ defmodule Vws.Sim.Plant.Model do
   defp named(opts, key, kind) do
     signal = Keyword.get(opts, key)
 
-    if signal in Map.fetch!(Config.signals(), kind),
+    if signal in Map.fetch!(ChannelMap.signals(), kind),
       do: {:ok, signal},
       else: {:error, :bad_options}
   end

@@ -58,7 +58,7 @@ defmodule Vws.Transport.Loopback.Listener do
     end
   end
 
-  # A pair started by the connecting side (possibly on another node, Vws.Transport.Cell): the
+  # A pair started by the connecting side (possibly on another node, Vws.Cell.Connection): the
   # listener owns its server side until an acceptor takes it, as for a pair it started itself.
   def handle_call({:connect_pair, server_handle}, _from, state) do
     if :queue.len(state.pending) >= state.backlog do

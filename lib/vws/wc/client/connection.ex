@@ -20,6 +20,8 @@ defmodule Vws.WC.Client.Connection do
   alias Vws.WC.{ClientError, Command, CommandString, LineDecoder, Reply}
   alias Vws.WC.Client.Event
 
+  import Vws.WC.Command, only: [pad4: 1]
+
   @log_length 1_000
   @max_line 4_096
 
@@ -474,7 +476,7 @@ defmodule Vws.WC.Client.Connection do
     if data.conn, do: Transport.close(data.conn)
     data = %{data | conn: nil, decoder: LineDecoder.new(max_line: @max_line)}
 
-    case Transport.connect(data.endpoint) do
+    case Vws.Cell.connect(data.endpoint) do
       {:ok, conn} ->
         Transport.activate(conn)
         data = bump(%{data | conn: conn}, :reconnects)
@@ -649,5 +651,4 @@ defmodule Vws.WC.Client.Connection do
   defp set_name(letter), do: letter
 
   defp bump(data, key), do: %{data | counters: Map.update!(data.counters, key, &(&1 + 1))}
-  defp pad4(n), do: Command.pad4(n)
 end

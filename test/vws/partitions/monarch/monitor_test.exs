@@ -49,6 +49,6 @@ defmodule Vws.Partitions.Monarch.MonitorTest do
     assert [{Vws.DNC, opts}, {Vws.Partitions.Monarch.Monitor, monitor}] = links
     assert opts[:endpoint] == "tcp://h:1"
     assert monitor[:interval] == nil
-    assert partitions[:monarch][:link] == Vws.Workstation.via("w", :ge2000)
+    assert partitions[:monarch][:link] == Vws.Names.via("w", :ge2000)
   end
 end

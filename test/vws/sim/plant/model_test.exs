@@ -1,11 +1,12 @@
 defmodule Vws.Sim.Plant.ModelTest do
   use ExUnit.Case, async: true
 
-  alias Vws.Sim.Plant.{Config, Model}
+  alias Vws.DAQ.ChannelMap
+  alias Vws.Sim.Plant.Model
 
   doctest Model
 
-  @config Config.load()
+  @config ChannelMap.load()
 
   defp new, do: Model.new(@config, 1)
 
@@ -82,7 +83,7 @@ defmodule Vws.Sim.Plant.ModelTest do
 
   test "sensor readings follow the channel map's conversions exactly when noise is off" do
     config =
-      Config.load(%{
+      ChannelMap.load(%{
         switch: %{noise: 0},
         noise: %{pot_volts: 0, gauge_ohms: 0, spare_volts: 0}
       })

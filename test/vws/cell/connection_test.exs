@@ -1,10 +1,10 @@
-defmodule Vws.Transport.CellTest do
+defmodule Vws.Cell.ConnectionTest do
   use ExUnit.Case, async: true
 
   alias Vws.{Endpoint, Transport}
   alias Vws.Test.{ObedientPartition, WCPeer, Workstation}
 
-  doctest Vws.Transport.Cell
+  doctest Vws.Cell.Connection
 
   test "cell:<id> parses and prints back" do
     assert Endpoint.parse("cell:VWS-1") == {:ok, %Endpoint{kind: :cell, name: "VWS-1"}}
@@ -15,8 +15,14 @@ defmodule Vws.Transport.CellTest do
   end
 
   test "a cell endpoint cannot listen; an unknown workstation cannot be reached" do
-    assert Transport.listen("cell:x") == {:error, :not_listenable}
-    assert Transport.connect("cell:no-such-workstation") == {:error, :not_found}
+    assert Transport.listen("cell:x") == {:error, %Vws.Transport.Error{reason: :not_listenable}}
+
+    assert Vws.Cell.connect("cell:no-such-workstation") ==
+             {:error, %Vws.Transport.Error{reason: :not_found}}
+
+    # the transports know nothing of the cell: resolving is done above them
+    assert Transport.connect("cell:no-such-workstation") ==
+             {:error, %Vws.Transport.Error{reason: :not_resolved}}
   end
 
   test "the bytes are those of a direct link, both ways" do
@@ -44,7 +50,7 @@ defmodule Vws.Transport.CellTest do
 
   test "the client side hears the close when the workstation goes away" do
     %{ws: ws} = Workstation.start(partitions: ObedientPartition.partitions())
-    {:ok, conn} = Transport.connect("cell:#{ws}")
+    {:ok, conn} = Vws.Cell.connect("cell:#{ws}")
     :ok = Transport.activate(conn)
     :ok = stop_supervised({Vws.Workstation, ws})
     assert_receive msg

@@ -1,10 +1,12 @@
-defmodule Vws.Transport.Cell do
+defmodule Vws.Cell.Connection do
   @moduledoc """
-  `Vws.Transport` for `cell:<id>` endpoints: the WC link of workstation `id`, wherever it runs
+  A connection to a `cell:<id>` endpoint: the WC link of workstation `id`, wherever it runs
   in the cell of connected nodes (`Vws.Cell`). A connection only: a cell endpoint cannot be
   listened on.
 
-  `connect/2` asks the cell where the workstation's SUN_COMM listens (`Vws.Cell.resolve/2`) and
+  `cell:` names a workstation, not a place, so it is resolved here, above the transports:
+  `Vws.Cell.connect/2` hands this module to `Vws.Transport.connect/2` as `transport:`, and the
+  transports themselves know nothing of the cell. `connect/2` asks the cell where the workstation's SUN_COMM listens (`Vws.Cell.resolve/2`) and
   connects there:
 
     * a `loopback:` listener, local or on another node: through

@@ -1,9 +1,9 @@
 # VWS plant: the channel map of the two data-acquisition units, the conversion constants
 # between physical quantities and what the DAQs read, and how fast the simulated plant moves.
 #
-# Read by `Vws.Sim.Plant.Config.load/1` (the plant simulator) and by the CEC's drivers (to find
-# a channel by name and turn a reading back into millimetres or newtons). It is one Elixir map,
-# evaluated with `Code.eval_file/1`; edit a number, restart, done.
+# Read by `Vws.DAQ.ChannelMap.load/1`: by the CEC's drivers (to find a channel by name and turn
+# a reading back into millimetres or newtons) and by the plant simulator, which is wired by the
+# product's map. It is one Elixir map, evaluated with `Code.eval_file/1`; edit a number, restart, done.
 #
 # Channel numbers are the DAQ's own: slot digit + two-digit channel (slot 1 = 101..120,
 # slot 2 = 201..220), as they appear in SCPI channel lists, e.g. `MEAS:VOLT:DC? (@101:116)`.

@@ -1,26 +1,26 @@
-defmodule Vws.Sim.Plant.ConfigTest do
+defmodule Vws.DAQ.ChannelMapTest do
   use ExUnit.Case, async: true
 
-  alias Vws.Sim.Plant.Config
+  alias Vws.DAQ.ChannelMap
 
-  doctest Config
+  doctest ChannelMap
 
-  @config Config.load()
+  @config ChannelMap.load()
 
   test "the channel map is checked" do
-    assert Config.channel(@config, :table_park) == {:daq1, 104}
-    assert Config.channel(@config, :nothing) == nil
+    assert ChannelMap.channel(@config, :table_park) == {:daq1, 104}
+    assert ChannelMap.channel(@config, :nothing) == nil
 
     assert_raise ArgumentError, ~r/daq1 channel 118/, fn ->
-      Config.load(%{daq1: %{118 => %{kind: :switch, signal: :vise_jaw_mm}}})
+      ChannelMap.load(%{daq1: %{118 => %{kind: :switch, signal: :vise_jaw_mm}}})
     end
 
     assert_raise ArgumentError, ~r/two channels/, fn ->
-      Config.load(%{daq1: %{118 => %{kind: :switch, signal: :table_park}}})
+      ChannelMap.load(%{daq1: %{118 => %{kind: :switch, signal: :table_park}}})
     end
 
     assert_raise ArgumentError, ~r/volts_per_unit/, fn ->
-      Config.load(%{daq1: %{103 => %{kind: :pot, signal: :vise_jaw_mm, volts_per_unit: nil}}})
+      ChannelMap.load(%{daq1: %{103 => %{kind: :pot, signal: :vise_jaw_mm, volts_per_unit: nil}}})
     end
   end
 
@@ -28,7 +28,7 @@ defmodule Vws.Sim.Plant.ConfigTest do
     wired = @config.channels |> Map.values() |> Enum.map(& &1.signal) |> Enum.sort()
     # :spare is a kind no shipped channel uses any more (116 became CHANGER_1's switch)
     known =
-      Config.signals() |> Map.values() |> Enum.concat() |> List.delete(:spare) |> Enum.sort()
+      ChannelMap.signals() |> Map.values() |> Enum.concat() |> List.delete(:spare) |> Enum.sort()
 
     assert wired == known
 

@@ -1,6 +1,10 @@
-defmodule Vws.Sim.Plant.Config do
+defmodule Vws.DAQ.ChannelMap do
   @moduledoc """
-  The plant's channel map and constants: `priv/sims/plant.exs`, loaded and checked.
+  The plant's channel map and constants: `priv/plant.exs`, loaded and checked.
+
+  The wiring of the DAQs is the product's configuration: the CEC's driver (`Vws.DAQ`) and the
+  hydraulic controller read it from here, and the plant simulator (`Vws.Sim.Plant`) is wired by
+  the same file — the simulator reads the product's map, never the other way round.
 
   The file is one Elixir map (see its comments): `:daq1` and `:daq2` map channel numbers to
   `%{kind: :switch | :pot | :gauge | :spare | :actuator, signal: name, ...}`; `:switch`, `:noise`,
@@ -8,10 +12,10 @@ defmodule Vws.Sim.Plant.Config do
   turns it into a `t:t/0` with the channels keyed `{daq, channel}` and an index from signal name
   to channel, so drivers can say `channel(config, :vise_force_n)` instead of `117`.
 
-      iex> config = Vws.Sim.Plant.Config.load()
-      iex> Vws.Sim.Plant.Config.channel(config, :vise_force_n)
+      iex> config = Vws.DAQ.ChannelMap.load()
+      iex> Vws.DAQ.ChannelMap.channel(config, :vise_force_n)
       {:daq1, 117}
-      iex> Vws.Sim.Plant.Config.channel(config, :swing_clamp1_valve)
+      iex> Vws.DAQ.ChannelMap.channel(config, :swing_clamp1_valve)
       {:daq2, 203}
   """
 
@@ -50,9 +54,9 @@ defmodule Vws.Sim.Plant.Config do
     gauge: [:ohms_at_zero, :ohms_per_newton]
   }
 
-  @doc "The path of the shipped channel map, `priv/sims/plant.exs`."
+  @doc "The path of the shipped channel map, `priv/plant.exs`."
   @spec default_path() :: Path.t()
-  def default_path, do: Path.join(:code.priv_dir(:vws), "sims/plant.exs")
+  def default_path, do: Path.join(:code.priv_dir(:vws), "plant.exs")
 
   @doc "Every signal name a channel may carry, by kind."
   @spec signals() :: %{kind => [atom]}

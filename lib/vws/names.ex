@@ -1,0 +1,48 @@
+defmodule Vws.Names do
+  @moduledoc """
+  Where a workstation's processes are found: every part of workstation `id` is registered in
+  `Vws.Registry` as `{id, role}` (`:workstation`, `:links`, `:partitions`, `:sun_comm`,
+  `:journal`, `:ge2000`, `:val`, a partition's name, …).
+
+  The parts name themselves with `via/2` when they start, and telemetry of a link finds its
+  workstation in its name with `id_of/1`. This module knows nothing of what the parts are, so
+  every layer can use it: the supervisor (`Vws.Workstation`) that starts them sits above them all.
+
+      iex> Vws.Names.via("VWS-1", :sun_comm)
+      {:via, Registry, {Vws.Registry, {"VWS-1", :sun_comm}}}
+      iex> Vws.Names.whereis("no-such-workstation", :sun_comm)
+      nil
+  """
+
+  @doc "The `{:via, Registry, …}` name of part `role` of workstation `id`."
+  @spec via(term, term) :: {:via, Registry, {Vws.Registry, {term, term}}}
+  def via(id, role), do: {:via, Registry, {Vws.Registry, {id, role}}}
+
+  @doc """
+  The workstation id inside a name made for one of its parts (a link's `{:via, Registry, …}`
+  name), or nil for any other name: telemetry metadata of links carries it.
+
+      iex> Vws.Names.id_of({:via, Registry, {Vws.Registry, {"VWS-1", :ge2000}}})
+      "VWS-1"
+      iex> Vws.Names.id_of(self())
+      nil
+  """
+  @spec id_of(term) :: term | nil
+  def id_of({:via, Registry, {Vws.Registry, {id, _role}}}), do: id
+  def id_of(_name), do: nil
+
+  @doc "The pid of a workstation's supervisor or one of its parts, or nil."
+  @spec whereis(term, term) :: pid | nil
+  def whereis(id, role \\ :workstation) do
+    case Registry.lookup(Vws.Registry, {id, role}) do
+      [{pid, _}] -> pid
+      [] -> nil
+    end
+  end
+
+  @doc "The ids of the workstations running on this node, sorted."
+  @spec workstations() :: [term]
+  def workstations do
+    Registry.select(Vws.Registry, [{{{:"$1", :workstation}, :_, :_}, [], [:"$1"]}]) |> Enum.sort()
+  end
+end
