@@ -45,7 +45,7 @@ defmodule Vws.Telemetry do
   | `[:vws, :monarch, :request_again]` | `count` | `workstation, operation, reason` |
   | `[:vws, :dnc, :retry]` | `count` | `link, workstation, role, kind, block` |
   | `[:vws, :dnc, :transmission]` | `duration, blocks, bytes` | `link, workstation, role, direction, result` |
-  | `[:vws, :dnc, :progress]` | `blocks, bytes, chars_per_s, retries` | `link, workstation, role, program, direction, operation, total_blocks, total_bytes, eta_s, ended` (false, or `:ok`/the failure; an NC program's transfer: every block, and its end; `Vws.DNC.Progress`) |
+  | `[:vws, :dnc, :progress]` | `blocks, bytes, program_bytes, chars_per_s, retries` | `link, workstation, role, program, direction, operation, total_blocks, total_bytes, total_program_bytes, eta_s, ended` (false, or `:ok`/the failure; an NC program's transfer: every block, and its end; `Vws.DNC.Progress`) |
   | `[:vws, :monarch, :program_received]` | `bytes` | `workstation, program, from` (`:machine`), `result`: a program the operator sent from the machine |
   | `[:vws, :web, :request]` | `duration, bytes` | `method, path, status, port` |
   | `[:vws, :hpib, :connected]` / `:disconnected` | `count` | `bus, address, endpoint` (+ `reason`) |
