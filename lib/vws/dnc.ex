@@ -94,7 +94,7 @@ defmodule Vws.DNC do
   | `[:vws, :dnc, :retry]` | `count` | `link, workstation, role, kind` (`:nak_received`, `:nak_sent`, `:wack_received`, `:no_reply`, `:lost_reply`, `:duplicate_received`, `:eot_again`), `block` |
   | `[:vws, :dnc, :transmission]` | `duration` (native), `blocks`, `bytes` | `link, workstation, role, direction, result` (+ `kind`) |
 
-  | `[:vws, :dnc, :progress]` | `blocks, bytes, chars_per_s, retries` | `link, workstation, role, program, operation, direction, total_blocks, total_bytes, eta_s, ended` (false, or `:ok`/the failure) |
+  | `[:vws, :dnc, :progress]` | `blocks, bytes, program_bytes, chars_per_s, retries` | `link, workstation, role, program, operation, direction, total_blocks, total_bytes, total_program_bytes, eta_s, ended` (false, or `:ok`/the failure) |
 
   ## Transfer progress
 
@@ -105,7 +105,7 @@ defmodule Vws.DNC do
 
       {:vws_event, workstation, :dnc_progress,
        %{link, program, operation, direction, blocks, total_blocks, bytes, total_bytes,
-         chars_per_s, eta_s, retries, ended}}
+         program_bytes, total_program_bytes, chars_per_s, eta_s, retries, ended}}
 
   (`total_*` nil for a reception; `ended` false while it runs, and once, at its end, `:ok` or
   the reason it failed, with its last figures). `progress/1`

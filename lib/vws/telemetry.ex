@@ -83,7 +83,7 @@ defmodule Vws.Telemetry do
     {[:vws, :dnc, :transmission], [:duration, :blocks, :bytes],
      [:link, :workstation, :role, :direction, :kind, :result],
      "a whole DNC transmission ended (`kind` on `:out`)"},
-    {[:vws, :dnc, :progress], [:blocks, :bytes, :chars_per_s, :retries],
+    {[:vws, :dnc, :progress], [:blocks, :bytes, :program_bytes, :chars_per_s, :retries],
      [
        :link,
        :workstation,
@@ -93,6 +93,7 @@ defmodule Vws.Telemetry do
        :direction,
        :total_blocks,
        :total_bytes,
+       :total_program_bytes,
        :eta_s,
        :ended
      ],

@@ -121,11 +121,11 @@ defmodule Mix.Tasks.Vws.DripFeed do
 
       nil ->
         case DNC.progress(link) do
-          %{total_bytes: total} = p when is_integer(total) ->
+          %{total_program_bytes: total} = p when is_integer(total) ->
             eta = if p.eta_s, do: "#{p.eta_s} s", else: "unknown"
 
             Mix.shell().info(
-              "  #{p.bytes}/#{total} bytes, block #{p.blocks}/#{p.total_blocks}, " <>
+              "  #{p.program_bytes}/#{total} bytes, block #{p.blocks}/#{p.total_blocks}, " <>
                 "#{p.chars_per_s} chars/s, ETA #{eta}, #{p.retries} retries"
             )
 

@@ -360,6 +360,8 @@ defmodule Vws.DNC.Link do
       total_blocks: p.total_blocks,
       bytes: p.bytes,
       total_bytes: p.total_bytes,
+      program_bytes: p.program_bytes,
+      total_program_bytes: p.total_program_bytes,
       chars_per_s: p.chars_per_s,
       eta_s: p.eta_s,
       retries: p.retries,
@@ -369,8 +371,8 @@ defmodule Vws.DNC.Link do
     emit(
       data,
       :progress,
-      Map.drop(payload, [:link, :blocks, :bytes, :chars_per_s, :retries]),
-      Map.take(payload, [:blocks, :bytes, :chars_per_s, :retries])
+      Map.drop(payload, [:link, :blocks, :bytes, :program_bytes, :chars_per_s, :retries]),
+      Map.take(payload, [:blocks, :bytes, :program_bytes, :chars_per_s, :retries])
     )
 
     case Vws.Names.id_of(data.name) do

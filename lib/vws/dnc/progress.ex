@@ -6,10 +6,11 @@ defmodule Vws.DNC.Progress do
     * `direction` — `:out` (this end sends) or `:in`; `command` — the command block
       (`%Vws.DNC.Frame.Command{}`, nil for text without a command); `program` — the file it names
       (its text, trimmed; nil when it names none)
-    * `blocks`, `total_blocks`, `bytes`, `total_bytes` — text blocks and text bytes acknowledged
-      so far and in all (the totals of a reception are nil: not known before its end)
+    * `blocks`, `total_blocks` — blocks acknowledged so far and in all; `bytes`, `total_bytes` —
+      their bytes on the line (a reception: its text); `program_bytes`, `total_program_bytes` —
+      the program's text bytes (the totals of a reception are nil: not known before its end)
     * `retries` — NAKs, ENQs, WACKs and copies in this transfer so far
-    * `started_ms` (monotonic ms), `elapsed_ms`, `chars_per_s` (text bytes a second so far) and
+    * `started_ms` (monotonic ms), `elapsed_ms`, `chars_per_s` (bytes a second so far) and
       `eta_s` (seconds left at that rate; nil when the total or the rate is unknown)
 
   Pure: computed from a `Vws.DNC.Session` and the time.
@@ -49,6 +50,8 @@ defmodule Vws.DNC.Progress do
       total_blocks: t.total_blocks,
       bytes: t.bytes,
       total_bytes: t.total_bytes,
+      program_bytes: t.program_bytes,
+      total_program_bytes: t.total_program_bytes,
       retries: t.retries,
       started_ms: started_ms,
       elapsed_ms: elapsed,

@@ -224,8 +224,9 @@ defmodule Vws.DNC.Session do
   def handle_timeout(s, tag, now), do: timeout(s.state, tag, s, now) |> done()
 
   @doc """
-  The transmission under way: direction, command, blocks and bytes done and in all (a
-  reception's total is not known before its end), retries, and its start (`now` units).
+  The transmission under way: direction, command, blocks and bytes (on the line, blocks
+  whole) done and in all, the program's text bytes done and in all (a reception's totals are
+  not known before its end), retries, and its start (`now` units).
   """
   @spec transfer(t) :: map | nil
   def transfer(%{tx: %{frames: frames} = tx} = s) do
@@ -236,8 +237,10 @@ defmodule Vws.DNC.Session do
       command: s.req && s.req.command,
       blocks: tx.acked,
       total_blocks: total,
-      bytes: tx.text_acked,
-      total_bytes: tx.text_bytes,
+      bytes: tx.bytes_acked,
+      total_bytes: tx.bytes,
+      program_bytes: tx.text_acked,
+      total_program_bytes: tx.text_bytes,
       retries: tx.retries,
       started: tx.started
     }
@@ -251,6 +254,8 @@ defmodule Vws.DNC.Session do
       total_blocks: nil,
       bytes: rx.bytes,
       total_bytes: nil,
+      program_bytes: rx.bytes,
+      total_program_bytes: nil,
       retries: rx.retries,
       started: rx.started
     }
@@ -296,7 +301,19 @@ defmodule Vws.DNC.Session do
     cond do
       ack == expected_ack(block) ->
         text = tx.text_acked + elem(tx.sizes, block - 1)
-        tx = %{tx | acked: block, text_acked: text, naks: 0, enqs: 0, wacks: 0, polled: false}
+        sent = tx.bytes_acked + IO.iodata_length(elem(tx.frames, block - 1))
+
+        tx = %{
+          tx
+          | acked: block,
+            text_acked: text,
+            bytes_acked: sent,
+            naks: 0,
+            enqs: 0,
+            wacks: 0,
+            polled: false
+        }
+
         send_next(%{s | tx: tx}, now)
 
       tx.polled ->
@@ -457,6 +474,7 @@ defmodule Vws.DNC.Session do
       started: now,
       text_acked: 0,
       text_bytes: Enum.sum(sizes),
+      bytes_acked: 0,
       bytes: Enum.reduce(frames, 0, &(IO.iodata_length(&1) + &2))
     }
   end

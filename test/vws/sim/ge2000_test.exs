@@ -107,9 +107,11 @@ defmodule Vws.Sim.GE2000Test do
   end
 
   # The line model: bytes reach the machine no faster than the baud rate carries them. Measured
-  # on the monotonic clock from before the block is sent to its acknowledgement: a lower bound,
-  # which a slow machine only makes longer (the line's own pacing is tested in simulated time
-  # in test/vws/sim/line/schedule_test.exs).
+  # on the monotonic clock over a whole stop-and-wait exchange, from before its first byte: the
+  # line takes each reply to start no earlier than the bytes it answers were due, so the time is
+  # at least every character's, one after the other — a lower bound, which a slow machine only
+  # makes longer (the line's own pacing is tested in simulated time in
+  # test/vws/sim/line/schedule_test.exs).
   test "pacing: bytes reach the machine no faster than the baud rate allows" do
     sim = start_supervised!({GE2000, pace: 4800}, id: :paced)
     {:ok, peer} = Vws.Test.DNCPeer.connect(GE2000.endpoint(sim))
@@ -118,16 +120,17 @@ defmodule Vws.Sim.GE2000Test do
     command = Vws.DNC.Frame.encode(s(:part_program, "000009.PRO")) |> IO.iodata_to_binary()
     block = Vws.DNC.Frame.encode(%Vws.DNC.Frame.Text{text: text}) |> IO.iodata_to_binary()
 
+    started = System.monotonic_time(:microsecond)
     :ok = Vws.Test.DNCPeer.send_raw(peer, <<0x05>>)
     assert Vws.Test.DNCPeer.recv(peer, 2) == <<0x10, ?0>>
     :ok = Vws.Test.DNCPeer.send_raw(peer, command)
     assert Vws.Test.DNCPeer.recv(peer, 2) == <<0x10, ?1>>
-    started = System.monotonic_time(:microsecond)
     :ok = Vws.Test.DNCPeer.send_raw(peer, block)
     assert Vws.Test.DNCPeer.recv(peer, 2) == <<0x10, ?0>>
     elapsed = System.monotonic_time(:microsecond) - started
-    # the block's characters to the machine and the two of its acknowledgement back, 10 bits each
-    assert elapsed >= div((byte_size(block) + 2) * 10 * 1_000_000, 4800)
+    # ENQ, its ACK0, the command block, its ACK1, the text block, its ACK0: 10 bits a character
+    chars = 1 + 2 + byte_size(command) + 2 + byte_size(block) + 2
+    assert elapsed >= div(chars * 10 * 1_000_000, 4800)
     :ok = Vws.Test.DNCPeer.send_raw(peer, <<0x04>>)
     assert eventually(fn -> GE2000.program(sim, "000009.PRO") == text end)
   end

@@ -163,8 +163,9 @@ defmodule Vws.Partitions.Monarch.DripFeedTest do
     assert last.program == "004711.PRO"
     assert last.operation == :download_execute
     assert last.direction == :out
-    assert last.bytes == byte_size(text)
-    assert last.total_bytes == byte_size(text)
+    assert last.program_bytes == byte_size(text)
+    assert last.total_program_bytes == byte_size(text)
+    assert last.bytes == last.total_bytes
     assert last.blocks == last.total_blocks
     blocks = running |> Enum.reverse() |> Enum.map(& &1.blocks)
     assert blocks == Enum.sort(blocks)
