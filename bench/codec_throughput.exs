@@ -13,9 +13,9 @@ Code.require_file("support.exs", __DIR__)
 Logger.configure(level: :error)
 
 alias Vws.Bench
-alias Vws.WC.{CommandString, LineDecoder, Reply}
-alias Vws.DDCMP.Frame, as: DDCMP
-alias Vws.DNC.Frame, as: DNC
+alias Vws.Codecs.WC.{CommandString, LineDecoder, Reply}
+alias Vws.Links.DDCMP.Frame, as: DDCMP
+alias Vws.Links.DNC.Frame, as: DNC
 
 {opts, _, _} = OptionParser.parse(System.argv(), strict: [ms: :integer])
 ms = Keyword.get(opts, :ms, 1_000)
@@ -67,7 +67,7 @@ dnc_wire = byte_size(IO.iodata_to_binary(DNC.encode(%DNC.Text{text: text}, max_t
 
 # --- CRC-16 over 1 MiB --------------------------------------------------------------------------
 mib = :crypto.strong_rand_bytes(1_048_576)
-crc = fn -> Vws.CRC16.compute(mib) end
+crc = fn -> Vws.Codecs.CRC16.compute(mib) end
 
 measure = fn fun -> Bench.best_of(5, ms, fun) end
 rate = fn {calls, us} -> calls * 1_000_000 / us end

@@ -8,9 +8,9 @@
 
 Logger.configure(level: :warning)
 
-alias Vws.DNC
-alias Vws.DNC.{Frame, Program}
-alias Vws.DNC.Frame.{Command, Text}
+alias Vws.Links.DNC
+alias Vws.Links.DNC.{Frame, Program}
+alias Vws.Links.DNC.Frame.{Command, Text}
 alias Vws.Sim.GE2000
 
 {opts, _, _} =

@@ -18,9 +18,9 @@
 Code.require_file("support.exs", __DIR__)
 Logger.configure(level: :warning)
 
-alias Vws.DNC
-alias Vws.DNC.{Frame, Program}
-alias Vws.DNC.Frame.{Command, Text}
+alias Vws.Links.DNC
+alias Vws.Links.DNC.{Frame, Program}
+alias Vws.Links.DNC.Frame.{Command, Text}
 alias Vws.Sim.GE2000
 
 {opts, _, _} =
@@ -167,6 +167,6 @@ DNC drip feed benchmark (E, download and execute)
   measured       #{Float.round(elapsed_s, 1)} s (#{Float.round(wall_s, 1)} s wall), of which #{Float.round(paused_s * scale, 1)} s held by the machine's WACKs (#{counters.wacks_received} WACKs)
   throughput     #{Float.round(share_sending, 2)} % of the line's limit while the CEC could send (goal ≥ 98 %: #{if share_sending >= 98.0, do: "MET", else: "MISSED"}); #{Float.round(share_all, 2)} % overall
   buffer         ran empty #{drip.underruns} times (#{drip.starved_ms * scale} ms in all, machine time) — #{if drip.underruns == 0, do: "never empty: MET", else: "MISSED"}; at most #{drip.max_fill} of #{memory} bytes
-  exact          #{drip.state == :done and drip.received == byte_size(text) and drip.crc == Vws.CRC16.compute(text)} (#{drip.received} bytes received, #{drip.ran} run, CRC #{Integer.to_string(drip.crc, 16)})
+  exact          #{drip.state == :done and drip.received == byte_size(text) and drip.crc == Vws.Codecs.CRC16.compute(text)} (#{drip.received} bytes received, #{drip.ran} run, CRC #{Integer.to_string(drip.crc, 16)})
   retries        #{counters.retransmissions} retransmissions, #{counters.enqs_sent - 1} ENQ polls
 """)

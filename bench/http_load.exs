@@ -1,5 +1,5 @@
 # The WC link under HTTP load (issue 16): WC status round-trip p99 on a node whose dashboard
-# (`Vws.Web`) is idle, then while --clients concurrent HTTP clients hammer it.
+# (`Vws.Ops.Web`) is idle, then while --clients concurrent HTTP clients hammer it.
 #
 #     mix run bench/http_load.exs [--clients 1000] [--samples 2000] [--seconds 20] [--path /api/state] [--nice]
 #
@@ -34,24 +34,24 @@ path = Keyword.get(opts, :path, "/api/state")
 nice = Keyword.get(opts, :nice, false)
 machine = Bench.machine()
 
-{:ok, _} = Vws.Workstation.start(id: "HTTPLOAD", wc: "tcp://127.0.0.1:0", devices: [])
+{:ok, _} = Vws.CEC.Workstation.start(id: "HTTPLOAD", wc: "tcp://127.0.0.1:0", devices: [])
 
 wc_port =
   Enum.find_value(1..500, fn _ ->
     Process.sleep(10)
-    endpoint = Vws.SunComm.listening("HTTPLOAD")
+    endpoint = Vws.CEC.SunComm.listening("HTTPLOAD")
     endpoint && endpoint.port
   end)
 
-{:ok, web} = Vws.Web.start(port: 0)
-http_port = Vws.Web.port(web)
+{:ok, web} = Vws.Ops.Web.start(port: 0)
+http_port = Vws.Ops.Web.port(web)
 
 status =
-  %Vws.WC.CommandString{
+  %Vws.Codecs.WC.CommandString{
     sequence: 1,
-    commands: [%Vws.WC.Command{letter: "S", set: :status, number: 1, text: "ROBOT_CMD"}]
+    commands: [%Vws.Codecs.WC.Command{letter: "S", set: :status, number: 1, text: "ROBOT_CMD"}]
   }
-  |> Vws.WC.CommandString.encode()
+  |> Vws.Codecs.WC.CommandString.encode()
   |> IO.iodata_to_binary()
 
 {:ok, wc} =

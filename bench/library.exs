@@ -13,7 +13,7 @@
 Code.require_file("support.exs", __DIR__)
 Logger.configure(level: :warning)
 
-alias Vws.DNC.Library
+alias Vws.Links.DNC.Library
 
 {opts, _, _} =
   OptionParser.parse(System.argv(), strict: [programs: :integer, dir: :string, live: :boolean])
@@ -91,7 +91,7 @@ IO.puts(
 
 # the machine holds every program's version 1 (so some are the same, 200 not the latest)
 files = for i <- 1..n, do: {String.pad_leading("#{i}", 6, "0") <> ".PRO", text.(i, 1)}
-entries = Map.new(files, fn {name, t} -> {name, Vws.DNC.Report.entry(name, t)} end)
+entries = Map.new(files, fn {name, t} -> {name, Vws.Links.DNC.Report.entry(name, t)} end)
 {rec_us, :ok} = :timer.tc(fn -> Library.record_machine(lib, entries) end)
 IO.puts("  record         the machine's directory of #{n} entries: #{ms.(rec_us)}")
 
@@ -126,16 +126,16 @@ if Keyword.get(opts, :live, true) do
   id = "BENCH-LIB"
 
   {:ok, _} =
-    Vws.Workstation.start(
+    Vws.CEC.Workstation.start(
       id: id,
       wc: nil,
       devices: [ge2000: [endpoint: Vws.Sim.GE2000.endpoint(sim), status_interval: nil]],
       library: dir
     )
 
-  link = Vws.Workstation.whereis(id, :ge2000)
+  link = Vws.CEC.Workstation.whereis(id, :ge2000)
 
-  Stream.repeatedly(fn -> Process.sleep(20) && Vws.DNC.info(link).state end)
+  Stream.repeatedly(fn -> Process.sleep(20) && Vws.Links.DNC.info(link).state end)
   |> Enum.find(&(&1 == :idle))
 
   live =
@@ -154,14 +154,14 @@ if Keyword.get(opts, :live, true) do
 
   :same = hd(c.programs).read_back
   IO.puts("  + read-back    of one program: #{ms.(us)}")
-  Vws.Workstation.stop(id)
+  Vws.CEC.Workstation.stop(id)
 end
 
-{dash_us, dash_cpu, _} = timed.(fn -> Vws.Web.State.library(lib) end)
+{dash_us, dash_cpu, _} = timed.(fn -> Vws.Ops.Web.State.library(lib) end)
 
 IO.puts(
   "  dashboard      the library section of /api/state: #{ms.(dash_us)} (CPU #{dash_cpu} ms); " <>
-    "read again after 10x that (Vws.Web.State.library/2)"
+    "read again after 10x that (Vws.Ops.Web.State.library/2)"
 )
 
 File.rm_rf!(dir)

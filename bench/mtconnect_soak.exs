@@ -17,7 +17,7 @@ Code.require_file("../test/support/mtc_client.ex", __DIR__)
 Logger.configure(level: :error)
 
 alias Vws.Test.MTCClient
-alias Vws.WC.{Client, Runner, Script}
+alias Vws.Peers.WC.{Client, Runner, Script}
 
 {opts, _, _} =
   OptionParser.parse(System.argv(),
@@ -30,11 +30,11 @@ count = Keyword.get(opts, :count, 100)
 pause_ms = Keyword.get(opts, :pause_ms, 200)
 ws = "VWS-SOAK"
 
-{:ok, floor} = Vws.Demo.start_shop_floor(id: ws, wc: "loopback:#{ws}", time_scale: time_scale)
-{:ok, web} = Vws.Web.start_link(port: 0)
-"http://127.0.0.1:" <> rest = Vws.Web.url(web)
+{:ok, floor} = Vws.Ops.Demo.start_shop_floor(id: ws, wc: "loopback:#{ws}", time_scale: time_scale)
+{:ok, web} = Vws.Ops.Web.start_link(port: 0)
+"http://127.0.0.1:" <> rest = Vws.Ops.Web.url(web)
 port = rest |> String.trim_trailing("/") |> String.to_integer()
-{:ok, script} = Script.parse_file(Vws.Demo.default_script())
+{:ok, script} = Script.parse_file(Vws.Ops.Demo.default_script())
 {:ok, client} = Client.connect(floor.wc)
 
 started = System.monotonic_time(:millisecond)

@@ -4,7 +4,7 @@
 #                             [--time-scale 20] [--all]
 #
 # For each count N (ascending) it starts N workstations, each on loopback endpoints only (no
-# socket anywhere), connects one WC (`Vws.WC.Client`) to each and lets every WC run its cycle
+# socket anywhere), connects one WC (`Vws.Peers.WC.Client`) to each and lets every WC run its cycle
 # script again and again for --seconds; then it stops them all and goes on to the next N, unless
 # a cycle failed (--all goes on anyway).
 #
@@ -35,7 +35,7 @@ Logger.configure(level: :error)
 
 alias Vws.Bench
 alias Vws.Partitions.VwsStatus
-alias Vws.WC.{Client, Runner, Script}
+alias Vws.Peers.WC.{Client, Runner, Script}
 
 {opts, _, _} =
   OptionParser.parse(System.argv(),
@@ -65,7 +65,7 @@ counts =
 defmodule Bench.Obedient do
   @moduledoc false
   # A partition that takes any command and ends it DONE at once.
-  @behaviour Vws.Partition
+  @behaviour Vws.CEC.Partition
   @impl true
   def device, do: "NOTHING"
   @impl true
@@ -117,7 +117,7 @@ cec_memory = fn ws ->
     end)
   end
 
-  case Vws.Workstation.whereis(ws) do
+  case Vws.CEC.Workstation.whereis(ws) do
     nil ->
       0
 
@@ -171,9 +171,9 @@ start_floor = fn ws ->
        mhs: true}
     )
 
-  :ok = Vws.HydraulicController.await_ready(Vws.Sim.Floor.hydraulic_controller(ws), 30_000)
+  :ok = Vws.Peers.HydraulicController.await_ready(Vws.Sim.Floor.hydraulic_controller(ws), 30_000)
   :ok = Vws.Sim.Plant.set_part(Vws.Sim.Floor.plant(ws), :tray1, true)
-  {links, partitions} = Vws.Workstation.device_links(ws, Vws.Sim.Floor.devices(ws), [])
+  {links, partitions} = Vws.CEC.Workstation.device_links(ws, Vws.Sim.Floor.devices(ws), [])
   %{links: links, partitions: partitions}
 end
 
@@ -195,10 +195,10 @@ wait_until = fn fun, ms ->
 end
 
 ready? = fn ws ->
-  Vws.SunComm.listening(ws) != nil and
+  Vws.CEC.SunComm.listening(ws) != nil and
     (floor != "sim" or
-       (not String.starts_with?(Vws.Status.answer(ws, "GRIPPER"), "NO DATA") and
-          Vws.Status.answer(ws, "MONARCH") == "IDLE"))
+       (not String.starts_with?(Vws.CEC.SunComm.Status.answer(ws, "GRIPPER"), "NO DATA") and
+          Vws.CEC.SunComm.Status.answer(ws, "MONARCH") == "IDLE"))
 end
 
 step = fn n ->
@@ -216,7 +216,7 @@ step = fn n ->
 
   for ws <- ws_ids do
     {:ok, _} =
-      Vws.Workstation.start(
+      Vws.CEC.Workstation.start(
         id: ws,
         wc: "loopback:wc-#{ws}",
         links: wiring[ws].links,
@@ -302,8 +302,8 @@ step = fn n ->
 
   for {_ws, client} <- clients, do: Client.close(client)
   # the polls stop first, so the rest of the node gets the CPU back to stop the workstations
-  for ws <- ws_ids, pid = Vws.Partition.whereis(ws, :vws_status), do: :sys.suspend(pid)
-  for ws <- ws_ids, do: Vws.Workstation.stop(ws)
+  for ws <- ws_ids, pid = Vws.CEC.Partition.whereis(ws, :vws_status), do: :sys.suspend(pid)
+  for ws <- ws_ids, do: Vws.CEC.Workstation.stop(ws)
 
   for {_, pid, _, _} <- DynamicSupervisor.which_children(sims_sup),
       do: DynamicSupervisor.terminate_child(sims_sup, pid)

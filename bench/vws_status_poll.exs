@@ -102,7 +102,7 @@ end
 start_workstations = fn ids, wake ->
   for ws <- ids do
     {:ok, _} =
-      Vws.Workstation.start(
+      Vws.CEC.Workstation.start(
         id: ws,
         wc: nil,
         devices: [
@@ -190,32 +190,35 @@ end
 
 teardown = fn r ->
   # the polls stop first, so the rest of the node gets the CPU back to stop the workstations
-  for ws <- r.ids, pid = Vws.Partition.whereis(ws, :vws_status), do: :sys.suspend(pid)
-  for ws <- r.ids, do: Vws.Workstation.stop(ws)
+  for ws <- r.ids, pid = Vws.CEC.Partition.whereis(ws, :vws_status), do: :sys.suspend(pid)
+  for ws <- r.ids, do: Vws.CEC.Workstation.stop(ws)
   stop_floors.()
 end
 
 # The same poll back to back, as fast as it goes (one process: HPIB request, readings, texts,
 # mailbox): the BEAM never idles, so its OS CPU time per poll is the cost of a poll.
 back_to_back = fn ws ->
-  daq = Vws.DAQ.new()
-  commands = Vws.DAQ.poll_commands(daq)
+  daq = Vws.Links.DAQ.new()
+  commands = Vws.Links.DAQ.poll_commands(daq)
   n = 1_000
 
   one_poll = fn ->
-    {:ok, answers} = Vws.HPIB.transaction({ws, 9}, commands, 1_000)
-    r = Vws.DAQ.readings(daq, answers)
-    for {loc, text} <- Vws.DAQ.DeviceStatus.texts(r), do: Vws.Mailbox.put_device(ws, loc, text)
-    Vws.Mailbox.put_device(ws, 12, r)
+    {:ok, answers} = Vws.Links.HPIB.transaction({ws, 9}, commands, 1_000)
+    r = Vws.Links.DAQ.readings(daq, answers)
+
+    for {loc, text} <- Vws.Links.DAQ.DeviceStatus.texts(r),
+        do: Vws.CEC.Mailbox.put_device(ws, loc, text)
+
+    Vws.CEC.Mailbox.put_device(ws, 12, r)
   end
 
-  Vws.Workstation.stop(ws)
+  Vws.CEC.Workstation.stop(ws)
 
   {:ok, _} =
-    Vws.Workstation.start(id: ws, wc: nil, devices: [daq1: Vws.Sim.Floor.daq1_endpoint(ws)])
+    Vws.CEC.Workstation.start(id: ws, wc: nil, devices: [daq1: Vws.Sim.Floor.daq1_endpoint(ws)])
 
-  :ok = Vws.HPIB.await_connected({ws, 9}, 2_000)
-  :ok = :sys.suspend(Vws.Partition.whereis(ws, :vws_status))
+  :ok = Vws.Links.HPIB.await_connected({ws, 9}, 2_000)
+  :ok = :sys.suspend(Vws.CEC.Partition.whereis(ws, :vws_status))
   {cpu0, _} = :erlang.statistics(:runtime)
   {wall_us, _} = :timer.tc(fn -> for _ <- 1..n, do: one_poll.() end)
   {cpu1, _} = :erlang.statistics(:runtime)

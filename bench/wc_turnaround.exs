@@ -1,6 +1,6 @@
 # WC turnaround: a status string sent to SUN_COMM, timed from the moment its last byte is
 # handed to the transport until the first byte of the reply arrives — by a raw client (no
-# Vws.WC.Client, no script runner), with monotonic time, right at the socket or loopback pair.
+# Vws.Peers.WC.Client, no script runner), with monotonic time, right at the socket or loopback pair.
 #
 #     mix run bench/wc_turnaround.exs [--samples 2000] [--workstations 1000] [--poll-ms 100] [--seconds 10]
 #
@@ -17,7 +17,8 @@
 Code.require_file("support.exs", __DIR__)
 Logger.configure(level: :error)
 
-alias Vws.{Bench, Transport}
+alias Vws.Bench
+alias Vws.Links.Transport
 
 {opts, _, _} =
   OptionParser.parse(System.argv(),
@@ -31,11 +32,11 @@ seconds = Keyword.get(opts, :seconds, 10)
 machine = Bench.machine()
 
 status =
-  %Vws.WC.CommandString{
+  %Vws.Codecs.WC.CommandString{
     sequence: 1,
-    commands: [%Vws.WC.Command{letter: "S", set: :status, number: 1, text: "ROBOT_CMD"}]
+    commands: [%Vws.Codecs.WC.Command{letter: "S", set: :status, number: 1, text: "ROBOT_CMD"}]
   }
-  |> Vws.WC.CommandString.encode()
+  |> Vws.Codecs.WC.CommandString.encode()
   |> IO.iodata_to_binary()
 
 defmodule Raw do
@@ -44,12 +45,12 @@ defmodule Raw do
 
   def connect(endpoint) do
     {:ok, conn} = Transport.connect(endpoint)
-    if conn.module == Vws.Transport.TCP, do: :ok = :inet.setopts(conn.handle, active: false)
+    if conn.module == Vws.Links.Transport.TCP, do: :ok = :inet.setopts(conn.handle, active: false)
     conn
   end
 
   # One exchange: µs from the send to the first byte, after reading the whole reply.
-  def exchange(%{module: Vws.Transport.TCP, handle: socket}, line) do
+  def exchange(%{module: Vws.Links.Transport.TCP, handle: socket}, line) do
     t0 = System.monotonic_time()
     :ok = :gen_tcp.send(socket, line)
     {:ok, first} = :gen_tcp.recv(socket, 0, 5_000)
@@ -113,7 +114,7 @@ end
 
 wait_listening = fn ws ->
   Stream.repeatedly(fn ->
-    case Vws.SunComm.listening(ws) do
+    case Vws.CEC.SunComm.listening(ws) do
       nil -> Process.sleep(5) && nil
       endpoint -> endpoint
     end
@@ -122,7 +123,7 @@ wait_listening = fn ws ->
 end
 
 start_ws = fn id, wc ->
-  {:ok, _} = Vws.Workstation.start(id: id, wc: wc)
+  {:ok, _} = Vws.CEC.Workstation.start(id: id, wc: wc)
   wait_listening.(id)
 end
 
@@ -169,10 +170,10 @@ end
 # --- 1. alone -----------------------------------------------------------------------------------
 tcp_ep = start_ws.("ALONE-TCP", "tcp://127.0.0.1:0")
 alone_tcp = alone.(tcp_ep)
-Vws.Workstation.stop("ALONE-TCP")
+Vws.CEC.Workstation.stop("ALONE-TCP")
 lo_ep = start_ws.("ALONE-LO", "loopback:alone")
 alone_lo = alone.(lo_ep)
-Vws.Workstation.stop("ALONE-LO")
+Vws.CEC.Workstation.stop("ALONE-LO")
 floor_tcp = alone.(echo.("tcp://127.0.0.1:0"))
 floor_lo = alone.(echo.("loopback:echo"))
 
@@ -187,7 +188,7 @@ endpoints =
   |> Enum.with_index()
   |> Enum.map(fn {id, i} ->
     wc = if i == 0, do: "tcp://127.0.0.1:0", else: "loopback:wc-#{id}"
-    {:ok, _} = Vws.Workstation.start(id: id, wc: wc)
+    {:ok, _} = Vws.CEC.Workstation.start(id: id, wc: wc)
     id
   end)
   |> Enum.map(wait_listening)

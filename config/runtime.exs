@@ -10,7 +10,7 @@ import Config
 #                     only; required when VWS_WC listens on another address)
 #   VWS_BCC           sum (default) or xor: the WC link's block check
 #   VWS_DATA_DIR      the data directory (default $XDG_STATE_HOME/vws, else ~/.local/state/vws);
-#                     the journal is in journal/<VWS_ID> of it (Vws.DataDir)
+#                     the journal is in journal/<VWS_ID> of it (Vws.Ops.DataDir)
 #   VWS_JOURNAL_DIR   the command journal's directory instead; "off": no journal
 #   VWS_LIBRARY_DIR   the program library's directory instead of library/<VWS_ID>; "off": none
 #   VWS_ROBOT         the VAL II's supervisory port (tty:/dev/ttyS1?baud=9600 or tcp://…)
@@ -22,7 +22,7 @@ import Config
 #   VWS_HTTP_BIND     the address they listen on (default 127.0.0.1)
 #   VWS_HTTP_TOKEN    enables the dashboard's control actions for requests carrying it
 #   VWS_LOG_DIR       the log also goes to DIR/vws.log, rotated at 10 MB, 10 old files kept
-#                     (Vws.LogFile); a release's default is its own log/ directory; "off": none
+#                     (Vws.Ops.LogFile); a release's default is its own log/ directory; "off": none
 #   VWS_LOG_LEVEL     debug, info (a release's default), notice, warning or error
 #   VWS_HTTP_READ_TOKEN  every read of the dashboard and MTConnect agent needs it (Basic password)
 env = fn name ->
@@ -66,9 +66,9 @@ if wc = env.("VWS_WC") do
     id: env.("VWS_ID") || "VWS",
     wc: wc,
     # on by default (issue 15): a restart forgets nothing acknowledged
-    journal: Vws.DataDir.journal_dir(env.("VWS_ID") || "VWS", :default),
+    journal: Vws.Ops.DataDir.journal_dir(env.("VWS_ID") || "VWS", :default),
     # the program library (issue 18), library/<VWS_ID> of the data directory (VWS_LIBRARY_DIR)
-    library: Vws.DataDir.library_dir(env.("VWS_ID") || "VWS", :default),
+    library: Vws.Ops.DataDir.library_dir(env.("VWS_ID") || "VWS", :default),
     sun_comm: [bcc: bcc, allow: env.("VWS_WC_ALLOW")],
     devices: devices
 end
@@ -90,7 +90,7 @@ if http_port do
     read_token: env.("VWS_HTTP_READ_TOKEN")
 end
 
-# The log: to rotating files as well as the console (Vws.LogFile), at the level asked.
+# The log: to rotating files as well as the console (Vws.Ops.LogFile), at the level asked.
 if config_env() != :test do
   log_dir =
     case {env.("VWS_LOG_DIR"), System.get_env("RELEASE_ROOT")} do

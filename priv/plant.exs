@@ -1,7 +1,7 @@
 # VWS plant: the channel map of the two data-acquisition units, the conversion constants
 # between physical quantities and what the DAQs read, and how fast the simulated plant moves.
 #
-# Read by `Vws.DAQ.ChannelMap.load/1`: by the CEC's drivers (to find a channel by name and turn
+# Read by `Vws.Links.DAQ.ChannelMap.load/1`: by the CEC's drivers (to find a channel by name and turn
 # a reading back into millimetres or newtons) and by the plant simulator, which is wired by the
 # product's map. It is one Elixir map, evaluated with `Code.eval_file/1`; edit a number, restart, done.
 #

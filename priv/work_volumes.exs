@@ -13,7 +13,7 @@
 # the CEC cannot apply an interlock it does not know (ERROR INTERLOCK NO WORK VOLUME FOR <name>).
 # Set `default:` to a volume to give every unlisted location that volume instead.
 #
-# test/vws/interlock/work_volumes_test.exs checks that every location of the simulated robot
+# test/vws/cec/interlock/work_volumes_test.exs checks that every location of the simulated robot
 # (priv/sims/robot_locations.exs) is listed here with the volume its geometry puts it in.
 %{
   locations: %{

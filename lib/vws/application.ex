@@ -6,17 +6,18 @@ defmodule Vws.Application do
 
   @impl true
   def start(_type, _args) do
-    # SIGTERM and SIGQUIT stop the node in order (Vws.Signals)
-    :ok = Vws.Signals.install()
+    # SIGTERM and SIGQUIT stop the node in order (Vws.Ops.Signals)
+    :ok = Vws.Ops.Signals.install()
     # the log in rotating files too, where configured (VWS_LOG_DIR)
-    :ok = Vws.LogFile.start_configured()
+    :ok = Vws.Ops.LogFile.start_configured()
 
     children =
       [
         {Registry, keys: :unique, name: Vws.Registry},
-        {Registry, keys: :duplicate, name: Vws.Events, partitions: System.schedulers_online()},
-        # the :pg scope every workstation joins: the cell across connected nodes (Vws.Cell)
-        Vws.Cell,
+        {Registry,
+         keys: :duplicate, name: Vws.CEC.Events, partitions: System.schedulers_online()},
+        # the :pg scope every workstation joins: the cell across connected nodes (Vws.CEC.Cell)
+        Vws.CEC.Cell,
         # equipment started beside the workstations on this node — a simulated floor
         # (`mix vws.serve`, `mix vws.demo`), a hydraulic controller of its own: it stops after
         # them, and before the registry its processes are named in
@@ -30,8 +31,8 @@ defmodule Vws.Application do
 
   @impl true
   def stop(_state) do
-    :ok = Vws.LogFile.stop()
-    Vws.Signals.uninstall()
+    :ok = Vws.Ops.LogFile.stop()
+    Vws.Ops.Signals.uninstall()
   end
 
   # The workstation of config/runtime.exs (a deployment), started under the workstation supervisor.
@@ -75,14 +76,14 @@ defmodule Vws.Application do
           {:ok, _} =
             DynamicSupervisor.start_child(
               Vws.EquipmentSupervisor,
-              {Vws.HydraulicController, name: name, daq2: daq2}
+              {Vws.Peers.HydraulicController, name: name, daq2: daq2}
             )
 
-          :ok = Vws.HydraulicController.await_ready(name, 30_000)
-          devices ++ [hydraulic: Vws.HydraulicController.endpoint(name)]
+          :ok = Vws.Peers.HydraulicController.await_ready(name, 30_000)
+          devices ++ [hydraulic: Vws.Peers.HydraulicController.endpoint(name)]
       end
 
-    Vws.Workstation.start(Keyword.put(opts, :devices, devices))
+    Vws.CEC.Workstation.start(Keyword.put(opts, :devices, devices))
   end
 
   # The dashboard and MTConnect agent of config/runtime.exs (`config :vws, :http, port: …`).
@@ -90,7 +91,7 @@ defmodule Vws.Application do
   defp configured_http do
     case Application.get_env(:vws, :http) do
       nil -> []
-      opts -> [Supervisor.child_spec({Vws.Web, opts}, id: :configured_http)]
+      opts -> [Supervisor.child_spec({Vws.Ops.Web, opts}, id: :configured_http)]
     end
   end
 end

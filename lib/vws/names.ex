@@ -6,7 +6,7 @@ defmodule Vws.Names do
 
   The parts name themselves with `via/2` when they start, and telemetry of a link finds its
   workstation in its name with `id_of/1`. This module knows nothing of what the parts are, so
-  every layer can use it: the supervisor (`Vws.Workstation`) that starts them sits above them all.
+  every layer can use it: the supervisor (`Vws.CEC.Workstation`) that starts them sits above them all.
 
       iex> Vws.Names.via("VWS-1", :sun_comm)
       {:via, Registry, {Vws.Registry, {"VWS-1", :sun_comm}}}

@@ -7,10 +7,11 @@ defmodule Vws.Acceptance.DashboardTest do
   # async tests on a two-core machine; the sync phase runs this test alone
   use ExUnit.Case, async: false
 
-  import Vws.WC.Command, only: [pad4: 1]
+  import Vws.Codecs.WC.Command, only: [pad4: 1]
 
   alias Vws.Test.Acceptance
-  alias Vws.WC.{Client, Reply}
+  alias Vws.Peers.WC.Client
+  alias Vws.Codecs.WC.Reply
 
   @moduletag :acceptance
   @moduletag timeout: 300_000

@@ -26,7 +26,7 @@ defmodule Vws.Acceptance.DripFeedTaskTest do
     assert Acceptance.await_exit(proc, 120_000) == 0, Acceptance.output(proc)
     output = Acceptance.output(proc)
     assert output =~ "000077.PRO: the whole program reached the machine"
-    crc = Integer.to_string(Vws.CRC16.compute(File.read!(file)), 16)
+    crc = Integer.to_string(Vws.Codecs.CRC16.compute(File.read!(file)), 16)
 
     assert output =~
              ~r/received #{size} bytes, ran #{size}, buffer \d+\/2048 at most, 0 underruns, CRC #{crc}, state done/

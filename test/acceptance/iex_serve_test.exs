@@ -76,7 +76,7 @@ defmodule Vws.Acceptance.IexServeTest do
     # the shell is the user's: inspecting the workstation from it
     # (a prompt again after it: the shell answered, whatever overview printed — its content is
     # the dashboard/inspect tests' business)
-    Acceptance.tmux_send(t, ~s|Vws.Inspect.overview("VWS")|)
+    Acceptance.tmux_send(t, ~s|Vws.Ops.Inspect.overview("VWS")|)
     Acceptance.tmux_await(t, ~r/overview\("VWS"\)\n[\s\S]*iex\(\d+\)> *$/m)
 
     # the mix task's process has ended (the shell runs); the floor it started must not have

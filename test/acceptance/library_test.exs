@@ -4,9 +4,9 @@ defmodule Vws.Acceptance.LibraryTest do
   # — while the workstation runs and after it stopped; and a store killed with kill -9.
   use ExUnit.Case, async: true
 
-  alias Vws.DNC.Library
+  alias Vws.Links.DNC.Library
   alias Vws.Test.Acceptance
-  alias Vws.WC.Client
+  alias Vws.Peers.WC.Client
 
   @moduletag :acceptance
   @moduletag :tmp_dir
@@ -62,7 +62,12 @@ defmodule Vws.Acceptance.LibraryTest do
 
     # a second version from the command line, while the workstation runs
     file = Path.join(data, "part.nc")
-    File.write!(file, Vws.DNC.Program.to_text(List.replace_at(@program, 3, "N20 G01 X70.0 F200")))
+
+    File.write!(
+      file,
+      Vws.Links.DNC.Program.to_text(List.replace_at(@program, 3, "N20 G01 X70.0 F200"))
+    )
+
     {0, out} = library(data, ["import", file])
     assert out =~ "stored 004711.PRO v2"
     {0, out} = library(data, ["compare"])
@@ -102,7 +107,7 @@ defmodule Vws.Acceptance.LibraryTest do
     assert out =~ ~r/^\+ N20 G01 X70.0 F200$/m
     out_file = Path.join(data, "v1.nc")
     {0, _} = library(data, ["export", "004711.PRO", out_file, "--version", "1"])
-    assert File.read!(out_file) == Vws.DNC.Program.to_text(@program)
+    assert File.read!(out_file) == Vws.Links.DNC.Program.to_text(@program)
     {1, out} = library(data, ["show", "../../etc/passwd"])
     assert out =~ "not a program name"
     {2, _} = library(data, ["frobnicate"])
@@ -117,7 +122,7 @@ defmodule Vws.Acceptance.LibraryTest do
     code = """
     text = "%\\nO42\\n" <> String.duplicate("N10 G01 X1.0 Y2.0 F300\\n", 100_000) <> "%\\n"
     for i <- Stream.iterate(1, &(&1 + 1)) do
-      {:ok, v} = Vws.DNC.Library.store({:dir, #{inspect(lib_dir)}}, "42", text, source: "cli")
+      {:ok, v} = Vws.Links.DNC.Library.store({:dir, #{inspect(lib_dir)}}, "42", text, source: "cli")
       IO.puts("stored v\#{v.version}")
     end
     """

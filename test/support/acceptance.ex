@@ -35,7 +35,7 @@ defmodule Vws.Test.Acceptance do
 
       t = Acceptance.tmux_start("iex -S mix vws.serve --wc-port 7171", env: [{"MIX_ENV", "dev"}])
       Acceptance.tmux_await(t, ~r/iex\(1\)>/)
-      Acceptance.tmux_send(t, ~s|Vws.Inspect.overview("VWS")|)   # typed, then Enter
+      Acceptance.tmux_send(t, ~s|Vws.Ops.Inspect.overview("VWS")|)   # typed, then Enter
       Acceptance.tmux_capture(t)                                 # the pane's text (with history)
       Acceptance.tmux_keys(t, ["C-\\"])                          # keys by tmux name (Ctrl-\)
       0 = Acceptance.tmux_await_exit(t)                          # the pane stays after the exit
@@ -55,7 +55,7 @@ defmodule Vws.Test.Acceptance do
   """
 
   import ExUnit.Assertions
-  import Vws.WC.Command, only: [pad4: 1]
+  import Vws.Codecs.WC.Command, only: [pad4: 1]
 
   @root Path.expand("../..", __DIR__)
 

@@ -1,6 +1,6 @@
 defmodule Vws.Test.CellPeers do
   @moduledoc """
-  `:peer` nodes running the application, for tests of the cell (`Vws.Cell`). The test node is
+  `:peer` nodes running the application, for tests of the cell (`Vws.CEC.Cell`). The test node is
   made distributed first (`ensure_distributed!/0`); each peer gets this node's code path.
 
       started? = CellPeers.ensure_distributed!()
@@ -81,7 +81,7 @@ defmodule Vws.Test.CellPeers do
 
   @doc """
   Called on a peer (`:erpc.call(node, CellPeers, :start_shop_floor, [opts])`): starts
-  `Vws.Demo.start_shop_floor/1` there under a process of its own that lives as long as the node
+  `Vws.Ops.Demo.start_shop_floor/1` there under a process of its own that lives as long as the node
   (the erpc process that calls this one ends at once, and the floor is linked to its starter).
   Returns the shop floor's map.
   """
@@ -90,7 +90,7 @@ defmodule Vws.Test.CellPeers do
 
     holder =
       spawn(fn ->
-        send(caller, {:shop_floor, self(), Vws.Demo.start_shop_floor(opts)})
+        send(caller, {:shop_floor, self(), Vws.Ops.Demo.start_shop_floor(opts)})
         Process.sleep(:infinity)
       end)
 

@@ -71,7 +71,7 @@ defmodule Vws.Test.DAQFloor do
 
     if machine? do
       assert Vws.Test.Eventually.eventually(fn ->
-               match?({"IDLE", _}, Vws.Mailbox.get_device(ws, 8))
+               match?({"IDLE", _}, Vws.CEC.Mailbox.get_device(ws, 8))
              end)
     end
 
@@ -102,7 +102,7 @@ defmodule Vws.Test.DAQFloor do
     WCPeer.send_string(peer, seq, [{letter, number, text}])
     assert WCPeer.recv_line(peer) =~ "05A"
     name = Map.fetch!(@set_names, letter)
-    prefix = Vws.WC.Command.pad4(number)
+    prefix = Vws.Codecs.WC.Command.pad4(number)
 
     answer =
       WCPeer.await_status(

@@ -1,13 +1,13 @@
 defmodule Vws.Test.DDCMPPeer do
   @moduledoc """
-  Plays the far end of a `Vws.DDCMP` link with raw frames, for table tests.
+  Plays the far end of a `Vws.Links.DDCMP` link with raw frames, for table tests.
 
   It listens on a fresh loopback endpoint (`endpoint/1`), accepts the link's connection (and the
   next one after `drop_connection/1`), and reports to the test process, in order:
 
     * `{:peer_raw, peer, bytes}` — each chunk of bytes received, undecoded;
-    * `{:peer_frame, peer, frame}` — each frame decoded from them (`Vws.DDCMP.Frame`);
-    * `{:peer_bad, peer, %Vws.DDCMP.Error{}}` — each decoding error;
+    * `{:peer_frame, peer, frame}` — each frame decoded from them (`Vws.Links.DDCMP.Frame`);
+    * `{:peer_bad, peer, %Vws.Links.DDCMP.Error{}}` — each decoding error;
     * `{:peer_connected, peer}` / `{:peer_closed, peer}`.
 
   `send_frames/2` and `send_raw/2` write to the link.
@@ -15,8 +15,8 @@ defmodule Vws.Test.DDCMPPeer do
 
   use GenServer
 
-  alias Vws.DDCMP.Frame
-  alias Vws.Transport
+  alias Vws.Links.DDCMP.Frame
+  alias Vws.Links.Transport
 
   def start_link(opts \\ []) do
     GenServer.start_link(__MODULE__, {self(), opts})
@@ -62,7 +62,7 @@ defmodule Vws.Test.DDCMPPeer do
         send(state.test, {:peer_connected, self()})
         {:noreply, %{state | conn: conn, decoder: Frame.new(max_data: state.max_data)}}
 
-      {:error, %Vws.Transport.Error{reason: :timeout}} ->
+      {:error, %Vws.Links.Transport.Error{reason: :timeout}} ->
         send(self(), :accept)
         {:noreply, state}
     end

@@ -1,6 +1,6 @@
 defmodule Vws.Test.DDCMPRelay do
   @moduledoc """
-  A line between two `Vws.DDCMP` links, for tests: it listens on two loopback endpoints
+  A line between two `Vws.Links.DDCMP` links, for tests: it listens on two loopback endpoints
   (`endpoints/1` → `{a, b}`), accepts one connection on each and forwards every chunk of bytes
   to the other side.
 
@@ -17,9 +17,9 @@ defmodule Vws.Test.DDCMPRelay do
 
   import Bitwise
 
-  alias Vws.DDCMP.Frame
-  alias Vws.DDCMP.Frame.{Control, Data}
-  alias Vws.Transport
+  alias Vws.Links.DDCMP.Frame
+  alias Vws.Links.DDCMP.Frame.{Control, Data}
+  alias Vws.Links.Transport
 
   def start_link(opts \\ []), do: GenServer.start_link(__MODULE__, opts)
 
@@ -73,7 +73,7 @@ defmodule Vws.Test.DDCMPRelay do
               :ok = Transport.activate(conn)
               put_in(state.conns[side], conn)
 
-            {:error, %Vws.Transport.Error{reason: :timeout}} ->
+            {:error, %Vws.Links.Transport.Error{reason: :timeout}} ->
               state
           end
         end

@@ -6,7 +6,7 @@ defmodule Vws.Test.DNCPeer do
   """
   use GenServer
 
-  alias Vws.Transport
+  alias Vws.Links.Transport
 
   @doc "Accepts the next connection on `listener` (waiting up to `timeout` ms)."
   def accept(listener, timeout \\ 5_000),

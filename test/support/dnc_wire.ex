@@ -1,6 +1,6 @@
 defmodule Vws.Test.DNCWire do
   @moduledoc """
-  Two `Vws.DNC.Session` cores back to back over an in-memory line, in simulated time: no process,
+  Two `Vws.Links.DNC.Session` cores back to back over an in-memory line, in simulated time: no process,
   no socket, no clock. `run/1` lets the CEC end (`:a`) make one request of the GE end (`:b`) and
   plays every byte and timer out to the end.
 
@@ -24,7 +24,7 @@ defmodule Vws.Test.DNCWire do
   under way after its first block, and the most its buffer held.
   """
 
-  alias Vws.DNC.Session
+  alias Vws.Links.DNC.Session
 
   @limits [
     reply_timeout: 3_000,

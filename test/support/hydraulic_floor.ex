@@ -35,15 +35,15 @@ defmodule Vws.Test.HydraulicFloor do
       )
 
     id = make_ref()
-    start_supervised!({Vws.HydraulicController, controller_opts}, id: id)
-    assert Vws.HydraulicController.await_ready(name, 10_000) == :ok
+    start_supervised!({Vws.Peers.HydraulicController, controller_opts}, id: id)
+    assert Vws.Peers.HydraulicController.await_ready(name, 10_000) == :ok
 
     %{
       plant: plant,
       daq2: daq2,
       name: name,
       controller_id: id,
-      endpoint: Vws.HydraulicController.endpoint(name)
+      endpoint: Vws.Peers.HydraulicController.endpoint(name)
     }
   end
 
@@ -79,7 +79,7 @@ defmodule Vws.Test.HydraulicFloor do
     seq = rem(System.unique_integer([:positive]), 10_000)
     WCPeer.send_string(peer, seq, [{"H", number, text}])
     assert WCPeer.recv_line(peer) =~ "05A"
-    prefix = Vws.WC.Command.pad4(number)
+    prefix = Vws.Codecs.WC.Command.pad4(number)
 
     answer =
       WCPeer.await_status(
@@ -110,11 +110,11 @@ defmodule Vws.Test.HydraulicFloor do
     bus = "cec-#{System.unique_integer([:positive])}"
 
     start_supervised!(
-      {Vws.HPIB, [bus: bus, address: 8, endpoint: endpoint] ++ opts},
+      {Vws.Links.HPIB, [bus: bus, address: 8, endpoint: endpoint] ++ opts},
       id: make_ref()
     )
 
-    assert Vws.HPIB.await_connected({bus, 8}, 2_000) == :ok
+    assert Vws.Links.HPIB.await_connected({bus, 8}, 2_000) == :ok
     {bus, 8}
   end
 
@@ -123,7 +123,7 @@ defmodule Vws.Test.HydraulicFloor do
     deadline = System.monotonic_time(:millisecond) + timeout
 
     Stream.repeatedly(fn ->
-      {:ok, status} = Vws.HPIB.query(device, :status?)
+      {:ok, status} = Vws.Links.HPIB.query(device, :status?)
 
       cond do
         status != :executing -> status

@@ -5,8 +5,8 @@ defmodule Vws.Test.LineRelay do
   """
   use GenServer
 
-  alias Vws.Transport
-  alias Vws.WC.LineDecoder
+  alias Vws.Links.Transport
+  alias Vws.Codecs.WC.LineDecoder
 
   def start_link(upstream, name), do: GenServer.start_link(__MODULE__, {upstream, name})
 

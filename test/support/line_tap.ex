@@ -4,7 +4,7 @@ defmodule Vws.Test.LineTap do
 
   It listens on `listen` (default a free local TCP port; `endpoint/1`), and for the connection
   it accepts dials `upstream` (the controller), then relays every DDCMP message both ways: it
-  decodes each direction with `Vws.DDCMP.Frame` and forwards each message re-encoded (the same
+  decodes each direction with `Vws.Links.DDCMP.Frame` and forwards each message re-encoded (the same
   bytes the sender sent). A fault rule (`fault/4`) acts once, on the first message in its
   direction (`:to_val` or `:to_cec`) that its predicate accepts: `:drop` loses the message,
   `:corrupt` changes one byte of its last block check (a data message then fails
@@ -16,8 +16,8 @@ defmodule Vws.Test.LineTap do
   """
   use GenServer
 
-  alias Vws.DDCMP.Frame
-  alias Vws.Transport
+  alias Vws.Links.DDCMP.Frame
+  alias Vws.Links.Transport
 
   def start_link(opts), do: GenServer.start_link(__MODULE__, opts)
 
@@ -158,7 +158,7 @@ defmodule Vws.Test.LineTap do
   end
 
   defp val_message(%Frame.Data{data: data}) do
-    case Vws.VAL.Message.decode(data) do
+    case Vws.Links.VAL.Message.decode(data) do
       {:ok, m} -> m
       _ -> nil
     end

@@ -28,7 +28,11 @@ defmodule Vws.Test.PtyPair do
 
     on_exit(fn ->
       System.cmd("kill", [Integer.to_string(cable_pid)], stderr_to_stdout: true)
-      Vws.TransportHelpers.wait_until(fn -> not Vws.Transport.Serial.os_alive?(cable_pid) end)
+
+      Vws.TransportHelpers.wait_until(fn ->
+        not Vws.Links.Transport.Serial.os_alive?(cable_pid)
+      end)
+
       File.rm_rf!(dir)
     end)
 

@@ -27,11 +27,11 @@ defmodule Vws.Test.RemoteHydraulic do
 
     {:ok, sup} = Supervisor.start_link(children, strategy: :rest_for_one)
     Process.unlink(sup)
-    :ok = Vws.HydraulicController.await_ready(name, 10_000)
-    %{endpoint: Vws.HydraulicController.endpoint(name), plant: plant, name: name}
+    :ok = Vws.Peers.HydraulicController.await_ready(name, 10_000)
+    %{endpoint: Vws.Peers.HydraulicController.endpoint(name), plant: plant, name: name}
   end
 
   @doc false
   def start_controller(opts, daq2),
-    do: Vws.HydraulicController.start_link([daq2: Vws.Sim.DAQ.endpoint(daq2)] ++ opts)
+    do: Vws.Peers.HydraulicController.start_link([daq2: Vws.Sim.DAQ.endpoint(daq2)] ++ opts)
 end

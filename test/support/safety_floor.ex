@@ -7,10 +7,10 @@ defmodule Vws.Test.SafetyFloor do
   so it uses no ExUnit: `start/1` and `stop/1` are the caller's to pair.
 
   Commands go to the partitions the way SUN_COMM hands them over after parsing a WC string
-  (`Vws.Mailbox.dispatch/4` and the partition's event).
+  (`Vws.CEC.Mailbox.dispatch/4` and the partition's event).
   """
 
-  alias Vws.{Events, Mailbox}
+  alias Vws.CEC.{Events, Mailbox}
   alias Vws.Sim.{Floor, Plant}
 
   @partitions [:robot, :monarch, :gripper, :fixture, :vacuum, :hydraulic]
@@ -76,11 +76,11 @@ defmodule Vws.Test.SafetyFloor do
       )
 
     Process.unlink(floor)
-    :ok = Vws.HydraulicController.await_ready(Floor.hydraulic_controller(ws), 5_000)
+    :ok = Vws.Peers.HydraulicController.await_ready(Floor.hydraulic_controller(ws), 5_000)
     devices = Floor.devices(ws)
 
     {:ok, _} =
-      Vws.Workstation.start(
+      Vws.CEC.Workstation.start(
         id: ws,
         wc: nil,
         devices: [
@@ -134,7 +134,7 @@ defmodule Vws.Test.SafetyFloor do
         fn ->
           match?({:ok, _}, Vws.Partitions.VwsStatus.readings(ws)) and
             match?({"IDLE", _}, Mailbox.get_device(ws, 8)) and
-            Vws.VAL.ready?(Vws.Workstation.whereis(ws, :val))
+            Vws.Links.VAL.ready?(Vws.CEC.Workstation.whereis(ws, :val))
         end,
         5_000
       )
@@ -148,7 +148,7 @@ defmodule Vws.Test.SafetyFloor do
 
   @doc "Stops the workstation and the floor."
   def stop(f) do
-    _ = Vws.Workstation.stop(f.ws)
+    _ = Vws.CEC.Workstation.stop(f.ws)
     if Process.alive?(f.floor), do: Supervisor.stop(f.floor, :shutdown, 5_000)
     :ok
   catch

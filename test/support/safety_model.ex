@@ -155,7 +155,7 @@ defmodule Vws.Test.SafetyModel do
            final: final,
            collisions: SafetyFloor.collisions(f),
            steps: Enum.zip(:proper_statem.command_names(cmds), Enum.map(history, &elem(&1, 1))),
-           leases: Vws.Interlock.held(f.ws)
+           leases: Vws.CEC.Interlock.held(f.ws)
          }}
       end
     after
@@ -301,7 +301,7 @@ defmodule Vws.Test.SafetyModel do
   defp inject(f, :val_restart), do: VAL2.restart(f.robot)
 
   defp inject(f, {:kill, partition}) do
-    case Vws.Partition.whereis(f.ws, partition) do
+    case Vws.CEC.Partition.whereis(f.ws, partition) do
       nil -> :ok
       pid -> Process.exit(pid, :kill)
     end

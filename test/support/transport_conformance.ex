@@ -1,6 +1,6 @@
 defmodule Vws.TransportConformance do
   @moduledoc """
-  The behaviour every listenable `Vws.Transport` must show, as ExUnit tests.
+  The behaviour every listenable `Vws.Links.Transport` must show, as ExUnit tests.
 
       use Vws.TransportConformance, listen_on: fn -> "tcp://127.0.0.1:0" end
 
@@ -14,7 +14,7 @@ defmodule Vws.TransportConformance do
     quote do
       import Vws.TransportHelpers
 
-      alias Vws.Transport
+      alias Vws.Links.Transport
 
       setup do
         {:ok, listener} = Transport.listen(unquote(listen_on).())
@@ -112,7 +112,7 @@ defmodule Vws.TransportConformance do
             send(test, {:result, Transport.controlling_process(server, self())})
           end)
 
-          assert_receive {:result, {:error, %Vws.Transport.Error{reason: :not_owner}}}
+          assert_receive {:result, {:error, %Vws.Links.Transport.Error{reason: :not_owner}}}
         end
 
         test "1 MB in uneven chunks arrives intact and in order, both ways", ctx do
@@ -143,7 +143,7 @@ defmodule Vws.TransportConformance do
 
         test "accept times out when nobody connects", %{listener: listener} do
           assert Transport.accept(listener, 50) ==
-                   {:error, %Vws.Transport.Error{reason: :timeout}}
+                   {:error, %Vws.Links.Transport.Error{reason: :timeout}}
         end
 
         test "a closed listener accepts no more connections", ctx do

@@ -1,12 +1,12 @@
 defmodule Vws.TransportHelpers do
   @moduledoc """
-  Receiving from a `Vws.Transport` connection in tests, the way a driver would: activate, take
-  one message, classify it with `Vws.Transport.handle_message/2`.
+  Receiving from a `Vws.Links.Transport` connection in tests, the way a driver would: activate, take
+  one message, classify it with `Vws.Links.Transport.handle_message/2`.
   """
 
   import ExUnit.Assertions
 
-  alias Vws.Transport
+  alias Vws.Links.Transport
 
   @doc "Activates and collects messages until `size` bytes have arrived; returns them."
   def recv_exactly(conn, size, timeout \\ 5000) do
@@ -47,9 +47,9 @@ defmodule Vws.TransportHelpers do
 
   # What the messages of each transport carry to tell connections apart (test-only knowledge;
   # it lets `next/2` wait with a selective receive).
-  defp identity(%{module: Vws.Transport.TCP, handle: socket}), do: socket
-  defp identity(%{module: Vws.Transport.Loopback, handle: %{ref: ref}}), do: ref
-  defp identity(%{module: Vws.Transport.Serial, handle: %{port: port}}), do: port
+  defp identity(%{module: Vws.Links.Transport.TCP, handle: socket}), do: socket
+  defp identity(%{module: Vws.Links.Transport.Loopback, handle: %{ref: ref}}), do: ref
+  defp identity(%{module: Vws.Links.Transport.Serial, handle: %{port: port}}), do: port
 
   @doc "Activates and expects the connection to be reported closed."
   def assert_closed(conn, timeout \\ 5000) do

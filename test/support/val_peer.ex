@@ -1,11 +1,11 @@
 defmodule Vws.Test.VALPeer do
   @moduledoc """
-  Plays the VAL II end of a `Vws.VAL` wire in tests of the layers above DDCMP: real DDCMP frames
-  on a loopback transport, run by a `Vws.DDCMP.Protocol` of its own (no simulator behind it), the
+  Plays the VAL II end of a `Vws.Links.VAL` wire in tests of the layers above DDCMP: real DDCMP frames
+  on a loopback transport, run by a `Vws.Links.DDCMP.Protocol` of its own (no simulator behind it), the
   test deciding when the link comes up and how it goes down.
 
       {:ok, peer} = VALPeer.start_link()
-      {:ok, val} = Vws.VAL.start_link(ddcmp: [endpoint: VALPeer.endpoint(peer)])
+      {:ok, val} = Vws.Links.VAL.start_link(ddcmp: [endpoint: VALPeer.endpoint(peer)])
       :ok = VALPeer.up(peer)
 
   Until `up/1`, and again from the moment the link went down or restarted, the peer is *held*:
@@ -18,8 +18,8 @@ defmodule Vws.Test.VALPeer do
   """
   use GenServer
 
-  alias Vws.DDCMP.{Frame, Protocol}
-  alias Vws.Transport
+  alias Vws.Links.DDCMP.{Frame, Protocol}
+  alias Vws.Links.Transport
 
   @never 600_000
 

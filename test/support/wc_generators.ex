@@ -1,4 +1,4 @@
-defmodule Vws.WC.Generators do
+defmodule Vws.Codecs.WC.Generators do
   @moduledoc false
   # PropEr generators for the WC link codec tests (PROTOCOLS.md §1).
 
@@ -16,7 +16,7 @@ defmodule Vws.WC.Generators do
       union: 1
     ]
 
-  alias Vws.WC.{Command, CommandString}
+  alias Vws.Codecs.WC.{Command, CommandString}
 
   def mode, do: elements([:sum, :xor])
 
@@ -53,7 +53,7 @@ defmodule Vws.WC.Generators do
 
   def line_text, do: bind(resize(60, list(printable_char())), &exactly(List.to_string(&1)), false)
 
-  # Every reply `Vws.WC.Reply.decode/2` reads.
+  # Every reply `Vws.Codecs.WC.Reply.decode/2` reads.
   def reply do
     oneof([
       exactly(:nak),
@@ -92,7 +92,7 @@ defmodule Vws.WC.Generators do
   def feed_all(dec, chunks) do
     {items, dec} =
       Enum.reduce(chunks, {[], dec}, fn chunk, {acc, dec} ->
-        {items, dec} = Vws.WC.LineDecoder.feed(dec, chunk)
+        {items, dec} = Vws.Codecs.WC.LineDecoder.feed(dec, chunk)
         {[items | acc], dec}
       end)
 

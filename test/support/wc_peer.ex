@@ -5,8 +5,8 @@ defmodule Vws.Test.WCPeer do
   """
   use GenServer
 
-  alias Vws.Transport
-  alias Vws.WC.{CommandString, LineDecoder}
+  alias Vws.Links.Transport
+  alias Vws.Codecs.WC.{CommandString, LineDecoder}
 
   def connect(endpoint, opts \\ []) do
     GenServer.start_link(__MODULE__, {endpoint, opts})
@@ -29,9 +29,9 @@ defmodule Vws.Test.WCPeer do
   def string(seq, commands, opts \\ []) do
     cmds =
       for {letter, number, text} <- commands do
-        %Vws.WC.Command{
+        %Vws.Codecs.WC.Command{
           letter: letter,
-          set: Vws.WC.Command.set_for_letter(letter),
+          set: Vws.Codecs.WC.Command.set_for_letter(letter),
           number: number,
           text: text
         }
@@ -48,7 +48,7 @@ defmodule Vws.Test.WCPeer do
   def status(peer, seq, number, name, opts \\ []) do
     send_string(peer, seq, [{"S", number, name}], opts)
     line = recv_line(peer)
-    {:ok, {:status, ^number, text}} = Vws.WC.Reply.decode(line, opts)
+    {:ok, {:status, ^number, text}} = Vws.Codecs.WC.Reply.decode(line, opts)
     text
   end
 
@@ -93,7 +93,7 @@ defmodule Vws.Test.WCPeer do
   defp connect_retrying(endpoint, timeout) do
     deadline = System.monotonic_time(:millisecond) + timeout
 
-    Stream.repeatedly(fn -> Vws.Cell.connect(endpoint) end)
+    Stream.repeatedly(fn -> Vws.CEC.Cell.connect(endpoint) end)
     |> Enum.reduce_while(nil, fn
       {:ok, conn}, _ ->
         {:halt, {:ok, conn}}

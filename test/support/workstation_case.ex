@@ -4,14 +4,14 @@ defmodule Vws.Test.Workstation do
   import ExUnit.Callbacks
 
   @doc """
-  Starts a workstation under the test supervisor. `opts` are `Vws.Workstation` options; the id
+  Starts a workstation under the test supervisor. `opts` are `Vws.CEC.Workstation` options; the id
   and the WC endpoint default to unique ones. Returns `%{ws: id, wc: endpoint}`.
   """
   def start(opts \\ []) do
     id = Keyword.get_lazy(opts, :id, fn -> "test-#{System.unique_integer([:positive])}" end)
     wc = Keyword.get(opts, :wc, "loopback:wc-#{id}")
     opts = opts |> Keyword.put(:id, id) |> Keyword.put(:wc, wc)
-    pid = start_supervised!({Vws.Workstation, opts})
+    pid = start_supervised!({Vws.CEC.Workstation, opts})
     %{ws: id, wc: wc, sup: pid}
   end
 

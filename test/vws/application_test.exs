@@ -12,7 +12,7 @@ defmodule Vws.ApplicationTest do
     daq2 = Vws.Sim.Floor.daq2_endpoint(ws)
 
     on_exit(fn ->
-      Vws.Workstation.stop(ws)
+      Vws.CEC.Workstation.stop(ws)
 
       for {_, pid, _, _} <- DynamicSupervisor.which_children(Vws.EquipmentSupervisor),
           Registry.keys(Vws.Registry, pid) == [{{:hydraulic_controller, {:configured, ws}}, :sup}],
@@ -26,7 +26,7 @@ defmodule Vws.ApplicationTest do
                devices: [daq2: daq2]
              )
 
-    assert Vws.HydraulicController.status({:configured, ws}) != nil
+    assert Vws.Peers.HydraulicController.status({:configured, ws}) != nil
     {:ok, peer} = WCPeer.connect("loopback:#{ws}")
 
     assert WCPeer.await_status(

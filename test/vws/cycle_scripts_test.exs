@@ -3,18 +3,18 @@ defmodule Vws.CycleScriptsTest do
   use ExUnit.Case, async: false
 
   import ExUnit.CaptureIO
-  alias Vws.WC.Runner.Summary
+  alias Vws.Peers.WC.Runner.Summary
 
   @moduletag timeout: 240_000
 
   for script <- ["table1.vws", "machining_cycle.vws"] do
     test "#{script} completes, every command DONE and every physical check true" do
       id = "cycle-#{System.unique_integer([:positive])}"
-      on_exit(fn -> Vws.Workstation.stop(id) end)
+      on_exit(fn -> Vws.CEC.Workstation.stop(id) end)
 
       capture_io(fn ->
         result =
-          Vws.Demo.run(
+          Vws.Ops.Demo.run(
             id: id,
             wc: "loopback:#{id}",
             script: Path.join("priv/sims", unquote(script)),

@@ -6,13 +6,14 @@ defmodule Vws.DevicePortPolicyTest do
 
   import ExUnit.CaptureLog
 
-  alias Vws.{HPIB, HydraulicController}
+  alias Vws.Links.HPIB
+  alias Vws.Peers.HydraulicController
   alias Vws.Sim.Plant
   alias Vws.Test.HydraulicFloor
 
   @stranger {127, 0, 0, 2}
 
-  defp port_of(endpoint), do: Vws.Endpoint.parse!(endpoint).port
+  defp port_of(endpoint), do: Vws.Links.Endpoint.parse!(endpoint).port
 
   defp raw_from(endpoint, ip) do
     {:ok, s} =

@@ -10,9 +10,11 @@ defmodule Vws.FloodTest do
   """
   use ExUnit.Case, async: true
 
-  alias Vws.{DDCMP, DNC, SCPI, Transport}
+  alias Vws.Links.{DDCMP, DNC, Transport}
+  alias Vws.Codecs.SCPI
   alias Vws.Test.{ObedientPartition, WCPeer, Workstation}
-  alias Vws.WC.{Client, LineDecoder}
+  alias Vws.Peers.WC.Client
+  alias Vws.Codecs.WC.LineDecoder
   import Vws.Test.Eventually
 
   @chunk 65_536
@@ -196,7 +198,7 @@ defmodule Vws.FloodTest do
   describe "the WC link" do
     test "SUN_COMM takes 20 MB without a LF and 16 MB of pinning lines in bounded memory" do
       %{ws: ws, wc: wc} = Workstation.start(partitions: ObedientPartition.partitions())
-      assert eventually(fn -> Vws.SunComm.listening(ws) != nil end)
+      assert eventually(fn -> Vws.CEC.SunComm.listening(ws) != nil end)
       sun_comm = GenServer.whereis(Vws.Names.via(ws, :sun_comm))
       {:ok, peer} = WCPeer.connect(wc)
 

@@ -8,8 +8,8 @@ defmodule Vws.LibraryCycleTest do
   use ExUnit.Case, async: false
 
   import ExUnit.CaptureIO
-  alias Vws.DNC.Library
-  alias Vws.WC.Runner.Summary
+  alias Vws.Links.DNC.Library
+  alias Vws.Peers.WC.Runner.Summary
 
   @moduletag timeout: 240_000
   @moduletag :tmp_dir
@@ -18,7 +18,7 @@ defmodule Vws.LibraryCycleTest do
     tmp_dir: tmp
   } do
     id = "libcycle-#{System.unique_integer([:positive])}"
-    on_exit(fn -> Vws.Workstation.stop(id) end)
+    on_exit(fn -> Vws.CEC.Workstation.stop(id) end)
     lib = {:dir, Path.join(tmp, "library")}
 
     {:ok, %{version: 1}} = Library.import_file(lib, "priv/sims/programs/001234.nc")
@@ -41,7 +41,7 @@ defmodule Vws.LibraryCycleTest do
 
     capture_io(fn ->
       result =
-        Vws.Demo.run(
+        Vws.Ops.Demo.run(
           id: id,
           wc: "loopback:#{id}",
           script: script,

@@ -21,24 +21,28 @@ defmodule Vws.OptionsTest do
             {[wc: "udp://x"], "invalid SUN_COMM option :wc: expected nil or an endpoint"},
             {[baud: 9600], "unknown SUN_COMM option :baud (known: :workstation, :wc, :bcc"}
           ] do
-        error = assert_raise Error, fn -> Vws.SunComm.start_link([workstation: ws] ++ opts) end
+        error =
+          assert_raise Error, fn -> Vws.CEC.SunComm.start_link([workstation: ws] ++ opts) end
+
         assert Exception.message(error) =~ message
         assert error.key == opts |> hd() |> elem(0)
       end
 
       assert_raise Error, "missing SUN_COMM option :workstation", fn ->
-        Vws.SunComm.start_link(wc: nil)
+        Vws.CEC.SunComm.start_link(wc: nil)
       end
 
-      assert Vws.Workstation.whereis(ws, :sun_comm) == nil
+      assert Vws.CEC.Workstation.whereis(ws, :sun_comm) == nil
     end
 
     test "validated options come back with every default, the allow-list parsed" do
-      assert {:ok, opts} = Vws.SunComm.validate_options(workstation: "W", allow: "10.0.0.0/24")
+      assert {:ok, opts} =
+               Vws.CEC.SunComm.validate_options(workstation: "W", allow: "10.0.0.0/24")
+
       assert opts[:bcc] == :sum and opts[:takeover_grace] == 500 and opts[:wc] == nil
       assert opts[:allow] == [{{10, 0, 0, 0}, 24}]
       # checking them again changes nothing
-      assert Vws.SunComm.validate_options(opts) == {:ok, opts}
+      assert Vws.CEC.SunComm.validate_options(opts) == {:ok, opts}
     end
   end
 
@@ -48,22 +52,22 @@ defmodule Vws.OptionsTest do
       ws = id()
 
       assert_raise Error, ~r/^unknown workstation option :wc_port \(known: :id, :wc/, fn ->
-        Vws.Workstation.start_link(id: ws, wc_port: 7070)
+        Vws.CEC.Workstation.start_link(id: ws, wc_port: 7070)
       end
 
       assert_raise Error,
                    ~r/^invalid workstation option :sun_comm: expected a keyword list/,
                    fn ->
-                     Vws.Workstation.start_link(id: ws, sun_comm: :xor)
+                     Vws.CEC.Workstation.start_link(id: ws, sun_comm: :xor)
                    end
 
       assert_raise Error, "missing workstation option :id", fn ->
-        Vws.Workstation.start_link(wc: nil)
+        Vws.CEC.Workstation.start_link(wc: nil)
       end
 
       error =
         assert_raise Error, fn ->
-          Vws.Workstation.start_link(
+          Vws.CEC.Workstation.start_link(
             id: ws,
             wc: "loopback:#{ws}",
             sun_comm: [upload_retries: :five]
@@ -75,20 +79,24 @@ defmodule Vws.OptionsTest do
 
       # through the node's workstation supervisor: the same error, and nothing left running
       assert {:error, {%Error{key: :bcc, what: "SUN_COMM"}, _stacktrace}} =
-               Vws.Workstation.start(id: ws, wc: "loopback:#{ws}", sun_comm: [bcc: "xor"])
+               Vws.CEC.Workstation.start(id: ws, wc: "loopback:#{ws}", sun_comm: [bcc: "xor"])
 
-      assert Vws.Workstation.whereis(ws) == nil
-      refute Vws.Mailbox.exists?(ws)
+      assert Vws.CEC.Workstation.whereis(ws) == nil
+      refute Vws.CEC.Mailbox.exists?(ws)
     end
 
     test "good options start it, SUN_COMM with the options given" do
       ws = id()
 
       {:ok, _} =
-        Vws.Workstation.start(id: ws, wc: "loopback:#{ws}", sun_comm: [bcc: :xor, max_line: 80])
+        Vws.CEC.Workstation.start(
+          id: ws,
+          wc: "loopback:#{ws}",
+          sun_comm: [bcc: :xor, max_line: 80]
+        )
 
-      on_exit(fn -> Vws.Workstation.stop(ws) end)
-      assert Vws.SunComm.await_listening(ws, 5_000) != nil
+      on_exit(fn -> Vws.CEC.Workstation.stop(ws) end)
+      assert Vws.CEC.SunComm.await_listening(ws, 5_000) != nil
       assert {:ok, peer} = Vws.Test.WCPeer.connect("loopback:#{ws}")
       # a line over 80 bytes is refused at once
       Vws.Test.WCPeer.send_line(peer, String.duplicate("x", 100))

@@ -95,11 +95,16 @@ defmodule Vws.TelemetryCatalogueTest do
       try do
         capture_io(fn ->
           assert {:ok, _summary, floor, client} =
-                   Vws.Demo.run(id: id, wc: "loopback:#{id}", time_scale: 50, poll_interval: 5)
+                   Vws.Ops.Demo.run(
+                     id: id,
+                     wc: "loopback:#{id}",
+                     time_scale: 50,
+                     poll_interval: 5
+                   )
 
           # the floor is linked to this test's process and ends with it
           _ = floor
-          Vws.WC.Client.close(client)
+          Vws.Peers.WC.Client.close(client)
         end)
       after
         :erlang.trace(:all, false, [:call])

@@ -14,8 +14,13 @@ defmodule Vws.WCLinkPolicyTest do
   defp start(sun_comm) do
     %{ws: ws} = Workstation.start(wc: "tcp://127.0.0.1:0", sun_comm: sun_comm)
 
-    assert eventually(fn -> Vws.SunComm.listening(ws) != nil end)
-    %{ws: ws, wc: to_string(Vws.SunComm.listening(ws)), port: Vws.SunComm.listening(ws).port}
+    assert eventually(fn -> Vws.CEC.SunComm.listening(ws) != nil end)
+
+    %{
+      ws: ws,
+      wc: to_string(Vws.CEC.SunComm.listening(ws)),
+      port: Vws.CEC.SunComm.listening(ws).port
+    }
   end
 
   defp raw_connect(port, from) do
@@ -39,7 +44,7 @@ defmodule Vws.WCLinkPolicyTest do
     assert log =~ "refused a connection from tcp://127.0.0.2:"
     assert log =~ "127.0.0.1/32"
     assert WCPeer.status(peer, 3, 3, "ROBOT_CMD") == "0000NONE"
-    info = Vws.SunComm.info(ws)
+    info = Vws.CEC.SunComm.info(ws)
     assert info.counters.connections == 1
     assert info.peer =~ "tcp://127.0.0.1:"
   end
@@ -51,20 +56,20 @@ defmodule Vws.WCLinkPolicyTest do
     :ok = :gen_tcp.send(s, WCPeer.string(1, [{"S", 1, "ROBOT_CMD"}]))
     assert {:ok, _answer} = :gen_tcp.recv(s, 0, 5_000)
 
-    assert {:error, _} = Vws.Transport.Policy.parse_allow("10.0.0.0/33")
-    assert {:error, _} = Vws.Transport.Policy.parse_allow("10.0.0.300")
-    assert {:ok, [{{10, 0, 0, 0}, 24}]} = Vws.Transport.Policy.parse_allow("10.0.0.0/24")
-    refute Vws.Transport.Policy.allowed?(:loopback, {10, 0, 0, 5})
-    assert Vws.Transport.Policy.allowed?(:loopback, {0, 0, 0, 0, 0, 0xFFFF, 0x7F00, 1})
+    assert {:error, _} = Vws.Links.Transport.Policy.parse_allow("10.0.0.0/33")
+    assert {:error, _} = Vws.Links.Transport.Policy.parse_allow("10.0.0.300")
+    assert {:ok, [{{10, 0, 0, 0}, 24}]} = Vws.Links.Transport.Policy.parse_allow("10.0.0.0/24")
+    refute Vws.Links.Transport.Policy.allowed?(:loopback, {10, 0, 0, 5})
+    assert Vws.Links.Transport.Policy.allowed?(:loopback, {0, 0, 0, 0, 0, 0xFFFF, 0x7F00, 1})
   end
 
   test "SUN_COMM refuses to listen on a non-loopback address without an allow-list" do
     ws = "policy-#{System.unique_integer([:positive])}"
-    start_supervised!({Vws.Mailbox.Owner, workstation: ws})
+    start_supervised!({Vws.CEC.Mailbox.Owner, workstation: ws})
 
     capture_log(fn ->
       assert {:error, {{:wc_link_policy, message}, _}} =
-               start_supervised({Vws.SunComm, workstation: ws, wc: "tcp://0.0.0.0:0"})
+               start_supervised({Vws.CEC.SunComm, workstation: ws, wc: "tcp://0.0.0.0:0"})
 
       assert message =~ "needs an allow-list"
       assert message =~ "--wc-allow"
@@ -72,7 +77,7 @@ defmodule Vws.WCLinkPolicyTest do
 
     assert {:ok, _} =
              start_supervised(
-               {Vws.SunComm, workstation: ws, wc: "tcp://0.0.0.0:0", allow: "10.0.0.0/24"}
+               {Vws.CEC.SunComm, workstation: ws, wc: "tcp://0.0.0.0:0", allow: "10.0.0.0/24"}
              )
   end
 
@@ -116,7 +121,7 @@ defmodule Vws.WCLinkPolicyTest do
       end)
 
     assert log =~ ~r/takes over from tcp:\/\/127\.0\.0\.1:\d+/
-    assert Vws.SunComm.info(ws).counters.connections == 2
+    assert Vws.CEC.SunComm.info(ws).counters.connections == 2
   end
 
   test "a WC that closes its connection and opens the next at once is let in, not refused" do
@@ -142,7 +147,7 @@ defmodule Vws.WCLinkPolicyTest do
     :ok = :sys.resume(sun_comm)
 
     assert WCPeer.status(second, 2, 2, "ROBOT_CMD") == "0000NONE"
-    assert Vws.SunComm.info(ws).counters.connections == 2
+    assert Vws.CEC.SunComm.info(ws).counters.connections == 2
   end
 
   test "a second newcomer while one waits, and a newcomer while the WC stays, are refused" do
@@ -182,7 +187,7 @@ defmodule Vws.WCLinkPolicyTest do
         send(parent, {:hog_done, result})
       end)
 
-      assert eventually(fn -> Vws.SunComm.info(ws).peer == nil end, 20_000)
+      assert eventually(fn -> Vws.CEC.SunComm.info(ws).peer == nil end, 20_000)
       assert_receive {:hog_done, _closed}, 20_000
     end)
 

@@ -3,7 +3,7 @@ defmodule Mix.Tasks.Vws.Demo do
   @moduledoc """
   Starts a workstation with every device that can be simulated, then acts as the workstation
   controller (the Sun): runs a cycle script over the WC link and prints the dialogue — time,
-  line sent, reply, meaning — and a summary. See `Vws.Demo`.
+  line sent, reply, meaning — and a summary. See `Vws.Ops.Demo`.
 
       mix vws.demo                          # the full machining cycle, then keeps running
       mix vws.demo --once                   # exit at the end: status 0 only if the cycle completed
@@ -14,12 +14,12 @@ defmodule Mix.Tasks.Vws.Demo do
   Options:
 
     * `--once` — exit when the script ends; the exit status is 0 only if it completed
-    * `--script FILE` — another cycle script (format: `Vws.WC.Script`); default
+    * `--script FILE` — another cycle script (format: `Vws.Peers.WC.Script`); default
       `priv/sims/machining_cycle.vws`
     * `--time-scale N` — passed to the shop floor's simulators (default 1)
     * `--wc-port N` — the TCP port SUN_COMM serves the WC on (default: a free port); another WC
       connecting there takes over the link
-    * `--http-port N` — the dashboard and MTConnect agent (`Vws.Web`) on port N (default 4000;
+    * `--http-port N` — the dashboard and MTConnect agent (`Vws.Ops.Web`) on port N (default 4000;
       0 picks a free port)
     * `--http-bind ADDR`, `--http-token TOKEN` — as for `mix vws.serve`
     * `--ber RATE`, `--seed N` — put a faulty line (`Vws.Sim.Line`) in every link of the floor,
@@ -27,14 +27,14 @@ defmodule Mix.Tasks.Vws.Demo do
       the dialogue shows the resends, the summary counts them
     * `--id ID` — the workstation id (default `VWS-DEMO`)
     * `--journal DIR`, `--no-journal` — as for `mix vws.serve`: the journal is on by default, in
-      `journal/<id>` of the data directory (`Vws.DataDir`)
-    * `--library DIR`, `--no-library` — likewise the program library (`Vws.DNC.Library`), on by
+      `journal/<id>` of the data directory (`Vws.Ops.DataDir`)
+    * `--library DIR`, `--no-library` — likewise the program library (`Vws.Links.DNC.Library`), on by
       default in `library/<id>` of the data directory
     * `--verbose` — keep the application's info logs (by default only warnings interleave with
       the dialogue)
 
   Without `--once` the shop floor keeps running after the script, until stopped: Ctrl-\\ or
-  `kill PID` stop it in order (`Vws.Signals`), Ctrl-C twice aborts at once.
+  `kill PID` stop it in order (`Vws.Ops.Signals`), Ctrl-C twice aborts at once.
   """
   use Mix.Task
 
@@ -77,14 +77,14 @@ defmodule Mix.Tasks.Vws.Demo do
 
     journal =
       try do
-        Vws.DataDir.journal_dir(opts[:id] || "VWS-DEMO", Vws.DataDir.choice(opts))
+        Vws.Ops.DataDir.journal_dir(opts[:id] || "VWS-DEMO", Vws.Ops.DataDir.choice(opts))
       rescue
         ArgumentError -> Mix.raise("--journal DIR and --no-journal exclude each other")
       end
 
     library =
       try do
-        Vws.DataDir.library_dir(opts[:id] || "VWS-DEMO", Vws.DataDir.library_choice(opts))
+        Vws.Ops.DataDir.library_dir(opts[:id] || "VWS-DEMO", Vws.Ops.DataDir.library_choice(opts))
       rescue
         ArgumentError -> Mix.raise("--library DIR and --no-library exclude each other")
       end
@@ -103,9 +103,9 @@ defmodule Mix.Tasks.Vws.Demo do
 
     IO.puts("dashboard and MTConnect agent: #{start_web(opts)}")
 
-    case Vws.Demo.run(demo_opts) do
+    case Vws.Ops.Demo.run(demo_opts) do
       {:ok, summary, floor, _client} ->
-        completed? = Vws.WC.Runner.Summary.completed?(summary)
+        completed? = Vws.Peers.WC.Runner.Summary.completed?(summary)
         once? = Keyword.get(opts, :once, false)
 
         cond do
@@ -132,7 +132,7 @@ defmodule Mix.Tasks.Vws.Demo do
   end
 
   defp start_web(opts) do
-    case Vws.Web.start_from_cli(opts) do
+    case Vws.Ops.Web.start_from_cli(opts) do
       {:ok, url} -> url
       {:error, message} -> Mix.raise(message)
     end

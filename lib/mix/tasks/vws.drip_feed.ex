@@ -25,9 +25,9 @@ defmodule Mix.Tasks.Vws.DripFeed do
   """
   use Mix.Task
 
-  alias Vws.DNC
-  alias Vws.DNC.{Frame, LinkError, Program}
-  alias Vws.DNC.Frame.Command
+  alias Vws.Links.DNC
+  alias Vws.Links.DNC.{Frame, LinkError, Program}
+  alias Vws.Links.DNC.Frame.Command
 
   @switches [
     ge2000: :string,

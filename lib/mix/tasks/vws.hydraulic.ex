@@ -1,13 +1,13 @@
 defmodule Mix.Tasks.Vws.Hydraulic do
   @shortdoc "Runs the hydraulic controller (the HP-9836 program) on its own"
   @moduledoc """
-  Runs the hydraulic controller (`Vws.HydraulicController`) in a node of its own: it listens
+  Runs the hydraulic controller (`Vws.Peers.HydraulicController`) in a node of its own: it listens
   for the CEC's HPIB link and drives the pallet through DAQ #2. A workstation reaches it with
   `mix vws.serve --hydraulic ENDPOINT` (or `devices: [hydraulic: ENDPOINT]`).
 
       mix vws.hydraulic                                   # CEC on tcp://127.0.0.1:5026, DAQ #2 simulated
       mix vws.hydraulic --listen tcp://0.0.0.0:5026 --cec 10.0.0.2 --daq2 tcp://10.0.0.10:5025
-      iex -S mix vws.hydraulic                            # with a shell: Vws.HydraulicController.info()
+      iex -S mix vws.hydraulic                            # with a shell: Vws.Peers.HydraulicController.info()
 
   Options:
 
@@ -41,15 +41,15 @@ defmodule Mix.Tasks.Vws.Hydraulic do
     listen = opts[:listen] || "tcp://127.0.0.1:5026"
 
     allow =
-      with {:ok, allow} <- Vws.Transport.Policy.parse_allow(opts[:cec]),
-           :ok <- Vws.Transport.Policy.check_listen(listen, allow) do
+      with {:ok, allow} <- Vws.Links.Transport.Policy.parse_allow(opts[:cec]),
+           :ok <- Vws.Links.Transport.Policy.check_listen(listen, allow) do
         allow
       else
         {:error, message} -> Mix.raise("--listen needs --cec (the CEC's address): " <> message)
       end
 
     {:ok, sup} =
-      Vws.HydraulicController.start_link(
+      Vws.Peers.HydraulicController.start_link(
         [listen: listen, allow: allow, daq2: daq2] ++
           if(opts[:min_force], do: [min_force_n: opts[:min_force]], else: [])
       )
@@ -57,9 +57,9 @@ defmodule Mix.Tasks.Vws.Hydraulic do
     Process.unlink(sup)
     Mix.shell().info("hydraulic controller: DAQ #2 at #{daq2}; initialising")
 
-    case Vws.HydraulicController.await_ready(30_000) do
+    case Vws.Peers.HydraulicController.await_ready(30_000) do
       :ok ->
-        info = Vws.HydraulicController.info()
+        info = Vws.Peers.HydraulicController.info()
         Mix.shell().info("hydraulic controller: the CEC connects to #{info.endpoint}")
         Mix.shell().info("start-up: #{start_up(info.init_result)}")
 

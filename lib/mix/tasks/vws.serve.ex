@@ -23,15 +23,15 @@ defmodule Mix.Tasks.Vws.Serve do
     * `--bind ADDR` — address to listen on (default 127.0.0.1)
     * `--wc-allow LIST` — the addresses/networks that may connect to the WC port
       (`10.0.0.5,10.0.0.0/24`; default `$VWS_WC_ALLOW`, else loopback only). Required to listen
-      anywhere but loopback (`Vws.Transport.Policy`; the link's policy: `Vws.SunComm`)
+      anywhere but loopback (`Vws.Links.Transport.Policy`; the link's policy: `Vws.CEC.SunComm`)
     * `--wc ENDPOINT` — any endpoint instead (`tcp://host:port`, `tty:/dev/…?baud=…`, `loopback:name`)
     * `--id ID` — the workstation id (default `VWS`)
     * `--journal DIR` — the command journal (every command status, the NC file and NC_UP, kept
-      across a restart or a `kill -9`: `Vws.Journal`) in DIR. By default it is on, in
+      across a restart or a `kill -9`: `Vws.CEC.Journal`) in DIR. By default it is on, in
       `$VWS_JOURNAL_DIR`, else `journal/<id>` of the data directory (`$VWS_DATA_DIR`, else
-      `$XDG_STATE_HOME/vws`, else `~/.local/state/vws`; see `Vws.DataDir`)
+      `$XDG_STATE_HOME/vws`, else `~/.local/state/vws`; see `Vws.Ops.DataDir`)
     * `--no-journal` — no journal: a restart forgets every command
-    * `--library DIR` — the program library (`Vws.DNC.Library`: every program DOWNLOAD_HP brought,
+    * `--library DIR` — the program library (`Vws.Links.DNC.Library`: every program DOWNLOAD_HP brought,
       with its versions; `mix vws.library`) in DIR. By default `$VWS_LIBRARY_DIR`, else
       `library/<id>` of the data directory
     * `--no-library` — no program library
@@ -39,7 +39,7 @@ defmodule Mix.Tasks.Vws.Serve do
     * `--time-scale N` — the simulated plant runs N times faster than real time (default 1)
     * `--daq1 ENDPOINT` — DAQ #1 is real equipment there; the plant and DAQ #1 are not simulated
     * `--daq1-port N` — the TCP port the simulated DAQ #1 listens on (default: a free port)
-    * `--http-port N` — the dashboard and MTConnect agent (`Vws.Web`) on port N (default 4000;
+    * `--http-port N` — the dashboard and MTConnect agent (`Vws.Ops.Web`) on port N (default 4000;
       0 picks a free port)
     * `--http-bind ADDR` — the address they listen on (default 127.0.0.1)
     * `--http-token TOKEN` — enables the dashboard's control actions for requests carrying this
@@ -57,7 +57,7 @@ defmodule Mix.Tasks.Vws.Serve do
     * `--ge2000-baud N` — pace the simulated GE-2000's line at N Bd (default: unpaced)
     * `--hydraulic ENDPOINT` — the hydraulic controller's HPIB endpoint, e.g. one started on another
       node or machine with `mix vws.hydraulic`. Without it the hydraulic controller
-      (`Vws.HydraulicController`) runs in this node on the simulated plant's DAQ #2.
+      (`Vws.Peers.HydraulicController`) runs in this node on the simulated plant's DAQ #2.
   """
   use Mix.Task
 
@@ -100,11 +100,11 @@ defmodule Mix.Tasks.Vws.Serve do
 
     wc = opts[:wc] || "tcp://#{opts[:bind] || "127.0.0.1"}:#{opts[:wc_port] || 7070}"
     id = opts[:id] || "VWS"
-    journal = Vws.DataDir.journal_dir(id, journal_choice(opts))
+    journal = Vws.Ops.DataDir.journal_dir(id, journal_choice(opts))
 
     library =
       try do
-        Vws.DataDir.library_dir(id, Vws.DataDir.library_choice(opts))
+        Vws.Ops.DataDir.library_dir(id, Vws.Ops.DataDir.library_choice(opts))
       rescue
         ArgumentError -> Mix.raise("--library DIR and --no-library exclude each other")
       end
@@ -124,7 +124,7 @@ defmodule Mix.Tasks.Vws.Serve do
     devices = [ge2000: ge2000, robot: robot] ++ floor_devices(id, opts)
 
     # a simulated GE-2000's own button is MONARCH's cycle start; else the DAQ #1 relay is
-    case Vws.Workstation.start(
+    case Vws.CEC.Workstation.start(
            id: id,
            wc: wc,
            sun_comm: [bcc: bcc, allow: allow],
@@ -137,7 +137,7 @@ defmodule Mix.Tasks.Vws.Serve do
       {:error, reason} -> Mix.raise("workstation #{id} did not start: #{start_error(reason)}")
     end
 
-    listening = Vws.SunComm.await_listening(id, 1_000)
+    listening = Vws.CEC.SunComm.await_listening(id, 1_000)
     Mix.shell().info("VWS workstation #{id}: SUN_COMM waits for the WC on #{listening || wc}")
     Mix.shell().info("GE-2000 DNC link: #{ge2000}")
 
@@ -147,7 +147,7 @@ defmodule Mix.Tasks.Vws.Serve do
 
     Mix.shell().info("Program library: #{library || "none (--no-library)"}")
     Mix.shell().info("Dashboard and MTConnect agent: #{start_web(opts)}")
-    Mix.shell().info("Inspect it: Vws.Inspect.overview(#{inspect(id)})")
+    Mix.shell().info("Inspect it: Vws.Ops.Inspect.overview(#{inspect(id)})")
     Mix.shell().info(stop_hint(iex_running?()))
 
     unless iex_running?(), do: Process.sleep(:infinity)
@@ -155,8 +155,8 @@ defmodule Mix.Tasks.Vws.Serve do
 
   # Who may connect to the WC port: refused here, with the reason, rather than by SUN_COMM later.
   defp wc_allow(wc, text) do
-    with {:ok, allow} <- Vws.Transport.Policy.parse_allow(text),
-         :ok <- Vws.Transport.Policy.check_listen(wc, allow) do
+    with {:ok, allow} <- Vws.Links.Transport.Policy.parse_allow(text),
+         :ok <- Vws.Links.Transport.Policy.check_listen(wc, allow) do
       allow
     else
       {:error, message} -> Mix.raise("the WC port: " <> message)
@@ -199,7 +199,12 @@ defmodule Mix.Tasks.Vws.Serve do
 
     hydraulic =
       if sim_hydraulic do
-        :ok = Vws.HydraulicController.await_ready(Vws.Sim.Floor.hydraulic_controller(id), 10_000)
+        :ok =
+          Vws.Peers.HydraulicController.await_ready(
+            Vws.Sim.Floor.hydraulic_controller(id),
+            10_000
+          )
+
         endpoint = Vws.Sim.Floor.hydraulic_endpoint(id)
 
         Mix.shell().info(
@@ -256,7 +261,7 @@ defmodule Mix.Tasks.Vws.Serve do
     do: DynamicSupervisor.start_child(Vws.EquipmentSupervisor, child_spec)
 
   defp journal_choice(opts) do
-    Vws.DataDir.choice(opts)
+    Vws.Ops.DataDir.choice(opts)
   rescue
     ArgumentError -> Mix.raise("--journal DIR and --no-journal exclude each other")
   end
@@ -278,7 +283,7 @@ defmodule Mix.Tasks.Vws.Serve do
   defp iex_running?, do: Code.ensure_loaded?(IEx) and IEx.started?()
 
   @doc false
-  # How to stop it cleanly (Vws.Signals): Ctrl-C is the BEAM's BREAK menu, which stops nothing
+  # How to stop it cleanly (Vws.Ops.Signals): Ctrl-C is the BEAM's BREAK menu, which stops nothing
   # in order; Ctrl-\\ (SIGQUIT) and SIGTERM do.
   def stop_hint(true = _iex?),
     do: "Stop: System.stop() or Ctrl-\\ (in order); Ctrl-C twice aborts at once"
@@ -287,7 +292,7 @@ defmodule Mix.Tasks.Vws.Serve do
     do: "Stop: Ctrl-\\ or kill #{System.pid()} (in order); Ctrl-C twice aborts at once"
 
   defp start_web(opts) do
-    case Vws.Web.start_from_cli(opts) do
+    case Vws.Ops.Web.start_from_cli(opts) do
       {:ok, url} -> url
       {:error, message} -> Mix.raise(message)
     end

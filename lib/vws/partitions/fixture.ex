@@ -2,7 +2,7 @@ defmodule Vws.Partitions.Fixture do
   @moduledoc """
   FIXTURE (seed App. I E, §2.3.8): opens and closes the vise through the valves of DAQ #1
   (`Vws.Partitions.VwsStatus.operate/4`), reads its clamping force, and takes the table's work
-  volume for the vise (`Vws.Interlock`). Each vise command ends `DONE` only once the sensors
+  volume for the vise (`Vws.CEC.Interlock`). Each vise command ends `DONE` only once the sensors
   confirm it (seed §6: "the clamping force exerted by the vise is sufficient to keep the
   workpiece from moving"):
 
@@ -45,10 +45,10 @@ defmodule Vws.Partitions.Fixture do
   0.3 s), `:min_force_n`, `:interlock` (as ROBOT's: `timeout`, `retry_ms`, `machine_stale_ms`,
   `sensor_timeout_ms`).
   """
-  @behaviour Vws.Partition
+  @behaviour Vws.CEC.Partition
 
-  alias Vws.Interlock
-  alias Vws.DAQ.DeviceStatus
+  alias Vws.CEC.Interlock
+  alias Vws.Links.DAQ.DeviceStatus
   alias Vws.Partitions.VwsStatus
 
   @min_force_n 800
@@ -62,7 +62,7 @@ defmodule Vws.Partitions.Fixture do
   def device, do: "DAQ #1"
 
   @impl true
-  def parse(text), do: Vws.Commands.parse(:fixture, text)
+  def parse(text), do: Vws.Codecs.Commands.parse(:fixture, text)
 
   @impl true
   def execute(:open, ctx), do: vise_motion(ctx, &open/1)

@@ -21,9 +21,9 @@ defmodule Vws.Partitions.Gripper do
   Options (`ctx.options`): `:timeout_ms` — how long the sensors have to confirm (default 3000
   for OPEN and CLOSE, 6000 for ROTATE_n, a 270° turn taking 3 s).
   """
-  @behaviour Vws.Partition
+  @behaviour Vws.CEC.Partition
 
-  alias Vws.DAQ.{DeviceStatus, Readings}
+  alias Vws.Links.DAQ.{DeviceStatus, Readings}
   alias Vws.Partitions.VwsStatus
 
   @still_mm 0.5
@@ -32,7 +32,7 @@ defmodule Vws.Partitions.Gripper do
   def device, do: "DAQ #1"
 
   @impl true
-  def parse(text), do: Vws.Commands.parse(:gripper, text)
+  def parse(text), do: Vws.Codecs.Commands.parse(:gripper, text)
 
   @impl true
   def execute(:open, ctx) do

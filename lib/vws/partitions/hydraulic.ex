@@ -1,8 +1,8 @@
 defmodule Vws.Partitions.Hydraulic do
   @moduledoc """
   HYDRAULIC (seed §2.2 item 8, App. I F): the partition that runs the hydraulic command set on
-  the hydraulic controller (`Vws.HydraulicController`), a device on the CEC's HPIB (`ctx.link`
-  is its `Vws.HPIB` device `{bus, address}`).
+  the hydraulic controller (`Vws.Peers.HydraulicController`), a device on the CEC's HPIB (`ctx.link`
+  is its `Vws.Links.HPIB` device `{bus, address}`).
 
   `CLAMP_PALLET` and `RELEASE_PALLET` go to the controller as they are; then HYDRAULIC asks
   `STATUS?` every `:poll_ms` until the answer is not `EXECUTING`:
@@ -33,11 +33,12 @@ defmodule Vws.Partitions.Hydraulic do
   Options (`ctx.options`): `:poll_ms` (100), `:timeout_ms` (60 000: a whole sequence),
   `:silence_ms` (3000), `:request_ms` (one HPIB request, 1000).
   """
-  @behaviour Vws.Partition
+  @behaviour Vws.CEC.Partition
 
   require Logger
 
-  alias Vws.{HPIB, Mailbox}
+  alias Vws.Links.HPIB
+  alias Vws.CEC.Mailbox
 
   @device "HYDRAULIC CONTROLLER"
   @pallet_location 10
@@ -49,7 +50,7 @@ defmodule Vws.Partitions.Hydraulic do
   def device, do: @device
 
   @impl true
-  def parse(text), do: Vws.Commands.parse(:hydraulic, text)
+  def parse(text), do: Vws.Codecs.Commands.parse(:hydraulic, text)
 
   @impl true
   def execute(command, ctx) when command in [:clamp_pallet, :release_pallet] do
@@ -159,7 +160,7 @@ defmodule Vws.Partitions.Hydraulic do
   Returns the decoded answer, or `{:error, why}` with the `NO DATA` reason it wrote.
   """
   @spec refresh_pallet(Mailbox.workstation(), HPIB.device(), timeout) ::
-          {:ok, Vws.SCPI.pallet()} | {:error, String.t()}
+          {:ok, Vws.Codecs.SCPI.pallet()} | {:error, String.t()}
   def refresh_pallet(ws, link, timeout \\ 1_000) do
     {text, result} =
       case HPIB.query(link, :pallet?, timeout) do
@@ -184,7 +185,7 @@ defmodule Vws.Partitions.Hydraulic do
       iex> Vws.Partitions.Hydraulic.pallet_text(%{clamped: false, x: false, y: false, force1_n: 9.9e37, force2_n: 9.9e37})
       "NO DATA (HYDRAULIC CONTROLLER CANNOT READ THE PALLET SENSORS)"
   """
-  @spec pallet_text(Vws.SCPI.pallet()) :: String.t()
+  @spec pallet_text(Vws.Codecs.SCPI.pallet()) :: String.t()
   def pallet_text(%{clamped: true}), do: "PALLET CLAMPED"
 
   def pallet_text(%{force1_n: f1, force2_n: f2}) when f1 >= @overload_at or f2 >= @overload_at,
@@ -199,7 +200,7 @@ defmodule Vws.Partitions.Hydraulic do
   defp bit(true), do: "1"
   defp bit(false), do: "0"
   defp force(n) when n >= @overload_at, do: "OVERLOAD"
-  defp force(n), do: Vws.DAQ.DeviceStatus.newtons(n) <> " N"
+  defp force(n), do: Vws.Links.DAQ.DeviceStatus.newtons(n) <> " N"
 
   # the status text says what is wrong, the command error also how long it was waited for
   defp no_data_reason(%HPIB.Error{reason: :timeout}, _why), do: "#{@device} NOT ANSWERING"
@@ -215,13 +216,13 @@ defmodule Vws.Partitions.Hydraulic do
   def hpib_reason(nil), do: "#{@device} NOT ANSWERING"
 
   @doc """
-  What a workstation needs to reach the hydraulic controller at `endpoint`: its `Vws.HPIB`
+  What a workstation needs to reach the hydraulic controller at `endpoint`: its `Vws.Links.HPIB`
   device and the PALLET monitor for the links supervisor, and HYDRAULIC's `link:`. Options:
   `:address` (the controller's primary address on the CEC's HPIB, default 8), `:hpib`
-  (`Vws.HPIB.start_link/1` options), `:status_interval` (ms between PALLET reads, default 1000;
+  (`Vws.Links.HPIB.start_link/1` options), `:status_interval` (ms between PALLET reads, default 1000;
   `nil` for no monitor), `:hydraulic` (partition options, e.g. `options: [timeout_ms: …]`).
   """
-  @spec wiring(Mailbox.workstation(), String.t() | Vws.Endpoint.t(), keyword) ::
+  @spec wiring(Mailbox.workstation(), String.t() | Vws.Links.Endpoint.t(), keyword) ::
           %{links: [Supervisor.child_spec()], partitions: keyword}
   def wiring(ws, endpoint, opts \\ []) do
     address = Keyword.get(opts, :address, 8)

@@ -1,7 +1,7 @@
 defmodule Vws.Partitions.Monarch do
   @moduledoc """
   MONARCH (seed §3, Fig. 7, App. I A): runs the Monarch command set on the GE-2000 through the
-  DNC Level 2 link given as the partition's `link` (a `Vws.DNC` process or its name).
+  DNC Level 2 link given as the partition's `link` (a `Vws.Links.DNC` process or its name).
 
   | command | on the link | result |
   |---------|-------------|--------|
@@ -15,7 +15,7 @@ defmodule Vws.Partitions.Monarch do
   | `CYCLE_START` | (DAQ #1 relay) then `RNL` | DONE once the machine reports ACTIVE |
   | `RELEASE_TABLE` | `RNL` | clears the table interlock; refused `ERROR MACHINE ACTIVE` |
 
-  From the program library (`Vws.DNC.Library`, ours — issue 18; the workstation's `library:`):
+  From the program library (`Vws.Links.DNC.Library`, ours — issue 18; the workstation's `library:`):
 
   | command | on the link | result |
   |---------|-------------|--------|
@@ -44,7 +44,7 @@ defmodule Vws.Partitions.Monarch do
   old program. (`verify: false` skips the directory too.)
 
   **Table interlock** (seed App. I A, §2.3.8 rules 1b and 3b). CYCLE_START first takes the
-  table's work volume for the machine (`Vws.Interlock`, holder `:monarch`) — re-tried four times a
+  table's work volume for the machine (`Vws.CEC.Interlock`, holder `:monarch`) — re-tried four times a
   second while the robot or the vise holds it, until `interlock: [timeout: ms]` (default
   10 000) ends it `ERROR INTERLOCK TABLE HELD BY ROBOT` (or `FIXTURE`) — so the vise may not open
   nor the robot approach the table, then closes the cycle-start relay of DAQ #1 through the
@@ -85,13 +85,13 @@ defmodule Vws.Partitions.Monarch do
   @not_again [:delete, :download_execute]
   @broken_off [:nak_limit, :no_reply, :aborted, :no_response, :receive_timeout, :no_answer_to_bid]
 
-  @behaviour Vws.Partition
+  @behaviour Vws.CEC.Partition
   require Logger
 
-  alias Vws.DNC
-  alias Vws.DNC.{Frame, LinkError, Program, Report}
-  alias Vws.DNC.Frame.Command
-  alias Vws.{Interlock, Mailbox}
+  alias Vws.Links.DNC
+  alias Vws.Links.DNC.{Frame, LinkError, Program, Report}
+  alias Vws.Links.DNC.Frame.Command
+  alias Vws.CEC.{Interlock, Mailbox}
 
   @monarch_location 8
   @tli_location 6
@@ -100,7 +100,7 @@ defmodule Vws.Partitions.Monarch do
   def device, do: "GE-2000"
 
   @impl true
-  def parse(text), do: Vws.Commands.parse(:monarch, text)
+  def parse(text), do: Vws.Codecs.Commands.parse(:monarch, text)
 
   @impl true
   def execute(command, ctx)
@@ -167,7 +167,7 @@ defmodule Vws.Partitions.Monarch do
   def execute({:compare_ge, file}, ctx) do
     with {:ok, versions} <- library_versions(ctx.workstation, file),
          {:ok, entries} <- read_directory(ctx) do
-      case Vws.DNC.Library.on_machine(versions, Map.get(entries, file)) do
+      case Vws.Links.DNC.Library.on_machine(versions, Map.get(entries, file)) do
         :absent -> {:error, "PROGRAM ABSENT #{file}"}
         :differs -> {:error, "PROGRAM DIFFERS #{file}"}
         {:same, n} -> read_back(ctx, file, n)
@@ -317,8 +317,9 @@ defmodule Vws.Partitions.Monarch do
     with {:ok, blocks} <- request(ctx, :receive, :directory, "", []) do
       case Report.parse_directory(IO.iodata_to_binary(blocks)) do
         {:ok, entries} ->
-          if Vws.DNC.Library.enabled?(ctx.workstation) do
-            with {:error, reason} <- Vws.DNC.Library.record_machine(ctx.workstation, entries) do
+          if Vws.Links.DNC.Library.enabled?(ctx.workstation) do
+            with {:error, reason} <-
+                   Vws.Links.DNC.Library.record_machine(ctx.workstation, entries) do
               require Logger
 
               Logger.error(
@@ -346,14 +347,14 @@ defmodule Vws.Partitions.Monarch do
   end
 
   defp library_program(ws, file, which) do
-    case Vws.DNC.Library.read(ws, file, which) do
+    case Vws.Links.DNC.Library.read(ws, file, which) do
       {:ok, text, _version} -> {:ok, text}
       {:error, reason} -> {:error, library_error(file, which, reason)}
     end
   end
 
   defp library_versions(ws, file) do
-    case Vws.DNC.Library.versions(ws, file) do
+    case Vws.Links.DNC.Library.versions(ws, file) do
       {:ok, versions} -> {:ok, versions}
       {:error, reason} -> {:error, library_error(file, :latest, reason)}
     end
@@ -370,23 +371,24 @@ defmodule Vws.Partitions.Monarch do
   @doc """
   Compares the program library of workstation `ws` with what its GE-2000 holds, from iex: reads
   the machine's directory (`RNF`) through `ws`'s DNC link, records it in the library, and returns
-  `Vws.DNC.Library.compare/1` — each program `on_machine` `{:same, version}`, `:differs` or
+  `Vws.Links.DNC.Library.compare/1` — each program `on_machine` `{:same, version}`, `:differs` or
   `:absent`. With `read_back: true` (every program the directory shows the same) or
   `read_back: [file names]` those programs are also read back whole (`RNS`) and compared byte for
   byte: each such row gets `read_back: :same | :differs` (a `:differs` also makes it `on_machine:
-  :differs`). `Vws.DNC.Library.print_compare/1` prints the result.
+  :differs`). `Vws.Links.DNC.Library.print_compare/1` prints the result.
 
   Options: `:link` (default the workstation's GE-2000 link), `:check`, `:request_timeout`.
   """
   @spec compare(Mailbox.workstation(), keyword) :: {:ok, map} | {:error, term}
   def compare(ws, opts \\ []) do
-    link = Keyword.get_lazy(opts, :link, fn -> Vws.Workstation.whereis(ws, :ge2000) end)
+    link = Keyword.get_lazy(opts, :link, fn -> Vws.CEC.Workstation.whereis(ws, :ge2000) end)
     ctx = %{workstation: ws, link: link, options: opts}
 
     with :ok <- if(link, do: :ok, else: {:error, "NO LINK TO GE-2000"}),
-         :ok <- if(Vws.DNC.Library.enabled?(ws), do: :ok, else: {:error, "NO PROGRAM LIBRARY"}),
+         :ok <-
+           if(Vws.Links.DNC.Library.enabled?(ws), do: :ok, else: {:error, "NO PROGRAM LIBRARY"}),
          {:ok, _entries} <- read_directory(ctx),
-         {:ok, result} <- Vws.DNC.Library.compare(ws) do
+         {:ok, result} <- Vws.Links.DNC.Library.compare(ws) do
       wanted = Keyword.get(opts, :read_back, false)
 
       rows =
@@ -484,8 +486,10 @@ defmodule Vws.Partitions.Monarch do
   end
 
   defp library_from_machine(ws, name, lines) do
-    if Vws.DNC.Library.enabled?(ws) do
-      case Vws.DNC.Library.store(ws, name, Program.to_text(lines), source: "from the machine") do
+    if Vws.Links.DNC.Library.enabled?(ws) do
+      case Vws.Links.DNC.Library.store(ws, name, Program.to_text(lines),
+             source: "from the machine"
+           ) do
         {:ok, _version} -> :ok
         {:error, reason} -> {:error, "LIBRARY #{inspect(reason)}"}
       end

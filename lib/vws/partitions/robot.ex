@@ -1,7 +1,7 @@
 defmodule Vws.Partitions.Robot do
   @moduledoc """
   ROBOT: the partition that runs the robot command set (seed App. I B, §4.4) on the VAL II,
-  through the logical-unit layer `Vws.VAL` (`ctx.link` is the `Vws.VAL` process).
+  through the logical-unit layer `Vws.Links.VAL` (`ctx.link` is the `Vws.Links.VAL` process).
 
   | WC command | what runs | DONE when |
   |------------|-----------|-----------|
@@ -14,7 +14,7 @@ defmodule Vws.Partitions.Robot do
   | `DISABLE_TRAYn`, `RELEASE_TRAYn`, `DISABLE_TABLE`, `RELEASE_TABLE` | interlocks (below) | the lease is taken / given up |
 
   The WC writes the robot's commands with `/` between arguments; VAL II wants commas, so motion
-  instructions are rewritten from the parsed command (`Vws.Commands`), never passed through.
+  instructions are rewritten from the parsed command (`Vws.Codecs.Commands`), never passed through.
 
   An error numbered by the controller ends the command `ERROR <code> <text>` (e.g.
   `ERROR -301 UNDEFINED LOCATION MV9`); trouble on the way ends it `ERROR VAL II <what>`:
@@ -24,7 +24,7 @@ defmodule Vws.Partitions.Robot do
 
   ## Interlocks (seed §2.3.8, §4.4 Fig. 13)
 
-  Through `Vws.Interlock`, with ROBOT as holder `:robot`:
+  Through `Vws.CEC.Interlock`, with ROBOT as holder `:robot`:
 
     * `DISABLE_TRAYn` takes tray n's volume (`:tray1`, `:tray2`; re-tried while the
       material-handling system holds it — rule 2a) and then locks the tray through the
@@ -38,7 +38,7 @@ defmodule Vws.Partitions.Robot do
       (reason `:inside`) by the same procedure and on the same conditions, unless it is held
       already (then the conditions are read again) — the device lock-out of Fig. 13 before the
       robot leaves SAFE for a work volume. Which volume a location lies in comes from
-      `priv/work_volumes.exs` (`Vws.Interlock.WorkVolumes`); `loc:TRANS(…)` lies in the volume
+      `priv/work_volumes.exs` (`Vws.CEC.Interlock.WorkVolumes`); `loc:TRANS(…)` lies in the volume
       of `loc`; a location that is not listed is refused. `DEPART`/`DEPARTS` stays in the volume
       the arm is in. `EXECUTE name` takes the volumes the program is listed to enter.
     * When a motion completes, the arm's leases on the volumes it has left are given up; when
@@ -66,10 +66,11 @@ defmodule Vws.Partitions.Robot do
       `machine_stale_ms`, `sensor_timeout_ms` (see `Vws.Partitions.TableConditions.check/2`).
     * `:work_volumes` — a map or a path in the shape of `priv/work_volumes.exs` (the default).
   """
-  @behaviour Vws.Partition
+  @behaviour Vws.CEC.Partition
 
-  alias Vws.{Interlock, Mailbox, VAL}
-  alias Vws.Interlock.WorkVolumes
+  alias Vws.CEC.{Interlock, Mailbox}
+  alias Vws.Links.VAL
+  alias Vws.CEC.Interlock.WorkVolumes
 
   @where_location 9
 
@@ -77,7 +78,7 @@ defmodule Vws.Partitions.Robot do
   def device, do: "VAL II"
 
   @impl true
-  def parse(text), do: Vws.Commands.parse(:robot, text)
+  def parse(text), do: Vws.Codecs.Commands.parse(:robot, text)
 
   @impl true
   def execute({:disable_tray, n}, ctx), do: disable_tray(ctx, n)

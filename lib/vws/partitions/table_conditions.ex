@@ -2,14 +2,14 @@ defmodule Vws.Partitions.TableConditions do
   @moduledoc """
   The physical conditions of interlock rules 1a and 3a (seed §2.3.8) — the machine tool idle and
   its table at park — read from the plant, as the `:check` ROBOT and FIXTURE give
-  `Vws.Interlock.acquire/5` for the table's work volume.
+  `Vws.CEC.Interlock.acquire/5` for the table's work volume.
 
   They are read here, beside the partitions, and handed to the interlock as a function: the
   interlock keeps the leases and knows nothing of VWS_STATUS or the mailbox locations it reads.
   """
 
-  alias Vws.DAQ.DeviceStatus
-  alias Vws.Mailbox
+  alias Vws.Links.DAQ.DeviceStatus
+  alias Vws.CEC.Mailbox
   alias Vws.Partitions.VwsStatus
 
   # the MONARCH device-status location, kept by MONARCH's monitor

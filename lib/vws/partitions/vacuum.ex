@@ -11,7 +11,7 @@ defmodule Vws.Partitions.Vacuum do
 
   Options (`ctx.options`): `:timeout_ms` (default 3000).
   """
-  @behaviour Vws.Partition
+  @behaviour Vws.CEC.Partition
 
   alias Vws.Partitions.VwsStatus
 
@@ -19,7 +19,7 @@ defmodule Vws.Partitions.Vacuum do
   def device, do: "DAQ #1"
 
   @impl true
-  def parse(text), do: Vws.Commands.parse(:vacuum, text)
+  def parse(text), do: Vws.Codecs.Commands.parse(:vacuum, text)
 
   @impl true
   def execute(command, ctx) when command in [:on, :off] do

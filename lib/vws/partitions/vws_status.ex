@@ -6,13 +6,13 @@ defmodule Vws.Partitions.VwsStatus do
   ## Polling
 
   Every `:poll_ms` (default 20, the seed's period) it reads every sensor channel of DAQ #1 over
-  the HPIB (`Vws.DAQ.poll_commands/1`: the seed's SENSORS/Hp3497 subroutines and their array B),
-  converts the readings to millimetres, newtons and switch states (`Vws.DAQ.readings/3`) and
+  the HPIB (`Vws.Links.DAQ.poll_commands/1`: the seed's SENSORS/Hp3497 subroutines and their array B),
+  converts the readings to millimetres, newtons and switch states (`Vws.Links.DAQ.readings/3`) and
   writes:
 
     * locations 1–5 and 7 (`GRIPPER`, `TABLE`, `VISE`, `TRAYS`, `VACUUM`, `CHANGER_1`): the texts
-      of `Vws.DAQ.DeviceStatus`;
-    * location 11 (`SENSORS`): the `Vws.DAQ.Readings` themselves, which the GRIPPER, FIXTURE and
+      of `Vws.Links.DAQ.DeviceStatus`;
+    * location 11 (`SENSORS`): the `Vws.Links.DAQ.Readings` themselves, which the GRIPPER, FIXTURE and
       VACUUM partitions watch to confirm what their commands did (`readings/1`, `await/4`).
 
   Polls are scheduled on absolute times (`t0 + k · poll_ms`), so a late one does not shift
@@ -62,19 +62,20 @@ defmodule Vws.Partitions.VwsStatus do
   2000 µs takes that out of the poll period for about 8 % of one core per workstation — the
   setting for a workstation alone on its host (`config/runtime.exs`), not for hundreds on one
   node;
-  `:daq` — `Vws.DAQ.new/1` options (`:channel_map`, `:switches`).
+  `:daq` — `Vws.Links.DAQ.new/1` options (`:channel_map`, `:switches`).
 
   ## Telemetry
 
   `[:vws, :vws_status, :poll | :missed | :stale | :actuation_retry]`, with their measurements
   and metadata in the catalogue of `Vws.Telemetry`. At every write of location 11 it causes
-  the workstation's `:sensors` event (`Vws.Events`), which `await/4` waits on.
+  the workstation's `:sensors` event (`Vws.CEC.Events`), which `await/4` waits on.
   """
   use GenServer
   require Logger
 
-  alias Vws.{DAQ, HPIB, Mailbox}
-  alias Vws.DAQ.{DeviceStatus, Readings}
+  alias Vws.Links.{DAQ, HPIB}
+  alias Vws.CEC.Mailbox
+  alias Vws.Links.DAQ.{DeviceStatus, Readings}
 
   @device "DAQ #1"
   # relays wired as push buttons: pressed briefly, never to stay closed
@@ -111,7 +112,7 @@ defmodule Vws.Partitions.VwsStatus do
   @spec start_link(keyword) :: GenServer.on_start()
   def start_link(opts) do
     ws = Keyword.fetch!(opts, :workstation)
-    GenServer.start_link(__MODULE__, opts, name: Vws.Partition.via(ws, :vws_status))
+    GenServer.start_link(__MODULE__, opts, name: Vws.CEC.Partition.via(ws, :vws_status))
   end
 
   ## Client API
@@ -136,7 +137,7 @@ defmodule Vws.Partitions.VwsStatus do
   """
   @spec actuate(workstation, [action], timeout) :: :ok | {:error, String.t()}
   def actuate(ws, actions, timeout \\ 5_000) do
-    GenServer.call(Vws.Partition.via(ws, :vws_status), {:actuate, actions}, timeout)
+    GenServer.call(Vws.CEC.Partition.via(ws, :vws_status), {:actuate, actions}, timeout)
   catch
     :exit, {:timeout, _} -> {:error, "#{@device} NOT ANSWERING (NO ANSWER IN #{timeout} MS)"}
     :exit, _ -> {:error, "VWS_STATUS NOT RUNNING"}
@@ -162,12 +163,12 @@ defmodule Vws.Partitions.VwsStatus do
     deadline = System.monotonic_time(:millisecond) + timeout_ms
     acc = %{prev: nil, read: nil, no_data: nil, confirming: false}
     # subscribed before the first read: a reading written after it wakes us
-    :ok = Vws.Events.subscribe(ws, :sensors)
+    :ok = Vws.CEC.Events.subscribe(ws, :sensors)
 
     try do
       do_await(ws, since, deadline, timeout_ms, check, acc)
     after
-      Vws.Events.unsubscribe(ws, :sensors)
+      Vws.CEC.Events.unsubscribe(ws, :sensors)
       flush_sensor_events(ws)
     end
   end
@@ -278,7 +279,7 @@ defmodule Vws.Partitions.VwsStatus do
   def push_button(ws, relay, pulse_ms, timeout \\ 5_000) do
     # VWS_STATUS holds the press and lets it go, whatever becomes of the caller
     GenServer.call(
-      Vws.Partition.via(ws, :vws_status),
+      Vws.CEC.Partition.via(ws, :vws_status),
       {:push, relay, pulse_ms},
       pulse_ms + 2 * timeout
     )
@@ -342,16 +343,16 @@ defmodule Vws.Partitions.VwsStatus do
   not), `releases` the buttons VWS_STATUS let go of itself.
   """
   @spec stats(workstation) :: map
-  def stats(ws), do: GenServer.call(Vws.Partition.via(ws, :vws_status), :stats)
+  def stats(ws), do: GenServer.call(Vws.CEC.Partition.via(ws, :vws_status), :stats)
 
   @doc """
   What a workstation needs to reach DAQ #1 at `endpoint`: the HPIB device child spec for its
   links supervisor, and the partition options — the link of VWS_STATUS, GRIPPER, FIXTURE and
   VACUUM, MONARCH's `cycle_start` and ROBOT's `tray_lock`. Options: `:address` (default 9, the
-  HP 3497A's factory address), `:hpib` (`Vws.HPIB.start_link/1` options), `:vws_status`
+  HP 3497A's factory address), `:hpib` (`Vws.Links.HPIB.start_link/1` options), `:vws_status`
   (options of this partition), `:pulse_ms`.
   """
-  @spec wiring(workstation, String.t() | Vws.Endpoint.t(), keyword) ::
+  @spec wiring(workstation, String.t() | Vws.Links.Endpoint.t(), keyword) ::
           %{links: [Supervisor.child_spec()], partitions: keyword}
   def wiring(ws, endpoint, opts \\ []) do
     address = Keyword.get(opts, :address, 9)
@@ -386,7 +387,7 @@ defmodule Vws.Partitions.VwsStatus do
     opts = Keyword.merge(@defaults, opts)
     link = Keyword.get(opts, :link)
     # caused at every write of location 11: what await/4 waits on
-    Vws.Events.create(ws, :sensors)
+    Vws.CEC.Events.create(ws, :sensors)
 
     configured = Keyword.get(opts, :devices, [])
 
@@ -683,7 +684,7 @@ defmodule Vws.Partitions.VwsStatus do
   # Location 11, and the event that wakes whoever awaits a reading (await/4).
   defp put_sensors(ws, value) do
     Mailbox.put_device(ws, @sensors_location, value)
-    Vws.Events.cause(ws, :sensors)
+    Vws.CEC.Events.cause(ws, :sensors)
   end
 
   ## Actuations

@@ -24,10 +24,10 @@ defmodule Vws.Sim.DAQ do
       iex> {:ok, daq} = Vws.Sim.DAQ.start_link(plant: plant)
       iex> Vws.Sim.DAQ.endpoint(daq) =~ ~r"^tcp://127.0.0.1:\\d+$"
       true
-      iex> {:ok, conn} = Vws.Transport.connect(Vws.Sim.DAQ.endpoint(daq))
-      iex> :ok = Vws.Transport.send(conn, "ROUT:CLOS (@207)\\nROUT:CLOS? (@207)\\n")
-      iex> :ok = Vws.Transport.activate(conn)
-      iex> receive do msg -> Vws.Transport.handle_message(conn, msg) end
+      iex> {:ok, conn} = Vws.Links.Transport.connect(Vws.Sim.DAQ.endpoint(daq))
+      iex> :ok = Vws.Links.Transport.send(conn, "ROUT:CLOS (@207)\\nROUT:CLOS? (@207)\\n")
+      iex> :ok = Vws.Links.Transport.activate(conn)
+      iex> receive do msg -> Vws.Links.Transport.handle_message(conn, msg) end
       {:data, "1\\n"}
 
   ## Faults of the instrument itself
@@ -39,7 +39,8 @@ defmodule Vws.Sim.DAQ do
   use GenServer
   require Logger
 
-  alias Vws.{SCPI, Transport}
+  alias Vws.Codecs.SCPI
+  alias Vws.Links.Transport
   alias Vws.Sim.Plant
 
   @max_errors 20
@@ -58,7 +59,7 @@ defmodule Vws.Sim.DAQ do
   @doc """
   Starts a DAQ. Options: `:plant` (required), `:endpoint` to listen on (default
   `"tcp://127.0.0.1:0"`), `:daq` (`:daq1` or `:daq2`, default `:daq1`), `:name`, `:allow` (who
-  may connect, `Vws.Transport.Policy`; default loopback only).
+  may connect, `Vws.Links.Transport.Policy`; default loopback only).
   """
   @spec start_link(keyword) :: GenServer.on_start()
   def start_link(opts) do
@@ -97,7 +98,7 @@ defmodule Vws.Sim.DAQ do
       {:ok, listener} ->
         acceptor =
           Transport.start_acceptor(listener, self(), :accepted,
-            allow: Vws.Transport.Policy.parse_allow!(Keyword.get(opts, :allow))
+            allow: Vws.Links.Transport.Policy.parse_allow!(Keyword.get(opts, :allow))
           )
 
         {:ok,
@@ -207,7 +208,7 @@ defmodule Vws.Sim.DAQ do
         if answer == :none, do: s, else: answer(key, SCPI.encode_response(answer), s)
 
       {:error, error} ->
-        push_error(s, Vws.SCPI.Error.scpi_error(error))
+        push_error(s, Vws.Codecs.SCPI.Error.scpi_error(error))
     end
   end
 

@@ -2,7 +2,7 @@ defmodule Vws.Sim.Floor do
   @moduledoc """
   The simulated shop floor of one workstation: the plant (`Vws.Sim.Plant`), the two
   data-acquisition units on it (`Vws.Sim.DAQ`, each listening on its own endpoint) and — when
-  asked — the hydraulic controller (`Vws.HydraulicController`) on DAQ #2, the GE-2000
+  asked — the hydraulic controller (`Vws.Peers.HydraulicController`) on DAQ #2, the GE-2000
   (`Vws.Sim.GE2000`), the VAL II robot (`Vws.Sim.VAL2`) and the material-handling system
   (`Vws.Sim.MHS`), wired to the plant as the real equipment is to the workstation:
 
@@ -11,7 +11,7 @@ defmodule Vws.Sim.Floor do
   ├── Vws.Sim.Plant        {ws, :sim_plant}   — other simulators find it with plant/1
   ├── Vws.Sim.DAQ (DAQ #1) {ws, :sim_daq1}    — on :daq1 (default tcp://127.0.0.1:0); `daq1: false`: none
   ├── Vws.Sim.DAQ (DAQ #2) {ws, :sim_daq2}    — the pallet's channels, on :daq2 (default tcp://127.0.0.1:0)
-  ├── Vws.HydraulicController  named {:sim_floor, ws}, on DAQ #2 — option :hydraulic
+  ├── Vws.Peers.HydraulicController  named {:sim_floor, ws}, on DAQ #2 — option :hydraulic
   ├── Vws.Sim.GE2000       {ws, :sim_ge2000}  — option :ge2000
   ├── Vws.Sim.VAL2         {ws, :sim_val2}    — option :robot
   └── Vws.Sim.MHS          {ws, :sim_mhs}     — option :mhs
@@ -30,7 +30,7 @@ defmodule Vws.Sim.Floor do
       `Vws.Sim.Plant.set_robot/2`, the work volumes of `priv/sims/robot_locations.exs`);
     * the MHS moves the trays (`Vws.Sim.Plant.move_tray/3`) under the workstation's interlock.
 
-  `Vws.Demo` starts the whole floor before the workstation and gives the workstation
+  `Vws.Ops.Demo` starts the whole floor before the workstation and gives the workstation
   `devices: devices(ws)`; `mix vws.serve` starts the plant, the DAQs and the hydraulic
   controller here (and the GE-2000 and VAL II simulators on their own). Pointing a device at
   real equipment instead needs no simulator for it.
@@ -45,7 +45,7 @@ defmodule Vws.Sim.Floor do
   """
   use Supervisor
 
-  alias Vws.HydraulicController
+  alias Vws.Peers.HydraulicController
   alias Vws.Sim.{DAQ, GE2000, Line, MHS, Plant, VAL2}
 
   @doc """
@@ -59,7 +59,7 @@ defmodule Vws.Sim.Floor do
       not call the plant) — to watch the equipment, as a test does;
     * `:daq1` — the endpoint DAQ #1 listens on, default `"tcp://127.0.0.1:0"`; `false` for no
       DAQ #1; `:daq2` the same for DAQ #2;
-    * `:hydraulic` — `true`, or `Vws.HydraulicController.start_link/1` options, to run the
+    * `:hydraulic` — `true`, or `Vws.Peers.HydraulicController.start_link/1` options, to run the
       hydraulic controller on DAQ #2 (default `false`);
     * `:ge2000` — `true` or `Vws.Sim.GE2000` options (default `cycle_time` 5 s / time scale,
       at least 4 s, so that MONARCH sees the machine run after it has let go of the button, even
@@ -108,7 +108,7 @@ defmodule Vws.Sim.Floor do
   @spec daq2_endpoint(term) :: String.t()
   def daq2_endpoint(ws), do: DAQ.endpoint(daq2(ws))
 
-  @doc "The name of the floor's hydraulic controller (for `Vws.HydraulicController` calls)."
+  @doc "The name of the floor's hydraulic controller (for `Vws.Peers.HydraulicController` calls)."
   @spec hydraulic_controller(term) :: term
   def hydraulic_controller(ws), do: {:sim_floor, ws}
 
@@ -130,7 +130,7 @@ defmodule Vws.Sim.Floor do
 
   @doc """
   The faulty line of a link of the floor (`:daq1`, `:daq2`, `:hydraulic`, `:ge2000`, `:robot`),
-  a registered name; the floor has them when started with `:lines`. (`Vws.Demo` registers
+  a registered name; the floor has them when started with `:lines`. (`Vws.Ops.Demo` registers
   the WC's line as `line(ws, :wc)`.)
   """
   @spec line(term, atom) :: GenServer.name()
@@ -175,11 +175,11 @@ defmodule Vws.Sim.Floor do
   defp running?(name), do: GenServer.whereis(name) != nil
 
   @doc """
-  For `Vws.Demo`'s shop floor: starts the whole floor (linked to the caller, or under the
+  For `Vws.Ops.Demo`'s shop floor: starts the whole floor (linked to the caller, or under the
   `DynamicSupervisor` given as `:supervisor`) with the demo's `:workstation` and `:time_scale`
   — hydraulic controller, GE-2000, VAL II, material handling —
   and a blank in tray #1, and returns the workstation links and partition options that reach
-  it (`Vws.Workstation.device_links/3`).
+  it (`Vws.CEC.Workstation.device_links/3`).
   """
   @spec shop_floor(keyword) ::
           {:ok, %{name: String.t(), links: [Supervisor.child_spec()], partitions: keyword}}
@@ -200,7 +200,7 @@ defmodule Vws.Sim.Floor do
     with {:ok, _pid} <- started,
          :ok <- HydraulicController.await_ready(hydraulic_controller(ws), 10_000),
          :ok <- Plant.set_part(plant(ws), :tray1, true) do
-      {links, partitions} = Vws.Workstation.device_links(ws, devices(ws), [])
+      {links, partitions} = Vws.CEC.Workstation.device_links(ws, devices(ws), [])
 
       {:ok,
        %{

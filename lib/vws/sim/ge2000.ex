@@ -1,7 +1,7 @@
 defmodule Vws.Sim.GE2000 do
   @moduledoc """
   A simulated GE-2000 (Mark Century) VMC controller on its own endpoint, speaking DNC Level 2
-  through the same link as the CEC (`Vws.DNC`, role `:ge`: it bids with `ENQ DEL`, ends with
+  through the same link as the CEC (`Vws.Links.DNC`, role `:ge`: it bids with `ENQ DEL`, ends with
   `EOT DEL` and wins contention).
 
   What it keeps: a program directory (`nnnnnn.PRO`, `nnnnnn.GSU` → text), the selected program,
@@ -15,8 +15,8 @@ defmodule Vws.Sim.GE2000 do
   | `SND` + `nnnnnn.PRO`/`.GSU` | deletes the file |
   | `RNS` + file name | sends the file (the selected program without a name); nothing if there is none |
   | `RNO` + `TOFFSET` | sends the tool-offset table |
-  | `RNL` | sends the status report (`Vws.DNC.Report`): `STATE=IDLE;PROG=001234;ALARM=0` |
-  | `RNF` | sends the directory, `nnnnnn.PRO bbbbbb cccc` per file: size and CRC-16/ARC (`Vws.DNC.Report.directory/1`) |
+  | `RNL` | sends the status report (`Vws.Links.DNC.Report`): `STATE=IDLE;PROG=001234;ALARM=0` |
+  | `RNF` | sends the directory, `nnnnnn.PRO bbbbbb cccc` per file: size and CRC-16/ARC (`Vws.Links.DNC.Report.directory/1`) |
 
   The alarm number (decision, for the simulator) is the outcome of the last DNC command or
   cycle start: 0 none, 1 no such file, 2 program without program number, 3 refused while the
@@ -36,13 +36,13 @@ defmodule Vws.Sim.GE2000 do
     * `:whole_programs_only` — refuse a `.PRO` that does not end in a `%` line (default true)
     * `:name`, `:programs` (`%{"001234.PRO" => text}`), `:offsets` (`[{line, value}]`),
       `:cycle_time` (5 000 ms), `:plant` (`(event -> any)`)
-    * `:allow` — who may connect (`Vws.Transport.Policy`; default loopback only)
+    * `:allow` — who may connect (`Vws.Links.Transport.Policy`; default loopback only)
     * `:pace` — `false` (default), `true` (4 800 Bd, the seed's line) or a baud rate: the
       simulator then paces the line like the real serial link — a `Vws.Sim.Line` at that baud
       rate (8N1: 10 bits a character) stands in front of its link, where the CEC dials, so
       both directions carry no more than `baud / 10` characters a second (listening endpoints;
       a `tty:` line has the pace of its device)
-    * `:link` — further `Vws.DNC` options (limits, `max_text`)
+    * `:link` — further `Vws.Links.DNC` options (limits, `max_text`)
     * `:memory` — the block buffer of a drip feed, bytes (8 192); `:feed_rate` — characters a
       second a drip-fed program runs at (400); `:start_fill` — bytes buffered before the
       program starts to run (half the memory; all of a shorter program); `:tick` — ms between
@@ -73,9 +73,9 @@ defmodule Vws.Sim.GE2000 do
   use GenServer
   require Logger
 
-  alias Vws.DNC
-  alias Vws.DNC.{Frame, Program, Report}
-  alias Vws.DNC.Frame.Command
+  alias Vws.Links.DNC
+  alias Vws.Links.DNC.{Frame, Program, Report}
+  alias Vws.Links.DNC.Frame.Command
   alias Vws.Sim.GE2000.Faults
 
   @default_baud 4800
@@ -215,7 +215,7 @@ defmodule Vws.Sim.GE2000 do
 
     s = %{
       endpoint: Keyword.get(opts, :endpoint, "tcp://127.0.0.1:0"),
-      allow: Vws.Transport.Policy.parse_allow!(Keyword.get(opts, :allow)),
+      allow: Vws.Links.Transport.Policy.parse_allow!(Keyword.get(opts, :allow)),
       bound: nil,
       listener: nil,
       acceptor: nil,
@@ -256,7 +256,7 @@ defmodule Vws.Sim.GE2000 do
 
   @impl true
   def handle_continue(:open, s) do
-    endpoint = Vws.Endpoint.parse!(s.endpoint)
+    endpoint = Vws.Links.Endpoint.parse!(s.endpoint)
 
     if endpoint.kind == :tty do
       {:ok, link} = DNC.start_link(Keyword.put(s.link_opts, :endpoint, s.endpoint))
@@ -265,11 +265,11 @@ defmodule Vws.Sim.GE2000 do
       {:ok, link} = DNC.start_link(s.link_opts)
       listen = if s.baud, do: "loopback:ge2000-line-#{System.unique_integer([:positive])}"
 
-      case Vws.Transport.listen(listen || endpoint) do
+      case Vws.Links.Transport.listen(listen || endpoint) do
         {:ok, listener} ->
           allow = s.allow
           acceptor = spawn_link(fn -> accept_loop(listener, link, allow) end)
-          bound = to_string(Vws.Transport.listener_endpoint(listener))
+          bound = to_string(Vws.Links.Transport.listener_endpoint(listener))
           s = %{s | link: link, listener: listener, acceptor: acceptor, bound: bound}
 
           case paced_line(s, bound) do
@@ -301,14 +301,17 @@ defmodule Vws.Sim.GE2000 do
   end
 
   # A new connection takes over from the previous one, like a cable plugged in again.
-  # Only an allowed peer (default loopback, `Vws.Transport.Policy`) is plugged in.
+  # Only an allowed peer (default loopback, `Vws.Links.Transport.Policy`) is plugged in.
   defp accept_loop(listener, link, allow) do
-    case Vws.Transport.accept(listener, :infinity) do
+    case Vws.Links.Transport.accept(listener, :infinity) do
       {:ok, conn} ->
-        with {:ok, ip} <- Vws.Transport.peer_address(conn),
-             false <- Vws.Transport.Policy.allowed?(allow, ip) do
-          Logger.warning("GE-2000 simulator refused #{Vws.Transport.peer(conn)}: not allowed")
-          Vws.Transport.close(conn)
+        with {:ok, ip} <- Vws.Links.Transport.peer_address(conn),
+             false <- Vws.Links.Transport.Policy.allowed?(allow, ip) do
+          Logger.warning(
+            "GE-2000 simulator refused #{Vws.Links.Transport.peer(conn)}: not allowed"
+          )
+
+          Vws.Links.Transport.close(conn)
         else
           _ -> attach(link, conn)
         end
@@ -460,7 +463,7 @@ defmodule Vws.Sim.GE2000 do
 
   @impl true
   def terminate(_reason, s) do
-    if s.listener, do: Vws.Transport.close_listener(s.listener)
+    if s.listener, do: Vws.Links.Transport.close_listener(s.listener)
     :ok
   end
 
@@ -585,7 +588,7 @@ defmodule Vws.Sim.GE2000 do
   ## Drip feed (E, download and execute): the block buffer
   #
   # Text blocks of an E transmission arrive into the buffer (`memory` bytes; the link answers
-  # WACK once less than a block's room is left, see Vws.DNC.Session) and the program runs out
+  # WACK once less than a block's room is left, see Vws.Links.DNC.Session) and the program runs out
   # of it at `feed_rate` characters a second, every `tick` ms; what ran is given back to the
   # link as credit. The buffer running empty while more is to come is an underrun (the machine
   # would dwell); the feed broken off stops the machine (alarm 7, program incomplete).
@@ -626,7 +629,7 @@ defmodule Vws.Sim.GE2000 do
           fill: fill,
           max_fill: max(drip.max_fill, fill),
           blocks: drip.blocks + 1,
-          crc: Vws.CRC16.compute(text, drip.crc),
+          crc: Vws.Codecs.CRC16.compute(text, drip.crc),
           tail: text
       }
       |> fed()

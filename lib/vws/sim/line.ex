@@ -11,7 +11,7 @@ defmodule Vws.Sim.Line do
       {:ok, line} = Vws.Sim.Line.start_link(listen: "tcp://127.0.0.1:0",
                                             target: "tcp://127.0.0.1:7070",
                                             seed: 42, faults: [ber: 1.0e-4, baud: 9600])
-      {:ok, wc} = Vws.WC.Client.connect(Vws.Sim.Line.endpoint(line))
+      {:ok, wc} = Vws.Peers.WC.Client.connect(Vws.Sim.Line.endpoint(line))
 
   ## Faults, per direction
 
@@ -47,14 +47,14 @@ defmodule Vws.Sim.Line do
   transport's own flow control, and no buffer grows without bound. (A tty target cannot be held
   back; bytes it sends while the queue is full are lost and counted as `overruns`.)
 
-      iex> {:ok, target} = Vws.Transport.listen("loopback:line-doc-target")
+      iex> {:ok, target} = Vws.Links.Transport.listen("loopback:line-doc-target")
       iex> {:ok, line} = Vws.Sim.Line.start_link(listen: "loopback:line-doc", target: "loopback:line-doc-target",
       ...>                                       faults: [ber: 1.0])
-      iex> {:ok, wc} = Vws.Transport.connect(Vws.Sim.Line.endpoint(line))
-      iex> {:ok, device} = Vws.Transport.accept(target, 1000)
-      iex> :ok = Vws.Transport.send(wc, "A")
-      iex> :ok = Vws.Transport.activate(device)
-      iex> receive do msg -> Vws.Transport.handle_message(device, msg) end
+      iex> {:ok, wc} = Vws.Links.Transport.connect(Vws.Sim.Line.endpoint(line))
+      iex> {:ok, device} = Vws.Links.Transport.accept(target, 1000)
+      iex> :ok = Vws.Links.Transport.send(wc, "A")
+      iex> :ok = Vws.Links.Transport.activate(device)
+      iex> receive do msg -> Vws.Links.Transport.handle_message(device, msg) end
       {:data, <<0xBE>>}
       iex> Vws.Sim.Line.info(line).to_target.bits_flipped
       8
@@ -64,7 +64,7 @@ defmodule Vws.Sim.Line do
   require Logger
 
   alias Vws.Sim.Line.{Counters, Faults, Schedule, Session}
-  alias Vws.Transport
+  alias Vws.Links.Transport
 
   @type line :: GenServer.server()
   @type direction :: :to_target | :to_client
@@ -118,7 +118,7 @@ defmodule Vws.Sim.Line do
   end
 
   @doc "The endpoint the line listens on (with the real port when port 0 was asked for)."
-  @spec endpoint(line) :: Vws.Endpoint.t()
+  @spec endpoint(line) :: Vws.Links.Endpoint.t()
   def endpoint(line), do: GenServer.call(line, :endpoint)
 
   @doc """

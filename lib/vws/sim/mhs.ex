@@ -11,7 +11,7 @@ defmodule Vws.Sim.MHS do
   In the AMRF the MHS was a system of its own. Here it keeps to the CEC's interlocks two ways:
 
     * **logically** — before a move it asks the CEC for the tray's work volume through the
-      product's API for outside equipment, `Vws.Workstation.acquire_volume(ws, :trayN, :mhs,
+      product's API for outside equipment, `Vws.CEC.Workstation.acquire_volume(ws, :trayN, :mhs,
       timeout)`, the same M1/M2 procedure the CEC's partitions use: refused while the robot holds the tray (`DISABLE_TRAYn`, or the arm is in
       its volume) with `INTERLOCK TRAY1 HELD BY ROBOT`. It holds that lease until the tray has
       stopped, so the robot cannot approach a moving tray (rule 2a), and gives it up after;
@@ -176,7 +176,7 @@ defmodule Vws.Sim.MHS do
         :ok ->
           case arrive(c, tray, System.monotonic_time(:millisecond) + c.move_timeout) do
             :ok ->
-              Vws.Workstation.release_volume(c.workstation, volume, :mhs)
+              Vws.CEC.Workstation.release_volume(c.workstation, volume, :mhs)
               :ok
 
             # the tray may still be moving: the lease stays
@@ -185,7 +185,7 @@ defmodule Vws.Sim.MHS do
           end
 
         {:error, :locked} ->
-          Vws.Workstation.release_volume(c.workstation, volume, :mhs)
+          Vws.CEC.Workstation.release_volume(c.workstation, volume, :mhs)
           {:error, "TRAY #{tray} LOCKED"}
       end
     end
@@ -193,7 +193,9 @@ defmodule Vws.Sim.MHS do
 
   defp lease(c, volume),
     do:
-      Vws.Workstation.acquire_volume(c.workstation, volume, :mhs, c.timeout, retry_ms: c.retry_ms)
+      Vws.CEC.Workstation.acquire_volume(c.workstation, volume, :mhs, c.timeout,
+        retry_ms: c.retry_ms
+      )
 
   # The lease is held until the tray has stopped: the robot must not meet a moving tray.
   defp arrive(c, tray, deadline) do

@@ -2,7 +2,7 @@ defmodule Vws.Sim.Plant do
   @moduledoc """
   The simulated shop floor of one workstation: vise, gripper and indexer, vacuum, the two trays,
   the machine table, the pallet and the cycle-start relay, seen through the channels of DAQ #1
-  and DAQ #2 as mapped in `priv/plant.exs` (`Vws.DAQ.ChannelMap`).
+  and DAQ #2 as mapped in `priv/plant.exs` (`Vws.Links.DAQ.ChannelMap`).
 
   The DAQ simulators call `read_voltage/3`, `read_resistance/3`, `close_channel/3`,
   `open_channel/3` and `channel_closed?/3`, one per SCPI query; the robot and GE-2000 simulators
@@ -33,7 +33,7 @@ defmodule Vws.Sim.Plant do
   """
   use GenServer
 
-  alias Vws.DAQ.ChannelMap
+  alias Vws.Links.DAQ.ChannelMap
   alias Vws.Sim.Plant.Model
 
   @type plant :: GenServer.server()

@@ -5,7 +5,7 @@ defmodule Vws.Sim.Soak do
   hydraulic controller's own to DAQ #2 — goes through a faulty line (`Vws.Sim.Line`, seeded), and
   each cycle audited:
 
-    * **completed** — the WC's script ran to its end (`Vws.WC.Runner`);
+    * **completed** — the WC's script ran to its end (`Vws.Peers.WC.Runner`);
     * **retries** — every try again, from telemetry, by kind: WC strings and program lines sent
       again, program transfers made again, strings SUN_COMM recognised as retransmissions,
       DDCMP retransmissions, DNC retries (NAK, ENQ, …), HPIB requests tried again, relays set
@@ -31,7 +31,7 @@ defmodule Vws.Sim.Soak do
   """
 
   alias Vws.Sim.{Floor, GE2000, Line, VAL2}
-  alias Vws.WC.{Client, Runner, Script}
+  alias Vws.Peers.WC.{Client, Runner, Script}
 
   @links [:wc, :robot, :ge2000, :daq1, :hydraulic, :daq2]
   @retry_events [
@@ -76,7 +76,7 @@ defmodule Vws.Sim.Soak do
     id = Keyword.get(opts, :id, "SOAK-#{System.unique_integer([:positive])}")
     cycles = Keyword.get(opts, :cycles, 100)
     faults = [ber: Keyword.get(opts, :ber, 1.0e-4)] ++ Keyword.get(opts, :faults, [])
-    path = Keyword.get_lazy(opts, :script, &Vws.Demo.default_script/0)
+    path = Keyword.get_lazy(opts, :script, &Vws.Ops.Demo.default_script/0)
     {:ok, script} = Script.parse_file(path)
     {script, program} = with_round_trip(script)
     runner_opts = [timeout: Keyword.get(opts, :timeout, 60_000)]
@@ -88,7 +88,7 @@ defmodule Vws.Sim.Soak do
     :ok = attach(handler, id, counts)
 
     {:ok, floor} =
-      Vws.Demo.start_shop_floor(
+      Vws.Ops.Demo.start_shop_floor(
         id: id,
         time_scale: Keyword.get(opts, :time_scale, 20),
         lines: [faults: [], seed: Keyword.get(opts, :seed, 0)]
@@ -125,12 +125,12 @@ defmodule Vws.Sim.Soak do
       report(id, client, clean, results, counts, System.monotonic_time(:millisecond) - t0)
     after
       Vws.Telemetry.detach(handler)
-      Vws.Workstation.stop(id)
+      Vws.CEC.Workstation.stop(id)
       stop_floor(id)
     end
   end
 
-  # the floor's supervisor (its lines are its children), then the WC's line of Vws.Demo
+  # the floor's supervisor (its lines are its children), then the WC's line of Vws.Ops.Demo
   defp stop_floor(id) do
     for name <- [{:via, Registry, {Vws.Registry, {id, :sim_floor}}}, Floor.line(id, :wc)],
         pid = GenServer.whereis(name),
@@ -220,7 +220,7 @@ defmodule Vws.Sim.Soak do
         {script, nil}
 
       [lines | _] ->
-        {:ok, file} = Vws.DNC.Program.file_name(lines)
+        {:ok, file} = Vws.Links.DNC.Program.file_name(lines)
         {:ok, extra} = Script.parse("M UPLOAD_GE(#{file})\nUPLOAD\n")
         {%{script | steps: script.steps ++ extra.steps}, %{lines: lines, file: file}}
     end
@@ -236,9 +236,9 @@ defmodule Vws.Sim.Soak do
   defp audit(id, result, clean, program) do
     ws = id
     completed? = result.summary.result == :completed
-    text = Vws.DNC.Program.to_text(program.lines)
-    nc_file = Vws.Mailbox.nc_file(ws)
-    nc_up = Vws.Mailbox.nc_up(ws)
+    text = Vws.Links.DNC.Program.to_text(program.lines)
+    nc_file = Vws.CEC.Mailbox.nc_file(ws)
+    nc_up = Vws.CEC.Mailbox.nc_up(ws)
     ge = GE2000.program(Floor.ge2000(id), program.file)
     uploads = result.summary.uploads
 

@@ -1,14 +1,14 @@
 defmodule Vws.Sim.VAL2 do
   @moduledoc """
   A simulated Unimation VAL II robot controller on its own endpoint: the supervisory port of
-  seed §4.3 — DDCMP (`Vws.DDCMP.Protocol`, role `:passive`, run by this process itself: one
-  process per wire) carrying VAL data messages (`Vws.VAL.Message`) — in front of a simulated arm (`Vws.Sim.VAL2.Monitor`,
+  seed §4.3 — DDCMP (`Vws.Links.DDCMP.Protocol`, role `:passive`, run by this process itself: one
+  process per wire) carrying VAL data messages (`Vws.Links.VAL.Message`) — in front of a simulated arm (`Vws.Sim.VAL2.Monitor`,
   `Vws.Sim.VAL2.Kinematics`) with the named locations of `priv/sims/robot_locations.exs`.
 
       {:ok, sim} = Vws.Sim.VAL2.start_link(time_scale: 0.01)
       endpoint = Vws.Sim.VAL2.endpoint(sim)      # "tcp://127.0.0.1:40123"
-      {:ok, val} = Vws.VAL.start_link(ddcmp: [endpoint: endpoint])
-      :ok = Vws.VAL.motion(val, "DO MOVE VISE", 10_000)
+      {:ok, val} = Vws.Links.VAL.start_link(ddcmp: [endpoint: endpoint])
+      :ok = Vws.Links.VAL.motion(val, "DO MOVE VISE", 10_000)
 
   ## The supervisory system, as simulated
 
@@ -28,7 +28,7 @@ defmodule Vws.Sim.VAL2 do
   counted in `info/1` as a `violation`, so tests can check the CEC side never breaks a rule.
 
   On LUNs 1 and 2 each message a unit initiates is numbered in its qualifier, and an answer
-  must carry the number of what it answers (`Vws.VAL`, "Numbers"). An answer with a number
+  must carry the number of what it answers (`Vws.Links.VAL`, "Numbers"). An answer with a number
   this session of the link never used is left over from before a restart (a CEC that gave it to
   its link as the link was starting again): it is not obeyed, and counted as `stale`, not as a
   violation.
@@ -49,21 +49,21 @@ defmodule Vws.Sim.VAL2 do
 
     * `:endpoint` — where to listen (default `"tcp://127.0.0.1:0"`, any free port); an endpoint
       that cannot listen (a tty) is opened directly
-    * `:allow` — who may connect (`Vws.Transport.Policy`; default loopback only)
+    * `:allow` — who may connect (`Vws.Links.Transport.Policy`; default loopback only)
     * `:locations` — a locations file path, or its map (default `priv/sims/robot_locations.exs`)
     * `:time_scale` — multiplies every motion time (default 1.0; tests use ~0.001)
     * `:on_move` — `fun(map)`, see "The plant"
     * `:carrying` — the initial payload flag (`nil`: not reported)
-    * `:ddcmp` — further `Vws.DDCMP` options (`:rep_timeout`, `:window`, `:backoff` for a tty, …)
+    * `:ddcmp` — further `Vws.Links.DDCMP` options (`:rep_timeout`, `:window`, `:backoff` for a tty, …)
     * `:name` — registered name
   """
   use GenServer
   require Logger
 
-  alias Vws.DDCMP.{Protocol, Wire}
+  alias Vws.Links.DDCMP.{Protocol, Wire}
   alias Vws.Sim.VAL2.Monitor
-  alias Vws.Transport
-  alias Vws.VAL.Message
+  alias Vws.Links.Transport
+  alias Vws.Links.VAL.Message
 
   @lun_short_status 1
   @lun_monitor 2
@@ -91,7 +91,7 @@ defmodule Vws.Sim.VAL2 do
   @doc """
   The controller's state: `location` (name of the location it is at, `nil` between names),
   `world`, `joints`, `volume`, `speed`, `moving`, `program`, `link` (up?), `line` (the DDCMP
-  protocol's state and numbers, `Vws.DDCMP.Protocol.info/1`; nil before a connection), `commands` (every
+  protocol's state and numbers, `Vws.Links.DDCMP.Protocol.info/1`; nil before a connection), `commands` (every
   monitor command obeyed, in order), `violations` (CEC rule breaks), `stale` (answers left over
   from an earlier session, not obeyed), `restarts`.
   """
@@ -136,7 +136,7 @@ defmodule Vws.Sim.VAL2 do
     state = %{
       monitor: Monitor.new(config),
       endpoint: Keyword.get(opts, :endpoint, "tcp://127.0.0.1:0"),
-      allow: Vws.Transport.Policy.parse_allow!(Keyword.get(opts, :allow)),
+      allow: Vws.Links.Transport.Policy.parse_allow!(Keyword.get(opts, :allow)),
       bound: nil,
       listener: nil,
       acceptor: nil,
@@ -146,7 +146,7 @@ defmodule Vws.Sim.VAL2 do
       timers: %{},
       backoff: nil,
       up: false,
-      ddcmp: Vws.DDCMP.validate_protocol!(Keyword.get(opts, :ddcmp, [])),
+      ddcmp: Vws.Links.DDCMP.validate_protocol!(Keyword.get(opts, :ddcmp, [])),
       # false while a chunk's news is handled: the units send once it all is
       pumping: true,
       time_scale: Keyword.get(opts, :time_scale, 1.0),
@@ -183,7 +183,7 @@ defmodule Vws.Sim.VAL2 do
       {:error, %Transport.Error{reason: :not_listenable}} ->
         # a tty: opened here, and opened again (with back-off) whenever it goes away
         {min, max} = Keyword.fetch!(s.ddcmp, :backoff)
-        s = %{s | bound: to_string(s.endpoint), backoff: Vws.Backoff.new(min, max)}
+        s = %{s | bound: to_string(s.endpoint), backoff: Vws.Links.Backoff.new(min, max)}
         {:noreply, dial(s)}
 
       {:error, reason} ->
@@ -312,7 +312,7 @@ defmodule Vws.Sim.VAL2 do
         connected(s, conn)
 
       {:error, reason} ->
-        {delay, backoff} = Vws.Backoff.next(s.backoff)
+        {delay, backoff} = Vws.Links.Backoff.next(s.backoff)
         Logger.info("VAL II simulator: cannot open #{s.bound} (#{inspect(reason)})")
         Process.send_after(self(), :dial, delay)
         %{s | backoff: backoff}
@@ -325,7 +325,7 @@ defmodule Vws.Sim.VAL2 do
     s = line(%{s | conn: nil}, Protocol.disconnected(s.protocol, reason))
 
     if s.backoff do
-      {delay, backoff} = Vws.Backoff.next(s.backoff)
+      {delay, backoff} = Vws.Links.Backoff.next(s.backoff)
       Process.send_after(self(), :dial, delay)
       %{s | backoff: backoff}
     else
@@ -347,7 +347,7 @@ defmodule Vws.Sim.VAL2 do
 
   defp news(:up, s) do
     # every start-up: the units start afresh, LUN 2 prompts, LUN 1 tells its status
-    s = if s.backoff, do: %{s | backoff: Vws.Backoff.reset(s.backoff)}, else: s
+    s = if s.backoff, do: %{s | backoff: Vws.Links.Backoff.reset(s.backoff)}, else: s
     s = %{s | up: true, waiting: %{}, session: %{}, outbox: Map.delete(s.outbox, @lun_monitor)}
     s |> enqueue(@lun_monitor, {:read, 0, @prompt}) |> enqueue_status()
   end

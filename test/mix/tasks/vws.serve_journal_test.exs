@@ -9,7 +9,7 @@ defmodule Mix.Tasks.Vws.ServeJournalTest do
   use ExUnit.Case, async: true
 
   alias Vws.Test.FlipRelay
-  alias Vws.WC.Client
+  alias Vws.Peers.WC.Client
 
   @moduletag :tmp_dir
   @moduletag timeout: 300_000

@@ -1,7 +1,7 @@
 defmodule Vws.Partitions.FixtureTest do
   use ExUnit.Case, async: true
 
-  alias Vws.Interlock
+  alias Vws.CEC.Interlock
   alias Vws.Sim.{DAQ, Plant}
   alias Vws.Test.DAQFloor
 

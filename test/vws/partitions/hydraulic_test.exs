@@ -4,7 +4,7 @@ defmodule Vws.Partitions.HydraulicTest do
   use ExUnit.Case, async: true
 
   alias Vws.Sim.{DAQ, Plant}
-  alias Vws.Transport
+  alias Vws.Links.Transport
   alias Vws.Test.HydraulicFloor
 
   doctest Vws.Partitions.Hydraulic
@@ -114,15 +114,15 @@ defmodule Vws.Partitions.HydraulicTest do
     floor = HydraulicFloor.controller(controller: [step_timeout_ms: 800])
     :ok = Plant.inject_fault(floor.plant, :stuck_valve, actuator: :ram_x_valve)
     other_cec = HydraulicFloor.hpib(floor.endpoint)
-    :ok = Vws.HPIB.write(other_cec, :clamp_pallet)
-    assert Vws.HPIB.query(other_cec, :status?) == {:ok, :executing}
+    :ok = Vws.Links.HPIB.write(other_cec, :clamp_pallet)
+    assert Vws.Links.HPIB.query(other_cec, :status?) == {:ok, :executing}
 
     %{peer: peer} = HydraulicFloor.workstation(floor)
     assert HydraulicFloor.command(peer, 1, "CLAMP_PALLET") == "ERROR PALLET NOT AGAINST X STOP"
 
     # ours was sent once the other had ended, and run: not refused as busy
     assert %{commands: 2, sequences: 2, refused_busy: 0} =
-             Vws.HydraulicController.info(floor.name)
+             Vws.Peers.HydraulicController.info(floor.name)
   end
 
   test "DONE is confirmed on the pallet: a controller restarted mid-command cannot pass for done" do
@@ -133,7 +133,7 @@ defmodule Vws.Partitions.HydraulicTest do
 
     # the program restarts mid-sequence: it depressurises again and says DONE
     assert Vws.Test.Eventually.eventually(fn ->
-             Vws.HydraulicController.info(floor.name).running == :clamp_pallet
+             Vws.Peers.HydraulicController.info(floor.name).running == :clamp_pallet
            end)
 
     [{program, _}] =
@@ -147,22 +147,22 @@ defmodule Vws.Partitions.HydraulicTest do
 
   test "devices: [hydraulic: …] gives the HPIB device, the PALLET monitor and HYDRAULIC's link" do
     {links, popts} =
-      Vws.Workstation.device_links("w", [hydraulic: "tcp://127.0.0.1:5026"],
+      Vws.CEC.Workstation.device_links("w", [hydraulic: "tcp://127.0.0.1:5026"],
         hydraulic: [options: [timeout_ms: 9]]
       )
 
-    assert [%{id: {Vws.HPIB, "w", 8}}, {Vws.Partitions.Hydraulic.Monitor, monitor}] = links
+    assert [%{id: {Vws.Links.HPIB, "w", 8}}, {Vws.Partitions.Hydraulic.Monitor, monitor}] = links
     assert monitor[:link] == {"w", 8}
     assert popts[:hydraulic] == [link: {"w", 8}, options: [timeout_ms: 9]]
 
     {links, popts} =
-      Vws.Workstation.device_links(
+      Vws.CEC.Workstation.device_links(
         "w",
         [hydraulic: [endpoint: "loopback:hc", address: 5, status_interval: nil]],
         []
       )
 
-    assert [%{id: {Vws.HPIB, "w", 5}}] = links
+    assert [%{id: {Vws.Links.HPIB, "w", 5}}] = links
     assert popts[:hydraulic] == [link: {"w", 5}]
   end
 end

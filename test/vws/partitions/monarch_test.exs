@@ -3,8 +3,9 @@ defmodule Vws.Partitions.MonarchTest do
   # GE-2000, and back.
   use ExUnit.Case, async: true
 
-  alias Vws.{DNC, Interlock, Mailbox, Workstation}
-  alias Vws.DNC.Program
+  alias Vws.Links.DNC
+  alias Vws.CEC.{Interlock, Mailbox, Workstation}
+  alias Vws.Links.DNC.Program
   alias Vws.Sim.GE2000
   alias Vws.Test.WCPeer
   import Vws.Test.Eventually
@@ -66,7 +67,7 @@ defmodule Vws.Partitions.MonarchTest do
   defp send_monarch(peer, number, text) do
     s = seq()
     WCPeer.send_string(peer, s, [{"M", number, text}])
-    assert Vws.WC.Reply.decode(WCPeer.recv_line(peer)) == {:ok, {:ack, s}}
+    assert Vws.Codecs.WC.Reply.decode(WCPeer.recv_line(peer)) == {:ok, {:ack, s}}
   end
 
   defp finished(peer, timeout \\ 30_000),
@@ -81,8 +82,10 @@ defmodule Vws.Partitions.MonarchTest do
     send_monarch(peer, number, "DOWNLOAD_HP")
 
     for {line, n} <- Enum.with_index(lines, 1) do
-      WCPeer.send_raw(peer, Vws.WC.Reply.encode({:line, rem(n, 10_000), line}))
-      assert Vws.WC.Reply.decode(WCPeer.recv_line(peer)) == {:ok, {:line_ack, rem(n, 10_000)}}
+      WCPeer.send_raw(peer, Vws.Codecs.WC.Reply.encode({:line, rem(n, 10_000), line}))
+
+      assert Vws.Codecs.WC.Reply.decode(WCPeer.recv_line(peer)) ==
+               {:ok, {:line_ack, rem(n, 10_000)}}
     end
 
     finished(peer)
@@ -96,8 +99,8 @@ defmodule Vws.Partitions.MonarchTest do
 
   defp receive_lines(peer, acc) do
     n = rem(length(acc) + 1, 10_000)
-    {:ok, {:line, ^n, line}} = Vws.WC.Reply.decode_line(WCPeer.recv_line(peer))
-    WCPeer.send_raw(peer, Vws.WC.Reply.encode({:line_ack, n}))
+    {:ok, {:line, ^n, line}} = Vws.Codecs.WC.Reply.decode_line(WCPeer.recv_line(peer))
+    WCPeer.send_raw(peer, Vws.Codecs.WC.Reply.encode({:line_ack, n}))
     acc = [line | acc]
     if line == "%" and length(acc) > 1, do: Enum.reverse(acc), else: receive_lines(peer, acc)
   end
@@ -260,7 +263,7 @@ defmodule Vws.Partitions.MonarchTest do
     assert monarch(ctx.peer, 2, "DOWNLOAD_GE") == "0002DONE"
     assert GE2000.program(ctx.sim, "004711.PRO") == Program.to_text(program)
     # every block of the download (command and text) and of the RNL that verifies it, NAKed once
-    text_blocks = length(Vws.DNC.Frame.split_text(Program.to_text(program)))
+    text_blocks = length(Vws.Links.DNC.Frame.split_text(Program.to_text(program)))
     counters = DNC.info(ctx.link).counters
     assert counters.naks_received >= text_blocks + 2
     assert counters.retransmissions >= counters.naks_received

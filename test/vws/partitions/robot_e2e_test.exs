@@ -1,14 +1,14 @@
 defmodule Vws.Partitions.RobotE2ETest do
   @moduledoc false
-  # The robot command set end to end: a WC peer → SUN_COMM → ROBOT → Vws.VAL → Vws.DDCMP → a
+  # The robot command set end to end: a WC peer → SUN_COMM → ROBOT → Vws.Links.VAL → Vws.Links.DDCMP → a
   # byte line (TCP, a socat pty pair, or a fault-placing tap) → the simulated VAL II.
   use ExUnit.Case, async: true
 
   alias Vws.Sim.VAL2
   alias Vws.Test.{LineTap, WCPeer, Workstation}
-  alias Vws.DDCMP.Frame
+  alias Vws.Links.DDCMP.Frame
 
-  defp ack?(line, seq), do: Vws.WC.Reply.decode(line) == {:ok, {:ack, seq}}
+  defp ack?(line, seq), do: Vws.Codecs.WC.Reply.decode(line) == {:ok, {:ack, seq}}
 
   defp start_sim(opts) do
     start_supervised!({VAL2, Keyword.put_new(opts, :time_scale, 0.001)}, id: :sim)
@@ -45,7 +45,7 @@ defmodule Vws.Partitions.RobotE2ETest do
     WCPeer.await_status(peer, 39, "ROBOT_CMD", &(&1 =~ ~r/^#{pad(number)}(DONE|ERROR)/), 10_000)
   end
 
-  defp pad(n), do: Vws.WC.Command.pad4(n)
+  defp pad(n), do: Vws.Codecs.WC.Command.pad4(n)
 
   # Seed Table 1 (steps 1, 2, 4, 5), then WHERE and an error from the controller.
   defp table1(peer, sim) do
@@ -158,7 +158,7 @@ defmodule Vws.Partitions.RobotE2ETest do
   end
 
   defp val_text(%Frame.Data{data: data}) do
-    case Vws.VAL.Message.decode(data) do
+    case Vws.Links.VAL.Message.decode(data) do
       {:ok, m} -> m.text
       _ -> nil
     end

@@ -1,15 +1,15 @@
 defmodule Vws.Partitions.RobotTest do
   use ExUnit.Case, async: true
 
-  alias Vws.{Events, Interlock, Mailbox}
+  alias Vws.CEC.{Events, Interlock, Mailbox}
   alias Vws.Partitions.Robot
   alias Vws.Test.VALPeer
-  alias Vws.VAL.Message
+  alias Vws.Links.VAL.Message
   import Vws.Test.Eventually
 
   doctest Robot
 
-  # ROBOT on a Vws.VAL: the test plays the VAL II through a DDCMP peer of its own (`link`).
+  # ROBOT on a Vws.Links.VAL: the test plays the VAL II through a DDCMP peer of its own (`link`).
   setup context do
     ws = "robot-#{System.unique_integer([:positive])}"
     test = self()
@@ -38,7 +38,7 @@ defmodule Vws.Partitions.RobotTest do
         else: options
 
     start_supervised!(
-      {Vws.Workstation,
+      {Vws.CEC.Workstation,
        id: ws,
        wc: nil,
        devices: [robot: [endpoint: VALPeer.endpoint(link)]],
@@ -108,7 +108,7 @@ defmodule Vws.Partitions.RobotTest do
     assert {"650.0/-577.0/1000.0/0.0/180.0/0.0/-41.6/16.1/254.4/180.0/163.9/138.4", _} =
              Mailbox.get_device(ws, 9)
 
-    assert Vws.Status.answer(ws, "WHERE_ROBOT") =~ ~r{^650\.0/-577\.0/}
+    assert Vws.CEC.SunComm.Status.answer(ws, "WHERE_ROBOT") =~ ~r{^650\.0/-577\.0/}
   end
 
   test "a motion from Table 1 goes in VAL II syntax and is DONE at MOTION COMPLETE", %{
@@ -138,7 +138,9 @@ defmodule Vws.Partitions.RobotTest do
     run(ws, 12, "DO MOVE MV9")
     answer(link, "DO MOVE MV9", "-301 UNDEFINED LOCATION MV9")
     assert finished(ws, 12) == {:error, "-301 UNDEFINED LOCATION MV9"}
-    assert Vws.Status.answer(ws, "ROBOT_CMD") == "0012ERROR -301 UNDEFINED LOCATION MV9"
+
+    assert Vws.CEC.SunComm.Status.answer(ws, "ROBOT_CMD") ==
+             "0012ERROR -301 UNDEFINED LOCATION MV9"
   end
 
   test "the link going down mid-motion ends the command ERROR, and it is not sent again", %{

@@ -45,7 +45,7 @@ defmodule Vws.Partitions.VacuumTest do
   test "a DAQ that is gone: ERROR DAQ #1 NOT CONNECTED" do
     %{peer: peer, daq: daq, ws: ws} = DAQFloor.start(@short)
     GenServer.stop(daq)
-    assert eventually(fn -> Vws.HPIB.info({ws, 9}).state == :disconnected end)
+    assert eventually(fn -> Vws.Links.HPIB.info({ws, 9}).state == :disconnected end)
     assert DAQFloor.command(peer, "V", 1, "ON") == "ERROR DAQ #1 NOT CONNECTED"
   end
 

@@ -1,8 +1,8 @@
 defmodule Vws.Partitions.VwsStatusTest do
   use ExUnit.Case, async: true
 
-  alias Vws.{Mailbox, Partition}
-  alias Vws.DAQ.Readings
+  alias Vws.CEC.{Mailbox, Partition}
+  alias Vws.Links.DAQ.Readings
   alias Vws.Partitions.VwsStatus
   alias Vws.Sim.{DAQ, Plant}
   alias Vws.Test.{DAQFloor, Workstation}
@@ -185,7 +185,7 @@ defmodule Vws.Partitions.VwsStatusTest do
       end
 
       stats = VwsStatus.stats(ws)
-      assert %Vws.HPIB.Error{} = stats.last_error
+      assert %Vws.Links.HPIB.Error{} = stats.last_error
       assert stats.missed > 0
 
       :ok = DAQ.set_fault(daq, :none)
@@ -235,7 +235,7 @@ defmodule Vws.Partitions.VwsStatusTest do
       assert after_.missed - before.missed >= 3
       assert after_.stale == nil
       # still one request at a time on the HPIB
-      assert Vws.HPIB.info({ws, 9}).queued == 0
+      assert Vws.Links.HPIB.info({ws, 9}).queued == 0
     end
   end
 
@@ -350,7 +350,7 @@ defmodule Vws.Partitions.VwsStatusTest do
     # the test plays DAQ #1 on a loopback endpoint; VWS_STATUS does not poll in the meantime
     defp fake_daq1 do
       name = "fake-daq1-#{System.unique_integer([:positive])}"
-      {:ok, listener} = Vws.Transport.listen("loopback:" <> name)
+      {:ok, listener} = Vws.Links.Transport.listen("loopback:" <> name)
       handler = "actuation-retry-#{name}"
       test_pid = self()
 
@@ -371,8 +371,8 @@ defmodule Vws.Partitions.VwsStatusTest do
           ]
         )
 
-      {:ok, conn} = Vws.Transport.accept(listener, 2_000)
-      :ok = Vws.Transport.activate(conn)
+      {:ok, conn} = Vws.Links.Transport.accept(listener, 2_000)
+      :ok = Vws.Links.Transport.activate(conn)
       {ws, conn}
     end
 
@@ -382,8 +382,8 @@ defmodule Vws.Partitions.VwsStatusTest do
       else
         receive do
           msg ->
-            {:data, bytes} = Vws.Transport.handle_message(conn, msg)
-            :ok = Vws.Transport.activate(conn)
+            {:data, bytes} = Vws.Links.Transport.handle_message(conn, msg)
+            :ok = Vws.Links.Transport.activate(conn)
             expect_lines(conn, expected, acc <> bytes)
         after
           2_000 -> flunk("DAQ #1 received #{inspect(acc)}")
@@ -401,10 +401,10 @@ defmodule Vws.Partitions.VwsStatusTest do
       task = Task.async(fn -> VwsStatus.actuate(ws, vacuum_motor: :close) end)
       expect_lines(conn, [@q, @q, "ROUT:CLOS (@207)", @q])
       # ROUT:CLOS (@207) arrived as (@206): the read-back shows it, although 207 alone was asked
-      :ok = Vws.Transport.send(conn, slot([]) <> slot([]) <> slot([206]))
+      :ok = Vws.Links.Transport.send(conn, slot([]) <> slot([]) <> slot([206]))
       assert_receive {:actuation_retry, "RELAY 206 NOT AS COMMANDED", 1}
       expect_lines(conn, ["ROUT:OPEN (@206)", "ROUT:CLOS (@207)", @q])
-      :ok = Vws.Transport.send(conn, slot([207]))
+      :ok = Vws.Links.Transport.send(conn, slot([207]))
       assert Task.await(task) == :ok
     end
 
@@ -412,12 +412,12 @@ defmodule Vws.Partitions.VwsStatusTest do
       {ws, conn} = fake_daq1()
       task = Task.async(fn -> VwsStatus.actuate(ws, vacuum_motor: :open) end)
       expect_lines(conn, [@q, @q, "ROUT:OPEN (@207)", @q])
-      :ok = Vws.Transport.send(conn, slot([207]) <> slot([207]) <> slot([207]))
+      :ok = Vws.Links.Transport.send(conn, slot([207]) <> slot([207]) <> slot([207]))
 
       for try <- 1..2 do
         assert_receive({:actuation_retry, "RELAY 207 NOT AS COMMANDED", ^try})
         expect_lines(conn, ["ROUT:OPEN (@207)", @q])
-        :ok = Vws.Transport.send(conn, slot([207]))
+        :ok = Vws.Links.Transport.send(conn, slot([207]))
       end
 
       assert Task.await(task) == {:error, "RELAY 207 NOT AS COMMANDED"}
@@ -434,7 +434,7 @@ defmodule Vws.Partitions.VwsStatusTest do
       end
 
       assert Partition.info(ws, :robot).link == nil
-      assert is_pid(Vws.HPIB.whereis({ws, 9}))
+      assert is_pid(Vws.Links.HPIB.whereis({ws, 9}))
 
       monarch = :sys.get_state(Partition.whereis(ws, :monarch)).options
       assert is_function(monarch[:cycle_start], 0)
@@ -449,7 +449,11 @@ defmodule Vws.Partitions.VwsStatusTest do
       Process.flag(:trap_exit, true)
 
       assert {:error, {%ArgumentError{message: "unknown device :daq7" <> _}, _}} =
-               Vws.Workstation.start_link(id: "no-daq7", wc: nil, devices: [daq7: "tcp://x:1"])
+               Vws.CEC.Workstation.start_link(
+                 id: "no-daq7",
+                 wc: nil,
+                 devices: [daq7: "tcp://x:1"]
+               )
     end
   end
 end

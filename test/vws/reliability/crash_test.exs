@@ -5,9 +5,9 @@ defmodule Vws.Reliability.CrashTest do
   (`priv/sims/machining_cycle.vws`) over and over on the whole simulated floor
   (`Vws.Sim.Floor`, time-scaled so that a cycle takes about two seconds).
 
-  Killed: every child of the workstation's links supervisor (the robot's `Vws.VAL`, MONARCH's
+  Killed: every child of the workstation's links supervisor (the robot's `Vws.Links.VAL`, MONARCH's
   DNC link and its status monitor, DAQ #1's and the hydraulic controller's HPIB devices, the
-  PALLET monitor), the DDCMP link under `Vws.VAL`, and the seven partitions (VWS_STATUS, ROBOT,
+  PALLET monitor), the DDCMP link under `Vws.Links.VAL`, and the seven partitions (VWS_STATUS, ROBOT,
   MONARCH, GRIPPER, FIXTURE, VACUUM, HYDRAULIC). One killer per supervisor, side by side, each
   spacing its kills so that its supervisor never meets its restart intensity (50 restarts in
   5 s, counted in whole seconds): at most `@per_window` kills in any 6 s.
@@ -45,10 +45,11 @@ defmodule Vws.Reliability.CrashTest do
 
   import Vws.Test.Eventually
 
-  alias Vws.{HydraulicController, Mailbox, Partition, SunComm}
+  alias Vws.Peers.HydraulicController
+  alias Vws.CEC.{Mailbox, Partition, SunComm}
   alias Vws.Sim.{Floor, Plant}
-  alias Vws.WC.{Client, ClientError, Runner, Script}
-  alias Vws.Workstation, as: WS
+  alias Vws.Peers.WC.{Client, ClientError, Runner, Script}
+  alias Vws.CEC.Workstation, as: WS
 
   @kills 100
   @seed {1988, 6, 9}
@@ -97,7 +98,7 @@ defmodule Vws.Reliability.CrashTest do
     events = record(ws)
     {:ok, client} = Client.connect(wc)
 
-    {:ok, script} = Script.parse_file(Vws.Demo.default_script())
+    {:ok, script} = Script.parse_file(Vws.Ops.Demo.default_script())
     # the script's TIMEOUT 900 for a real machine: the simulated one takes a second
     steps =
       for step <- script.steps do
@@ -216,10 +217,10 @@ defmodule Vws.Reliability.CrashTest do
     assert eventually(
              fn ->
                safe(fn ->
-                 elem(Vws.VAL.info(WS.whereis(ws, :val)).state, 0) != :down and
-                   Vws.DNC.info(WS.whereis(ws, :ge2000)).state == :idle and
-                   Vws.HPIB.info({ws, 9}).state in [:ready, :busy] and
-                   Vws.HPIB.info({ws, 8}).state in [:ready, :busy]
+                 elem(Vws.Links.VAL.info(WS.whereis(ws, :val)).state, 0) != :down and
+                   Vws.Links.DNC.info(WS.whereis(ws, :ge2000)).state == :idle and
+                   Vws.Links.HPIB.info({ws, 9}).state in [:ready, :busy] and
+                   Vws.Links.HPIB.info({ws, 8}).state in [:ready, :busy]
                end)
              end,
              20_000,
@@ -456,7 +457,7 @@ defmodule Vws.Reliability.CrashTest do
 
   # What a command does on the equipment, as the simulators report it (nil: nothing physical).
   defp kind({:robot, _}, text) do
-    case Vws.Commands.parse(:robot, text) do
+    case Vws.Codecs.Commands.parse(:robot, text) do
       {:ok, {:do, _, _} = c} -> {:val2, Vws.Partitions.Robot.instruction(c)}
       {:ok, {:do, _, _, _} = c} -> {:val2, Vws.Partitions.Robot.instruction(c)}
       {:ok, {:disable_tray, 1}} -> {:relay, :tray1_lock, :close}

@@ -12,11 +12,12 @@ defmodule Vws.Reliability.DNCBitFlipTest do
   use ExUnit.Case, async: true
   use Vws.PropCase
 
-  alias Vws.{DNC, Mailbox, Workstation}
-  alias Vws.DNC.Program
+  alias Vws.Links.DNC
+  alias Vws.CEC.{Mailbox, Workstation}
+  alias Vws.Links.DNC.Program
   alias Vws.Sim.GE2000
   alias Vws.Test.FlipRelay
-  alias Vws.WC.Client
+  alias Vws.Peers.WC.Client
   import Vws.Test.Eventually
 
   @moduletag timeout: 900_000
@@ -175,7 +176,7 @@ defmodule Vws.Reliability.DNCBitFlipTest do
     case result do
       :done ->
         assert drip.state == :done and drip.received == byte_size(text) and
-                 drip.crc == Vws.CRC16.compute(text),
+                 drip.crc == Vws.Codecs.CRC16.compute(text),
                "DONE with other bytes run, flips #{inspect(flips)}: #{inspect(drip)}"
 
         :done
@@ -185,7 +186,7 @@ defmodule Vws.Reliability.DNCBitFlipTest do
         # what the machine ran is the program's beginning: no block skipped or repeated
         if drip do
           assert drip.received <= byte_size(text) and
-                   drip.crc == Vws.CRC16.compute(binary_part(text, 0, drip.received)),
+                   drip.crc == Vws.Codecs.CRC16.compute(binary_part(text, 0, drip.received)),
                  "a block skipped or repeated, flips #{inspect(flips)}: #{inspect(drip)}"
         end
 

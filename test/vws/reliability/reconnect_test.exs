@@ -7,7 +7,7 @@ defmodule Vws.Reliability.ReconnectTest do
   loopback endpoint of the test's. First a peer there accepts every connection and drops it at
   once (a terminal server whose device is off): the link must dial it less and less often — each
   gap at least the minimum doubled once more — as such a connection proves nothing
-  (`Vws.Backoff`; before it, all three links dialled it every 50 or 100 ms for ever). Then a
+  (`Vws.Links.Backoff`; before it, all three links dialled it every 50 or 100 ms for ever). Then a
   `Vws.Sim.Line` to the simulator is put there, as a cable: the link connects by itself and the
   command is `DONE`. The line is then taken away (stopped: the endpoint refuses connections),
   and put back on the same endpoint. Whilst it is away:
@@ -26,16 +26,17 @@ defmodule Vws.Reliability.ReconnectTest do
   """
   use ExUnit.Case, async: true
 
-  import Vws.WC.Command, only: [pad4: 1]
+  import Vws.Codecs.WC.Command, only: [pad4: 1]
 
-  doctest Vws.Backoff
+  doctest Vws.Links.Backoff
 
   import Vws.Test.Eventually
 
-  alias Vws.{HydraulicController, Mailbox, SunComm}
+  alias Vws.Peers.HydraulicController
+  alias Vws.CEC.{Mailbox, SunComm}
   alias Vws.Sim.{Floor, Line, Plant}
   alias Vws.Test.{ObedientPartition, Workstation}
-  alias Vws.WC.{Client, ClientError}
+  alias Vws.Peers.WC.{Client, ClientError}
 
   # How long a command may take to end, when the link is down or up: far more than it needs.
   @command_ms 15_000
@@ -185,9 +186,9 @@ defmodule Vws.Reliability.ReconnectTest do
     def init({endpoint, test}) do
       Process.flag(:trap_exit, true)
 
-      case Vws.Transport.listen(endpoint) do
+      case Vws.Links.Transport.listen(endpoint) do
         {:ok, listener} ->
-          Vws.Transport.start_acceptor(listener, self(), :accepted)
+          Vws.Links.Transport.start_acceptor(listener, self(), :accepted)
           {:ok, %{listener: listener, test: test}}
 
         {:error, reason} ->
@@ -198,14 +199,14 @@ defmodule Vws.Reliability.ReconnectTest do
     @impl true
     def handle_info({:accepted, conn}, s) do
       send(s.test, {:flapped, self(), System.monotonic_time(:millisecond)})
-      Vws.Transport.close(conn)
+      Vws.Links.Transport.close(conn)
       {:noreply, s}
     end
 
     def handle_info(_msg, s), do: {:noreply, s}
 
     @impl true
-    def terminate(_reason, s), do: Vws.Transport.close_listener(s.listener)
+    def terminate(_reason, s), do: Vws.Links.Transport.close_listener(s.listener)
   end
 
   ## The floor, one device reached through an endpoint of the test's

@@ -1,7 +1,7 @@
 defmodule Vws.Reliability.RestartTest do
   @moduledoc """
   Kill-and-restart (issue 8). The workstation dies in the middle of the shipped machining cycle
-  (`priv/sims/machining_cycle.vws`, run by a WC through `Vws.WC.Runner`) — its supervisor on
+  (`priv/sims/machining_cycle.vws`, run by a WC through `Vws.Peers.WC.Runner`) — its supervisor on
   this node, or the whole `:peer` node it runs on — at a moment the simulated equipment itself
   picks: a robot motion begun, a part program half-way to the GE-2000, the vise CLOSE valve just
   energised. The equipment's counters are read while nothing of the workstation runs; then the
@@ -19,14 +19,15 @@ defmodule Vws.Reliability.RestartTest do
   """
   use ExUnit.Case, async: true
 
-  import Vws.WC.Command, only: [pad4: 1]
+  import Vws.Codecs.WC.Command, only: [pad4: 1]
 
   import Vws.Test.Eventually
 
-  alias Vws.{Interlock, Mailbox, Workstation}
+  alias Vws.CEC.{Interlock, Mailbox, Workstation}
   alias Vws.Sim.{Floor, GE2000, Plant, VAL2}
   alias Vws.Test.WCPeer
-  alias Vws.WC.{Client, ClientError, CommandString, Runner, Script}
+  alias Vws.Peers.WC.{Client, ClientError, Runner, Script}
+  alias Vws.Codecs.WC.CommandString
 
   @moduletag :tmp_dir
   # 8–11 s for the whole file here (2 shared cores): four cycles to their kill point (one on a
@@ -277,7 +278,7 @@ defmodule Vws.Reliability.RestartTest do
        on_relay: fn signal, on? -> Trigger.event(trigger, {:relay, signal, on?}) end}
     )
 
-    :ok = Vws.HydraulicController.await_ready(Floor.hydraulic_controller(ws), 10_000)
+    :ok = Vws.Peers.HydraulicController.await_ready(Floor.hydraulic_controller(ws), 10_000)
     :ok = Plant.set_part(plant, :tray1, true)
   end
 
@@ -343,7 +344,7 @@ defmodule Vws.Reliability.RestartTest do
     |> List.flatten()
   end
 
-  # `Vws.Workstation`'s child spec, except that a restart waits until the test opens the gate:
+  # `Vws.CEC.Workstation`'s child spec, except that a restart waits until the test opens the gate:
   # the test reads the equipment between the death and the restart.
   defp gated_workstation(opts, gate) do
     %{Workstation.child_spec(opts) | start: {__MODULE__, :start_gated, [opts, gate]}}
@@ -366,10 +367,10 @@ defmodule Vws.Reliability.RestartTest do
   defp ready?(call, ws) do
     val = call.(Workstation, :whereis, [ws, :val])
 
-    val != nil and call.(Vws.VAL, :ready?, [val]) and
+    val != nil and call.(Vws.Links.VAL, :ready?, [val]) and
       match?({"IDLE", _}, call.(Mailbox, :get_device, [ws, 8])) and
       match?({:ok, _}, call.(Vws.Partitions.VwsStatus, :readings, [ws])) and
-      call.(Vws.SunComm, :listening, [ws]) != nil
+      call.(Vws.CEC.SunComm, :listening, [ws]) != nil
   catch
     _kind, _reason -> false
   end

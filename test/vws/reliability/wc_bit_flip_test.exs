@@ -3,7 +3,7 @@ defmodule Vws.Reliability.WCBitFlipTest do
   NC line transfers on the WC link under bit errors (issue 15, PROTOCOLS.md §1 "NC download",
   "NC upload"): for every single-bit flip in every byte of a transfer's traffic, in both
   directions — and for random bursts — the program arrives unchanged or the Monarch command ends
-  `ERROR` with a reason; never `DONE` with other bytes. A real `Vws.WC.Client` talks to a real
+  `ERROR` with a reason; never `DONE` with other bytes. A real `Vws.Peers.WC.Client` talks to a real
   SUN_COMM over TCP through `Vws.Test.FlipRelay`.
 
   Before the lines were numbered and answered `Annnn`+BCC, one flip of `A` (0x41) into `E`
@@ -12,9 +12,9 @@ defmodule Vws.Reliability.WCBitFlipTest do
   use ExUnit.Case, async: true
   use Vws.PropCase
 
-  alias Vws.{Mailbox, SunComm}
+  alias Vws.CEC.{Mailbox, SunComm}
   alias Vws.Test.{FlipRelay, Workstation}
-  alias Vws.WC.Client
+  alias Vws.Peers.WC.Client
 
   @moduletag timeout: 600_000
 

@@ -1,17 +1,18 @@
 defmodule Vws.Reliability.WCRoundTripFlipTest do
   @moduledoc """
   A whole round trip WC → CEC → GE-2000 → CEC → WC (DOWNLOAD_HP, DOWNLOAD_GE, UPLOAD_GE,
-  UPLOAD_SUN) over the real WC TCP link, with a relay between a real `Vws.WC.Client` and
+  UPLOAD_SUN) over the real WC TCP link, with a relay between a real `Vws.Peers.WC.Client` and
   SUN_COMM's TCP listener flipping a bit in transfer answers in both directions — the CEC's
   `Annnn` to the WC's program lines, the WC's `Annnn` to the CEC's — and in program lines
   (issue 15). The program comes back byte-identical.
   """
   use ExUnit.Case, async: true
 
-  alias Vws.{DNC, Mailbox, SunComm, Workstation}
+  alias Vws.Links.DNC
+  alias Vws.CEC.{Mailbox, SunComm, Workstation}
   alias Vws.Sim.GE2000
   alias Vws.Test.FlipRelay
-  alias Vws.WC.Client
+  alias Vws.Peers.WC.Client
   import Vws.Test.Eventually
 
   @moduletag timeout: 300_000

@@ -2,7 +2,7 @@ defmodule Vws.Sim.DAQTest do
   use ExUnit.Case, async: true
 
   alias Vws.Sim.{DAQ, Plant}
-  alias Vws.Transport
+  alias Vws.Links.Transport
 
   doctest Vws.Sim.DAQ
 

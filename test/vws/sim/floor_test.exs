@@ -13,21 +13,23 @@ defmodule Vws.Sim.FloorTest do
        partitions: partitions
      }} = Vws.Sim.Floor.shop_floor(workstation: ws, time_scale: 100)
 
-    start_supervised!({Vws.Workstation, id: ws, wc: nil, links: links, partitions: partitions})
+    start_supervised!(
+      {Vws.CEC.Workstation, id: ws, wc: nil, links: links, partitions: partitions}
+    )
 
     assert Vws.Test.Eventually.eventually(fn ->
-             Vws.Status.answer(ws, "VACUUM") == "VACUUM IS OFF"
+             Vws.CEC.SunComm.Status.answer(ws, "VACUUM") == "VACUUM IS OFF"
            end)
 
     :ok = Vws.Sim.Plant.close_channel(Vws.Sim.Floor.plant(ws), 207)
 
     assert Vws.Test.Eventually.eventually(fn ->
-             Vws.Status.answer(ws, "VACUUM") == "VACUUM IS ON"
+             Vws.CEC.SunComm.Status.answer(ws, "VACUUM") == "VACUUM IS ON"
            end)
 
     # the hydraulic controller on DAQ #2 keeps the PALLET status
     assert Vws.Test.Eventually.eventually(fn ->
-             Vws.Status.answer(ws, "PALLET") == "PALLET NOT CLAMPED"
+             Vws.CEC.SunComm.Status.answer(ws, "PALLET") == "PALLET NOT CLAMPED"
            end)
 
     Enum.each(
@@ -36,7 +38,7 @@ defmodule Vws.Sim.FloorTest do
     )
 
     assert Vws.Test.Eventually.eventually(fn ->
-             Vws.Status.answer(ws, "PALLET") == "PALLET CLAMPED"
+             Vws.CEC.SunComm.Status.answer(ws, "PALLET") == "PALLET CLAMPED"
            end)
   end
 
@@ -45,8 +47,8 @@ defmodule Vws.Sim.FloorTest do
     start_supervised!({Vws.Sim.Floor, workstation: ws, daq1: false, hydraulic: true})
     assert Vws.Sim.Floor.daq2_endpoint(ws) =~ "tcp://"
     controller = Vws.Sim.Floor.hydraulic_controller(ws)
-    assert Vws.HydraulicController.await_ready(controller, 5_000) == :ok
-    assert Vws.HydraulicController.status(controller) == :done
+    assert Vws.Peers.HydraulicController.await_ready(controller, 5_000) == :ok
+    assert Vws.Peers.HydraulicController.status(controller) == :done
     assert Vws.Sim.Floor.hydraulic_endpoint(ws) =~ "tcp://"
     assert Vws.Sim.Floor.daq1(ws) |> GenServer.whereis() == nil
   end

@@ -2,9 +2,9 @@ defmodule Vws.Sim.GE2000Test do
   # The simulated GE-2000 seen from a bare CEC link: what it files, selects, deletes and reports.
   use ExUnit.Case, async: true
 
-  alias Vws.DNC
-  alias Vws.DNC.Frame.Command
-  alias Vws.DNC.Report
+  alias Vws.Links.DNC
+  alias Vws.Links.DNC.Frame.Command
+  alias Vws.Links.DNC.Report
   alias Vws.Sim.GE2000
   import Vws.Test.Eventually
 
@@ -51,9 +51,9 @@ defmodule Vws.Sim.GE2000Test do
     assert {:ok, blocks} = DNC.request(ctx.cec, r(:directory), [])
     text = IO.iodata_to_binary(blocks)
     assert text =~ ~r/\A000005.GSU 000004 [0-9A-F]{4}\n000077.PRO 000012 [0-9A-F]{4}\n000100.PRO/
-    {:ok, dir} = Vws.DNC.Report.parse_directory(text)
-    assert dir["000077.PRO"] == Vws.DNC.Report.entry("000077.PRO", "%\nO77\nM30\n%\n")
-    assert dir["000077.PRO"].crc == Vws.CRC16.compute("%\nO77\nM30\n%\n")
+    {:ok, dir} = Vws.Links.DNC.Report.parse_directory(text)
+    assert dir["000077.PRO"] == Vws.Links.DNC.Report.entry("000077.PRO", "%\nO77\nM30\n%\n")
+    assert dir["000077.PRO"].crc == Vws.Codecs.CRC16.compute("%\nO77\nM30\n%\n")
   end
 
   test "a program without its closing % is refused: the old file stays (alarm 7)", ctx do
@@ -117,8 +117,10 @@ defmodule Vws.Sim.GE2000Test do
     {:ok, peer} = Vws.Test.DNCPeer.connect(GE2000.endpoint(sim))
     on_exit(fn -> if Process.alive?(peer), do: Vws.Test.DNCPeer.close(peer) end)
     text = String.duplicate("N10 G01 X1.0\n", 18) <> "%\n"
-    command = Vws.DNC.Frame.encode(s(:part_program, "000009.PRO")) |> IO.iodata_to_binary()
-    block = Vws.DNC.Frame.encode(%Vws.DNC.Frame.Text{text: text}) |> IO.iodata_to_binary()
+    command = Vws.Links.DNC.Frame.encode(s(:part_program, "000009.PRO")) |> IO.iodata_to_binary()
+
+    block =
+      Vws.Links.DNC.Frame.encode(%Vws.Links.DNC.Frame.Text{text: text}) |> IO.iodata_to_binary()
 
     started = System.monotonic_time(:microsecond)
     :ok = Vws.Test.DNCPeer.send_raw(peer, <<0x05>>)

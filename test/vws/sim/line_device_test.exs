@@ -7,8 +7,8 @@ defmodule Vws.Sim.LineDeviceTest do
   """
   use ExUnit.Case, async: true
 
-  alias Vws.DNC
-  alias Vws.DNC.Frame.Command
+  alias Vws.Links.DNC
+  alias Vws.Links.DNC.Frame.Command
   alias Vws.Sim.{GE2000, Line}
   import Vws.Test.Eventually
 
@@ -53,8 +53,8 @@ defmodule Vws.Sim.LineDeviceTest do
   # CEC used to answer that block NAK twice (once for the block the DLE broke off, once for its
   # tail), the GE-2000 sent it twice, and the CEC took both copies — after which every ACK was
   # one block ahead, so later blocks were taken twice or skipped. Fixed twice over: a damaged
-  # block is one error (Vws.DNC.Frame), and a copy of the block just taken is acknowledged again
-  # and dropped (Vws.DNC). With the first fix alone the same seed then found a block whose STX
+  # block is one error (Vws.Links.DNC.Frame), and a copy of the block just taken is acknowledged again
+  # and dropped (Vws.Links.DNC). With the first fix alone the same seed then found a block whose STX
   # was damaged and whose BCC, 0x04, was read as EOT: the upload ended early as if complete.
   test "seed 6: a block damaged into two errors is not taken twice" do
     round_trip(6)

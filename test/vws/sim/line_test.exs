@@ -5,7 +5,7 @@ defmodule Vws.Sim.LineTest do
 
   alias Vws.Sim.Line
   alias Vws.Sim.Line.Faults
-  alias Vws.Transport
+  alias Vws.Links.Transport
 
   doctest Line
 
@@ -94,7 +94,7 @@ defmodule Vws.Sim.LineTest do
       :ok = Transport.close(client)
       # the server (busy sending) sees "bye", then the close
       assert {"bye", end_} = recv_until_closed(server)
-      assert end_ in [:closed, {:error, %Vws.Transport.Error{reason: :econnreset}}]
+      assert end_ in [:closed, {:error, %Vws.Links.Transport.Error{reason: :econnreset}}]
       Task.shutdown(chatter, :brutal_kill)
     end
   end
@@ -106,7 +106,7 @@ defmodule Vws.Sim.LineTest do
       bytes = pattern(20_000)
 
       # sent in uneven pieces: the damage does not depend on the cut
-      for piece <- Vws.WC.Generators.chunks(bytes, [1, 700, 33, 4096, 5]),
+      for piece <- Vws.Codecs.WC.Generators.chunks(bytes, [1, 700, 33, 4096, 5]),
           do: :ok = Transport.send(client, piece)
 
       {expected, _} = Faults.apply(bytes, Faults.new([seed: {77, 0, :to_target}] ++ opts))
@@ -213,9 +213,9 @@ defmodule Vws.Sim.LineTest do
       :ok = Transport.send(server, pattern(500))
       assert {received, end_} = recv_until_closed(client)
       assert received == binary_part(pattern(500), 0, 50)
-      assert end_ in [:closed, {:error, %Vws.Transport.Error{reason: :econnreset}}]
+      assert end_ in [:closed, {:error, %Vws.Links.Transport.Error{reason: :econnreset}}]
       :ok = Transport.activate(server)
-      assert next(server) in [:closed, {:error, %Vws.Transport.Error{reason: :econnreset}}]
+      assert next(server) in [:closed, {:error, %Vws.Links.Transport.Error{reason: :econnreset}}]
     end
 
     test "on command: both ends see the link closed; new connections are relayed" do

@@ -18,12 +18,12 @@ defmodule Vws.Sim.LineWCTest do
   """
   use ExUnit.Case, async: true
 
-  import Vws.WC.Command, only: [pad4: 1]
+  import Vws.Codecs.WC.Command, only: [pad4: 1]
 
-  alias Vws.{Mailbox, SunComm}
+  alias Vws.CEC.{Mailbox, SunComm}
   alias Vws.Sim.Line
   alias Vws.Test.{ObedientPartition, Workstation}
-  alias Vws.WC.Client
+  alias Vws.Peers.WC.Client
   import Vws.Test.Eventually
 
   @rounds 8

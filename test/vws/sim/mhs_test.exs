@@ -1,7 +1,7 @@
 defmodule Vws.Sim.MHSTest do
   use ExUnit.Case, async: true
 
-  alias Vws.{Interlock, Mailbox}
+  alias Vws.CEC.{Interlock, Mailbox}
   alias Vws.Sim.{MHS, Plant}
 
   doctest MHS

@@ -469,7 +469,7 @@ defmodule Vws.Sim.PlantWritesTest do
     assert events == writes
     assert writes[{:daq1, 207}] == %{close: 2, open: 1}
     assert writes[{:daq2, 201}] == %{close: 0, open: 1}
-    assert map_size(writes) == length(Vws.DAQ.slot(Vws.DAQ.new())) + 1
+    assert map_size(writes) == length(Vws.Links.DAQ.slot(Vws.Links.DAQ.new())) + 1
   end
 
   defp collect(acc) do

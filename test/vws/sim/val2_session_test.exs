@@ -1,9 +1,9 @@
 defmodule Vws.Sim.VAL2SessionTest do
   use ExUnit.Case, async: true
 
-  alias Vws.DDCMP
+  alias Vws.Links.DDCMP
   alias Vws.Sim.VAL2
-  alias Vws.VAL.Message
+  alias Vws.Links.VAL.Message
   import Vws.Test.Eventually
 
   # The CEC is played by a bare DDCMP link and this test, so the order of events at the simulator

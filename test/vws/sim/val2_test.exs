@@ -2,7 +2,7 @@ defmodule Vws.Sim.VAL2Test do
   use ExUnit.Case, async: true
 
   alias Vws.Sim.VAL2
-  alias Vws.VAL
+  alias Vws.Links.VAL
   import Vws.Test.Eventually
 
   # The CEC's logical-unit layer against the simulated controller over real DDCMP on TCP.
@@ -30,13 +30,13 @@ defmodule Vws.Sim.VAL2Test do
     # The new connection is accepted while the simulator is busy; the old one then closes and
     # its link ends, its exit queued behind the new connection.
     :ok = :sys.suspend(sim)
-    {:ok, conn} = Vws.Transport.connect(endpoint)
+    {:ok, conn} = Vws.Links.Transport.connect(endpoint)
     :ok = stop_supervised(:val)
     Process.sleep(100)
     :ok = :sys.resume(sim)
 
     refute_receive {:DOWN, ^ref, _, _, _}, 200
-    Vws.Transport.close(conn)
+    Vws.Links.Transport.close(conn)
     val = start_supervised!({VAL, ddcmp: [endpoint: endpoint]}, id: :val)
     assert eventually(fn -> VAL.ready?(val) end)
     assert {:ok, _} = VAL.command(val, "WHERE")

@@ -11,7 +11,7 @@ defmodule Vws.Partitions.Hydraulic.Monitor do
   `NO DATA (HYDRAULIC CONTROLLER NOT READ YET)`.
 
   Started by `Vws.Partitions.Hydraulic.wiring/3` under the workstation's links supervisor.
-  Options: `:workstation`, `:link` (the controller's `Vws.HPIB` device), `:interval` (1000 ms),
+  Options: `:workstation`, `:link` (the controller's `Vws.Links.HPIB` device), `:interval` (1000 ms),
   `:timeout` (one read, 1000 ms).
 
       iex> {:ok, pid} = Vws.Partitions.Hydraulic.Monitor.start_link(workstation: "none", link: {"none", 8}, interval: 60_000)
@@ -21,7 +21,7 @@ defmodule Vws.Partitions.Hydraulic.Monitor do
   use GenServer
   require Logger
 
-  alias Vws.Mailbox
+  alias Vws.CEC.Mailbox
   alias Vws.Partitions.Hydraulic
 
   @doc false

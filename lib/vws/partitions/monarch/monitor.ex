@@ -15,7 +15,7 @@ defmodule Vws.Partitions.Monarch.Monitor do
   (auto-receive) is handed to `Vws.Partitions.Monarch.received_program/4` with the `:store`
   function (default `Vws.Partitions.Monarch.store_from_machine/3`).
 
-  Started by `Vws.Workstation.device_links/3` with the GE-2000's link. Options: `:workstation`,
+  Started by `Vws.CEC.Workstation.device_links/3` with the GE-2000's link. Options: `:workstation`,
   `:link`, `:interval` (1 000 ms; `nil`: no status reads, the monitor only owns the link, so that
   programs from the machine are still kept), `:check` (`:lrc`), `:store`.
 
@@ -62,7 +62,7 @@ defmodule Vws.Partitions.Monarch.Monitor do
     s = own_link(s)
 
     result =
-      if Vws.Mailbox.exists?(s.workstation),
+      if Vws.CEC.Mailbox.exists?(s.workstation),
         do: Vws.Partitions.Monarch.refresh_status(s.workstation, s.link, s.options),
         else: {:error, "NO MAILBOXES"}
 
@@ -101,7 +101,7 @@ defmodule Vws.Partitions.Monarch.Monitor do
         s
 
       pid when is_pid(pid) ->
-        if Vws.DNC.set_owner(pid, self()) == :ok, do: %{s | owner: pid}, else: s
+        if Vws.Links.DNC.set_owner(pid, self()) == :ok, do: %{s | owner: pid}, else: s
 
       _ ->
         s

@@ -1,8 +1,8 @@
 defmodule Vws.Sim.GE2000.Faults do
   @moduledoc """
   The simulated GE-2000's misbehaviour on its DNC line (`Vws.Sim.GE2000.set_fault/2`): a tap the
-  simulator puts between its link's protocol and the wire (`Vws.DNC.set_tap/2`), which changes
-  what goes out and what comes in. The protocol itself (`Vws.DNC.Session`) knows of no fault.
+  simulator puts between its link's protocol and the wire (`Vws.Links.DNC.set_tap/2`), which changes
+  what goes out and what comes in. The protocol itself (`Vws.Links.DNC.Session`) knows of no fault.
 
     * `:nak_once_per_block` — the acknowledgement of every block received goes out as NAK the
       first time (the block comes again; the copy is acknowledged)
@@ -27,11 +27,11 @@ defmodule Vws.Sim.GE2000.Faults do
   @wack <<0x10, ?;>>
   @nak <<0x15>>
 
-  @doc "The tap for `Vws.DNC.set_tap/2`: `{#{inspect(__MODULE__)}, state}`."
+  @doc "The tap for `Vws.Links.DNC.set_tap/2`: `{#{inspect(__MODULE__)}, state}`."
   @spec tap(fault) :: {module, map}
   def tap(fault), do: {__MODULE__, %{fault: fault, done: 0, corrupted: nil}}
 
-  @doc "The fault, as `Vws.DNC.info/1` shows it."
+  @doc "The fault, as `Vws.Links.DNC.info/1` shows it."
   @spec describe(map) :: term
   def describe(%{fault: {:bid_contention, _blocks}}), do: :bid_contention
   def describe(%{fault: fault}), do: fault

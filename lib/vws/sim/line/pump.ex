@@ -19,7 +19,7 @@ defmodule Vws.Sim.Line.Pump do
   use GenServer
 
   alias Vws.Sim.Line.{Counters, Faults, Schedule}
-  alias Vws.Transport
+  alias Vws.Links.Transport
 
   # Shortest wait between two deliveries while pacing: one character's time on the line, within
   # 1..10 ms — so a short reply (an acknowledgement) comes out when its last bit would, not up

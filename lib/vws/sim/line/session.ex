@@ -9,7 +9,7 @@ defmodule Vws.Sim.Line.Session do
   require Logger
 
   alias Vws.Sim.Line.{Counters, Pump}
-  alias Vws.Transport
+  alias Vws.Links.Transport
 
   def start_link(args), do: GenServer.start_link(__MODULE__, args)
 

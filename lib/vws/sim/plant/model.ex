@@ -4,7 +4,7 @@ defmodule Vws.Sim.Plant.Model do
   simulated time elapsed before each call. Nothing here reads a clock; tests may drive it with
   exact time steps.
 
-      iex> m = Vws.Sim.Plant.Model.new(Vws.DAQ.ChannelMap.load(), 1)
+      iex> m = Vws.Sim.Plant.Model.new(Vws.Links.DAQ.ChannelMap.load(), 1)
       iex> {:ok, m} = Vws.Sim.Plant.Model.close_channel(m, :daq1, 206)
       iex> m = Vws.Sim.Plant.Model.advance(m, 2.0)
       iex> Vws.Sim.Plant.Model.snapshot(m).vise.jaw_mm
@@ -47,7 +47,7 @@ defmodule Vws.Sim.Plant.Model do
     * `:part_dropped` — the gripper opened on a part with no free place under it.
   """
 
-  alias Vws.DAQ.ChannelMap
+  alias Vws.Links.DAQ.ChannelMap
 
   @eps 1.0e-6
 

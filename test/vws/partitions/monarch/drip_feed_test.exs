@@ -3,8 +3,9 @@ defmodule Vws.Partitions.Monarch.DripFeedTest do
   # the WC (a raw WC peer) → SUN_COMM → MONARCH → DNC link → simulated GE-2000.
   use ExUnit.Case, async: true
 
-  alias Vws.{DNC, Mailbox, Workstation}
-  alias Vws.DNC.Program
+  alias Vws.Links.DNC
+  alias Vws.CEC.{Mailbox, Workstation}
+  alias Vws.Links.DNC.Program
   alias Vws.Sim.GE2000
   alias Vws.Test.WCPeer
   import Vws.Test.Eventually
@@ -42,7 +43,7 @@ defmodule Vws.Partitions.Monarch.DripFeedTest do
   defp send_monarch(peer, number, text) do
     s = seq()
     WCPeer.send_string(peer, s, [{"M", number, text}])
-    assert Vws.WC.Reply.decode(WCPeer.recv_line(peer)) == {:ok, {:ack, s}}
+    assert Vws.Codecs.WC.Reply.decode(WCPeer.recv_line(peer)) == {:ok, {:ack, s}}
   end
 
   defp finished(peer, timeout \\ 60_000),
@@ -76,8 +77,8 @@ defmodule Vws.Partitions.Monarch.DripFeedTest do
     # every block once, in order: the machine ran exactly the program's bytes
     assert drip.received == byte_size(text)
     assert drip.ran == byte_size(text)
-    assert drip.crc == Vws.CRC16.compute(text)
-    assert drip.blocks == length(Vws.DNC.Frame.split_text(text, 256))
+    assert drip.crc == Vws.Codecs.CRC16.compute(text)
+    assert drip.blocks == length(Vws.Links.DNC.Frame.split_text(text, 256))
     assert drip.max_fill <= @memory
     drip
   end
@@ -143,12 +144,12 @@ defmodule Vws.Partitions.Monarch.DripFeedTest do
 
   test "transfer progress: telemetry, the :dnc_progress event and DNC.progress/1", ctx do
     text = with_nc_file(ctx, 4 * @memory)
-    :ok = Vws.Events.subscribe(ctx.ws, :dnc_progress)
+    :ok = Vws.CEC.Events.subscribe(ctx.ws, :dnc_progress)
     send_monarch(ctx.peer, 1, "DRIP_FEED")
     assert eventually(fn -> DNC.progress(ctx.link) != nil end)
     # the dashboard's progress bar
     assert eventually(fn ->
-             Enum.any?(Vws.Web.State.build().workstations, fn w ->
+             Enum.any?(Vws.Ops.Web.State.build().workstations, fn w ->
                Enum.any?(
                  Map.get(w, :transfers, []),
                  &(&1.kind == "DRIP_FEED" and &1.percent >= 0)

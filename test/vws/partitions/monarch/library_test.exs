@@ -3,8 +3,9 @@ defmodule Vws.Partitions.Monarch.LibraryTest do
   # MONARCH → DNC link → simulated GE-2000, the library a real directory.
   use ExUnit.Case, async: true
 
-  alias Vws.{DNC, Workstation}
-  alias Vws.DNC.Library
+  alias Vws.Links.DNC
+  alias Vws.CEC.Workstation
+  alias Vws.Links.DNC.Library
   alias Vws.Partitions.Monarch
   alias Vws.Sim.GE2000
   alias Vws.Test.WCPeer
@@ -36,7 +37,7 @@ defmodule Vws.Partitions.Monarch.LibraryTest do
   defp monarch(peer, number, text) do
     s = seq()
     WCPeer.send_string(peer, s, [{"M", number, text}])
-    assert Vws.WC.Reply.decode(WCPeer.recv_line(peer)) == {:ok, {:ack, s}}
+    assert Vws.Codecs.WC.Reply.decode(WCPeer.recv_line(peer)) == {:ok, {:ack, s}}
     finished(peer)
   end
 
@@ -51,11 +52,11 @@ defmodule Vws.Partitions.Monarch.LibraryTest do
   defp download_hp(peer, number, lines) do
     s = seq()
     WCPeer.send_string(peer, s, [{"M", number, "DOWNLOAD_HP"}])
-    assert Vws.WC.Reply.decode(WCPeer.recv_line(peer)) == {:ok, {:ack, s}}
+    assert Vws.Codecs.WC.Reply.decode(WCPeer.recv_line(peer)) == {:ok, {:ack, s}}
 
     for {line, n} <- Enum.with_index(lines, 1) do
-      WCPeer.send_raw(peer, Vws.WC.Reply.encode({:line, n, line}))
-      assert Vws.WC.Reply.decode(WCPeer.recv_line(peer)) == {:ok, {:line_ack, n}}
+      WCPeer.send_raw(peer, Vws.Codecs.WC.Reply.encode({:line, n, line}))
+      assert Vws.Codecs.WC.Reply.decode(WCPeer.recv_line(peer)) == {:ok, {:line_ack, n}}
     end
 
     finished(peer)
@@ -74,9 +75,9 @@ defmodule Vws.Partitions.Monarch.LibraryTest do
     {:ok, [v1, v2]} = Library.versions(ws, "004711.PRO")
     assert {v1.version, v1.source, v2.version} == {1, "wc", 2}
     assert {:ok, text, _} = Library.read(ws, "004711.PRO", 2)
-    assert text == Vws.DNC.Program.to_text(changed)
+    assert text == Vws.Links.DNC.Program.to_text(changed)
     # the seed's NC file is there as before
-    assert Vws.Mailbox.nc_file(ws) == changed
+    assert Vws.CEC.Mailbox.nc_file(ws) == changed
   end
 
   test "DOWNLOAD_GE(name) and DOWNLOAD_GE(name/v) send a library version, verified; the plain " <>
@@ -103,7 +104,7 @@ defmodule Vws.Partitions.Monarch.LibraryTest do
 
     assert download_hp(peer, 6, @lines) == "DONE"
     assert monarch(peer, 7, "DOWNLOAD_GE") == "DONE"
-    assert GE2000.program(sim, "004711.PRO") == Vws.DNC.Program.to_text(@lines)
+    assert GE2000.program(sim, "004711.PRO") == Vws.Links.DNC.Program.to_text(@lines)
   end
 
   test "a library program the machine files damaged fails its verify", %{
@@ -164,14 +165,14 @@ defmodule Vws.Partitions.Monarch.LibraryTest do
 
   # "%\nO1\nN10 Xd.dddddd\n%\n" text of the same length and CRC-16/ARC as `text`
   defp same_crc_as(text) do
-    crc = Vws.CRC16.compute(text)
+    crc = Vws.Codecs.CRC16.compute(text)
 
     Stream.iterate(0, &(&1 + 1))
     |> Stream.map(fn i ->
       digits = String.pad_leading(Integer.to_string(i), 7, "0")
       "%\nO1\nN10 X" <> String.slice(digits, 0, 1) <> "." <> String.slice(digits, 1, 6) <> "\n%\n"
     end)
-    |> Enum.find(&(Vws.CRC16.compute(&1) == crc and &1 != text))
+    |> Enum.find(&(Vws.Codecs.CRC16.compute(&1) == crc and &1 != text))
   end
 
   test "a program the operator sends from the machine is a new library version, source from the machine",
@@ -188,6 +189,12 @@ defmodule Vws.Partitions.Monarch.LibraryTest do
              Library.read(ws, "000100.PRO")
 
     # and, as before the library, as NC_UP
-    assert Vws.Mailbox.nc_up(ws) == ["%", "O100 (FROM THE PANEL)", "N10 G01 X1", "N20 M30", "%"]
+    assert Vws.CEC.Mailbox.nc_up(ws) == [
+             "%",
+             "O100 (FROM THE PANEL)",
+             "N10 G01 X1",
+             "N20 M30",
+             "%"
+           ]
   end
 end

@@ -1,7 +1,7 @@
 defmodule Vws.Partitions.Monarch.MonitorTest do
   use ExUnit.Case, async: true
 
-  alias Vws.Mailbox
+  alias Vws.CEC.Mailbox
   alias Vws.Partitions.Monarch.Monitor
   alias Vws.Sim.GE2000
   import Vws.Test.Eventually
@@ -22,12 +22,12 @@ defmodule Vws.Partitions.Monarch.MonitorTest do
 
     # a cycle started at the control panel
     GE2000.put_program(sim, "000100.PRO", "O100\nM30\n")
-    link = Vws.Workstation.whereis(ws, :ge2000)
+    link = Vws.CEC.Workstation.whereis(ws, :ge2000)
 
     {:ok, []} =
-      Vws.DNC.request(
+      Vws.Links.DNC.request(
         link,
-        %Vws.DNC.Frame.Command{operation: :remote_control, text: "000100"},
+        %Vws.Links.DNC.Frame.Command{operation: :remote_control, text: "000100"},
         []
       )
 
@@ -40,13 +40,13 @@ defmodule Vws.Partitions.Monarch.MonitorTest do
 
   test "status_interval nil: a monitor that reads nothing, there to own the link (programs from the machine)" do
     {links, partitions} =
-      Vws.Workstation.device_links(
+      Vws.CEC.Workstation.device_links(
         "w",
         [ge2000: [endpoint: "tcp://h:1", status_interval: nil]],
         []
       )
 
-    assert [{Vws.DNC, opts}, {Vws.Partitions.Monarch.Monitor, monitor}] = links
+    assert [{Vws.Links.DNC, opts}, {Vws.Partitions.Monarch.Monitor, monitor}] = links
     assert opts[:endpoint] == "tcp://h:1"
     assert monitor[:interval] == nil
     assert partitions[:monarch][:link] == Vws.Names.via("w", :ge2000)

@@ -67,7 +67,10 @@ defmodule Vws.Sim.Line.FaultsTest do
         :proper.forall(gen, fn {bytes, cuts} ->
           opts = [seed: byte_size(bytes), ber: 0.05, drop: 0.05, disconnect_after: 300]
           {whole, f1} = Faults.apply(bytes, Faults.new(opts))
-          {pieces, f2} = feed_chunks(Vws.WC.Generators.chunks(bytes, cuts), Faults.new(opts))
+
+          {pieces, f2} =
+            feed_chunks(Vws.Codecs.WC.Generators.chunks(bytes, cuts), Faults.new(opts))
+
           whole == pieces and Faults.counters(f1) == Faults.counters(f2)
         end),
         200

@@ -1,7 +1,7 @@
 defmodule Vws.Sim.Plant.ModelTest do
   use ExUnit.Case, async: true
 
-  alias Vws.DAQ.ChannelMap
+  alias Vws.Links.DAQ.ChannelMap
   alias Vws.Sim.Plant.Model
 
   doctest Model

@@ -16,11 +16,11 @@ defmodule Vws.Sim.VAL2.MonitorTest do
 
   test "WHERE answers the world coordinates and joints of SAFE", %{m: m} do
     {{:ok, text}, [], ^m} = Monitor.command(m, "where")
-    {:ok, %{world: world, joints: [j1, j2, j3 | _]}} = Vws.VAL.parse_where(text)
+    {:ok, %{world: world, joints: [j1, j2, j3 | _]}} = Vws.Links.VAL.parse_where(text)
     assert world == [800.0, 0.0, 1200.0, 0.0, 180.0, 0.0]
     # python3: atan2/hypot of the wrist centre (800, 0, 1450), shoulder at 1000, boom 650
     assert {j1, j2, j3} == {0.0, 29.36, 267.88}
-    assert byte_size("0\r\n" <> text) <= Vws.VAL.Message.max_text()
+    assert byte_size("0\r\n" <> text) <= Vws.Links.VAL.Message.max_text()
   end
 
   test "a joint move takes the slowest joint's time over SPEED; a straight one its path length",

@@ -1,0 +1,501 @@
+defmodule Vws.CEC.Mailbox do
+  @moduledoc """
+  The CEC's mailboxes (seed §2.3.5–2.3.6): memory files shared by the partitions, here one ETS table
+  per workstation owned by `Vws.CEC.Mailbox.Owner`.
+
+  ## Layout
+
+    * **Device-status locations 1–14**, written by VWS_STATUS (and by ROBOT and MONARCH for what only
+      they can read) and answered by SUN_COMM's Status subroutine:
+
+      | loc | name          | loc | name          |
+      |-----|---------------|-----|---------------|
+      | 1   | `GRIPPER`     | 8   | `MONARCH`     |
+      | 2   | `TABLE`       | 9   | `WHERE_ROBOT` |
+      | 3   | `VISE`        | 10  | `PALLET`      |
+      | 4   | `TRAYS`       | 11  | `SENSORS` (the 16-element array B) |
+      | 5   | `VACUUM`      | 12–14 | spare       |
+      | 6   | `TLI_TABLE`   |     |               |
+      | 7   | `CHANGER_1`   |     |               |
+
+      Each holds a value (usually the status text) and the monotonic time it was written, so
+      a reader can tell a fresh reading from a stale one.
+
+    * **Command-status locations 34–39**, one per command partition: ROBOT 34, MONARCH 35,
+      GRIPPER 36, FIXTURE 37, VACUUM 38, HYDRAULIC 39. Each holds the number of the last command of
+      that set and its status: `:none`, `:executing`, `:done` or `{:error, reason}`.
+
+    * **CMD_IN**: the latest command text and number per set; **in flight**: the number of the
+      command a partition has been given and not yet finished (at most one per set).
+
+    * **NC file** (the program downloaded from the WC, DOWNLOAD_HP) and **NC_UP** (the program
+      uploaded from the GE-2000, UPLOAD_GE), as lists of lines.
+
+    * **Interlocks**: the work-volume leases of `Vws.CEC.Interlock` (seed §2.3.8), one entry
+      `{:interlock, volume, holder}` per holder.
+
+  ## Durability
+
+  With a journal (`Vws.CEC.Journal`), every command-status change is written to disk before it is
+  written here, and a restarted workstation gets its command statuses back. The mailbox does not
+  know the journal: a *recorder* — a module with the callbacks below, attached to the table with
+  `attach_recorder/2` — is given every change first (`record/2`, `store_lines` for the programs);
+  without one, nothing is recorded. The journal reads and restores the mailboxes through
+  `dump/1` and `load/2`, never through the table's keys.
+
+  ## Change notices
+
+  Each write that changes a device-status location, a command status or a device's readings is
+  announced, after the write, to the processes subscribed to the workstation's event `:mailbox`
+  (`Vws.CEC.Events.subscribe(ws, :mailbox)`), as `{:vws_event, ws, :mailbox, {change, system_us}}`
+  where `change` is `{:device, loc, value}`, `{:command, partition, number, status, text | nil}`
+  (the text when the command is dispatched) or `{:readings, source, value}`; the notices of one
+  writer arrive in the order of its writes. The MTConnect agent records every transition so.
+
+  ## LOCK/UNLOCK
+
+  Every write here is one atomic ETS operation (`insert_new` for dispatch, `select_replace` for a
+  compare-and-set of a command status), which is what LOCK … OUTPUT … UNLOCK achieved. For a
+  longer critical section, `locked/2` runs a function inside the owner process.
+  """
+
+  require Logger
+
+  @doc "Makes `record` durable (the command journal); `{:error, reason}` when it could not."
+  @callback record(:ets.tid(), record :: tuple) :: :ok | {:error, term}
+
+  @doc "Stores a program (`:nc_file` or `:nc_up`) durably, whole or not at all."
+  @callback store_lines(:ets.tid(), :nc_file | :nc_up, [binary]) :: :ok | {:error, term}
+
+  @type workstation :: term
+  @type partition :: :robot | :monarch | :gripper | :fixture | :vacuum | :hydraulic
+  @type status :: :none | :executing | :done | {:error, String.t()}
+
+  @device_locations %{
+    1 => "GRIPPER",
+    2 => "TABLE",
+    3 => "VISE",
+    4 => "TRAYS",
+    5 => "VACUUM",
+    6 => "TLI_TABLE",
+    7 => "CHANGER_1",
+    8 => "MONARCH",
+    9 => "WHERE_ROBOT",
+    10 => "PALLET",
+    11 => "SENSORS",
+    12 => "SPARE",
+    13 => "SPARE",
+    14 => "SPARE"
+  }
+
+  @command_locations [robot: 34, monarch: 35, gripper: 36, fixture: 37, vacuum: 38, hydraulic: 39]
+  @partitions Keyword.keys(@command_locations)
+
+  @doc "The command partitions, in mailbox-location order."
+  @spec partitions() :: [partition]
+  def partitions, do: @partitions
+
+  @doc "The command-status location (34–39) of a partition."
+  @spec command_location(partition) :: 34..39
+  def command_location(partition), do: Keyword.fetch!(@command_locations, partition)
+
+  @doc "The name of a device-status location (1–14)."
+  @spec device_name(1..14) :: String.t()
+  def device_name(loc), do: Map.fetch!(@device_locations, loc)
+
+  @doc "The device-status location (1–11) for a status name such as `\"VISE\"`."
+  @spec device_location(String.t()) :: 1..11 | nil
+  def device_location(name) do
+    Enum.find_value(@device_locations, fn {loc, n} -> if n == name and n != "SPARE", do: loc end)
+  end
+
+  @doc "The workstation's table. Raises `ArgumentError` if the workstation has no mailboxes."
+  @spec table(workstation) :: :ets.tid()
+  def table(ws) do
+    case Registry.lookup(Vws.Registry, {ws, :mailbox}) do
+      [{_pid, table}] -> table
+      [] -> raise ArgumentError, "workstation #{inspect(ws)} has no mailboxes (is it started?)"
+    end
+  end
+
+  @doc "True when the workstation's mailboxes exist."
+  @spec exists?(workstation) :: boolean
+  def exists?(ws), do: Registry.lookup(Vws.Registry, {ws, :mailbox}) != []
+
+  @doc false
+  def initialize(table) do
+    now = now()
+    for loc <- 1..14, do: :ets.insert(table, {{:device, loc}, nil, now})
+
+    for p <- @partitions do
+      :ets.insert(table, {{:command_status, p}, nil, :none})
+      :ets.insert(table, {{:cmd_in, p}, nil, nil})
+    end
+
+    :ets.insert(table, {:nc_file, []})
+    :ets.insert(table, {:nc_up, []})
+    :ets.insert(table, {:last_string, nil, nil})
+    :ok
+  end
+
+  @doc "Runs `fun.(table)` inside the owner, serialised with every other `locked/2` (LOCK/UNLOCK)."
+  @spec locked(workstation, (:ets.tid() -> result)) :: result when result: var
+  def locked(ws, fun) do
+    GenServer.call({:via, Registry, {Vws.Registry, {ws, :mailbox_owner}}}, {:locked, fun})
+  end
+
+  ## Device status (locations 1–14)
+
+  @doc """
+  Writes a device-status location with the current monotonic time. A value that differs from the
+  one there is announced (see "Change notices").
+  """
+  @spec put_device(workstation, 1..14, term) :: :ok
+  def put_device(ws, loc, value) when loc in 1..14 do
+    table = table(ws)
+    changed? = :ets.lookup_element(table, {:device, loc}, 2) != value
+    :ets.insert(table, {{:device, loc}, value, now()})
+    if changed?, do: changed(ws, {:device, loc, value})
+    :ok
+  end
+
+  # Change notices: the new value goes to whoever listens (`Vws.CEC.Events.notify/3`, event
+  # `:mailbox`) with the system time of the write, after the write.
+  defp changed(ws, change) do
+    Vws.CEC.Events.notify(ws, :mailbox, {change, System.system_time(:microsecond)})
+  end
+
+  @doc """
+  Keeps the latest decoded readings of a device that has no location of its own for them
+  (`:pallet`: the hydraulic controller's `PALLET?` answer, clamp forces included), for the views
+  (`Vws.Ops.Inspect`, the dashboard). Nothing decides on them: commands read their device.
+  """
+  @spec put_readings(workstation, atom, term) :: :ok
+  def put_readings(ws, source, value) when is_atom(source) do
+    table = table(ws)
+
+    changed? =
+      case :ets.lookup(table, {:readings, source}) do
+        [{_, ^value, _}] -> false
+        _ -> true
+      end
+
+    :ets.insert(table, {{:readings, source}, value, now()})
+    if changed?, do: changed(ws, {:readings, source, value})
+    :ok
+  end
+
+  @doc "The readings kept with `put_readings/3`: `%{source => {value, age_ms}}`."
+  @spec readings(workstation) :: %{atom => {term, non_neg_integer}}
+  def readings(ws) do
+    now = now()
+
+    for {{:readings, source}, value, at} <-
+          :ets.match_object(table(ws), {{:readings, :_}, :_, :_}),
+        into: %{},
+        do: {source, {value, now - at}}
+  end
+
+  @doc "Reads a device-status location: `{value, age_ms}`; value `nil` means never written."
+  @spec get_device(workstation, 1..14) :: {term, non_neg_integer}
+  def get_device(ws, loc) when loc in 1..14 do
+    [{_, value, at}] = :ets.lookup(table(ws), {:device, loc})
+    {value, now() - at}
+  end
+
+  ## Command status (locations 34–39), CMD_IN and the command in flight
+
+  @doc """
+  Hands a command to a partition, atomically: refused with `{:busy, number}` while the partition's
+  previous command is in flight, otherwise records it in flight, writes CMD_IN and sets the
+  command status to `:executing`.
+  """
+  @spec dispatch(workstation, partition, 0..9999, String.t()) :: :ok | {:busy, 0..9999}
+  def dispatch(ws, partition, number, text) when partition in @partitions do
+    table = table(ws)
+
+    if :ets.insert_new(table, {{:in_flight, partition}, number}) do
+      journal(table, {:status, partition, number, :executing, text})
+      :ets.insert(table, {{:cmd_in, partition}, number, text})
+      :ets.insert(table, {{:command_status, partition}, number, :executing})
+      changed(ws, {:command, partition, number, :executing, text})
+      :ok
+    else
+      case :ets.lookup(table, {:in_flight, partition}) do
+        [{_, busy}] -> {:busy, busy}
+        # finished between the two calls: try again
+        [] -> dispatch(ws, partition, number, text)
+      end
+    end
+  end
+
+  @doc "The command a partition has in flight, if any."
+  @spec in_flight(workstation, partition) :: 0..9999 | nil
+  def in_flight(ws, partition) do
+    case :ets.lookup(table(ws), {:in_flight, partition}) do
+      [{_, n}] -> n
+      [] -> nil
+    end
+  end
+
+  @doc """
+  Ends the command `number` of a partition with `status` and clears it from flight.
+
+  The status location is only written while it still shows `number` (a newer command refused as
+  busy keeps its own answer). Returns `:ok`, or `:not_in_flight` when `number` was not the
+  partition's command in flight (nothing is written then).
+  """
+  @spec finish(workstation, partition, 0..9999, :done | {:error, String.t()}) ::
+          :ok | :not_in_flight
+  def finish(ws, partition, number, status) do
+    table = table(ws)
+
+    case :ets.select_delete(table, [{{{:in_flight, partition}, number}, [], [true]}]) do
+      1 ->
+        journal(table, {:finish, partition, number, status})
+
+        if compare_and_set_status(table, partition, number, status) == 1,
+          do: changed(ws, {:command, partition, number, status, nil})
+
+        :ok
+
+      0 ->
+        :not_in_flight
+    end
+  end
+
+  @doc """
+  Sets the status of command `number` of a partition that is not (or no longer) run: a command
+  refused by a rule of SUN_COMM. It does not touch the command in flight.
+  """
+  @spec put_status(workstation, partition, 0..9999, status) :: :ok
+  def put_status(ws, partition, number, status) do
+    table = table(ws)
+    journal(table, {:status, partition, number, status})
+    :ets.insert(table, {{:command_status, partition}, number, status})
+    changed(ws, {:command, partition, number, status, nil})
+    :ok
+  end
+
+  @doc """
+  Attaches the recorder (a module with this module's callbacks, `Vws.CEC.Journal`) that is given
+  every change before it is visible.
+  """
+  @spec attach_recorder(:ets.tid(), module) :: :ok
+  def attach_recorder(table, module) when is_atom(module) do
+    :ets.insert(table, {:recorder, module})
+    :ok
+  end
+
+  @doc """
+  Gives `record` to the table's recorder (`attach_recorder/2`): `:ok` when it is durable or there
+  is no recorder, `{:error, reason}` when it could not be made durable. Used by everything that
+  keeps its state in the mailbox table (the interlock's leases too).
+  """
+  @spec record(:ets.tid(), tuple) :: :ok | {:error, term}
+  def record(table, record) do
+    case :ets.lookup(table, :recorder) do
+      [] -> :ok
+      [{:recorder, module}] -> module.record(table, record)
+    end
+  end
+
+  defp store_lines(table, key, lines) do
+    case :ets.lookup(table, :recorder) do
+      [] -> :ok
+      [{:recorder, module}] -> module.store_lines(table, key, lines)
+    end
+  end
+
+  # Durable before visible: the journal (when the workstation has one) gets the change first.
+  defp journal(table, record) do
+    case record(table, record) do
+      :ok ->
+        :ok
+
+      {:error, reason} ->
+        Logger.error("journal write failed (#{inspect(reason)}): #{inspect(record, limit: 8)}")
+    end
+  end
+
+  @doc """
+  Sets the status of command `number` of a set letter the CEC does not know (rule broken
+  `UNKNOWN COMMAND SET <letter>`), answered to the status `<letter>_CMD`.
+  """
+  @spec put_unknown_status(workstation, String.t(), 0..9999, status) :: :ok
+  def put_unknown_status(ws, letter, number, status) do
+    table = table(ws)
+    journal(table, {:unknown_status, letter, number, status})
+    :ets.insert(table, {{:unknown_status, letter}, number, status})
+    :ok
+  end
+
+  @doc "The status of the last command of an unknown set letter: `{number | nil, status}`."
+  @spec unknown_status(workstation, String.t()) :: {0..9999 | nil, status}
+  def unknown_status(ws, letter) do
+    case :ets.lookup(table(ws), {:unknown_status, letter}) do
+      [{_, number, status}] -> {number, status}
+      [] -> {nil, :none}
+    end
+  end
+
+  @doc "The command status of a partition: `{number | nil, status}`."
+  @spec command_status(workstation, partition) :: {0..9999 | nil, status}
+  def command_status(ws, partition) do
+    [{_, number, status}] = :ets.lookup(table(ws), {:command_status, partition})
+    {number, status}
+  end
+
+  @doc "CMD_IN of a partition: `{number, text}` of its latest command (`{nil, nil}` before any)."
+  @spec cmd_in(workstation, partition) :: {0..9999 | nil, String.t() | nil}
+  def cmd_in(ws, partition) do
+    [{_, number, text}] = :ets.lookup(table(ws), {:cmd_in, partition})
+    {number, text}
+  end
+
+  defp compare_and_set_status(table, partition, number, status) do
+    key = {:command_status, partition}
+    :ets.select_replace(table, [{{key, number, :_}, [], [{{{key}, number, {:const, status}}}]}])
+  end
+
+  ## The last command string (retransmission rule)
+
+  @doc "Remembers the sequence number and bytes of the last accepted command string."
+  @spec put_last_string(workstation, 0..9999, binary) :: :ok
+  def put_last_string(ws, seq, line) do
+    :ets.insert(table(ws), {:last_string, seq, line})
+    :ok
+  end
+
+  @doc "The last accepted command string: `{seq, line}` or `{nil, nil}`."
+  @spec last_string(workstation) :: {0..9999 | nil, binary | nil}
+  def last_string(ws) do
+    [{_, seq, line}] = :ets.lookup(table(ws), :last_string)
+    {seq, line}
+  end
+
+  ## NC file and NC_UP
+
+  @doc """
+  Replaces the NC file (the program downloaded from the WC). With a journal the program is on
+  disk first (the recorder's `store_lines`, `Vws.CEC.Journal.store_lines/3`); `{:error, reason}` when it could not be made durable
+  (the mailbox keeps the old program then).
+  """
+  @spec put_nc_file(workstation, [binary]) :: :ok | {:error, term}
+  def put_nc_file(ws, lines), do: put_lines(ws, :nc_file, lines)
+
+  @doc "The NC file's lines."
+  @spec nc_file(workstation) :: [binary]
+  def nc_file(ws), do: get_lines(ws, :nc_file)
+
+  @doc "Replaces NC_UP (the program uploaded from the machine tool); durable like `put_nc_file/2`."
+  @spec put_nc_up(workstation, [binary]) :: :ok | {:error, term}
+  def put_nc_up(ws, lines), do: put_lines(ws, :nc_up, lines)
+
+  @doc "NC_UP's lines."
+  @spec nc_up(workstation) :: [binary]
+  def nc_up(ws), do: get_lines(ws, :nc_up)
+
+  defp put_lines(ws, key, lines) when is_list(lines) do
+    table = table(ws)
+
+    case store_lines(table, key, lines) do
+      :ok ->
+        :ets.insert(table, {key, lines})
+        :ok
+
+      {:error, reason} = error ->
+        Logger.error("#{key} not stored durably (#{inspect(reason)}): kept the old one")
+        error
+    end
+  end
+
+  defp get_lines(ws, key) do
+    [{_, lines}] = :ets.lookup(table(ws), key)
+    lines
+  end
+
+  ## Dump and load (for the journal)
+
+  @typedoc "The restorable part of the mailboxes (`dump/1`)."
+  @type dump :: %{
+          partitions: %{
+            partition => %{
+              number: 0..9999 | nil,
+              status: status,
+              cmd_in: {0..9999 | nil, String.t() | nil}
+            }
+          },
+          last_string: {non_neg_integer | nil, binary | nil},
+          unknown: %{String.t() => {0..9999 | nil, status}}
+        }
+
+  @doc """
+  The restorable part of the mailboxes: per partition its last command's number and status and
+  its CMD_IN, the last string, and the statuses of unknown set letters.
+  """
+  @spec dump(:ets.tid()) :: dump
+  def dump(table) do
+    partitions =
+      Map.new(@partitions, fn p ->
+        [{_, number, status}] = :ets.lookup(table, {:command_status, p})
+        [{_, in_number, in_text}] = :ets.lookup(table, {:cmd_in, p})
+        {p, %{number: number, status: status, cmd_in: {in_number, in_text}}}
+      end)
+
+    [{_, seq, line}] = :ets.lookup(table, :last_string)
+
+    unknown =
+      for {{:unknown_status, letter}, n, status} <-
+            :ets.match_object(table, {{:unknown_status, :_}, :_, :_}),
+          into: %{},
+          do: {letter, {n, status}}
+
+    %{partitions: partitions, last_string: {seq, line}, unknown: unknown}
+  end
+
+  @doc "Writes a `dump/1` back into the mailboxes (nothing is recorded)."
+  @spec load(:ets.tid(), dump) :: :ok
+  def load(table, %{partitions: partitions, last_string: {seq, line}, unknown: unknown}) do
+    for {p, %{number: number, status: status, cmd_in: {in_n, in_text}}} <- partitions do
+      :ets.insert(table, {{:command_status, p}, number, status})
+      :ets.insert(table, {{:cmd_in, p}, in_n, in_text})
+    end
+
+    :ets.insert(table, {:last_string, seq, line})
+
+    for {letter, {n, status}} <- unknown,
+        do: :ets.insert(table, {{:unknown_status, letter}, n, status})
+
+    :ok
+  end
+
+  @doc "The status word of a command status as the WC reads it."
+  @spec status_word(status) :: String.t()
+  def status_word(:none), do: "NONE"
+  def status_word(:executing), do: "EXECUTING"
+  def status_word(:done), do: "DONE"
+  def status_word({:error, reason}), do: "ERROR " <> reason
+
+  @doc """
+  A device-status value in words, as a person reads it: the text itself; `{:no_data, why}` as
+  `NO DATA (why)`; a poll of DAQ #1 (`Vws.Links.DAQ.Readings`, location 11) as its quantities
+  (`Vws.Links.DAQ.Readings.describe/1`); nil (never written) as nil.
+
+      iex> Vws.CEC.Mailbox.device_text({:no_data, "NO LINK TO DAQ #1"})
+      "NO DATA (NO LINK TO DAQ #1)"
+  """
+  @spec device_text(term) :: String.t() | nil
+  def device_text(nil), do: nil
+
+  def device_text(v) when is_binary(v),
+    do: if(String.printable?(v), do: v, else: "UNPRINTABLE TEXT #{Base.encode16(v)}")
+
+  def device_text({:no_data, why}) when is_binary(why),
+    do: Vws.Links.DAQ.DeviceStatus.no_data(why)
+
+  def device_text(%Vws.Links.DAQ.Readings{} = r), do: Vws.Links.DAQ.Readings.describe(r)
+  def device_text(other), do: "UNKNOWN VALUE " <> inspect(other, limit: 10)
+
+  defp now, do: System.monotonic_time(:millisecond)
+end

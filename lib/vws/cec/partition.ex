@@ -1,0 +1,368 @@
+defmodule Vws.CEC.Partition do
+  @moduledoc """
+  The behaviour shared by the six command partitions (ROBOT, MONARCH, GRIPPER, FIXTURE, VACUUM,
+  HYDRAULIC), and the GenServer that runs them.
+
+  It is the seed's partition loop (§2.3, Fig. 4): wait in ON EVENT for the partition's event, read
+  CMD_IN, set the command status `EXECUTING`, run the command, then set `DONE` or
+  `ERROR <reason>`.
+
+  A callback module gives the set's grammar and what running a command means:
+
+      @callback device() :: String.t()                        # "VAL II", "GE-2000", "DAQ #1" …
+      @callback parse(String.t()) :: {:ok, term} | {:error, :unknown | String.t()}
+      @callback execute(command :: term, ctx) :: :done | {:error, String.t()}
+
+  `execute/2` runs in a process of its own, linked to the partition, so the partition stays
+  responsive (status, inspection) while a robot moves; if it raises or exits the command ends
+  `ERROR` with the reason. If the partition itself dies, the linked command process dies with it,
+  and the restarted partition ends the command it finds in flight with
+  `ERROR INTERRUPTED BY PARTITION RESTART` — it never runs it again by itself.
+
+  ## After a restart of the workstation
+
+  A command the journal found `EXECUTING` when the workstation went down answers
+  `ERROR INTERRUPTED BY RESTART` and is never run again. What the module may do instead is its
+  safe clean-up, the optional callback
+
+      @callback interrupted(command :: term, ctx) :: :ok | {:error, String.t()}
+
+  — the state a failed command of the set leaves the device in, never the command's work (the
+  vise: both valves off, so the jaws hold where they are). The restarted partition runs it in a
+  process of its own, trying again every `:cleanup_retry_ms` (250) until `:cleanup_timeout_ms`
+  (60 000) while its device is not reachable yet, and reports it as
+  `[:vws, :partition, :cleaned_up]` (`status` `:ok` or `{:error, reason}`).
+
+  A partition started without a link to its device (`link: nil`) answers every valid command
+  `ERROR NO LINK TO <device>`; an invalid one gets `ERROR UNKNOWN COMMAND <text>` either way.
+  """
+  use GenServer
+  require Logger
+
+  alias Vws.CEC.{Events, Mailbox}
+
+  @type ctx :: %{
+          workstation: term,
+          partition: Mailbox.partition(),
+          number: 0..9999,
+          text: String.t(),
+          link: term,
+          options: keyword
+        }
+
+  @callback device() :: String.t()
+  @callback parse(String.t()) :: {:ok, term} | {:error, :unknown | String.t()}
+  @callback execute(command :: term, ctx) :: :done | {:error, String.t()}
+  @callback interrupted(command :: term, ctx) :: :ok | {:error, String.t()}
+  @optional_callbacks interrupted: 2
+
+  @doc false
+  def child_spec(opts) do
+    %{
+      id: Keyword.fetch!(opts, :partition),
+      start: {__MODULE__, :start_link, [opts]},
+      shutdown: 5_000
+    }
+  end
+
+  @doc """
+  Starts a partition. Options: `:workstation`, `:partition` (its set), `:module` (the callback
+  module), `:link` (whatever the module needs to reach its device, `nil` when not configured) and
+  `:options` (passed to the module in `ctx.options`).
+  """
+  @spec start_link(keyword) :: GenServer.on_start()
+  def start_link(opts) do
+    ws = Keyword.fetch!(opts, :workstation)
+    partition = Keyword.fetch!(opts, :partition)
+    GenServer.start_link(__MODULE__, opts, name: via(ws, partition))
+  end
+
+  @doc "The registered name of a workstation's partition."
+  def via(ws, partition), do: {:via, Registry, {Vws.Registry, {ws, partition}}}
+
+  @doc "The pid of a workstation's partition, or nil."
+  @spec whereis(term, Mailbox.partition()) :: pid | nil
+  def whereis(ws, partition) do
+    case Registry.lookup(Vws.Registry, {ws, partition}) do
+      [{pid, _}] -> pid
+      [] -> nil
+    end
+  end
+
+  @doc """
+  What a partition is doing: `%{partition, current: nil | %{number, text, running_ms}, done,
+  errors, restarts}`.
+  """
+  @spec info(term, Mailbox.partition()) :: map
+  def info(ws, partition), do: GenServer.call(via(ws, partition), :info)
+
+  @impl true
+  def init(opts) do
+    Process.flag(:trap_exit, true)
+    ws = Keyword.fetch!(opts, :workstation)
+    partition = Keyword.fetch!(opts, :partition)
+    Logger.metadata(workstation: ws, partition: partition)
+
+    Events.create(ws, partition)
+    :ok = Events.subscribe(ws, partition)
+
+    restarts =
+      :ets.update_counter(Mailbox.table(ws), {:starts, partition}, 1, {{:starts, partition}, 0}) -
+        1
+
+    # Subscribed first, then the in-flight check: a command dispatched while we were down is
+    # ended here; one dispatched from now on reaches us as an event.
+    case Mailbox.in_flight(ws, partition) do
+      nil ->
+        :ok
+
+      number ->
+        Logger.warning(
+          "command #{number} was in flight when the partition restarted: ending it ERROR"
+        )
+
+        finish(ws, partition, number, {:error, "INTERRUPTED BY PARTITION RESTART"}, 0)
+    end
+
+    module = Keyword.fetch!(opts, :module)
+
+    case Vws.CEC.Journal.take_interrupted(ws, partition) do
+      nil ->
+        :ok
+
+      {number, text} ->
+        clean_up(module, %{
+          workstation: ws,
+          partition: partition,
+          number: number,
+          text: text,
+          link: Keyword.get(opts, :link),
+          options: Keyword.get(opts, :options, [])
+        })
+    end
+
+    {:ok,
+     %{
+       workstation: ws,
+       partition: partition,
+       module: Keyword.fetch!(opts, :module),
+       link: Keyword.get(opts, :link),
+       options: Keyword.get(opts, :options, []),
+       current: nil,
+       done: 0,
+       errors: 0,
+       restarts: restarts
+     }}
+  end
+
+  @impl true
+  def handle_info(
+        {:vws_event, ws, partition, number},
+        %{workstation: ws, partition: partition} = s
+      )
+      when is_integer(number) do
+    case {s.current, Mailbox.in_flight(ws, partition), Mailbox.cmd_in(ws, partition)} do
+      {nil, ^number, {^number, text}} ->
+        {:noreply, start_command(s, number, text)}
+
+      other ->
+        Logger.warning("event for command #{number} ignored: #{inspect(other)}")
+        {:noreply, s}
+    end
+  end
+
+  def handle_info({:command_result, pid, result}, %{current: %{pid: pid}} = s) do
+    {:noreply, end_command(s, result)}
+  end
+
+  def handle_info({:EXIT, pid, reason}, %{current: %{pid: pid}} = s) when reason != :normal do
+    {:noreply, end_command(s, {:error, "CRASHED #{exit_reason(reason)}"})}
+  end
+
+  def handle_info({:EXIT, _pid, :normal}, s), do: {:noreply, s}
+
+  def handle_info({:EXIT, _pid, reason}, s) do
+    # our supervisor (or a linked link process) is going down
+    {:stop, reason, s}
+  end
+
+  def handle_info(msg, s) do
+    Logger.warning("unexpected message #{inspect(msg, limit: 10)}")
+    {:noreply, s}
+  end
+
+  @impl true
+  def handle_call(:info, _from, s) do
+    current =
+      s.current &&
+        %{
+          number: s.current.number,
+          text: s.current.text,
+          running_ms:
+            System.convert_time_unit(
+              System.monotonic_time() - s.current.started,
+              :native,
+              :millisecond
+            )
+        }
+
+    {:reply,
+     %{
+       partition: s.partition,
+       pid: self(),
+       current: current,
+       done: s.done,
+       errors: s.errors,
+       restarts: s.restarts,
+       link: s.link
+     }, s}
+  end
+
+  @impl true
+  def terminate(_reason, %{current: %{pid: pid}}), do: Process.exit(pid, :kill)
+  def terminate(_reason, _s), do: :ok
+
+  defp start_command(s, number, text) do
+    parent = self()
+
+    ctx = %{
+      workstation: s.workstation,
+      partition: s.partition,
+      number: number,
+      text: text,
+      link: s.link,
+      options: s.options
+    }
+
+    module = s.module
+
+    pid =
+      spawn_link(fn ->
+        Logger.metadata(workstation: ctx.workstation, partition: ctx.partition, command: number)
+        send(parent, {:command_result, self(), run(module, ctx)})
+      end)
+
+    %{s | current: %{pid: pid, number: number, text: text, started: System.monotonic_time()}}
+  end
+
+  defp end_command(s, result) do
+    %{number: number, started: started} = s.current
+    status = if result == :done, do: :done, else: result
+    finish(s.workstation, s.partition, number, status, System.monotonic_time() - started)
+
+    if status == :done,
+      do: %{s | current: nil, done: s.done + 1},
+      else: %{s | current: nil, errors: s.errors + 1}
+  end
+
+  @doc false
+  # Runs one command: grammar, link, then the module's execute/2, inside a telemetry span.
+  def run(module, ctx) do
+    meta = %{
+      workstation: ctx.workstation,
+      partition: ctx.partition,
+      command: ctx.number,
+      text: ctx.text
+    }
+
+    Vws.Telemetry.span([:vws, :partition, :command], meta, fn ->
+      result =
+        case module.parse(ctx.text) do
+          {:error, :unknown} -> {:error, "UNKNOWN COMMAND " <> ctx.text}
+          {:error, reason} -> {:error, reason}
+          {:ok, _command} when ctx.link == nil -> {:error, "NO LINK TO " <> module.device()}
+          {:ok, command} -> normalise(module.execute(command, ctx))
+        end
+
+      {result, Map.put(meta, :result, result)}
+    end)
+  end
+
+  # The safe clean-up of a command the workstation's restart interrupted (see the moduledoc),
+  # in a process of its own: the device may not be reachable for a while yet.
+  defp clean_up(module, ctx) do
+    with {:module, _} <- Code.ensure_loaded(module),
+         true <- function_exported?(module, :interrupted, 2),
+         {:ok, command} <- module.parse(ctx.text || "") do
+      retry = Keyword.get(ctx.options, :cleanup_retry_ms, 250)
+
+      deadline =
+        System.monotonic_time(:millisecond) +
+          Keyword.get(ctx.options, :cleanup_timeout_ms, 60_000)
+
+      Task.start(fn ->
+        Logger.metadata(workstation: ctx.workstation, partition: ctx.partition)
+        status = clean_up_until(module, command, ctx, retry, deadline)
+
+        case status do
+          :ok ->
+            Logger.warning(
+              "command #{ctx.number} #{ctx.text} interrupted by the restart: safe state restored"
+            )
+
+          {:error, why} ->
+            Logger.error(
+              "command #{ctx.number} #{ctx.text} interrupted by the restart: safe state NOT restored (#{why})"
+            )
+        end
+
+        Vws.Telemetry.execute([:vws, :partition, :cleaned_up], %{count: 1}, %{
+          workstation: ctx.workstation,
+          partition: ctx.partition,
+          command: ctx.number,
+          text: ctx.text,
+          status: status
+        })
+      end)
+    else
+      _ -> :ok
+    end
+  end
+
+  defp clean_up_until(module, command, ctx, retry, deadline) do
+    case safe(fn -> module.interrupted(command, ctx) end) do
+      :ok ->
+        :ok
+
+      {:error, why} ->
+        if System.monotonic_time(:millisecond) >= deadline do
+          {:error, why}
+        else
+          Process.sleep(retry)
+          clean_up_until(module, command, ctx, retry, deadline)
+        end
+    end
+  end
+
+  defp safe(fun) do
+    case fun.() do
+      :ok -> :ok
+      {:error, why} when is_binary(why) -> {:error, why}
+      other -> {:error, "BAD RESULT #{inspect(other, limit: 5)}"}
+    end
+  rescue
+    e -> {:error, Exception.message(e)}
+  catch
+    kind, reason -> {:error, "#{kind} #{inspect(reason, limit: 5)}"}
+  end
+
+  defp normalise(:done), do: :done
+  defp normalise({:error, reason}) when is_binary(reason), do: {:error, reason}
+  defp normalise(other), do: {:error, "BAD RESULT #{inspect(other, limit: 5)}"}
+
+  defp finish(ws, partition, number, status, duration) do
+    Mailbox.finish(ws, partition, number, status)
+
+    Vws.Telemetry.execute([:vws, :partition, :command_finished], %{duration: duration}, %{
+      workstation: ws,
+      partition: partition,
+      command: number,
+      status: status
+    })
+  end
+
+  defp exit_reason({%{__exception__: true} = e, _stack}),
+    do: Exception.message(e) |> String.upcase()
+
+  defp exit_reason(reason), do: inspect(reason, limit: 5) |> String.upcase()
+end

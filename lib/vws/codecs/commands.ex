@@ -1,0 +1,252 @@
+defmodule Vws.Codecs.Commands do
+  @moduledoc """
+  The command sets of the seed (App. I A–F; PROTOCOLS.md §1 "Command sets"), parsed into terms.
+
+  Pure: no processes, no I/O. Each partition parses the text SUN_COMM wrote to its CMD_IN with
+  `parse/2`; an unknown command gives `{:error, :unknown}` (the partition answers
+  `ERROR UNKNOWN COMMAND <text>`), a known command with bad arguments gives `{:error, reason}`.
+
+      iex> Vws.Codecs.Commands.parse(:robot, "DO MOVE MV1:TRANS(63.5,0,0,90,-90,0)")
+      {:ok, {:do, :move, {:trans, "MV1", [63.5, 0.0, 0.0, 90.0, -90.0, 0.0]}}}
+      iex> Vws.Codecs.Commands.parse(:gripper, "ROTATE_90")
+      {:ok, {:rotate, 90}}
+      iex> Vws.Codecs.Commands.parse(:monarch, "TABLE(3/1)")
+      {:error, "TABLE LINES MUST BE ASCENDING"}
+      iex> Vws.Codecs.Commands.parse(:vacuum, "BLOW")
+      {:error, :unknown}
+
+  ## Terms
+
+    * robot: `:where`, `{:speed, n}`, `{:do, :move | :moves, loc}`, `{:do, :appro | :appros, loc, dist}`,
+      `{:do, :depart | :departs, dist}`, `{:disable_tray, 1 | 2}`, `{:release_tray, 1 | 2}`,
+      `:disable_table`, `:release_table`, `{:execute, name}`; a location `loc` is a name or
+      `{:trans, name, [x, y, z, 90.0, -90.0, t]}`
+    * monarch: `:cycle_start`, `:release_table`, `:status`, `:download_hp`, `:download_ge`,
+      `{:download_ge, "NNNNNN.PRO" | "NNNNNN.GSU", :latest | version}`, `:compare_ge`,
+      `{:compare_ge, "NNNNNN.PRO" | "NNNNNN.GSU"}` (the last three ours, issue 18: the library),
+      `{:upload_ge, "NNNNNN.PRO" | "NNNNNN.GSU"}`, `:upload_sun`, `{:table, [line]}`,
+      `{:program_select, "NNNNNN"}`, `{:program_delete, "NNNNNN.PRO" | "NNNNNN.GSU"}`
+    * gripper: `:open`, `:close`, `{:rotate, 0 | 90 | 180 | 270}`
+    * fixture: `:open`, `:close`, `:disable_table`, `:release_table`
+    * vacuum: `:on`, `:off`; hydraulic: `:clamp_pallet`, `:release_pallet`
+  """
+
+  @type partition :: Vws.CEC.Mailbox.partition()
+  @type result :: {:ok, term} | {:error, :unknown | String.t()}
+
+  # the Monarch commands that are transfers on the WC link, carried out by SUN_COMM itself
+  @transfers %{"DOWNLOAD_HP" => :download_hp, "UPLOAD_SUN" => :upload_sun}
+
+  @doc "Parses a command of a partition's set."
+  @spec parse(partition, String.t()) :: result
+  def parse(partition, text) when is_binary(text) do
+    do_parse(partition, normalise(text))
+  end
+
+  @doc """
+  The transfer a Monarch command's text asks SUN_COMM for — `:download_hp` or `:upload_sun` —
+  or nil for every other text. SUN_COMM recognises these two words and nothing else: every
+  other command is parsed once, by its partition.
+
+      iex> Vws.Codecs.Commands.transfer(" download_hp")
+      :download_hp
+      iex> Vws.Codecs.Commands.transfer("TABLE(1/2)")
+      nil
+  """
+  @spec transfer(String.t()) :: :download_hp | :upload_sun | nil
+  def transfer(text) when is_binary(text), do: Map.get(@transfers, normalise(text))
+
+  defp normalise(text), do: text |> String.trim() |> String.upcase()
+
+  # Robot (App. I B)
+  defp do_parse(:robot, "WHERE"), do: {:ok, :where}
+  defp do_parse(:robot, "DISABLE_TABLE"), do: {:ok, :disable_table}
+  defp do_parse(:robot, "RELEASE_TABLE"), do: {:ok, :release_table}
+
+  defp do_parse(:robot, "DISABLE_TRAY" <> n) when n in ["1", "2"],
+    do: {:ok, {:disable_tray, String.to_integer(n)}}
+
+  defp do_parse(:robot, "RELEASE_TRAY" <> n) when n in ["1", "2"],
+    do: {:ok, {:release_tray, String.to_integer(n)}}
+
+  defp do_parse(:robot, "SPEED " <> n) do
+    case number(n) do
+      {:ok, v} when v > 0 -> {:ok, {:speed, v}}
+      _ -> {:error, "BAD SPEED #{String.trim(n)}"}
+    end
+  end
+
+  defp do_parse(:robot, "EXECUTE " <> name) do
+    name = String.trim(name)
+
+    if name =~ ~r/^[A-Z][A-Z0-9_.]{0,14}$/,
+      do: {:ok, {:execute, name}},
+      else: {:error, "BAD PROGRAM NAME #{name}"}
+  end
+
+  defp do_parse(:robot, "DO " <> instruction), do: robot_do(String.trim_leading(instruction))
+
+  # Monarch (App. I A)
+  defp do_parse(:monarch, "CYCLE_START"), do: {:ok, :cycle_start}
+  defp do_parse(:monarch, "RELEASE_TABLE"), do: {:ok, :release_table}
+  defp do_parse(:monarch, "STATUS"), do: {:ok, :status}
+
+  defp do_parse(:monarch, text) when is_map_key(@transfers, text),
+    do: {:ok, Map.fetch!(@transfers, text)}
+
+  defp do_parse(:monarch, "DOWNLOAD_GE"), do: {:ok, :download_ge}
+  defp do_parse(:monarch, "DRIP_FEED"), do: {:ok, :drip_feed}
+
+  # ours (issue 18): a program of the library, its latest version or version v
+  defp do_parse(:monarch, "DOWNLOAD_GE" <> arg) do
+    with {:ok, inner} <- parenthesised(arg) do
+      case String.split(inner, "/") do
+        [file] ->
+          with {:ok, file} <- program_file(file), do: {:ok, {:download_ge, file, :latest}}
+
+        [file, v] ->
+          with {:ok, file} <- program_file(file) do
+            case Integer.parse(v) do
+              {n, ""} when n in 1..999_999 -> {:ok, {:download_ge, file, n}}
+              _ -> {:error, "BAD VERSION #{v}"}
+            end
+          end
+
+        _ ->
+          {:error, "BAD PROGRAM FILE #{inner}"}
+      end
+    end
+  end
+
+  defp do_parse(:monarch, "COMPARE_GE"), do: {:ok, :compare_ge}
+
+  defp do_parse(:monarch, "COMPARE_GE" <> arg) do
+    with {:ok, file} <- parenthesised(arg),
+         {:ok, file} <- program_file(file),
+         do: {:ok, {:compare_ge, file}}
+  end
+
+  defp do_parse(:monarch, "UPLOAD_GE" <> arg) do
+    with {:ok, file} <- parenthesised(arg),
+         {:ok, file} <- program_file(file),
+         do: {:ok, {:upload_ge, file}}
+  end
+
+  defp do_parse(:monarch, "PROGRAM_DELETE" <> arg) do
+    with {:ok, file} <- parenthesised(arg),
+         {:ok, file} <- program_file(file),
+         do: {:ok, {:program_delete, file}}
+  end
+
+  defp do_parse(:monarch, "PROGRAM_SELECT" <> arg) do
+    with {:ok, n} <- parenthesised(arg) do
+      if n =~ ~r/^\d{6}$/,
+        do: {:ok, {:program_select, n}},
+        else: {:error, "BAD PROGRAM NUMBER #{n}"}
+    end
+  end
+
+  defp do_parse(:monarch, "TABLE" <> arg) do
+    with {:ok, list} <- parenthesised(arg) do
+      lines = String.split(list, "/")
+
+      cond do
+        not Enum.all?(lines, &(&1 =~ ~r/^\d{1,3}$/)) -> {:error, "BAD TABLE LINES #{list}"}
+        length(lines) > 8 -> {:error, "AT MOST 8 TABLE LINES"}
+        true -> ascending(Enum.map(lines, &String.to_integer/1))
+      end
+    end
+  end
+
+  # Gripper (App. I D), fixture (E), vacuum (C), hydraulic (F)
+  defp do_parse(:gripper, "OPEN"), do: {:ok, :open}
+  defp do_parse(:gripper, "CLOSE"), do: {:ok, :close}
+
+  defp do_parse(:gripper, "ROTATE_" <> n) when n in ["0", "90", "180", "270"],
+    do: {:ok, {:rotate, String.to_integer(n)}}
+
+  defp do_parse(:fixture, "OPEN"), do: {:ok, :open}
+  defp do_parse(:fixture, "CLOSE"), do: {:ok, :close}
+  defp do_parse(:fixture, "DISABLE_TABLE"), do: {:ok, :disable_table}
+  defp do_parse(:fixture, "RELEASE_TABLE"), do: {:ok, :release_table}
+  defp do_parse(:vacuum, "ON"), do: {:ok, :on}
+  defp do_parse(:vacuum, "OFF"), do: {:ok, :off}
+  defp do_parse(:hydraulic, "CLAMP_PALLET"), do: {:ok, :clamp_pallet}
+  defp do_parse(:hydraulic, "RELEASE_PALLET"), do: {:ok, :release_pallet}
+  defp do_parse(_partition, _text), do: {:error, :unknown}
+
+  defp robot_do("MOVES " <> loc), do: with({:ok, l} <- location(loc), do: {:ok, {:do, :moves, l}})
+  defp robot_do("MOVE " <> loc), do: with({:ok, l} <- location(loc), do: {:ok, {:do, :move, l}})
+  defp robot_do("APPROS " <> arg), do: appro(:appros, arg)
+  defp robot_do("APPRO " <> arg), do: appro(:appro, arg)
+  defp robot_do("DEPARTS " <> d), do: depart(:departs, d)
+  defp robot_do("DEPART " <> d), do: depart(:depart, d)
+  defp robot_do(_), do: {:error, :unknown}
+
+  defp appro(kind, arg) do
+    case String.split(arg, "/", parts: 2) do
+      [loc, dist] ->
+        with {:ok, l} <- location(loc), {:ok, d} <- distance(dist), do: {:ok, {:do, kind, l, d}}
+
+      _ ->
+        {:error, "APPRO NEEDS LOCATION/DISTANCE"}
+    end
+  end
+
+  defp depart(kind, d), do: with({:ok, d} <- distance(d), do: {:ok, {:do, kind, d}})
+
+  defp distance(text) do
+    case number(text) do
+      {:ok, d} -> {:ok, d}
+      :error -> {:error, "BAD DISTANCE #{String.trim(text)}"}
+    end
+  end
+
+  # `MV1` or `MV1:TRANS(x/y/z/90/-90/t)` (`,` accepted for `/`, blanks ignored)
+  defp location(text) do
+    text = String.replace(text, " ", "")
+
+    case Regex.run(~r/^([A-Z][A-Z0-9_.]{0,14})(?::TRANS\(([^()]*)\))?$/, text) do
+      [_, name] ->
+        {:ok, name}
+
+      [_, name, args] ->
+        values = args |> String.split(["/", ","]) |> Enum.map(&number/1)
+
+        if length(values) == 6 and Enum.all?(values, &match?({:ok, _}, &1)) do
+          {:ok, {:trans, name, Enum.map(values, fn {:ok, v} -> v * 1.0 end)}}
+        else
+          {:error, "BAD TRANS #{args}"}
+        end
+
+      nil ->
+        {:error, "BAD LOCATION #{text}"}
+    end
+  end
+
+  defp number(text) do
+    text = String.trim(text)
+
+    case Float.parse(text) do
+      {v, ""} -> {:ok, v}
+      _ -> :error
+    end
+  end
+
+  defp parenthesised(arg) do
+    case Regex.run(~r/^\s*\(\s*([^()]*?)\s*\)\s*$/, arg) do
+      [_, inner] -> {:ok, inner}
+      nil -> {:error, :unknown}
+    end
+  end
+
+  defp program_file(file) do
+    if file =~ ~r/^\d{6}\.(PRO|GSU)$/, do: {:ok, file}, else: {:error, "BAD PROGRAM FILE #{file}"}
+  end
+
+  defp ascending(lines) do
+    if lines == Enum.sort(Enum.uniq(lines)),
+      do: {:ok, {:table, lines}},
+      else: {:error, "TABLE LINES MUST BE ASCENDING"}
+  end
+end

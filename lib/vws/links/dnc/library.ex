@@ -1,0 +1,798 @@
+defmodule Vws.Links.DNC.Library do
+  @moduledoc """
+  The program library (issue 18): every workstation's NC programs on disk, each with its
+  versions — who or what stored it, when, its size and CRC-16/ARC — kept across restarts and
+  crashes. A plain module over files: no process of its own, so MONARCH, SUN_COMM, iex and the
+  command-line task (`mix vws.library`, which also works while the workstation is stopped) use
+  the same directory side by side.
+
+  ## Where
+
+      <data directory>/library/<workstation id>/      (Vws.Ops.DataDir.library_dir/2)
+      ├── 001234.PRO~000001~20261125T090000.123Z~wc~000412~BB3D    version 1: exactly its bytes
+      ├── 001234.PRO~000002~20261125T093512.004Z~from+the+machine~000415~1F0C
+      ├── MACHINE.DIR                      the GE-2000's directory as last read (compare)
+      └── .v/
+          ├── 001234.PRO~000001 -> ../001234.PRO~000001~…       the version's number, taken
+          └── 001234.PRO~000002 -> ../001234.PRO~000002~…
+
+  One flat directory per workstation (decision): listing 10,000 programs is one directory read
+  (`bench/library.exs`). A version is a file holding exactly the program's bytes, named
+  `<program>~<version>~<stored at, UTC>~<source>~<size>~<CRC>` (source's blanks as `+`); the
+  name carries what a listing shows, so a listing reads no file.
+
+  **Program names** are the GE-2000's file names, `nnnnnn.PRO` or `nnnnnn.GSU` (a library
+  program is the file it becomes on the machine); `1234`, `001234` and `o1234.pro` are read as
+  `001234.PRO`. Anything else — a path, `..`, a `~` — is refused (`{:error, :bad_name}`), so a
+  name never leaves the directory.
+
+  **Crash-safe, whole or nothing.** `store/4` writes the bytes to a hidden temporary file and
+  syncs it; then takes the next version number by creating the symbolic link
+  `.v/<program>~<version>` (which fails when that number is taken — by another process of this
+  node, or by `mix vws.library` in another OS process — and the next number is tried: no two
+  stores ever get one number); then renames the temporary file to its version name and syncs the
+  directory. A version is visible only under its full name, which appears by the rename with
+  all its bytes on disk: a crash leaves either no version or a whole one (at worst a number
+  taken by a store that never finished: that number is then skipped). Reading a version checks
+  its size and CRC against its name: a file damaged on disk reads `{:error, :damaged}`.
+
+  **Compare** (`compare/1`): MONARCH records the machine's directory here each time it reads it
+  (`record_machine/2`: after every DOWNLOAD_GE, on `COMPARE_GE`, `Vws.Partitions.Monarch.compare/2`);
+  a program is then `same` (the entry's size and CRC are those of one of its versions: which),
+  `differs` or `absent` on the machine; `unknown` before any directory was read. A full
+  read-back (`Vws.Partitions.Monarch.compare/2` with `read_back:`) compares every byte.
+
+  ## Used from
+
+  Every function takes the workstation's id (a running workstation started with `library:`,
+  `Vws.CEC.Workstation`) or `{:dir, path}` (any library directory, e.g. that of a stopped workstation).
+
+      iex> dir = Path.join(System.tmp_dir!(), "vws-lib-doc-\#{System.unique_integer([:positive])}")
+      iex> {:ok, v} = Vws.Links.DNC.Library.store({:dir, dir}, "1234", "%\\nO1234\\nM30\\n%\\n", source: "iex")
+      iex> {v.name, v.version, v.size, v.source}
+      {"001234.PRO", 1, 14, "iex"}
+      iex> {:ok, "%\\nO1234\\nM30\\n%\\n", _} = Vws.Links.DNC.Library.read({:dir, dir}, "001234.PRO")
+      iex> File.rm_rf!(dir) |> is_list()
+      true
+  """
+
+  require Logger
+
+  @max_bytes 16 * 1024 * 1024
+  @machine "MACHINE.DIR"
+  @tmp_prefix ".tmp-"
+  @numbers ".v"
+
+  @typedoc "A workstation id, or `{:dir, path}` for a library directory itself."
+  @type lib :: term | {:dir, Path.t()}
+
+  @typedoc "One stored version."
+  @type version :: %{
+          name: String.t(),
+          version: pos_integer,
+          at: DateTime.t(),
+          source: String.t(),
+          size: non_neg_integer,
+          crc: 0..0xFFFF,
+          file: String.t()
+        }
+
+  @type on_machine :: :unknown | :absent | :differs | {:same, pos_integer}
+
+  ## Where
+
+  @doc """
+  Makes `dir` the library of workstation `ws` for as long as the calling process lives (the
+  workstation's supervisor calls it as it starts; `nil` for none), and removes the temporary
+  files of stores that crashed more than an hour ago (`tidy/2`).
+  """
+  @spec register(term, Path.t() | nil) :: :ok
+  def register(_ws, nil), do: :ok
+
+  def register(ws, dir) do
+    {:ok, _} = Registry.register(Vws.Registry, {ws, :library}, Path.expand(dir))
+
+    with {:error, reason} <- tidy({:dir, dir}) do
+      Logger.warning("program library #{dir}: not tidied (#{inspect(reason)})")
+    end
+
+    :ok
+  end
+
+  @doc "The library directory: `{:ok, dir}` or `{:error, :no_library}` (a workstation without one)."
+  @spec dir(lib) :: {:ok, Path.t()} | {:error, :no_library}
+  def dir({:dir, dir}), do: {:ok, Path.expand(dir)}
+
+  def dir(ws) do
+    case Registry.lookup(Vws.Registry, {ws, :library}) do
+      [{_pid, dir}] -> {:ok, dir}
+      [] -> {:error, :no_library}
+    end
+  end
+
+  @doc "True when `lib` has a library (a directory given, or a workstation started with one)."
+  @spec enabled?(lib) :: boolean
+  def enabled?(lib), do: match?({:ok, _}, dir(lib))
+
+  @doc "The largest program the library takes, in bytes."
+  @spec max_bytes() :: pos_integer
+  def max_bytes, do: @max_bytes
+
+  ## Names
+
+  @doc """
+  A program name as the library keeps it: `{:ok, "nnnnnn.PRO" | "nnnnnn.GSU"}` or
+  `{:error, :bad_name}`.
+
+      iex> Vws.Links.DNC.Library.name("1234")
+      {:ok, "001234.PRO"}
+      iex> Vws.Links.DNC.Library.name("o77.gsu")
+      {:ok, "000077.GSU"}
+      iex> Vws.Links.DNC.Library.name("../../etc/passwd")
+      {:error, :bad_name}
+  """
+  @spec name(term) :: {:ok, String.t()} | {:error, :bad_name}
+  def name(name) when is_binary(name) and byte_size(name) <= 16 do
+    case Regex.run(~r/^[Oo:]?(\d{1,6})(?:\.(PRO|GSU))?$/i, String.trim(name)) do
+      [_, digits] -> {:ok, String.pad_leading(digits, 6, "0") <> ".PRO"}
+      [_, digits, ext] -> {:ok, String.pad_leading(digits, 6, "0") <> "." <> String.upcase(ext)}
+      nil -> {:error, :bad_name}
+    end
+  end
+
+  def name(n) when is_integer(n) and n in 0..999_999, do: name(Integer.to_string(n))
+  def name(_), do: {:error, :bad_name}
+
+  ## Storing
+
+  @doc """
+  Stores `bytes` as the next version of program `name`: `{:ok, version}`, or `{:error, reason}`
+  (`:bad_name`, `:bad_source`, `:too_large`, `:no_library`, a file error) and nothing stored.
+
+  Options: `:source` — who or what stored it (`"wc"`, `"cli"`, `"from the machine"`, `"iex"`;
+  default `"iex"`; lower-case letters, digits, blanks, `.`, `-`, `_`, at most 32), `:at` (a
+  `DateTime`, default now), `:only_if_changed` — when the latest version holds exactly these
+  bytes, store nothing and answer that version (default false).
+  """
+  @spec store(lib, term, binary, keyword) :: {:ok, version} | {:error, term}
+  def store(lib, name, bytes, opts \\ []) when is_binary(bytes) do
+    with true <- Keyword.get(opts, :only_if_changed, false),
+         {:ok, ^bytes, latest} <- read(lib, name) do
+      {:ok, latest}
+    else
+      _ -> store_new(lib, name, bytes, opts)
+    end
+  end
+
+  defp store_new(lib, name, bytes, opts) do
+    source = Keyword.get(opts, :source, "iex")
+    at = Keyword.get_lazy(opts, :at, &DateTime.utc_now/0) |> DateTime.truncate(:millisecond)
+
+    with {:ok, dir} <- dir(lib),
+         {:ok, name} <- name(name),
+         :ok <- check_source(source),
+         :ok <- if(byte_size(bytes) <= @max_bytes, do: :ok, else: {:error, :too_large}),
+         :ok <- File.mkdir_p(Path.join(dir, @numbers)),
+         tmp =
+           Path.join(
+             dir,
+             "#{@tmp_prefix}#{name}-#{:os.getpid()}-#{System.unique_integer([:positive])}"
+           ),
+         :ok <- write_synced(tmp, bytes) do
+      v = %{
+        name: name,
+        version: nil,
+        at: at,
+        source: source,
+        size: byte_size(bytes),
+        crc: Vws.Codecs.CRC16.compute(bytes),
+        file: nil
+      }
+
+      case take_number(dir, v, first_free(dir, name)) do
+        {:ok, v} ->
+          with :ok <- :file.rename(tmp, Path.join(dir, v.file)), :ok <- sync_dir(dir) do
+            {:ok, v}
+          else
+            error ->
+              File.rm(tmp)
+              error
+          end
+
+        error ->
+          File.rm(tmp)
+          error
+      end
+    end
+  end
+
+  # The number is taken by creating the link .v/<name>~<version> → <version's file name>: the
+  # link's creation fails when the number is taken, in whatever process took it.
+  defp take_number(dir, v, n) when n < 1_000_000 do
+    v = %{v | version: n, file: file_name(%{v | version: n})}
+
+    case File.ln_s(Path.join("..", v.file), number_link(dir, v.name, n)) do
+      :ok -> {:ok, v}
+      {:error, :eexist} -> take_number(dir, v, n + 1)
+      error -> error
+    end
+  end
+
+  defp take_number(_dir, _v, _n), do: {:error, :too_many_versions}
+
+  # .v/<name>~<version>: kept apart, so that a listing reads only the versions' own names
+  defp number_link(dir, name, n), do: Path.join([dir, @numbers, "#{name}~#{pad(n, 6)}"])
+
+  # Where to start looking for a free number: after the last number taken (a link that
+  # exists, whether its version was finished or not), found by halving.
+  defp first_free(dir, name) do
+    taken? = fn n ->
+      match?({:ok, _}, :file.read_link_info(number_link(dir, name, n)))
+    end
+
+    hi = Stream.iterate(1, &(&1 * 2)) |> Enum.find(&(not taken?.(&1) or &1 >= 1_000_000))
+    first_free(taken?, div(hi, 2), hi)
+  end
+
+  defp first_free(_taken?, lo, hi) when hi - lo <= 1, do: max(hi, 1)
+
+  defp first_free(taken?, lo, hi) do
+    mid = div(lo + hi, 2)
+    if taken?.(mid), do: first_free(taken?, mid, hi), else: first_free(taken?, lo, mid)
+  end
+
+  defp check_source(source) when is_binary(source) do
+    if source =~ ~r/^[a-z0-9][a-z0-9 ._-]{0,31}$/, do: :ok, else: {:error, :bad_source}
+  end
+
+  defp check_source(_), do: {:error, :bad_source}
+
+  @doc """
+  DOWNLOAD_HP's program (the lines the WC sent) as the next version of its program (named by its
+  program number), source `"wc"` — unless the latest version holds exactly these bytes (the
+  same program downloaded again is not a new version): `:ok` — also when the workstation has no library, or the
+  program has no program number (then it is the NC file only, as in the seed) — or
+  `{:error, {:library, reason}}`: SUN_COMM then ends DOWNLOAD_HP with an error and keeps the old
+  NC file.
+  """
+  @spec store_download(lib, [binary]) :: :ok | {:error, {:library, term}}
+  def store_download(lib, lines) do
+    with true <- enabled?(lib),
+         {:ok, name} <- Vws.Links.DNC.Program.file_name(lines),
+         {:ok, v} <-
+           store(lib, name, Vws.Links.DNC.Program.to_text(lines),
+             source: "wc",
+             only_if_changed: true
+           ) do
+      Logger.info("program library: #{v.name} version #{v.version} stored (#{v.size} bytes)")
+      :ok
+    else
+      false -> :ok
+      {:error, reason} when reason in [:no_program_number, :bad_program_number] -> :ok
+      {:error, reason} -> {:error, {:library, reason}}
+    end
+  end
+
+  @doc """
+  Stores the file at `path` as the next version (`store/4`): the program name is `opts[:name]`,
+  else the program number of its text (`O1234` → `001234.PRO`). Source default `"cli"`.
+  """
+  @spec import_file(lib, Path.t(), keyword) :: {:ok, version} | {:error, term}
+  def import_file(lib, path, opts \\ []) do
+    with {:ok, %{size: size, type: :regular}} <- File.stat(path),
+         :ok <- if(size <= @max_bytes, do: :ok, else: {:error, :too_large}),
+         {:ok, bytes} <- File.read(path),
+         {:ok, name} <- import_name(opts[:name], bytes) do
+      store(lib, name, bytes, Keyword.put_new(opts, :source, "cli"))
+    else
+      {:ok, %{type: type}} -> {:error, {:not_a_file, type}}
+      error -> error
+    end
+  end
+
+  defp import_name(nil, bytes) do
+    case Vws.Links.DNC.Program.file_name(bytes) do
+      {:ok, name} -> {:ok, name}
+      {:error, _} -> {:error, :no_program_number}
+    end
+  end
+
+  defp import_name(name, _bytes), do: {:ok, name}
+
+  @doc "Writes version `version` (default the latest) of `name` to `path` (whole: temp, sync, rename)."
+  @spec export(lib, term, pos_integer | :latest, Path.t()) :: {:ok, version} | {:error, term}
+  def export(lib, name, version \\ :latest, path) do
+    with {:ok, bytes, v} <- read(lib, name, version) do
+      tmp = path <> ".tmp-#{:os.getpid()}-#{System.unique_integer([:positive])}"
+
+      with :ok <- write_synced(tmp, bytes), :ok <- :file.rename(tmp, path) do
+        {:ok, v}
+      else
+        error ->
+          File.rm(tmp)
+          error
+      end
+    end
+  end
+
+  ## Reading
+
+  @doc """
+  Every program with its versions, oldest version first, programs sorted by name:
+  `{:ok, [%{name, versions: [version]}]}` (an empty list when nothing was stored yet).
+  """
+  @spec list(lib) :: {:ok, [%{name: String.t(), versions: [version]}]} | {:error, term}
+  def list(lib) do
+    with {:ok, versions} <- all_versions(lib) do
+      programs =
+        versions
+        |> Enum.group_by(& &1.name)
+        |> Enum.map(fn {name, vs} -> %{name: name, versions: Enum.sort_by(vs, & &1.version)} end)
+        |> Enum.sort_by(& &1.name)
+
+      {:ok, programs}
+    end
+  end
+
+  @doc "The versions of program `name`, oldest first (`{:error, :not_found}` when it has none)."
+  @spec versions(lib, term) :: {:ok, [version]} | {:error, term}
+  def versions(lib, name) do
+    with {:ok, dir} <- dir(lib),
+         {:ok, name} <- name(name),
+         {:ok, files} <- ls(dir) do
+      case files |> Enum.filter(&String.starts_with?(&1, name <> "~")) |> parse_files() do
+        [] -> {:error, :not_found}
+        vs -> {:ok, Enum.sort_by(vs, & &1.version)}
+      end
+    end
+  end
+
+  @doc "One version of `name` (`:latest` by default): `{:ok, version}` or `{:error, :not_found}`."
+  @spec version(lib, term, pos_integer | :latest) :: {:ok, version} | {:error, term}
+  def version(lib, name, which \\ :latest)
+
+  def version(lib, name, :latest) do
+    with {:ok, vs} <- versions(lib, name), do: {:ok, List.last(vs)}
+  end
+
+  def version(lib, name, n) when is_integer(n) and n > 0 do
+    with {:ok, dir} <- dir(lib), {:ok, name} <- name(name) do
+      # the number's link names the version's file: no directory listing needed
+      with {:ok, target} <- :file.read_link(number_link(dir, name, n)),
+           [v] <- parse_files([target |> to_string() |> Path.basename()]),
+           true <- v.name == name and v.version == n,
+           true <- File.regular?(Path.join(dir, v.file)) do
+        {:ok, v}
+      else
+        _ -> {:error, :not_found}
+      end
+    end
+  end
+
+  def version(_lib, _name, _n), do: {:error, :not_found}
+
+  @doc """
+  The bytes of a version (`:latest` by default): `{:ok, bytes, version}`; `{:error, :damaged}`
+  when the file's size or CRC is not the one it was stored with.
+  """
+  @spec read(lib, term, pos_integer | :latest) :: {:ok, binary, version} | {:error, term}
+  def read(lib, name, which \\ :latest) do
+    with {:ok, dir} <- dir(lib),
+         {:ok, v} <- version(lib, name, which),
+         {:ok, bytes} <- File.read(Path.join(dir, v.file)) do
+      if byte_size(bytes) == v.size and Vws.Codecs.CRC16.compute(bytes) == v.crc,
+        do: {:ok, bytes, v},
+        else: {:error, :damaged}
+    end
+  end
+
+  @doc """
+  The differences between two versions of `name`, line by line: `{:ok, [{:eq | :del | :ins,
+  [line]}]}` (`List.myers_difference/2`); `format_diff/1` prints it.
+  """
+  @spec diff(lib, term, pos_integer | :latest, pos_integer | :latest) ::
+          {:ok, [{:eq | :del | :ins, [binary]}]} | {:error, term}
+  def diff(lib, name, a, b) do
+    with {:ok, text_a, _} <- read(lib, name, a),
+         {:ok, text_b, _} <- read(lib, name, b) do
+      {:ok,
+       List.myers_difference(
+         Vws.Links.DNC.Program.from_text(text_a),
+         Vws.Links.DNC.Program.from_text(text_b)
+       )}
+    end
+  end
+
+  @doc """
+  A diff as text: `-` before a line only in the first version, `+` only in the second, two blanks
+  before a line in both; runs of more than six common lines are cut to their first and last
+  three. An empty diff (`[]` or all common) prints as nothing.
+  """
+  @spec format_diff([{:eq | :del | :ins, [binary]}]) :: [String.t()]
+  def format_diff(diff) do
+    if Enum.all?(diff, &(elem(&1, 0) == :eq)) do
+      []
+    else
+      Enum.flat_map(diff, fn
+        {:del, lines} ->
+          Enum.map(lines, &("- " <> &1))
+
+        {:ins, lines} ->
+          Enum.map(lines, &("+ " <> &1))
+
+        {:eq, lines} when length(lines) > 6 ->
+          Enum.map(Enum.take(lines, 3), &("  " <> &1)) ++
+            ["  … #{length(lines) - 6} lines the same …"] ++
+            Enum.map(Enum.take(lines, -3), &("  " <> &1))
+
+        {:eq, lines} ->
+          Enum.map(lines, &("  " <> &1))
+      end)
+    end
+  end
+
+  ## The machine's directory and the compare
+
+  @doc """
+  Records the GE-2000's directory as just read (`%{file name => %{size, crc}}`, as
+  `Vws.Links.DNC.Report.parse_directory/1` gives it), whole or not at all, in `MACHINE.DIR`.
+  """
+  @spec record_machine(lib, %{String.t() => map}, DateTime.t()) :: :ok | {:error, term}
+  def record_machine(lib, entries, at \\ DateTime.utc_now()) do
+    with {:ok, dir} <- dir(lib), :ok <- File.mkdir_p(dir) do
+      text = [
+        "READ ",
+        DateTime.to_iso8601(DateTime.truncate(at, :millisecond)),
+        ?\n,
+        for {name, e} <- Enum.sort(entries) do
+          [
+            name,
+            ?\s,
+            pad(e.size, 6),
+            ?\s,
+            String.pad_leading(Integer.to_string(e.crc, 16), 4, "0"),
+            ?\n
+          ]
+        end
+      ]
+
+      path = Path.join(dir, @machine)
+
+      tmp =
+        Path.join(
+          dir,
+          "#{@tmp_prefix}#{@machine}-#{:os.getpid()}-#{System.unique_integer([:positive])}"
+        )
+
+      with :ok <- write_synced(tmp, IO.iodata_to_binary(text)),
+           :ok <- :file.rename(tmp, path) do
+        sync_dir(dir)
+      end
+    end
+  end
+
+  @doc "The machine's directory as last recorded: `{:ok, %{read_at, entries}}`, `:none`, or an error."
+  @spec machine(lib) ::
+          {:ok, %{read_at: DateTime.t(), entries: %{String.t() => map}}} | :none | {:error, term}
+  def machine(lib) do
+    with {:ok, dir} <- dir(lib) do
+      case File.read(Path.join(dir, @machine)) do
+        {:ok, text} ->
+          with ["READ " <> at, rest] <- String.split(text, "\n", parts: 2),
+               {:ok, at, 0} <- DateTime.from_iso8601(at),
+               {:ok, entries} <- Vws.Links.DNC.Report.parse_directory(rest) do
+            {:ok, %{read_at: at, entries: entries}}
+          else
+            _ -> {:error, :damaged}
+          end
+
+        {:error, :enoent} ->
+          :none
+
+        error ->
+          error
+      end
+    end
+  end
+
+  @doc """
+  Where the machine stands for one program, from its versions and the machine's directory
+  entry (nil when the directory has none; `:unknown` for no directory read).
+
+      iex> v = %{version: 2, size: 9, crc: 0xBB3D}
+      iex> Vws.Links.DNC.Library.on_machine([v], %{size: 9, crc: 0xBB3D})
+      {:same, 2}
+      iex> Vws.Links.DNC.Library.on_machine([v], %{size: 9, crc: 0x1234})
+      :differs
+      iex> Vws.Links.DNC.Library.on_machine([v], nil)
+      :absent
+  """
+  @spec on_machine([map], map | nil | :unknown) :: on_machine
+  def on_machine(_versions, :unknown), do: :unknown
+  def on_machine(_versions, nil), do: :absent
+
+  def on_machine(versions, %{size: size, crc: crc}) do
+    case versions |> Enum.filter(&(&1.size == size and &1.crc == crc)) |> List.last() do
+      nil -> :differs
+      v -> {:same, v.version}
+    end
+  end
+
+  @doc """
+  Every program with its latest version and where it stands on the machine, from the directory
+  last recorded: `{:ok, %{read_at: DateTime | nil, programs: [%{name, latest, versions,
+  on_machine}], machine_only: [file name]}}` — `machine_only` the machine's files the library
+  does not have.
+  """
+  @spec compare(lib) :: {:ok, map} | {:error, term}
+  def compare(lib) do
+    with {:ok, programs} <- list(lib) do
+      {read_at, entries} =
+        case machine(lib) do
+          {:ok, m} -> {m.read_at, m.entries}
+          _ -> {nil, :unknown}
+        end
+
+      rows =
+        for p <- programs do
+          entry = if entries == :unknown, do: :unknown, else: Map.get(entries, p.name)
+
+          %{
+            name: p.name,
+            versions: p.versions,
+            latest: List.last(p.versions),
+            on_machine: on_machine(p.versions, entry)
+          }
+        end
+
+      names = MapSet.new(programs, & &1.name)
+
+      machine_only =
+        if entries == :unknown,
+          do: [],
+          else:
+            entries
+            |> Map.keys()
+            |> Enum.reject(&MapSet.member?(names, &1))
+            |> Enum.sort()
+
+      {:ok, %{read_at: read_at, programs: rows, machine_only: machine_only}}
+    end
+  end
+
+  @doc """
+  The words for a compare state, as iex, the dashboard and `mix vws.library` show them.
+
+      iex> Vws.Links.DNC.Library.on_machine_text({:same, 3}, 3)
+      "same"
+      iex> Vws.Links.DNC.Library.on_machine_text({:same, 2}, 3)
+      "same as v2 (not the latest)"
+  """
+  @spec on_machine_text(on_machine, pos_integer | nil) :: String.t()
+  def on_machine_text({:same, n}, latest) when n == latest, do: "same"
+  def on_machine_text({:same, n}, _latest), do: "same as v#{n} (not the latest)"
+  def on_machine_text(:differs, _), do: "differs"
+  def on_machine_text(:absent, _), do: "absent"
+  def on_machine_text(:unknown, _), do: "unknown (directory not read yet)"
+
+  @doc """
+  A compare (`compare/1`, `Vws.Partitions.Monarch.compare/2`) as text lines: one per program —
+  name, latest version, its source and time, size, CRC, and on the machine — then the machine's
+  files the library does not have.
+  """
+  @spec format_compare(map) :: [String.t()]
+  def format_compare(%{read_at: read_at, programs: programs, machine_only: machine_only}) do
+    head =
+      case read_at do
+        nil -> "machine directory: not read yet"
+        at -> "machine directory read #{DateTime.to_iso8601(at)}"
+      end
+
+    rows =
+      for p <- programs do
+        v = p.latest
+
+        back =
+          case Map.get(p, :read_back) do
+            nil -> ""
+            :same -> ", read back: same"
+            :differs -> ", read back: differs"
+            {:error, reason} -> ", read back failed: #{reason}"
+          end
+
+        "#{p.name}  v#{v.version} of #{length(p.versions)}  #{DateTime.to_iso8601(v.at)}  " <>
+          "#{v.source}  #{v.size} bytes  CRC #{hex4(v.crc)}  on the machine: " <>
+          on_machine_text(p.on_machine, v.version) <> back
+      end
+
+    [head | rows] ++ Enum.map(machine_only, &"#{&1}  on the machine only")
+  end
+
+  @doc "Prints `format_compare/1` of `compare/1` (or of a compare given), for iex."
+  @spec print_compare(lib | map) :: :ok
+  def print_compare(%{programs: _} = result), do: Enum.each(format_compare(result), &IO.puts/1)
+
+  def print_compare(lib) do
+    case compare(lib) do
+      {:ok, result} -> print_compare(result)
+      {:error, reason} -> IO.puts("no library: #{inspect(reason)}")
+    end
+  end
+
+  defp hex4(crc), do: String.pad_leading(Integer.to_string(crc, 16), 4, "0")
+
+  ## Files
+
+  defp all_versions(lib) do
+    with {:ok, dir} <- dir(lib) do
+      case ls(dir) do
+        {:ok, files} -> {:ok, parse_files(files)}
+        error -> error
+      end
+    end
+  end
+
+  defp ls(dir) do
+    case :prim_file.list_dir(dir) do
+      # the library's own names are ASCII: list_to_binary/1 is the quick way; any other name
+      # (not the library's) is converted properly, and then skipped
+      {:ok, names} -> {:ok, Enum.map(names, &name_to_binary/1)}
+      {:error, :enoent} -> {:ok, []}
+      error -> error
+    end
+  end
+
+  defp name_to_binary(name) do
+    :erlang.list_to_binary(name)
+  rescue
+    ArgumentError -> IO.chardata_to_string(name)
+  end
+
+  # Only whole version names count; the number links, temporary files, MACHINE.DIR and anything
+  # foreign are skipped.
+  # (binary matches, no regular expressions: a listing parses every name of the directory)
+  defp parse_files(files) do
+    for <<name::binary-10, "~", n::binary-6, "~", rest::binary>> = file <- files,
+        stored_name?(name),
+        [at, source, size, crc] <- [:binary.split(rest, "~", [:global])],
+        v when v > 0 <- [int(n, 10)],
+        size when size >= 0 <- [int(size, 10)],
+        crc when crc >= 0 <- [int(crc, 16)],
+        {:ok, at} <- [parse_at(at)] do
+      %{
+        name: name,
+        version: v,
+        at: at,
+        source:
+          if(:binary.match(source, "+") == :nomatch,
+            do: source,
+            else: String.replace(source, "+", " ")
+          ),
+        size: size,
+        crc: crc,
+        file: file
+      }
+    end
+  end
+
+  defp file_name(v) do
+    Enum.join(
+      [
+        v.name,
+        pad(v.version, 6),
+        format_at(v.at),
+        String.replace(v.source, " ", "+"),
+        pad(v.size, 6),
+        String.pad_leading(Integer.to_string(v.crc, 16), 4, "0")
+      ],
+      "~"
+    )
+  end
+
+  # 20261125T090000.123Z
+  defp format_at(at) do
+    {ms, _} = at.microsecond
+
+    :io_lib.format("~4..0B~2..0B~2..0BT~2..0B~2..0B~2..0B.~3..0BZ", [
+      at.year,
+      at.month,
+      at.day,
+      at.hour,
+      at.minute,
+      at.second,
+      div(ms, 1000)
+    ])
+    |> IO.iodata_to_binary()
+  end
+
+  # a name as store/4 writes it: six digits, .PRO or .GSU
+  defp stored_name?(<<digits::binary-6, ".", ext::binary-3>>) when ext in ["PRO", "GSU"],
+    do: digits?(digits)
+
+  defp stored_name?(_), do: false
+
+  defp digits?(<<>>), do: true
+  defp digits?(<<c, rest::binary>>) when c in ?0..?9, do: digits?(rest)
+  defp digits?(_), do: false
+
+  # digits only (no sign, no blanks) as an integer, else -1
+  defp int(text, base) do
+    if base == 16 or digits?(text), do: :erlang.binary_to_integer(text, base), else: -1
+  rescue
+    ArgumentError -> -1
+  end
+
+  defp parse_at(
+         <<y::binary-4, mo::binary-2, d::binary-2, "T", h::binary-2, mi::binary-2, s::binary-2,
+           ".", ms::binary-3, "Z">>
+       ) do
+    [y, mo, d, h, mi, s, ms] = for part <- [y, mo, d, h, mi, s, ms], do: int(part, 10)
+
+    with true <- Enum.min([y, mo, d, h, mi, s, ms]) >= 0,
+         true <- :calendar.valid_date(y, mo, d) and h < 24 and mi < 60 and s < 60 do
+      {:ok,
+       %DateTime{
+         year: y,
+         month: mo,
+         day: d,
+         hour: h,
+         minute: mi,
+         second: s,
+         microsecond: {ms * 1000, 3},
+         time_zone: "Etc/UTC",
+         zone_abbr: "UTC",
+         utc_offset: 0,
+         std_offset: 0
+       }}
+    else
+      _ -> :error
+    end
+  end
+
+  defp parse_at(_), do: :error
+
+  defp pad(n, width), do: String.pad_leading(Integer.to_string(n), width, "0")
+
+  defp write_synced(path, bytes) do
+    with {:ok, fd} <- :file.open(path, [:write, :exclusive, :raw, :binary]) do
+      result = with :ok <- :file.write(fd, bytes), do: :file.sync(fd)
+      :file.close(fd)
+      if result != :ok, do: File.rm(path)
+      result
+    end
+  end
+
+  defp sync_dir(dir) do
+    case :file.open(dir, [:read, :raw, :directory]) do
+      {:ok, fd} ->
+        result = :file.sync(fd)
+        :file.close(fd)
+        result
+
+      error ->
+        error
+    end
+  end
+
+  @doc """
+  Removes temporary files left by stores that crashed (older than `min_age_s`, default one hour:
+  a younger one may belong to a store in progress in another process).
+  """
+  @spec tidy(lib, non_neg_integer) :: :ok | {:error, term}
+  def tidy(lib, min_age_s \\ 3600) do
+    with {:ok, dir} <- dir(lib), {:ok, files} <- ls(dir) do
+      limit = System.os_time(:second) - min_age_s
+
+      for file <- files, String.starts_with?(file, @tmp_prefix) do
+        path = Path.join(dir, file)
+
+        case File.stat(path, time: :posix) do
+          {:ok, %{mtime: mtime}} when mtime <= limit -> File.rm(path)
+          _ -> :ok
+        end
+      end
+
+      :ok
+    end
+  end
+end

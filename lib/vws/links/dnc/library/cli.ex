@@ -1,0 +1,215 @@
+defmodule Vws.Links.DNC.Library.CLI do
+  @moduledoc """
+  The program library on the command line (`mix vws.library`; `bin/vws-library` in a release,
+  with the same options): works on the library's directory
+  itself, so on a running workstation's library as well as on a stopped one's (`Vws.Links.DNC.Library`
+  keeps stores from several OS processes apart).
+
+      mix vws.library list                          # every program, its latest version, on the machine
+      mix vws.library show 001234.PRO               # its versions
+      mix vws.library show 001234.PRO --version 2   # version 2's text
+      mix vws.library import part.nc                # a new version (named by its O word)
+      mix vws.library import part.nc --name 1234
+      mix vws.library export 001234.PRO out.nc [--version 2]
+      mix vws.library diff 001234.PRO 1 2           # version 1 against 2 (2 omitted: the latest)
+      mix vws.library compare                       # each program: same / differs / absent
+      mix vws.library compare --refresh --endpoint tcp://127.0.0.1:7070
+
+  Which library: `--library DIR`, else `library/<id>` of the data directory (`--id`, default
+  `$VWS_ID`, else `VWS`; `$VWS_LIBRARY_DIR`, `$VWS_DATA_DIR` as for `mix vws.serve`: `Vws.Ops.DataDir`).
+
+  `compare` shows the machine's directory as MONARCH last read it (after every DOWNLOAD_GE, on
+  `COMPARE_GE`), with the time it was read; `--refresh` first has the running workstation read
+  it again, as its WC: it sends the Monarch command `COMPARE_GE` to `--endpoint` (default
+  `tcp://127.0.0.1:7070`; `Vws.Peers.WC.CLI`).
+
+  Exit status: 0 done; 1 not found, not stored, or different (`diff` of two different versions
+  exits 0); 2 a usage error.
+  """
+
+  alias Vws.Links.DNC.Library
+
+  @switches [
+    id: :string,
+    library: :string,
+    version: :integer,
+    name: :string,
+    source: :string,
+    refresh: :boolean,
+    endpoint: :string,
+    help: :boolean
+  ]
+
+  @doc "Runs the command line `argv`, printing to standard output; returns the exit status."
+  @spec main([String.t()]) :: 0 | 1 | 2
+  def main(argv) do
+    case OptionParser.parse(argv, strict: @switches) do
+      {opts, args, []} ->
+        if opts[:help] do
+          IO.puts(usage())
+          0
+        else
+          id = opts[:id] || System.get_env("VWS_ID") || "VWS"
+          lib = {:dir, opts[:library] || Vws.Ops.DataDir.library_dir(id, :default)}
+          run(args, opts, lib)
+        end
+
+      {_, _, invalid} ->
+        usage_error("unknown options #{inspect(invalid)}")
+    end
+  end
+
+  @doc false
+  # For the release's bin/vws-library (bin/vws eval takes no arguments: they come as
+  # VWS_CLI_ARG_<i> environment variables, VWS_CLI_ARGC of them); halts with the exit status.
+  def release_main do
+    argc = String.to_integer(System.get_env("VWS_CLI_ARGC", "0"))
+    argv = for i <- 0..(argc - 1)//1, do: System.get_env("VWS_CLI_ARG_#{i}", "")
+    System.halt(main(argv))
+  end
+
+  defp run(["list"], _opts, lib), do: print_compare(lib)
+
+  defp run(["show", name], opts, lib) do
+    case opts[:version] do
+      nil ->
+        with {:ok, versions} <- Library.versions(lib, name),
+             {:ok, result} <- Library.compare(lib) do
+          row = Enum.find(result.programs, &(&1.name == hd(versions).name))
+          IO.puts("#{row.name}: #{length(versions)} versions")
+
+          for v <- versions do
+            mark = if row.on_machine == {:same, v.version}, do: "  <- on the machine", else: ""
+            IO.puts("  v#{v.version}  #{line(v)}#{mark}")
+          end
+
+          IO.puts(
+            "on the machine: #{Library.on_machine_text(row.on_machine, List.last(versions).version)}"
+          )
+
+          0
+        end
+
+      n ->
+        with {:ok, bytes, v} <- Library.read(lib, name, n) do
+          IO.puts("#{v.name} v#{v.version}  #{line(v)}")
+          IO.write(bytes)
+          0
+        end
+    end
+    |> result(name)
+  end
+
+  defp run(["import", path], opts, lib) do
+    store_opts =
+      [source: opts[:source] || "cli"] ++ if(opts[:name], do: [name: opts[:name]], else: [])
+
+    case Library.import_file(lib, path, store_opts) do
+      {:ok, v} ->
+        IO.puts("stored #{v.name} v#{v.version}  #{line(v)}")
+        0
+
+      error ->
+        result(error, path)
+    end
+  end
+
+  defp run(["export", name, path], opts, lib) do
+    case Library.export(lib, name, opts[:version] || :latest, path) do
+      {:ok, v} ->
+        IO.puts("#{v.name} v#{v.version} written to #{path} (#{v.size} bytes)")
+        0
+
+      error ->
+        result(error, name)
+    end
+  end
+
+  defp run(["diff", name, a | b], _opts, lib) when length(b) <= 1 do
+    with {:ok, a} <- version_arg(a),
+         {:ok, b} <- version_arg(List.first(b, "latest")),
+         {:ok, diff} <- Library.diff(lib, name, a, b) do
+      case Library.format_diff(diff) do
+        [] -> IO.puts("#{name}: v#{a} and #{b} are the same")
+        lines -> Enum.each(lines, &IO.puts/1)
+      end
+
+      0
+    end
+    |> result(name)
+  end
+
+  defp run(["compare"], opts, lib) do
+    if opts[:refresh] do
+      endpoint = opts[:endpoint] || "tcp://127.0.0.1:7070"
+
+      status =
+        Vws.Peers.WC.CLI.main(["--endpoint", endpoint, "--command", "M COMPARE_GE", "--quiet"])
+
+      if status == 0, do: print_compare(lib), else: status
+    else
+      print_compare(lib)
+    end
+  end
+
+  defp run(args, _opts, _lib), do: usage_error("unknown command #{Enum.join(args, " ")}")
+
+  defp print_compare(lib) do
+    case Library.compare(lib) do
+      {:ok, result} ->
+        Library.print_compare(result)
+        0
+
+      error ->
+        result(error, "library")
+    end
+  end
+
+  defp version_arg("latest"), do: {:ok, :latest}
+
+  defp version_arg(text) do
+    case Integer.parse(String.trim_leading(text, "v")) do
+      {n, ""} when n > 0 -> {:ok, n}
+      _ -> {:error, {:bad_version, text}}
+    end
+  end
+
+  defp line(v) do
+    crc = String.pad_leading(Integer.to_string(v.crc, 16), 4, "0")
+    "#{DateTime.to_iso8601(v.at)}  #{v.source}  #{v.size} bytes  CRC #{crc}"
+  end
+
+  defp result(status, _what) when is_integer(status), do: status
+
+  defp result({:error, {:bad_version, text}}, _what), do: usage_error("bad version #{text}")
+
+  defp result({:error, reason}, what) do
+    IO.puts(:stderr, "#{what}: #{reason_text(reason)}")
+    1
+  end
+
+  defp reason_text(:not_found), do: "not in the library"
+  defp reason_text(:bad_name), do: "not a program name (nnnnnn.PRO or nnnnnn.GSU)"
+  defp reason_text(:damaged), do: "its file is damaged (size or CRC not as stored)"
+  defp reason_text(:no_program_number), do: "no program number (O word); give --name"
+  defp reason_text(:too_large), do: "larger than #{Library.max_bytes()} bytes"
+  defp reason_text(:enoent), do: "no such file"
+  defp reason_text(reason), do: inspect(reason)
+
+  defp usage_error(message) do
+    IO.puts(:stderr, "mix vws.library: #{message}\n\n" <> usage())
+    2
+  end
+
+  defp usage do
+    """
+    usage: mix vws.library [--id ID | --library DIR] COMMAND
+      list
+      show NAME [--version V]
+      import FILE [--name NAME] [--source SOURCE]
+      export NAME FILE [--version V]
+      diff NAME V1 [V2]
+      compare [--refresh [--endpoint tcp://127.0.0.1:7070]]\
+    """
+  end
+end

@@ -1,0 +1,101 @@
+defmodule Vws.Links.Transport.TCP do
+  @moduledoc """
+  `Vws.Links.Transport` over TCP (`:gen_tcp`), client and listener: simulators, terminal servers
+  (ser2net, Moxa in raw TCP mode) and LAN instruments.
+
+  Sockets are binary, raw (no packet framing), `nodelay`, and passive until `activate/1` sets
+  `active: :once`; one delivery holds up to 64 KB. The handle is the `:gen_tcp` socket; the owner receives the standard
+  `{:tcp, socket, data}`, `{:tcp_closed, socket}` and `{:tcp_error, socket, reason}` messages.
+
+  Options: `connect/2` takes `timeout` (ms, default 5000); `listen/2` takes `ip` (an address
+  tuple or string, overriding the endpoint's host), `backlog` (default 128) and `send_timeout`
+  (ms; default none): a send to an accepted connection that the peer has not made room for
+  within it fails `{:error, :timeout}` and closes the connection (`send_timeout_close`), so a
+  peer that never reads cannot block its owner for longer.
+  """
+
+  @behaviour Vws.Links.Transport
+
+  import Kernel, except: [send: 2]
+
+  alias Vws.Links.Endpoint
+
+  # `buffer` is the most one delivery can hold; the driver's default (1460) would cut a burst
+  # into a message per TCP segment.
+  @socket_opts [:binary, packet: :raw, active: false, nodelay: true, buffer: 65_536]
+  @connect_timeout 5000
+
+  @impl true
+  def connect(%Endpoint{kind: :tcp, host: host, port: port}, opts) do
+    :gen_tcp.connect(host, port, @socket_opts, Keyword.get(opts, :timeout, @connect_timeout))
+  end
+
+  @impl true
+  def listen(%Endpoint{kind: :tcp, host: host, port: port}, opts) do
+    with {:ok, ip} <- bind_address(Keyword.get(opts, :ip, host)) do
+      send_timeout =
+        case Keyword.get(opts, :send_timeout) do
+          nil -> []
+          ms -> [send_timeout: ms, send_timeout_close: true]
+        end
+
+      :gen_tcp.listen(
+        port,
+        @socket_opts ++
+          [reuseaddr: true, ip: ip, backlog: Keyword.get(opts, :backlog, 128)] ++ send_timeout
+      )
+    end
+  end
+
+  defp bind_address(ip) when is_tuple(ip), do: {:ok, ip}
+  defp bind_address(ip) when is_binary(ip), do: bind_address(String.to_charlist(ip))
+
+  defp bind_address(ip) when is_list(ip) do
+    case :inet.parse_address(ip) do
+      {:ok, ip} -> {:ok, ip}
+      {:error, _} -> :inet.getaddr(ip, :inet)
+    end
+  end
+
+  @impl true
+  def listener_endpoint(listen_socket) do
+    {:ok, {ip, port}} = :inet.sockname(listen_socket)
+    %Endpoint{kind: :tcp, host: :inet.ntoa(ip), port: port}
+  end
+
+  @impl true
+  def accept(listen_socket, timeout), do: :gen_tcp.accept(listen_socket, timeout)
+
+  @impl true
+  def close_listener(listen_socket), do: :gen_tcp.close(listen_socket)
+
+  @impl true
+  def send(socket, data), do: :gen_tcp.send(socket, data)
+
+  @impl true
+  def close(socket), do: :gen_tcp.close(socket)
+
+  @impl true
+  def controlling_process(socket, pid), do: :gen_tcp.controlling_process(socket, pid)
+
+  # An error here means the socket is closed; the owner has had (or will have) the close message.
+  @impl true
+  def activate(socket) do
+    _ = :inet.setopts(socket, active: :once)
+    :ok
+  end
+
+  @impl true
+  def handle_message(socket, {:tcp, socket, data}), do: {:data, data}
+  def handle_message(socket, {:tcp_closed, socket}), do: :closed
+  def handle_message(socket, {:tcp_error, socket, reason}), do: {:error, reason}
+  def handle_message(_socket, _msg), do: :unknown
+
+  @impl true
+  def peer(socket) do
+    case :inet.peername(socket) do
+      {:ok, {ip, port}} -> "tcp://#{:inet.ntoa(ip)}:#{port}"
+      {:error, _} -> "tcp://(closed)"
+    end
+  end
+end

@@ -1,0 +1,359 @@
+defmodule Vws.Ops.Demo do
+  @moduledoc """
+  The demonstration behind `mix vws.demo`: a workstation with its shop floor, a workstation
+  controller (`Vws.Peers.WC.Client`) running a cycle script (`Vws.Peers.WC.Script`) against it, and the
+  dialogue printed as it happens.
+
+  ## The shop floor
+
+  `start_shop_floor/1` is the one place that decides what runs: the simulated equipment first,
+  then the workstation with a link to each simulator. Each simulator is a module in
+  `@simulators` with one function,
+
+      shop_floor(opts) :: {:ok, %{name: String.t(), links: [child_spec], partitions: keyword}}
+
+  which starts the simulated device (the `opts` carry `:workstation` and `:time_scale`) and says
+  which workstation links and partition options reach it. Today the list holds the whole floor
+  (`Vws.Sim.Floor`): the plant with DAQ #1 (VWS_STATUS, GRIPPER, FIXTURE and VACUUM reach it; ROBOT
+  gets its tray locks, MONARCH its cycle-start relay), DAQ #2 with the hydraulic controller
+  (HYDRAULIC), the GE-2000 (whose cycle-start input is that relay), the VAL II robot and the
+  material-handling system, with a blank in tray #1. A partition whose device is not on the
+  floor starts without a device link and answers each valid command `ERROR NO LINK TO
+  <device>` — truthfully — and a cycle stops at its first such command.
+
+  ## The printed dialogue
+
+  One row per line on the link: the time since the WC connected, `→` for WC to CEC or `←` for
+  CEC to WC, the line as on the wire, and its meaning. Script steps are announced on rows of
+  their own (`──`). A status query answered exactly as the previous one is not printed again;
+  a row `… asked N more times` says how often it was repeated.
+  """
+
+  alias Vws.Peers.WC.{Client, Runner, Script}
+  alias Vws.Peers.WC.Runner.Summary
+
+  # Modules that put a simulated device on the shop floor (see the moduledoc). Filled in by the
+  # issues that build the simulators.
+  @simulators [Vws.Sim.Floor]
+
+  @partition_devices [
+    robot: Vws.Partitions.Robot,
+    monarch: Vws.Partitions.Monarch,
+    gripper: Vws.Partitions.Gripper,
+    fixture: Vws.Partitions.Fixture,
+    vacuum: Vws.Partitions.Vacuum,
+    hydraulic: Vws.Partitions.Hydraulic
+  ]
+
+  @type shop_floor :: %{
+          workstation: term,
+          wc: String.t(),
+          time_scale: number,
+          simulated: [String.t()],
+          lines: [atom],
+          unlinked: [{atom, String.t()}]
+        }
+
+  @doc """
+  Starts the shop floor: every simulator there is, then a workstation linked to them, whose
+  SUN_COMM serves the WC at `:wc`. Options: `:id` (default `"VWS-DEMO"`), `:wc` (default
+  `"tcp://127.0.0.1:0"`, a free port), `:time_scale` (default 1.0; the simulators run this many
+  times faster than real time), `:bcc`, `:lines` (faulty cables on every link, the WC's included:
+  `[faults: [ber: 1.0e-4, …], seed: term]`, see `Vws.Sim.Floor`; `Vws.Sim.Floor.line(id, :wc)` is
+  the WC's), `:supervisor` (a `DynamicSupervisor` to start the floor and the WC's line under;
+  by default they are linked to the caller), `:journal` (the journal's directory, none by
+  default; `mix vws.demo` gives one), `:library` (the program library's directory, likewise). Returns where the WC reaches SUN_COMM (through its line, if any), what is
+  simulated, which links have a faulty line and which partitions have no device link.
+  """
+  @spec start_shop_floor(keyword) :: {:ok, shop_floor} | {:error, term}
+  def start_shop_floor(opts \\ []) do
+    id = Keyword.get(opts, :id, "VWS-DEMO")
+    wc = Keyword.get(opts, :wc, "tcp://127.0.0.1:0")
+    time_scale = Keyword.get(opts, :time_scale, 1.0)
+    lines = Keyword.get(opts, :lines, false)
+
+    sim_opts =
+      [workstation: id, time_scale: time_scale, lines: lines] ++
+        Keyword.take(opts, [:supervisor])
+
+    with {:ok, sims} <- start_simulators(sim_opts),
+         {:ok, _pid} <-
+           Vws.CEC.Workstation.start(
+             id: id,
+             wc: wc,
+             sun_comm: [bcc: Keyword.get(opts, :bcc, :sum)],
+             journal: Keyword.get(opts, :journal),
+             library: Keyword.get(opts, :library),
+             links: Enum.flat_map(sims, & &1.links),
+             partitions: merge_partitions(sims)
+           ),
+         {:ok, listening} <- wait_listening(id, 2_000),
+         {:ok, wc} <- wc_line(id, to_string(listening), lines, opts[:supervisor]) do
+      unlinked =
+        for {partition, module} <- @partition_devices,
+            Vws.CEC.Partition.info(id, partition).link == nil,
+            do: {partition, module.device()}
+
+      {:ok,
+       %{
+         workstation: id,
+         wc: wc,
+         time_scale: time_scale,
+         lines: Keyword.keys(Vws.Sim.Floor.lines(id)),
+         simulated: Enum.map(sims, & &1.name),
+         unlinked: unlinked
+       }}
+    end
+  end
+
+  defp start_simulators(opts) do
+    Enum.reduce_while(@simulators, {:ok, []}, fn module, {:ok, acc} ->
+      case module.shop_floor(opts) do
+        {:ok, sim} -> {:cont, {:ok, acc ++ [sim]}}
+        {:error, reason} -> {:halt, {:error, {module, reason}}}
+      end
+    end)
+  end
+
+  defp merge_partitions(sims) do
+    Enum.reduce(sims, [], fn sim, acc ->
+      Keyword.merge(acc, Map.get(sim, :partitions, []), fn _p, a, b -> Keyword.merge(a, b) end)
+    end)
+  end
+
+  # with faulty lines on the floor, the WC reaches SUN_COMM through one too
+  defp wc_line(_id, sun_comm, false, _supervisor), do: {:ok, sun_comm}
+
+  defp wc_line(id, sun_comm, lines, supervisor) do
+    line_opts = [
+      name: Vws.Sim.Floor.line(id, :wc),
+      target: sun_comm,
+      seed: {Keyword.get(lines, :seed, 0), :wc},
+      faults: Keyword.get(lines, :faults, [])
+    ]
+
+    started =
+      if supervisor,
+        do: DynamicSupervisor.start_child(supervisor, {Vws.Sim.Line, line_opts}),
+        else: Vws.Sim.Line.start_link(line_opts)
+
+    with {:ok, line} <- started, do: {:ok, to_string(Vws.Sim.Line.endpoint(line))}
+  end
+
+  defp wait_listening(id, timeout) do
+    case Vws.CEC.SunComm.await_listening(id, timeout) do
+      nil -> {:error, :sun_comm_not_listening}
+      endpoint -> {:ok, endpoint}
+    end
+  end
+
+  @doc """
+  The default cycle script: `priv/sims/machining_cycle.vws` of the project (in the current
+  directory when it is there, else in the application's priv directory).
+  """
+  @spec default_script() :: Path.t()
+  def default_script do
+    local = "priv/sims/machining_cycle.vws"
+    if File.regular?(local), do: local, else: Application.app_dir(:vws, local)
+  end
+
+  @doc """
+  Starts the shop floor, connects a WC, runs the script and prints the dialogue and the summary
+  to the group leader. Options: `:script` (a path, default `default_script/0`), `:id`, `:wc`,
+  `:time_scale` (see `start_shop_floor/1`) and the `Vws.Peers.WC.Runner` options. Returns the summary,
+  the shop floor and the client, which stay up for the caller.
+  """
+  @spec run(keyword) :: {:ok, Summary.t(), shop_floor, Client.client()} | {:error, String.t()}
+  def run(opts \\ []) do
+    path = Keyword.get_lazy(opts, :script, &default_script/0)
+
+    with {:script, {:ok, script}} <- {:script, Script.parse_file(path)},
+         {:floor, {:ok, floor}} <- {:floor, start_shop_floor(opts)},
+         {:client, {:ok, client}} <- {:client, Client.connect(floor.wc, subscribe: self())} do
+      print_floor(floor, path, script)
+      summary = run_printing(client, script, opts)
+      Enum.each(Summary.format(summary), &IO.puts(readable(&1)))
+      {:ok, summary, floor, client}
+    else
+      {:script, {:error, error}} -> {:error, Exception.message(error)}
+      {:floor, {:error, reason}} -> {:error, "cannot start the shop floor: #{inspect(reason)}"}
+      {:client, {:error, reason}} -> {:error, "the WC cannot connect: #{inspect(reason)}"}
+    end
+  end
+
+  defp print_floor(floor, path, script) do
+    IO.puts(
+      "VWS demo — workstation #{floor.workstation}, " <>
+        if(floor.lines == [],
+          do: "SUN_COMM serves the WC on #{floor.wc}",
+          else: "the WC reaches SUN_COMM through a faulty line on #{floor.wc}"
+        )
+    )
+
+    simulated =
+      if floor.simulated == [], do: "nothing yet", else: Enum.join(floor.simulated, ", ")
+
+    IO.puts("simulated equipment: #{simulated} (time scale ×#{scale(floor.time_scale)})")
+
+    if floor.lines != [],
+      do: IO.puts("faulty lines (Vws.Sim.Line) on the links: #{Enum.join(floor.lines, ", ")}")
+
+    for {partition, device} <- floor.unlinked do
+      IO.puts(
+        "  #{String.upcase(to_string(partition))} has no link to the #{device}: " <>
+          "its commands end ERROR NO LINK TO #{device}"
+      )
+    end
+
+    IO.puts("script: #{path} (#{length(script.steps)} steps)")
+    IO.puts("")
+    IO.puts("   time   line on the WC link (→ WC to CEC, ← CEC to WC)           meaning")
+  end
+
+  defp run_printing(client, script, opts) do
+    task = Task.async(fn -> Runner.run(client, script, opts) end)
+    printer = print_until(task, client, new_printer())
+    # every event the client sent before answering this call is already in our mailbox
+    _ = Client.info(client)
+    printer = drain(client, printer)
+    flush(printer)
+    IO.puts("")
+    printer.summary
+  end
+
+  defp print_until(%Task{ref: ref} = task, client, printer) do
+    receive do
+      {:wc_client, ^client, event} ->
+        print_until(task, client, print_event(event, printer))
+
+      {^ref, summary} ->
+        Process.demonitor(ref, [:flush])
+        %{printer | summary: summary}
+    end
+  end
+
+  defp drain(client, printer) do
+    receive do
+      {:wc_client, ^client, event} -> drain(client, print_event(event, printer))
+    after
+      0 -> printer
+    end
+  end
+
+  ## Printing, with repeated status polls folded
+
+  @doc false
+  def new_printer, do: %{held: nil, last: nil, repeats: 0, since: nil, until: nil, summary: nil}
+
+  @doc false
+  # Prints one event (or holds a status query until its answer shows whether it repeats).
+  def print_event(%{kind: :status_query} = event, printer) do
+    printer = release(printer)
+    %{printer | held: event}
+  end
+
+  def print_event(%{kind: :status} = answer, %{held: query} = printer) when query != nil do
+    pair = {query.meaning, answer.meaning}
+
+    if pair == printer.last do
+      %{
+        printer
+        | held: nil,
+          repeats: printer.repeats + 1,
+          since: printer.since || query.at,
+          until: answer.at
+      }
+    else
+      printer = flush(%{printer | held: nil})
+      row(query)
+      row(answer)
+      %{printer | last: pair}
+    end
+  end
+
+  def print_event(event, printer) do
+    printer = flush(release(printer))
+    row(event)
+    %{printer | last: nil}
+  end
+
+  defp release(%{held: nil} = printer), do: printer
+
+  defp release(%{held: query} = printer) do
+    printer = flush(printer)
+    row(query)
+    %{printer | held: nil, last: nil}
+  end
+
+  defp flush(%{repeats: 0} = printer), do: printer
+
+  defp flush(printer) do
+    span = seconds(printer.until - printer.since)
+
+    IO.puts(
+      "          … asked #{printer.repeats} more #{plural(printer.repeats, "time")} over #{span}: same answer"
+    )
+
+    %{printer | repeats: 0, since: nil, until: nil}
+  end
+
+  defp row(%{direction: :note, meaning: meaning, at: at}),
+    do: IO.puts("#{time(at)}  ── #{readable(meaning)}")
+
+  defp row(%{direction: direction, line: line, meaning: meaning, at: at}) do
+    arrow = if direction == :sent, do: "→", else: "←"
+
+    IO.puts(
+      "#{time(at)}  #{arrow} #{String.pad_trailing(printable(line || ""), 52)}  #{readable(meaning)}"
+    )
+  end
+
+  @doc ~S"""
+  A line as it was on the wire, readable on a terminal: printable ASCII as it is, every other
+  byte (a bit flipped by a noisy line, a control character) as `\xNN`, and `\` itself as `\\`.
+  Wire text is bytes, not UTF-8: a damaged byte must not reach the terminal, nor stop the
+  printing (`IO.puts/1` raises on a binary that is not valid UTF-8).
+
+      iex> Vws.Ops.Demo.printable("11S0090ACTI" <> <<0xD6>> <> "E058")
+      "11S0090ACTI\\xD6E058"
+      iex> Vws.Ops.Demo.printable("a\tb\\c")
+      "a\\x09b\\\\c"
+  """
+  @spec printable(binary) :: String.t()
+  def printable(bytes) when is_binary(bytes) do
+    for <<byte <- bytes>>, into: "" do
+      cond do
+        byte == ?\\ -> "\\\\"
+        byte in 0x20..0x7E -> <<byte>>
+        true -> hex(byte)
+      end
+    end
+  end
+
+  @doc ~S"""
+  Text for a person (a meaning, a script step, the summary's reason) made safe to print: valid
+  UTF-8 that prints stays as it is; a byte that is not valid UTF-8 (a damaged byte quoted from
+  the wire) or a control character becomes `\xNN`.
+
+      iex> Vws.Ops.Demo.readable("MONARCH: ACTI" <> <<0xD6>> <> "E — ×20")
+      "MONARCH: ACTI\\xD6E — ×20"
+  """
+  @spec readable(binary) :: String.t()
+  def readable(text) when is_binary(text), do: readable(text, "")
+
+  defp readable(<<c::utf8, rest::binary>>, acc) when c >= 0x20 and c not in 0x7F..0x9F,
+    do: readable(rest, <<acc::binary, c::utf8>>)
+
+  defp readable(<<byte, rest::binary>>, acc), do: readable(rest, acc <> hex(byte))
+  defp readable(<<>>, acc), do: acc
+
+  defp hex(byte), do: "\\x" <> String.pad_leading(Integer.to_string(byte, 16), 2, "0")
+
+  defp scale(x) when is_float(x) and x == trunc(x), do: trunc(x)
+  defp scale(x), do: x
+
+  defp time(ms), do: String.pad_leading(seconds(ms), 8)
+  defp seconds(ms), do: :erlang.float_to_binary(ms / 1000, decimals: 3) <> "s"
+  defp plural(1, word), do: word
+  defp plural(_, word), do: word <> "s"
+end

@@ -1,0 +1,93 @@
+defmodule Vws.CEC.MailboxTest do
+  use ExUnit.Case, async: true
+  doctest Vws.CEC.Events
+
+  alias Vws.CEC.Mailbox
+
+  setup do
+    ws = "mbx-#{System.unique_integer([:positive])}"
+    start_supervised!({Mailbox.Owner, workstation: ws})
+    %{ws: ws}
+  end
+
+  test "the seed's layout: device locations 1-14, command locations 34-39", %{ws: ws} do
+    assert Enum.map(Mailbox.partitions(), &Mailbox.command_location/1) == Enum.to_list(34..39)
+    assert Mailbox.command_location(:robot) == 34
+    assert Mailbox.device_location("VISE") == 3
+    assert Mailbox.device_location("SPARE") == nil
+    for loc <- 1..14, do: assert({nil, _} = Mailbox.get_device(ws, loc))
+    for p <- Mailbox.partitions(), do: assert(Mailbox.command_status(ws, p) == {nil, :none})
+  end
+
+  test "dispatch is refused while a command of the set is in flight", %{ws: ws} do
+    assert :ok = Mailbox.dispatch(ws, :robot, 9, "WHERE")
+    assert Mailbox.command_status(ws, :robot) == {9, :executing}
+    assert Mailbox.cmd_in(ws, :robot) == {9, "WHERE"}
+    assert {:busy, 9} = Mailbox.dispatch(ws, :robot, 10, "WHERE")
+    assert :ok = Mailbox.dispatch(ws, :gripper, 4, "OPEN")
+    assert :ok = Mailbox.finish(ws, :robot, 9, :done)
+    assert Mailbox.command_status(ws, :robot) == {9, :done}
+    assert :not_in_flight = Mailbox.finish(ws, :robot, 9, {:error, "AGAIN"})
+    assert Mailbox.command_status(ws, :robot) == {9, :done}
+  end
+
+  test "finishing a command does not overwrite the answer of a newer one", %{ws: ws} do
+    :ok = Mailbox.dispatch(ws, :robot, 9, "WHERE")
+    Mailbox.put_status(ws, :robot, 10, {:error, "BUSY 0009"})
+    :ok = Mailbox.finish(ws, :robot, 9, :done)
+    assert Mailbox.command_status(ws, :robot) == {10, {:error, "BUSY 0009"}}
+    assert Mailbox.in_flight(ws, :robot) == nil
+  end
+
+  test "concurrent dispatches of one set: exactly one wins", %{ws: ws} do
+    results =
+      1..50
+      |> Task.async_stream(fn n -> Mailbox.dispatch(ws, :vacuum, n, "ON") end, max_concurrency: 50)
+      |> Enum.map(fn {:ok, r} -> r end)
+
+    assert Enum.count(results, &(&1 == :ok)) == 1
+  end
+
+  test "device values carry their age", %{ws: ws} do
+    :ok = Mailbox.put_device(ws, 5, "VACUUM IS ON")
+    assert {"VACUUM IS ON", age} = Mailbox.get_device(ws, 5)
+    assert age >= 0
+  end
+
+  test "the iex table shows every location", %{ws: ws} do
+    :ok = Mailbox.dispatch(ws, :robot, 9, "DO MOVE SAFE")
+    Mailbox.put_device(ws, 3, "VISE IS UNLOCKED PART NOT IN VISE")
+    text = Vws.Ops.Inspect.format_mailboxes(ws)
+    assert text =~ "34  ROBOT     0009  EXECUTING"
+    assert text =~ "0009 DO MOVE SAFE"
+    assert text =~ "VISE IS UNLOCKED PART NOT IN VISE"
+    assert text =~ "ok_to_proceed=0"
+    assert text =~ "INTERLOCKS: NONE"
+    :ok = Vws.CEC.Interlock.acquire(ws, :table, :robot, 0)
+    assert Vws.Ops.Inspect.format_mailboxes(ws) =~ "INTERLOCKS: TABLE=ROBOT"
+    assert [%{volume: :table, holder: :robot}] = Vws.Ops.Inspect.mailbox_snapshot(ws).interlocks
+
+    assert ExUnit.CaptureIO.capture_io(fn -> Vws.Ops.Inspect.mailboxes(ws) end) =~
+             "COMMAND STATUS"
+  end
+
+  test "locked/2 serialises read-modify-write sections", %{ws: ws} do
+    :ets.insert(Mailbox.table(ws), {:counter, 0})
+
+    1..100
+    |> Task.async_stream(fn _ ->
+      Mailbox.locked(ws, fn t ->
+        [{_, n}] = :ets.lookup(t, :counter)
+        :ets.insert(t, {:counter, n + 1})
+      end)
+    end)
+    |> Stream.run()
+
+    assert :ets.lookup(Mailbox.table(ws), :counter) == [{:counter, 100}]
+  end
+
+  test "an event never created cannot be caused", %{ws: ws} do
+    assert Vws.CEC.Events.cause(ws, :nonexistent) == {:error, :no_such_event}
+    assert Vws.CEC.Events.count(ws, :nonexistent) == nil
+  end
+end

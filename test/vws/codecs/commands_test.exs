@@ -1,0 +1,55 @@
+defmodule Vws.Codecs.CommandsTest do
+  use ExUnit.Case, async: true
+  doctest Vws.Codecs.Commands
+
+  import Vws.Codecs.Commands, only: [parse: 2]
+
+  test "the robot set of App. I B" do
+    assert parse(:robot, "WHERE") == {:ok, :where}
+    assert parse(:robot, "SPEED 50") == {:ok, {:speed, 50.0}}
+    assert parse(:robot, "DO APPRO VISE/100") == {:ok, {:do, :appro, "VISE", 100.0}}
+    assert parse(:robot, "DO APPROS TRAY1/50.5") == {:ok, {:do, :appros, "TRAY1", 50.5}}
+    assert parse(:robot, "DO DEPART 100") == {:ok, {:do, :depart, 100.0}}
+    assert parse(:robot, "DO DEPARTS 25") == {:ok, {:do, :departs, 25.0}}
+    assert parse(:robot, "DO MOVE SAFE") == {:ok, {:do, :move, "SAFE"}}
+    assert parse(:robot, "DO MOVES SAFE") == {:ok, {:do, :moves, "SAFE"}}
+
+    assert parse(:robot, "DO MOVE MV1:TRANS(63.5/0/0/90/-90/0)") ==
+             {:ok, {:do, :move, {:trans, "MV1", [63.5, 0.0, 0.0, 90.0, -90.0, 0.0]}}}
+
+    # the seed's OCR form, with a blank after the colon and lower case
+    assert parse(:robot, "DO Move MV1: TRANS(63.5,0,0,90,-90,0)") ==
+             {:ok, {:do, :move, {:trans, "MV1", [63.5, 0.0, 0.0, 90.0, -90.0, 0.0]}}}
+
+    assert parse(:robot, "DISABLE_TRAY1") == {:ok, {:disable_tray, 1}}
+    assert parse(:robot, "RELEASE_TRAY2") == {:ok, {:release_tray, 2}}
+    assert parse(:robot, "DISABLE_TRAY3") == {:error, :unknown}
+    assert parse(:robot, "EXECUTE PATH1") == {:ok, {:execute, "PATH1"}}
+    assert parse(:robot, "SPEED -3") == {:error, "BAD SPEED -3"}
+    assert parse(:robot, "DO MOVE MV1:TRANS(1,2)") == {:error, "BAD TRANS 1,2"}
+    assert parse(:robot, "DO FLY") == {:error, :unknown}
+  end
+
+  test "the Monarch set of App. I A" do
+    assert parse(:monarch, "CYCLE_START") == {:ok, :cycle_start}
+    assert parse(:monarch, "UPLOAD_GE(001234.PRO)") == {:ok, {:upload_ge, "001234.PRO"}}
+    assert parse(:monarch, "UPLOAD_GE(001234.GSU)") == {:ok, {:upload_ge, "001234.GSU"}}
+    assert parse(:monarch, "UPLOAD_GE(1234.PRO)") == {:error, "BAD PROGRAM FILE 1234.PRO"}
+    assert parse(:monarch, "PROGRAM_SELECT(001234)") == {:ok, {:program_select, "001234"}}
+    assert parse(:monarch, "PROGRAM_DELETE(001234.PRO)") == {:ok, {:program_delete, "001234.PRO"}}
+    assert parse(:monarch, "TABLE(1/3/7)") == {:ok, {:table, [1, 3, 7]}}
+    assert parse(:monarch, "TABLE(1/2/3/4/5/6/7/8/9)") == {:error, "AT MOST 8 TABLE LINES"}
+    assert parse(:monarch, "TABLE(2/2)") == {:error, "TABLE LINES MUST BE ASCENDING"}
+    assert parse(:monarch, "DOWNLOAD_HP") == {:ok, :download_hp}
+  end
+
+  test "gripper, vise, vacuum and hydraulic sets" do
+    assert parse(:gripper, "CLOSE") == {:ok, :close}
+    assert parse(:gripper, "ROTATE_270") == {:ok, {:rotate, 270}}
+    assert parse(:gripper, "ROTATE_45") == {:error, :unknown}
+    assert parse(:fixture, "DISABLE_TABLE") == {:ok, :disable_table}
+    assert parse(:vacuum, "ON") == {:ok, :on}
+    assert parse(:hydraulic, "CLAMP_PALLET") == {:ok, :clamp_pallet}
+    assert parse(:hydraulic, "OPEN") == {:error, :unknown}
+  end
+end

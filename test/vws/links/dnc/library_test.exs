@@ -1,0 +1,253 @@
+defmodule Vws.Links.DNC.LibraryTest do
+  use ExUnit.Case, async: true
+  use Vws.PropCase
+
+  alias Vws.Links.DNC.Library
+
+  doctest Library
+
+  @prog "%\nO1234 (BRACKET)\nN10 G90 G00 X0 Y0\nN20 M30\n%\n"
+
+  setup do
+    dir = Path.join(System.tmp_dir!(), "vws-lib-#{System.unique_integer([:positive])}")
+    on_exit(fn -> File.rm_rf!(dir) end)
+    %{lib: {:dir, dir}, dir: dir}
+  end
+
+  test "every store is a new version with who stored it, when, size and CRC", %{lib: lib} do
+    before = DateTime.utc_now() |> DateTime.truncate(:millisecond)
+    {:ok, v1} = Library.store(lib, "1234", @prog, source: "wc")
+    {:ok, v2} = Library.store(lib, "001234.PRO", @prog <> "", source: "from the machine")
+    {:ok, v3} = Library.store(lib, "O1234", String.replace(@prog, "X0", "X5"), source: "cli")
+
+    assert {v1.version, v2.version, v3.version} == {1, 2, 3}
+    assert v1.size == byte_size(@prog) and v1.crc == Vws.Codecs.CRC16.compute(@prog)
+    assert DateTime.compare(v1.at, before) != :lt
+
+    {:ok, [p]} = Library.list(lib)
+    assert p.name == "001234.PRO"
+
+    assert Enum.map(p.versions, &{&1.version, &1.source}) ==
+             [{1, "wc"}, {2, "from the machine"}, {3, "cli"}]
+
+    assert p.versions |> hd() |> Map.take([:size, :crc, :at]) == Map.take(v1, [:size, :crc, :at])
+    assert {:ok, @prog, %{version: 2}} = Library.read(lib, "1234", 2)
+    assert {:ok, text, %{version: 3}} = Library.read(lib, "1234")
+    assert text =~ "X5"
+    assert {:error, :not_found} = Library.read(lib, "1234", 4)
+    assert {:error, :not_found} = Library.versions(lib, "999")
+  end
+
+  test "bad names, sources and sizes store nothing and never leave the directory",
+       %{lib: lib, dir: dir} do
+    for bad <- [
+          "../x",
+          "/etc/passwd",
+          "001234.PRO/../../x",
+          "1234567",
+          "",
+          "ABC",
+          "12~3",
+          nil,
+          "a\0b"
+        ] do
+      assert Library.store(lib, bad, @prog) == {:error, :bad_name}, inspect(bad)
+    end
+
+    assert Library.store(lib, "1", @prog, source: "Bad/Source") == {:error, :bad_source}
+    assert Library.store(lib, "1", @prog, source: "a~b") == {:error, :bad_source}
+    big = :binary.copy("N1\n", div(Library.max_bytes(), 3) + 1)
+    assert Library.store(lib, "1", big) == {:error, :too_large}
+    assert Library.list(lib) == {:ok, []}
+    refute File.exists?(Path.join(Path.dirname(dir), "x"))
+    assert Library.store(:no_such_workstation, "1", @prog) == {:error, :no_library}
+  end
+
+  test "stores racing for one program get distinct numbers, none lost", %{lib: lib} do
+    results =
+      1..24
+      |> Enum.map(fn i -> Task.async(fn -> Library.store(lib, "77", "%\nO77\nN#{i}\n%\n") end) end)
+      |> Enum.map(&Task.await/1)
+
+    numbers = for {:ok, v} <- results, do: v.version
+    assert Enum.sort(numbers) == Enum.to_list(1..24)
+    {:ok, vs} = Library.versions(lib, "77")
+    assert length(vs) == 24
+
+    for v <- vs do
+      {:ok, text, _} = Library.read(lib, "77", v.version)
+      assert text =~ "O77"
+    end
+  end
+
+  test "a store that crashed leaves no version visible, and the library goes on",
+       %{lib: lib, dir: dir} do
+    {:ok, _} = Library.store(lib, "5", "%\nO5\n%\n")
+    # a crash after the temporary file was written: not a version
+    File.write!(Path.join(dir, ".tmp-000005.PRO-1"), "%\nO5\nHALF")
+    # a crash after the number was taken, before the rename: version 2 never appears
+    File.ln_s!(
+      "../000005.PRO~000002~20261125T090000.000Z~wc~000009~0000",
+      Path.join([dir, ".v", "000005.PRO~000002"])
+    )
+
+    {:ok, [p]} = Library.list(lib)
+    assert Enum.map(p.versions, & &1.version) == [1]
+    assert Library.version(lib, "5", 2) == {:error, :not_found}
+
+    {:ok, v} = Library.store(lib, "5", "%\nO5\nN2\n%\n")
+    assert v.version == 3
+    assert {:ok, "%\nO5\nN2\n%\n", _} = Library.read(lib, "5")
+
+    # tidy removes old temporary files only
+    assert :ok = Library.tidy(lib, 0)
+    refute File.exists?(Path.join(dir, ".tmp-000005.PRO-1"))
+  end
+
+  test "a version damaged on disk reads as damaged, never as the program", %{lib: lib, dir: dir} do
+    {:ok, v} = Library.store(lib, "9", "%\nO9\nN10 X1\n%\n")
+    File.write!(Path.join(dir, v.file), "%\nO9\nN10 X7\n%\n")
+    assert Library.read(lib, "9") == {:error, :damaged}
+  end
+
+  test "killed in the middle of storing: every visible version is whole", %{lib: lib} do
+    big = :binary.copy("N10 G01 X1.0 Y2.0 F300\n", 200_000)
+
+    for _ <- 1..5 do
+      pid =
+        spawn(fn -> for _ <- 1..100, do: Library.store(lib, "42", "%\nO42\n" <> big <> "%\n") end)
+
+      Process.sleep(:rand.uniform(60))
+      Process.exit(pid, :kill)
+    end
+
+    case Library.versions(lib, "42") do
+      {:ok, vs} -> for v <- vs, do: assert({:ok, _, _} = Library.read(lib, "42", v.version))
+      {:error, :not_found} -> :ok
+    end
+  end
+
+  test "import a file, export a version, diff two versions", %{lib: lib, dir: dir} do
+    src = dir <> "-in.nc"
+    out = dir <> "-out.nc"
+    on_exit(fn -> File.rm(src) && File.rm(out) end)
+    File.write!(src, @prog)
+
+    assert {:ok, %{name: "001234.PRO", version: 1, source: "cli"}} = Library.import_file(lib, src)
+    File.write!(src, String.replace(@prog, "N20 M30", "N15 M05\nN20 M30"))
+    assert {:ok, %{version: 2}} = Library.import_file(lib, src, name: "1234")
+
+    assert {:ok, %{version: 1}} = Library.export(lib, "1234", 1, out)
+    assert File.read!(out) == @prog
+
+    {:ok, diff} = Library.diff(lib, "1234", 1, 2)
+
+    assert Library.format_diff(diff) |> Enum.filter(&String.starts_with?(&1, ["+", "-"])) == [
+             "+ N15 M05"
+           ]
+
+    {:ok, same} = Library.diff(lib, "1234", 2, :latest)
+    assert Library.format_diff(same) == []
+
+    File.write!(src, "N10 G00\n")
+    assert Library.import_file(lib, src) == {:error, :no_program_number}
+  end
+
+  test "compare: same (which version), differs, absent, unknown, and files only on the machine",
+       %{lib: lib} do
+    a1 = "%\nO1\nN1\n%\n"
+    a2 = "%\nO1\nN2\n%\n"
+    {:ok, _} = Library.store(lib, "1", a1)
+    {:ok, _} = Library.store(lib, "1", a2)
+    {:ok, _} = Library.store(lib, "2", "%\nO2\n%\n")
+    {:ok, _} = Library.store(lib, "3", "%\nO3\n%\n")
+
+    {:ok, c} = Library.compare(lib)
+    assert c.read_at == nil
+    assert Enum.all?(c.programs, &(&1.on_machine == :unknown))
+
+    entries = %{
+      "000001.PRO" => Vws.Links.DNC.Report.entry("000001.PRO", a1),
+      "000002.PRO" => Vws.Links.DNC.Report.entry("000002.PRO", "%\nO2\nX\n%\n"),
+      "000009.PRO" => Vws.Links.DNC.Report.entry("000009.PRO", "%\nO9\n%\n")
+    }
+
+    :ok = Library.record_machine(lib, entries)
+    {:ok, c} = Library.compare(lib)
+    assert %DateTime{} = c.read_at
+
+    assert Map.new(c.programs, &{&1.name, &1.on_machine}) ==
+             %{"000001.PRO" => {:same, 1}, "000002.PRO" => :differs, "000003.PRO" => :absent}
+
+    assert c.machine_only == ["000009.PRO"]
+    assert Library.on_machine_text({:same, 1}, 2) =~ "v1"
+  end
+
+  test "a workstation's library outlives it: stopped and started again, every version is there",
+       %{dir: dir} do
+    id = "lib-restart-#{System.unique_integer([:positive])}"
+    %{sup: sup} = Vws.Test.Workstation.start(id: id, library: dir)
+    assert Library.dir(id) == {:ok, dir}
+    {:ok, _} = Library.store(id, "8", "%\nO8\nN1\n%\n", source: "iex")
+    {:ok, _} = Library.store(id, "8", "%\nO8\nN2\n%\n", source: "wc")
+    ref = Process.monitor(sup)
+    :ok = stop_supervised({Vws.CEC.Workstation, id})
+    assert_receive {:DOWN, ^ref, :process, _, _}, 5_000
+    # (the registry forgets a dead process a moment after it died)
+    assert Vws.Test.Eventually.eventually(fn -> Library.dir(id) == {:error, :no_library} end)
+
+    Vws.Test.Workstation.start(id: id, library: dir)
+    {:ok, [p]} = Library.list(id)
+    assert Enum.map(p.versions, &{&1.version, &1.source}) == [{1, "iex"}, {2, "wc"}]
+    assert {:ok, "%\nO8\nN1\n%\n", _} = Library.read(id, "8", 1)
+    {:ok, v} = Library.store(id, "8", "%\nO8\nN3\n%\n")
+    assert v.version == 3
+  end
+
+  test "property: any name is a GE-2000 file name or refused, and a store never writes outside " <>
+         "the library directory",
+       %{lib: lib, dir: dir} do
+    parts =
+      :proper_types.oneof([
+        ~c"..",
+        ~c"/",
+        ~c".",
+        ~c"~",
+        ~c"PRO",
+        ~c"gsu",
+        ~c"O",
+        ~c"0",
+        ~c"12",
+        ~c"\0"
+      ])
+
+    name =
+      :proper_types.list(
+        :proper_types.oneof([parts, :proper_types.list(:proper_types.range(0, 255))])
+      )
+
+    property =
+      :proper.forall(name, fn chunks ->
+        text = chunks |> List.flatten() |> :erlang.list_to_binary()
+
+        case Library.name(text) do
+          {:ok, n} ->
+            n =~ ~r/^\d{6}\.(PRO|GSU)$/ and match?({:ok, _}, Library.store(lib, text, "x"))
+
+          {:error, :bad_name} ->
+            Library.store(lib, text, "x") == {:error, :bad_name}
+        end
+      end)
+
+    assert_property(property, 300)
+    # everything stored is inside the directory, and only under version names
+    parent = Path.dirname(dir)
+
+    assert Path.wildcard(Path.join(parent, "*"))
+           |> Enum.filter(&String.starts_with?(&1, dir))
+           |> length() == 1
+
+    {:ok, files} = File.ls(dir)
+    assert Enum.all?(files, &(&1 == ".v" or &1 =~ ~r/^\d{6}\.(PRO|GSU)~\d{6}~/))
+  end
+end

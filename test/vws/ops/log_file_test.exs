@@ -1,0 +1,37 @@
+defmodule Vws.Ops.LogFileTest do
+  use ExUnit.Case, async: true
+
+  require Logger
+
+  @moduletag :tmp_dir
+
+  test "log lines go to DIR/vws.log, with the workstation and partition, rotated by size",
+       %{tmp_dir: dir} do
+    id = :"vws_file_test_#{System.unique_integer([:positive])}"
+    dir = Path.join(dir, "logs")
+    assert {:ok, path} = Vws.Ops.LogFile.start(dir: dir, max_bytes: 2_000, files: 2, id: id)
+    on_exit(fn -> Vws.Ops.LogFile.stop(id) end)
+    assert path == Path.join(dir, "vws.log")
+
+    Logger.metadata(workstation: "VWS-LOG", partition: :robot)
+    marker = "marker-#{System.unique_integer([:positive])}"
+    Logger.warning("the first line #{marker}")
+    for i <- 1..60, do: Logger.warning("line #{i} #{marker} " <> String.duplicate("x", 60))
+    :ok = :logger_std_h.filesync(id)
+
+    assert Vws.Test.Eventually.eventually(fn -> File.exists?(path <> ".0") end)
+
+    all =
+      Enum.map_join(
+        [path <> ".1", path <> ".0", path],
+        &(File.read(&1) |> elem(1) |> to_string())
+      )
+
+    assert all =~ ~r/workstation=VWS-LOG partition=robot \[warning\] line 60 #{marker}/
+    refute File.exists?(path <> ".2")
+  end
+
+  test "a directory that cannot be made is an error, not a crash" do
+    assert {:error, _} = Vws.Ops.LogFile.start(dir: "/proc/no/such/dir", id: :vws_file_bad)
+  end
+end

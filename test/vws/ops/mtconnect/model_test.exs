@@ -1,0 +1,118 @@
+defmodule Vws.Ops.MTConnect.ModelTest do
+  use ExUnit.Case, async: true
+
+  alias Vws.Ops.MTConnect.Model
+
+  doctest Vws.Ops.MTConnect.Model
+
+  describe "status texts (PROTOCOLS.md §1) to MTConnect values" do
+    test "VMC" do
+      assert Model.vmc_execution("ACTIVE") == "ACTIVE"
+      assert Model.vmc_execution("IDLE") == "READY"
+      assert Model.vmc_execution("NO DATA (NO LINK TO GE-2000)") == "UNAVAILABLE"
+      assert Model.vmc_execution(nil) == "UNAVAILABLE"
+      refute Model.vmc_available?("NO DATA (NO LINK TO GE-2000)")
+      assert Model.vmc_available?("IDLE")
+    end
+
+    test "robot" do
+      assert Model.robot_position("350.5/-12/400/90/0/0/1/2/3/4/5/6") == "350.5 -12 400"
+      assert Model.robot_position("1,2,3") == "1 2 3"
+      assert Model.robot_position("NO DATA (NO LINK TO VAL II)") == nil
+      assert Model.robot_position("1/2") == nil
+      assert Model.robot_execution(:executing) == "ACTIVE"
+      assert Model.robot_execution(:done) == "READY"
+      assert Model.robot_execution({:error, "COLLISION"}) == "STOPPED"
+    end
+
+    test "gripper, vise, trays, pallet" do
+      assert Model.gripper_state("GRIPPER IS OPEN AND INDEXER ROTATED 90 DEG") == "OPEN"
+
+      assert Model.gripper_state("FINGERS ARE 12.5 MM APART AND INDEXER ROTATED 0 DEG") ==
+               "CLOSED"
+
+      assert Model.gripper_state("NO DATA (NO LINK TO DAQ #1)") == "UNAVAILABLE"
+
+      assert Model.vise_state("VISE IS UNLOCKED PART NOT IN VISE") == "OPEN"
+      assert Model.vise_part("VISE IS UNLOCKED PART NOT IN VISE") == "NOT_PRESENT"
+      locked = "VISE JAWS ARE 75 MM APART AND VISE IS LOCKED PART IN VISE"
+      assert Model.vise_state(locked) == "CLOSED"
+      assert Model.vise_part(locked) == "PRESENT"
+      assert Model.vise_state("NO DATA (NO LINK TO DAQ #1)") == "UNAVAILABLE"
+
+      trays = "TRAY #1 IN POSITION TRAY #2 NOT IN POSITION"
+      assert Model.tray_state(trays, 1) == "LOCKED"
+      assert Model.tray_state(trays, 2) == "UNLOCKED"
+      assert Model.tray_state("NO DATA (NO LINK TO DAQ #1)", 1) == "UNAVAILABLE"
+
+      assert Model.pallet_state("PALLET CLAMPED") == "LOCKED"
+      assert Model.pallet_state("PALLET NOT CLAMPED") == "UNLOCKED"
+      assert Model.pallet_state("NO DATA (NO LINK TO HYDRAULIC CONTROLLER)") == "UNAVAILABLE"
+    end
+
+    test "the program is the last PROGRAM_SELECT, kept across other commands" do
+      assert Model.program("PROGRAM_SELECT(000123)", nil) == "000123"
+      assert Model.program("CYCLE_START", "000123") == "000123"
+      assert Model.program(nil, nil) == nil
+    end
+  end
+
+  describe "the device" do
+    test "ids are XML names, unique per workstation, names are the workstation ids" do
+      a = Model.device("VWS 1")
+      b = Model.device("VWS_1")
+      assert a.name == "VWS 1"
+      assert a.id =~ ~r/^[A-Za-z_][A-Za-z0-9_.\-]*$/
+      assert a.id != b.id
+      assert Model.device(:vws).name == "vws"
+
+      ids = Enum.map(Model.items(a), & &1.id)
+      assert ids == Enum.uniq(ids)
+    end
+
+    test "models the VMC, robot, gripper, vise, trays and pallet" do
+      d = Model.device("VWS")
+      types = for i <- Model.items(d), do: {i.component_name, i.type}
+
+      for expected <- [
+            {"VWS", "AVAILABILITY"},
+            {"vmc", "AVAILABILITY"},
+            {"vmc", "CONTROLLER_MODE"},
+            {"path", "EXECUTION"},
+            {"path", "PROGRAM"},
+            {"path", "PATH_POSITION"},
+            {"gripper", "CHUCK_STATE"},
+            {"vise", "CHUCK_STATE"},
+            {"vise", "PART_DETECT"},
+            {"tray1", "LOCK_STATE"},
+            {"tray2", "LOCK_STATE"},
+            {"pallet", "LOCK_STATE"}
+          ] do
+        assert expected in types
+      end
+    end
+
+    test "without facts every item is UNAVAILABLE; with them the device is AVAILABLE" do
+      d = Model.device("VWS")
+
+      assert d |> Model.observe(nil) |> Map.values() |> Enum.uniq() |> Enum.sort() ==
+               [{:condition, "Unavailable", nil, ""}, "UNAVAILABLE"]
+
+      facts = %{
+        devices: %{"MONARCH" => "IDLE", "PALLET" => "PALLET CLAMPED"},
+        commands: %{robot: {7, :executing}},
+        program: "000042"
+      }
+
+      v = Model.observe(d, facts)
+      assert v["ws_VWS_avail"] == "AVAILABLE"
+      assert v["ws_VWS_vmc_path_exec"] == "READY"
+      assert v["ws_VWS_vmc_mode"] == "AUTOMATIC"
+      assert v["ws_VWS_vmc_path_program"] == "000042"
+      assert v["ws_VWS_robot_avail"] == "AVAILABLE"
+      assert v["ws_VWS_robot_path_exec"] == "ACTIVE"
+      assert v["ws_VWS_pallet_state"] == "LOCKED"
+      assert v["ws_VWS_vise_state"] == "UNAVAILABLE"
+    end
+  end
+end

@@ -1,0 +1,60 @@
+defmodule Vws.Ops.Web.LibraryStateTest do
+  # The dashboard's program library section (issue 18), as /api/state carries it.
+  use ExUnit.Case, async: true
+
+  alias Vws.Links.DNC.Library
+
+  @tag :tmp_dir
+  test "programs, versions, the machine's directory and where each program stands", %{
+    tmp_dir: dir
+  } do
+    %{ws: ws} = Vws.Test.Workstation.start(library: dir)
+    a = "%\nO1\nN1\n%\n"
+    {:ok, _} = Library.store(ws, "1", a, source: "wc")
+    {:ok, _} = Library.store(ws, "1", "%\nO1\nN2\n%\n", source: "cli")
+    {:ok, _} = Library.store(ws, "2", "%\nO2\n%\n", source: "from the machine")
+
+    state = Vws.Ops.Web.State.build()
+    [shown] = Enum.filter(state.workstations, &(&1.id == Vws.Ops.Web.State.label(ws)))
+    l = shown.library
+    assert {l.programs, l.versions, l.read_at} == {2, 3, nil}
+    assert l.counts == %{"unknown" => 2}
+
+    :ok =
+      Library.record_machine(ws, %{"000001.PRO" => Vws.Links.DNC.Report.entry("000001.PRO", a)})
+
+    l = Vws.Ops.Web.State.library(ws)
+    assert l.read_at =~ ~r/^\d{4}-/
+    assert l.counts == %{"same" => 1, "absent" => 1}
+    rows = Map.new(l.rows, &{&1.name, &1})
+
+    assert %{versions: 2, latest: 2, source: "cli", on_machine: "same as v1 (not the latest)"} =
+             rows["000001.PRO"]
+
+    assert %{source: "from the machine", on_machine: "absent", on_machine_class: "absent"} =
+             rows["000002.PRO"]
+
+    # the JSON the page reads
+    json = IO.iodata_to_binary(Vws.Ops.Web.JSON.encode(state))
+    assert json =~ ~s("library":)
+    assert Vws.Ops.Web.State.library(:no_such_workstation) == nil
+  end
+
+  @tag :tmp_dir
+  test "with a cache, a section is read again once older than ten times its reading took", %{
+    tmp_dir: dir
+  } do
+    lib = {:dir, dir}
+    cache = :ets.new(:test_cache, [:public])
+    {:ok, _} = Library.store(lib, "1", "%\nO1\n%\n")
+    assert %{programs: 1} = Vws.Ops.Web.State.library(lib, cache)
+    # pretend the last reading took 60 s: the cached section is shown
+    [{key, shown, at, _took}] = :ets.lookup(cache, {:library, lib})
+    :ets.insert(cache, {key, shown, at, 60_000})
+    {:ok, _} = Library.store(lib, "2", "%\nO2\n%\n")
+    assert %{programs: 1} = Vws.Ops.Web.State.library(lib, cache)
+    # and once that time has passed, it is read again
+    :ets.insert(cache, {key, shown, at - 600_001, 60_000})
+    assert %{programs: 2} = Vws.Ops.Web.State.library(lib, cache)
+  end
+end
