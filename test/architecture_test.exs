@@ -18,9 +18,11 @@ defmodule Vws.ArchitectureTest do
     {"lib/mix/", :ops}
   ]
   # used by every layer, depending on nothing: the registry names of a workstation's parts,
-  # telemetry (with whatever sits beside it, a catalogue of events), log limits
+  # telemetry (with whatever sits beside it, a catalogue of events), log limits, the checking
+  # of start options against a schema
   @shared [
     "lib/vws/names.ex",
+    "lib/vws/options.ex",
     "lib/vws/telemetry.ex",
     "lib/vws/telemetry/",
     "lib/vws/log_limit.ex"

@@ -45,4 +45,16 @@ defmodule Vws.Names do
   def workstations do
     Registry.select(Vws.Registry, [{{{:"$1", :workstation}, :_, :_}, [], [:"$1"]}]) |> Enum.sort()
   end
+
+  @doc """
+  The ETS table of a workstation's mailboxes (CMD_IN, the locations, the event counters), as its
+  owner registered it; raises `ArgumentError` when the workstation has none (not started).
+  """
+  @spec mailbox_table(term) :: :ets.tid()
+  def mailbox_table(ws) do
+    case Registry.lookup(Vws.Registry, {ws, :mailbox}) do
+      [{_pid, table}] -> table
+      [] -> raise ArgumentError, "workstation #{inspect(ws)} has no mailboxes (is it started?)"
+    end
+  end
 end

@@ -2,7 +2,7 @@ defmodule Mix.Tasks.Vws.Library do
   @shortdoc "The program library: list, show, import, export, diff, compare"
   @moduledoc """
   The program library of a workstation (`Vws.Links.DNC.Library`), running or stopped
-  (`Vws.Links.DNC.Library.CLI` has every option):
+  (`Vws.Ops.LibraryCLI` has every option):
 
       mix vws.library list
       mix vws.library show 001234.PRO [--version 2]
@@ -22,7 +22,7 @@ defmodule Mix.Tasks.Vws.Library do
     # the configuration and the code, not the application: this works on files
     Mix.Task.run("app.config")
 
-    case Vws.Links.DNC.Library.CLI.main(args) do
+    case Vws.Ops.LibraryCLI.main(args) do
       0 -> :ok
       status -> exit({:shutdown, status})
     end

@@ -33,8 +33,6 @@ defmodule Vws.CEC.Events do
       1
   """
 
-  alias Vws.CEC.Mailbox
-
   @typedoc "A workstation id."
   @type workstation :: term
   @type event :: atom
@@ -42,7 +40,7 @@ defmodule Vws.CEC.Events do
   @doc "CREATE EVENT: declares `event` for the workstation (idempotent)."
   @spec create(workstation, event) :: :ok
   def create(ws, event) when is_atom(event) do
-    :ets.insert_new(Mailbox.table(ws), {{:event, event}, 0})
+    :ets.insert_new(Vws.Names.mailbox_table(ws), {{:event, event}, 0})
     :ok
   end
 
@@ -65,7 +63,7 @@ defmodule Vws.CEC.Events do
   @spec cause(workstation, event, term) :: :ok | {:error, :no_such_event}
   def cause(ws, event, payload \\ nil) do
     try do
-      :ets.update_counter(Mailbox.table(ws), {:event, event}, 1)
+      :ets.update_counter(Vws.Names.mailbox_table(ws), {:event, event}, 1)
 
       Registry.dispatch(__MODULE__, {ws, event}, fn entries ->
         for {pid, _} <- entries, do: send(pid, {:vws_event, ws, event, payload})
@@ -98,7 +96,7 @@ defmodule Vws.CEC.Events do
   @doc "How many times the event has been caused; `nil` when it was never created."
   @spec count(workstation, event) :: non_neg_integer | nil
   def count(ws, event) do
-    case :ets.lookup(Mailbox.table(ws), {:event, event}) do
+    case :ets.lookup(Vws.Names.mailbox_table(ws), {:event, event}) do
       [{_, n}] -> n
       [] -> nil
     end
@@ -107,7 +105,7 @@ defmodule Vws.CEC.Events do
   @doc "The events created for a workstation with their counts."
   @spec list(workstation) :: [{event, non_neg_integer}]
   def list(ws) do
-    Mailbox.table(ws)
+    Vws.Names.mailbox_table(ws)
     |> :ets.match({{:event, :"$1"}, :"$2"})
     |> Enum.map(fn [e, n] -> {e, n} end)
     |> Enum.sort()

@@ -111,12 +111,7 @@ defmodule Vws.CEC.Mailbox do
 
   @doc "The workstation's table. Raises `ArgumentError` if the workstation has no mailboxes."
   @spec table(workstation) :: :ets.tid()
-  def table(ws) do
-    case Registry.lookup(Vws.Registry, {ws, :mailbox}) do
-      [{_pid, table}] -> table
-      [] -> raise ArgumentError, "workstation #{inspect(ws)} has no mailboxes (is it started?)"
-    end
-  end
+  def table(ws), do: Vws.Names.mailbox_table(ws)
 
   @doc "True when the workstation's mailboxes exist."
   @spec exists?(workstation) :: boolean

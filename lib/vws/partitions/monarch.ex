@@ -381,7 +381,7 @@ defmodule Vws.Partitions.Monarch do
   """
   @spec compare(Mailbox.workstation(), keyword) :: {:ok, map} | {:error, term}
   def compare(ws, opts \\ []) do
-    link = Keyword.get_lazy(opts, :link, fn -> Vws.CEC.Workstation.whereis(ws, :ge2000) end)
+    link = Keyword.get_lazy(opts, :link, fn -> Vws.Names.whereis(ws, :ge2000) end)
     ctx = %{workstation: ws, link: link, options: opts}
 
     with :ok <- if(link, do: :ok, else: {:error, "NO LINK TO GE-2000"}),

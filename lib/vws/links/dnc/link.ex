@@ -375,20 +375,9 @@ defmodule Vws.Links.DNC.Link do
       Map.take(payload, [:blocks, :bytes, :program_bytes, :chars_per_s, :retries])
     )
 
-    case Vws.Names.id_of(data.name) do
-      nil -> :ok
-      ws -> cause_progress(ws, payload)
-    end
-  end
-
-  defp cause_progress(ws, payload) do
-    with {:error, :no_such_event} <- Vws.CEC.Events.cause(ws, :dnc_progress, payload) do
-      :ok = Vws.CEC.Events.create(ws, :dnc_progress)
-      Vws.CEC.Events.cause(ws, :dnc_progress, payload)
-    end
-  rescue
-    # the workstation's mailboxes are gone (it is stopping): nobody to tell
-    ArgumentError -> :ok
+    # the link's owner (in a workstation, MONARCH's monitor) publishes it on the workstation's
+    # pub/sub: a link knows no workstation
+    notify(data, {:progress, payload})
   end
 
   defp carry_out({:state_timeout, ms, tag}, {data, actions}),

@@ -92,6 +92,22 @@ defmodule Vws.Partitions.Monarch.Monitor do
     {:noreply, s}
   end
 
+  # A transfer's progress, told by the link: the workstation's event :dnc_progress
+  # ({:vws_event, ws, :dnc_progress, payload}, payload as documented in Vws.Links.DNC).
+  def handle_info({:dnc, _link, {:progress, payload}}, s) do
+    ws = s.workstation
+
+    with {:error, :no_such_event} <- Vws.CEC.Events.cause(ws, :dnc_progress, payload) do
+      :ok = Vws.CEC.Events.create(ws, :dnc_progress)
+      Vws.CEC.Events.cause(ws, :dnc_progress, payload)
+    end
+
+    {:noreply, s}
+  rescue
+    # the workstation's mailboxes are gone (it is stopping): nobody to tell
+    ArgumentError -> {:noreply, s}
+  end
+
   def handle_info({:dnc, _link, _event}, s), do: {:noreply, s}
 
   # The monitor is the link's owner: it is told what the machine sends of its own accord.

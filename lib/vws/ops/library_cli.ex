@@ -1,4 +1,4 @@
-defmodule Vws.Links.DNC.Library.CLI do
+defmodule Vws.Ops.LibraryCLI do
   @moduledoc """
   The program library on the command line (`mix vws.library`; `bin/vws-library` in a release,
   with the same options): works on the library's directory
