@@ -438,14 +438,44 @@ defmodule Vws.Reliability.CrashTest do
           Map.get(attributed, id) != 1,
           do: "#{inspect(id)} DONE but #{inspect(kind)} ran #{Map.get(attributed, id, 0)} times"
 
-    assert twice_dispatched ++ bad_ends ++ not_error ++ unattributed ++ twice_run ++ not_run ==
-             []
+    problems = twice_dispatched ++ bad_ends ++ not_error ++ unattributed ++ twice_run ++ not_run
+
+    assert problems == [],
+           Enum.join(problems, "\n") <> "\n\n" <> story(rows, twice_run ++ not_run, kinds)
 
     %{
       dispatched: length(dispatched),
       interrupted: length(Enum.uniq_by(interrupted, &elem(&1, 0))),
       executed: length(executed)
     }
+  end
+
+  # What happened around a command that ran twice (or not once): every dispatch, start, end and
+  # physical execution of its kind, and the kills, in order, with ms from the first of them.
+  defp story(_rows, [], _kinds), do: ""
+
+  defp story(rows, _problems, kinds) do
+    kind_of = Map.new(kinds, fn {_key, id, kind} -> {id, kind} end)
+    suspicious = kind_of |> Map.values() |> MapSet.new()
+
+    relevant =
+      for {{t, _}, what, a, b} <- Enum.sort(rows),
+          what == :kill or
+            (what == :executed and MapSet.member?(suspicious, a)) or
+            (what in [:dispatched, :started, :finished] and
+               MapSet.member?(suspicious, kind_of[a])),
+          do: {t, what, a, b}
+
+    t0 = relevant |> List.first() |> elem(0)
+
+    relevant
+    |> Enum.map(fn {t, what, a, b} ->
+      ms = System.convert_time_unit(t - t0, :native, :millisecond)
+      b = if what == :started, do: :links, else: b
+      "#{ms} ms #{what} #{inspect(a)} #{inspect(b, limit: 5)}"
+    end)
+    |> Enum.take(-400)
+    |> Enum.join("\n")
   end
 
   # Per partition, its last command to finish and how: {number, :done | {:error, reason}}.
