@@ -190,6 +190,13 @@ defmodule Vws.Ops.MTConnect.Agent do
   def handle_info({:vws_event, ws, :mailbox, {change, at}}, s),
     do: {:noreply, notice(s, ws, change, at)}
 
+  # the GE-2000 link's transfer progress (Vws.Links.DNC, event :dnc_progress): the VMC's
+  # dnc_transfer message
+  def handle_info({:vws_event, ws, :dnc_progress, progress}, s),
+    do:
+      {:noreply,
+       notice(s, ws, {:transfer, Model.transfer_text(progress)}, System.system_time(:microsecond))}
+
   def handle_info({:mtc_snapshot, ws, facts}, s) do
     if Map.get(s.following, ws) != nil and is_map(facts) and not MapSet.member?(s.gone, ws) do
       s = %{s | followed: MapSet.put(s.followed, ws)}
@@ -755,7 +762,10 @@ defmodule Vws.Ops.MTConnect.Agent do
         s
 
       _ ->
-        if not Map.has_key?(s.local, ws), do: :ok = Vws.CEC.Events.subscribe(ws, :mailbox)
+        if not Map.has_key?(s.local, ws) do
+          :ok = Vws.CEC.Events.subscribe(ws, :mailbox)
+          :ok = Vws.CEC.Events.subscribe(ws, :dnc_progress)
+        end
 
         case read(ws) do
           :absent ->
@@ -823,6 +833,8 @@ defmodule Vws.Ops.MTConnect.Agent do
         facts
     end
   end
+
+  def apply_change(facts, {:transfer, text}), do: Map.put(facts, :transfer, text)
 
   def apply_change(facts, _other), do: facts
 
@@ -927,6 +939,7 @@ defmodule Vws.Ops.MTConnect.Agent do
       case s.local do
         %{^ws => _} ->
           Vws.CEC.Events.unsubscribe(ws, :mailbox)
+          Vws.CEC.Events.unsubscribe(ws, :dnc_progress)
           %{s | local: Map.delete(s.local, ws)}
 
         _ ->

@@ -421,15 +421,73 @@ defmodule Vws.Ops.MTConnect.Model do
   end
 
   @doc """
-  The DNC transfer message: what the GE-2000 link is transferring (`facts.transfer`, text such
-  as `DOWNLOAD_GE 1200/5000 BYTES`), else `UNAVAILABLE`. This is the place for the DNC link's
-  transfer-progress notices once they are published; until then nothing fills `:transfer`.
+  The DNC transfer message: what the GE-2000 link is transferring or transferred last
+  (`facts.transfer`, from the link's `:dnc_progress` events: `transfer_text/1`), else
+  `UNAVAILABLE`.
   """
   @spec dnc_transfer(facts) :: String.t()
   def dnc_transfer(facts) do
     case Map.get(facts, :transfer) do
       text when is_binary(text) and text != "" -> text
       _ -> @unavailable
+    end
+  end
+
+  @doc """
+  A DNC transfer's progress (the payload of `:dnc_progress`, `Vws.Links.DNC`) as the VMC's
+  transfer message.
+
+      iex> Vws.Ops.MTConnect.Model.transfer_text(%{program: "001234.PRO", operation: :part_program,
+      ...>   direction: :out, bytes: 1200, total_bytes: 5000, retries: 1, ended: false})
+      "SENDING 001234.PRO 1200/5000 BYTES, 1 RETRY"
+      iex> Vws.Ops.MTConnect.Model.transfer_text(%{program: "000100.PRO", operation: :part_program,
+      ...>   direction: :in, bytes: 800, total_bytes: nil, retries: 0, ended: :ok})
+      "RECEIVED 000100.PRO 800 BYTES"
+      iex> Vws.Ops.MTConnect.Model.transfer_text(%{program: "000007.PRO", operation: :download_execute,
+      ...>   direction: :out, bytes: 300, total_bytes: 900, retries: 4, ended: :link_down})
+      "DRIP FEED 000007.PRO FAILED AT 300/900 BYTES (LINK_DOWN), 4 RETRIES"
+  """
+  @spec transfer_text(map) :: String.t()
+  def transfer_text(p) do
+    what =
+      case {p[:operation], p[:direction], p[:ended]} do
+        {:download_execute, _, _} -> "DRIP FEED"
+        {_, :out, false} -> "SENDING"
+        {_, :out, _} -> "SENT"
+        {_, _, false} -> "RECEIVING"
+        {_, _, _} -> "RECEIVED"
+      end
+
+    bytes =
+      if is_integer(p[:total_bytes]),
+        do: "#{p[:bytes]}/#{p[:total_bytes]} BYTES",
+        else: "#{p[:bytes]} BYTES"
+
+    retries =
+      case p[:retries] || 0 do
+        0 -> ""
+        1 -> ", 1 RETRY"
+        n -> ", #{n} RETRIES"
+      end
+
+    # the seed's DOWNLOAD_GE names no program on the line: the NC file
+    program = if p[:program] in [nil, ""], do: "NC FILE", else: p[:program]
+
+    case p[:ended] do
+      e when e in [false, :ok] ->
+        "#{what} #{program} #{bytes}#{retries}"
+
+      reason ->
+        why =
+          cond do
+            is_exception(reason) -> Exception.message(reason)
+            is_atom(reason) -> Atom.to_string(reason)
+            is_binary(reason) -> reason
+            true -> inspect(reason, limit: 3)
+          end
+          |> String.upcase()
+
+        "#{what} #{program} FAILED AT #{bytes} (#{why})#{retries}"
     end
   end
 

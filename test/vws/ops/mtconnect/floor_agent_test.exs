@@ -57,6 +57,13 @@ defmodule Vws.Ops.MTConnect.FloorAgentTest do
 
     assert current.("#{id}_vmc_path_program") =~ ~r/^\d+$/
     assert current.("#{id}_vmc_path_part_count") == "1"
+    # the cycle's DOWNLOAD_GE, block by block, as the VMC's transfer message (the link's progress)
+    transfers = values.("#{id}_vmc_path_transfer")
+
+    assert Enum.any?(transfers, &(&1 =~ ~r/^SENDING (\d{6}\.PRO|NC FILE) \d+\/\d+ BYTES/)),
+           inspect(transfers)
+
+    assert current.("#{id}_vmc_path_transfer") =~ ~r/^(SENT|RECEIVED) (\d{6}\.PRO|NC FILE) \d+/
     assert now =~ ~r/<Normal dataItemId="#{id}_vmc_system"/
     assert now =~ ~r/<Normal dataItemId="#{id}_robot_system"/
 
