@@ -109,20 +109,10 @@ defmodule Vws.Partitions.Monarch do
     do: {:error, "#{command |> to_string() |> String.upcase()} IS CARRIED OUT BY SUN_COMM"}
 
   def execute(:download_ge, ctx) do
-    lines = Mailbox.nc_file(ctx.workstation)
-
-    with :ok <- if(lines == [], do: {:error, "NO NC FILE"}, else: :ok),
-         {:ok, file} <- program_file(lines),
-         :ok <- sendable(lines),
-         text = Program.to_text(lines),
-         :ok <- if(Program.complete?(text), do: :ok, else: {:error, "NC FILE HAS NO CLOSING %"}),
-         {:ok, max_text} <- max_text(ctx),
-         blocks = Frame.split_text(text, max_text),
-         {:ok, _} <- request(ctx, :send, :part_program, "", blocks),
-         {:ok, _report} <- verify(ctx, "DOWNLOAD OF #{file} FAILED", fn _ -> true end),
-         :ok <- verify_directory(ctx, file, text) do
-      :done
-    end
+    with {:ok, file, text} <- nc_file_program(ctx.workstation),
+         :ok <- send_program(ctx, :part_program, "", text, "DOWNLOAD OF #{file} FAILED"),
+         :ok <- verify_directory(ctx, file, text),
+         do: :done
   end
 
   def execute({:download_ge, file, which}, ctx) do
@@ -133,31 +123,18 @@ defmodule Vws.Partitions.Monarch do
              do: :ok,
              else: {:error, "#{file} HOLDS A CONTROL CHARACTER"}
            ),
-         {:ok, max_text} <- max_text(ctx),
-         {:ok, _} <- request(ctx, :send, :part_program, file, Frame.split_text(text, max_text)),
-         {:ok, _report} <- verify(ctx, "DOWNLOAD OF #{file} FAILED", fn _ -> true end),
-         :ok <- verify_directory(ctx, file, text) do
-      :done
-    end
+         :ok <- send_program(ctx, :part_program, file, text, "DOWNLOAD OF #{file} FAILED"),
+         :ok <- verify_directory(ctx, file, text),
+         do: :done
   end
 
   # Drip feed (ours, docs/dnc-drip-feed.md): the NC file goes as one E (download and execute)
   # transmission that the machine runs while it arrives, pausing the CEC with WACK when its
   # buffer is full. Never made again when the line breaks it off: the machine has run part of it.
   def execute(:drip_feed, ctx) do
-    lines = Mailbox.nc_file(ctx.workstation)
-
-    with :ok <- if(lines == [], do: {:error, "NO NC FILE"}, else: :ok),
-         {:ok, file} <- program_file(lines),
-         :ok <- sendable(lines),
-         text = Program.to_text(lines),
-         :ok <- if(Program.complete?(text), do: :ok, else: {:error, "NC FILE HAS NO CLOSING %"}),
-         {:ok, max_text} <- max_text(ctx),
-         blocks = Frame.split_text(text, max_text),
-         {:ok, _} <- request(ctx, :send, :download_execute, file, blocks),
-         {:ok, _report} <- verify(ctx, "DRIP FEED OF #{file} FAILED", fn _ -> true end) do
-      :done
-    end
+    with {:ok, file, text} <- nc_file_program(ctx.workstation),
+         :ok <- send_program(ctx, :download_execute, file, text, "DRIP FEED OF #{file} FAILED"),
+         do: :done
   end
 
   def execute(:compare_ge, ctx) do
@@ -496,6 +473,26 @@ defmodule Vws.Partitions.Monarch do
     else
       :ok
     end
+  end
+
+  # The NC file as a program to send: its file name (from its program number) and its text.
+  defp nc_file_program(ws) do
+    lines = Mailbox.nc_file(ws)
+
+    with :ok <- if(lines == [], do: {:error, "NO NC FILE"}, else: :ok),
+         {:ok, file} <- program_file(lines),
+         :ok <- sendable(lines),
+         text = Program.to_text(lines),
+         :ok <- if(Program.complete?(text), do: :ok, else: {:error, "NC FILE HAS NO CLOSING %"}),
+         do: {:ok, file, text}
+  end
+
+  # One S (or E) transmission of the program's text blocks, then the status report: no alarm.
+  defp send_program(ctx, operation, name, text, failed) do
+    with {:ok, max_text} <- max_text(ctx),
+         {:ok, _} <- request(ctx, :send, operation, name, Frame.split_text(text, max_text)),
+         {:ok, _report} <- verify(ctx, failed, fn _ -> true end),
+         do: :ok
   end
 
   # RNL → the report; every report read refreshes the MONARCH device status.
