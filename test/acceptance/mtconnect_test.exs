@@ -22,27 +22,23 @@ defmodule Vws.Acceptance.MTConnectTest do
   defp ids(text), do: text |> MTCClient.observations() |> Enum.map(&elem(&1, 1)) |> Enum.uniq()
 
   test "mix vws.serve's agent: filters, at=, paging, streaming, assets, JSON and errors" do
-    wc = Acceptance.free_port()
-    http = Acceptance.free_port()
-
+    # port 0: the OS picks free ports, read back from what it prints (a port picked free here
+    # could be taken by one of its simulators before the dashboard binds it)
     proc =
       Acceptance.start(
-        [
-          "mix",
-          "vws.serve",
-          "--wc-port",
-          "#{wc}",
-          "--http-port",
-          "#{http}",
-          "--time-scale",
-          "20"
-        ],
+        ["mix", "vws.serve", "--wc-port", "0", "--http-port", "0", "--time-scale", "20"],
         env: [{"MIX_ENV", "dev"}]
       )
 
     on_exit(fn -> Acceptance.stop(proc) end)
-    Acceptance.await(proc, ~r/SUN_COMM waits for the WC on tcp:\/\/127\.0\.0\.1:#{wc}/, 90_000)
-    Acceptance.await(proc, ~r/Dashboard and MTConnect agent: http:\/\/127\.0\.0\.1:#{http}\//)
+
+    [_, wc] =
+      Acceptance.await(proc, ~r/SUN_COMM waits for the WC on tcp:\/\/127\.0\.0\.1:(\d+)/, 90_000)
+
+    [_, http] =
+      Acceptance.await(proc, ~r/Dashboard and MTConnect agent: http:\/\/127\.0\.0\.1:(\d+)\//)
+
+    {wc, http} = {String.to_integer(wc), String.to_integer(http)}
 
     probe = get!(http, "/probe", :devices)
     assert probe =~ ~s(<Device id="ws_VWS" name="VWS")

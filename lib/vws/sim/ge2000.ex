@@ -111,6 +111,13 @@ defmodule Vws.Sim.GE2000 do
   @spec endpoint(GenServer.server()) :: String.t()
   def endpoint(sim), do: GenServer.call(sim, :endpoint)
 
+  defp connected(link, deadline) do
+    if DNC.info(link).state == :disconnected and System.monotonic_time(:millisecond) < deadline do
+      Process.sleep(10)
+      connected(link, deadline)
+    end
+  end
+
   @doc "The simulator's DNC link process."
   @spec link(GenServer.server()) :: pid
   def link(sim), do: GenServer.call(sim, :link)
@@ -125,6 +132,10 @@ defmodule Vws.Sim.GE2000 do
   def send_program(sim, name, timeout \\ 60_000) do
     case GenServer.call(sim, {:program_to_send, name}) do
       {:ok, link, command, blocks} ->
+        # an operator sends once the machine's line is connected (the CEC's connection reaches
+        # the machine's link through the simulated line a moment after the CEC sees it up)
+        connected(link, System.monotonic_time(:millisecond) + min(timeout, 5_000))
+
         case DNC.request(link, command, blocks, timeout) do
           {:ok, _} -> :ok
           error -> error
