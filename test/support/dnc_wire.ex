@@ -26,19 +26,8 @@ defmodule Vws.Test.DNCWire do
 
   alias Vws.Links.DNC.Session
 
-  @limits [
-    reply_timeout: 3_000,
-    max_naks: 3,
-    max_enqs: 3,
-    wack_delay: 2_000,
-    max_wacks: 3,
-    max_contention: 3,
-    response_timeout: 10_000,
-    receive_timeout: 10_000,
-    answer_timeout: 5_000,
-    max_text: 256,
-    max_receive: 4 * 1024 * 1024
-  ]
+  # the link's own defaults, as the link hands them to its core
+  @limits Keyword.drop(Vws.Links.DNC.Link.defaults(), [:role, :owner, :endpoint])
 
   def limits, do: @limits
 
