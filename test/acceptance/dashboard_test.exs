@@ -15,7 +15,7 @@ defmodule Vws.Acceptance.DashboardTest do
 
   @moduletag :acceptance
   @moduletag timeout: 300_000
-  @chromium System.find_executable("chromium") || System.find_executable("chromium-browser")
+  @chromium Vws.Test.Browser.chromium()
   if !@chromium do
     @moduletag skip: "chromium is not installed (apt-get install -y chromium)"
   end
@@ -161,63 +161,20 @@ defmodule Vws.Acceptance.DashboardTest do
 
   defp nc_line(n, text), do: IO.iodata_to_binary(Reply.encode({:line, n, text}))
 
-  defp chromium_args(budget_ms) do
-    [
-      "--headless=new",
-      "--disable-gpu",
-      "--no-sandbox",
-      "--no-first-run",
-      "--disable-extensions",
-      "--user-data-dir=" <>
-        Path.join(System.tmp_dir!(), "vws-chromium-#{System.unique_integer([:positive])}"),
-      "--virtual-time-budget=#{budget_ms}"
-    ]
-  end
-
-  # Runs Chromium on `url` for `budget_ms` of page time and returns the DOM it ends with.
-  defp dump_dom(url, budget_ms) do
-    {dom, 0} =
-      System.cmd("sh", [
-        "-c",
-        ~s(exec "$0" "$@" 2>/dev/null),
-        @chromium | chromium_args(budget_ms) ++ ["--dump-dom", url]
-      ])
-
-    dom
-  end
+  defdelegate dump_dom(url, budget_ms), to: Vws.Test.Browser
 
   defp screenshot(url, name) do
     File.mkdir_p!(@shots)
     path = Path.join(@shots, name)
     File.rm(path)
 
-    {_, 0} =
-      System.cmd(
-        "sh",
-        [
-          "-c",
-          ~s(exec "$0" "$@" 2>/dev/null),
-          @chromium
-          | chromium_args(3_000) ++
-              ["--window-size=1400,2400", "--screenshot=#{path}", url]
-        ],
-        cd: @shots
-      )
+    Vws.Test.Browser.run(3_000, ["--window-size=1400,2400", "--screenshot=#{path}", url],
+      cd: @shots
+    )
 
     assert File.stat!(path).size > 10_000
     path
   end
 
-  # The visible text of the DOM, roughly as a person reads it.
-  defp text(dom) do
-    dom
-    |> String.replace(~r{<script.*?</script>}s, "")
-    |> String.replace(~r{<style.*?</style>}s, "")
-    |> String.replace(~r{<(td|th|div|h2|h3|p|tr|span)[^>]*>}, " ")
-    |> String.replace(~r{<[^>]+>}, "")
-    |> String.replace("&gt;", ">")
-    |> String.replace("&lt;", "<")
-    |> String.replace("&amp;", "&")
-    |> String.replace(~r/[ \t]+/, " ")
-  end
+  defdelegate text(dom), to: Vws.Test.Browser
 end

@@ -91,8 +91,8 @@ defmodule Vws.Acceptance.LibraryTest do
     assert out =~ "on the machine: absent"
 
     # the dashboard shows the same, in a browser
-    if chromium = System.find_executable("chromium") || System.find_executable("chromium-browser") do
-      text = dashboard_text(chromium, "http://127.0.0.1:#{http}/")
+    if Vws.Test.Browser.chromium() do
+      text = dashboard_text("http://127.0.0.1:#{http}/")
       assert text =~ "Program library"
       assert text =~ ~r/1 programs, 2 versions — on the machine: 0 same, 0 differ, 1 absent/
       assert text =~ ~r/004711\.PRO\s+2\s+v2\s+\S+\s+cli\s+\d+\s+[0-9A-F]{4}\s+absent/
@@ -147,24 +147,9 @@ defmodule Vws.Acceptance.LibraryTest do
   end
 
   # The dashboard's visible text after the page ran 3 s in headless Chromium.
-  defp dashboard_text(chromium, url) do
-    profile = Path.join(System.tmp_dir!(), "vws-chromium-#{System.unique_integer([:positive])}")
-    on_exit(fn -> File.rm_rf(profile) end)
-
-    {dom, 0} =
-      System.cmd("sh", [
-        "-c",
-        ~s(exec "$0" "$@" 2>/dev/null),
-        chromium,
-        "--headless=new",
-        "--disable-gpu",
-        "--no-sandbox",
-        "--no-first-run",
-        "--user-data-dir=" <> profile,
-        "--virtual-time-budget=3000",
-        "--dump-dom",
-        url
-      ])
+  # (all whitespace one blank: the table's cells on one line)
+  defp dashboard_text(url) do
+    dom = Vws.Test.Browser.dump_dom(url, 3_000)
 
     dom
     |> String.replace(~r{<script.*?</script>}s, "")

@@ -6,44 +6,15 @@ defmodule Vws.Ops.Web.BrowserTest do
   alias Vws.Test.WCPeer
 
   @moduletag :browser
-  @chromium System.find_executable("chromium") || System.find_executable("chromium-browser")
+  @chromium Vws.Test.Browser.chromium()
   if !@chromium do
     @moduletag skip: "chromium is not installed (apt-get install -y chromium)"
   end
 
   @moduletag timeout: 120_000
 
-  # Runs Chromium on `url` for `budget_ms` of page time and returns the DOM it ends with.
-  defp dump_dom(url, budget_ms) do
-    args = [
-      "--headless=new",
-      "--disable-gpu",
-      "--no-sandbox",
-      "--no-first-run",
-      "--disable-extensions",
-      "--user-data-dir=" <>
-        Path.join(System.tmp_dir!(), "vws-chromium-#{System.unique_integer([:positive])}"),
-      "--virtual-time-budget=#{budget_ms}",
-      "--dump-dom",
-      url
-    ]
-
-    # Chromium's own complaints (no D-Bus in a container) go to /dev/null, the DOM to us
-    {dom, 0} = System.cmd("sh", ["-c", ~s(exec "$0" "$@" 2>/dev/null), @chromium | args])
-    dom
-  end
-
-  # The visible text of the DOM, roughly as a person reads it.
-  defp text(dom) do
-    dom
-    |> String.replace(~r{<script.*?</script>}s, "")
-    |> String.replace(~r{<(td|th|div|h2|h3|p|tr|span)[^>]*>}, " ")
-    |> String.replace(~r{<[^>]+>}, "")
-    |> String.replace("&gt;", ">")
-    |> String.replace("&lt;", "<")
-    |> String.replace("&amp;", "&")
-    |> String.replace(~r/[ \t]+/, " ")
-  end
+  defdelegate dump_dom(url, budget_ms), to: Vws.Test.Browser
+  defdelegate text(dom), to: Vws.Test.Browser
 
   defp row(text, first_cell),
     do: Regex.run(~r/#{first_cell} [^\n]*/, text) |> List.wrap() |> List.first()

@@ -1,0 +1,55 @@
+defmodule Vws.Test.Browser do
+  @moduledoc """
+  Headless Chromium for the tests that read the dashboard as a person sees it: the page runs for
+  a budget of virtual time (its JavaScript polls `/api/state`), then Chromium dumps the DOM it
+  ended with, or takes a screenshot. Each run has a profile directory of its own, removed after.
+  """
+
+  @doc "The Chromium executable, or nil when none is installed."
+  def chromium,
+    do: System.find_executable("chromium") || System.find_executable("chromium-browser")
+
+  @doc """
+  Runs Chromium headless for `budget_ms` of page time with `extra` arguments after the common
+  ones (`["--dump-dom", url]`, `["--screenshot=…", url]`); its standard output. `opts` go to
+  `System.cmd/3` (`cd:`).
+  """
+  def run(budget_ms, extra, opts \\ []) do
+    profile = Path.join(System.tmp_dir!(), "vws-chromium-#{System.unique_integer([:positive])}")
+
+    args =
+      [
+        "--headless=new",
+        "--disable-gpu",
+        "--no-sandbox",
+        "--no-first-run",
+        "--disable-extensions",
+        "--user-data-dir=" <> profile,
+        "--virtual-time-budget=#{budget_ms}"
+      ] ++ extra
+
+    try do
+      # Chromium's own complaints (no D-Bus in a container) go to /dev/null, its output to us
+      {out, 0} = System.cmd("sh", ["-c", ~s(exec "$0" "$@" 2>/dev/null), chromium() | args], opts)
+      out
+    after
+      File.rm_rf(profile)
+    end
+  end
+
+  @doc "The DOM Chromium ends with after `budget_ms` of page time on `url`."
+  def dump_dom(url, budget_ms), do: run(budget_ms, ["--dump-dom", url])
+
+  @doc "The visible text of a DOM, roughly as a person reads it (a line per block element)."
+  def text(dom) do
+    dom
+    |> String.replace(~r{<script.*?</script>}s, "")
+    |> String.replace(~r{<style.*?</style>}s, "")
+    |> String.replace(~r{<(td|th|div|h2|h3|p|tr|span)[^>]*>}, " ")
+    |> String.replace(~r{<[^>]+>}, "")
+    |> String.replace("&gt;", ">")
+    |> String.replace("&lt;", "<")
+    |> String.replace("&amp;", "&")
+    |> String.replace(~r/[ \t]+/, " ")
+  end
+end
