@@ -36,11 +36,7 @@ defmodule Vws.Ops.MTConnect.XML do
   @spec devices(header, [Model.device()]) :: iodata
   def devices(header, devices) do
     document("MTConnectDevices", [
-      tag("Header", [
-        {"creationTime", header.creation_time},
-        {"sender", header.sender},
-        {"instanceId", header.instance_id},
-        {"version", @version},
+      header_tag(header, [
         {"deviceModelChangeTime", header.model_change_time},
         {"bufferSize", header.buffer_size},
         {"assetBufferSize", Map.get(header, :asset_buffer_size, 1024)},
@@ -155,11 +151,7 @@ defmodule Vws.Ops.MTConnect.XML do
     by_device = group(observations, &{&1.item.device, &1.item.device_uuid})
 
     document("MTConnectStreams", [
-      tag("Header", [
-        {"creationTime", header.creation_time},
-        {"sender", header.sender},
-        {"instanceId", header.instance_id},
-        {"version", @version},
+      header_tag(header, [
         {"deviceModelChangeTime", header.model_change_time},
         {"bufferSize", header.buffer_size},
         {"nextSequence", header.next_sequence},
@@ -243,11 +235,7 @@ defmodule Vws.Ops.MTConnect.XML do
   @spec error(header, String.t(), String.t()) :: iodata
   def error(header, code, text) do
     document("MTConnectError", [
-      tag("Header", [
-        {"creationTime", header.creation_time},
-        {"sender", header.sender},
-        {"instanceId", header.instance_id},
-        {"version", @version},
+      header_tag(header, [
         {"bufferSize", header.buffer_size}
       ]),
       element("Errors", [], [element("Error", [{"errorCode", code}], [escape(text)])])
@@ -263,11 +251,7 @@ defmodule Vws.Ops.MTConnect.XML do
   @spec assets(header, [iodata]) :: iodata
   def assets(header, assets) do
     document("MTConnectAssets", [
-      tag("Header", [
-        {"creationTime", header.creation_time},
-        {"sender", header.sender},
-        {"instanceId", header.instance_id},
-        {"version", @version},
+      header_tag(header, [
         {"deviceModelChangeTime", header.model_change_time},
         {"assetBufferSize", header.asset_buffer_size},
         {"assetCount", length(assets)}
@@ -347,4 +331,17 @@ defmodule Vws.Ops.MTConnect.XML do
 
   defp valid_chars(<<_::utf8, rest::binary>>, acc), do: valid_chars(rest, [?? | acc])
   defp valid_chars(<<_, rest::binary>>, acc), do: valid_chars(rest, [?? | acc])
+
+  # Every document's Header: who and when, then the attributes of its kind.
+  defp header_tag(header, attributes) do
+    tag(
+      "Header",
+      [
+        {"creationTime", header.creation_time},
+        {"sender", header.sender},
+        {"instanceId", header.instance_id},
+        {"version", @version}
+      ] ++ attributes
+    )
+  end
 end
