@@ -100,7 +100,10 @@ defmodule Vws.CEC.Interlock do
     * `:as` — the reason the lease is held for (default `:lease`), see "Reasons";
     * `:check` — `(-> :ok | {:error, why})`, the rule's physical conditions, run while the
       request is posted; `why` reads after `INTERLOCK <VOLUME> ` (`"MACHINE ACTIVE"`);
-    * `:retry_ms` — the pause between tries (default 250: four times a second).
+    * `:retry_ms` — the pause between tries (default 250: four times a second);
+    * `:clock` — `{now, pause}`: the time the tries are counted in, `now.()` in ms and
+      `pause.(ms)` to let `ms` pass (tests run the retries on simulated time with it). Default:
+      the monotonic clock, and a pause that a lease ending cuts short.
 
   A holder that already holds the volume keeps it and only runs the check. Returns `:ok`, or
   `{:error, "INTERLOCK <VOLUME> HELD BY <HOLDER>" | "INTERLOCK <VOLUME> <why>"}`.
@@ -108,11 +111,14 @@ defmodule Vws.CEC.Interlock do
   @spec acquire(Mailbox.workstation(), volume, holder, non_neg_integer, keyword) ::
           :ok | {:error, String.t()}
   def acquire(ws, volume, holder, timeout, opts \\ []) do
-    deadline = now() + timeout
+    clock = Keyword.get(opts, :clock, {&now/0, nil})
+    {clock_now, _pause} = clock
+    started = clock_now.()
 
     config = %{
       workstation: ws,
-      started: now(),
+      clock: clock,
+      started: started,
       tries: 1,
       table: Mailbox.table(ws),
       volume: volume,
@@ -120,7 +126,7 @@ defmodule Vws.CEC.Interlock do
       as: Keyword.get(opts, :as, :lease),
       check: Keyword.get(opts, :check, fn -> :ok end),
       retry_ms: Keyword.get(opts, :retry_ms, @retry_ms),
-      deadline: deadline
+      deadline: started + timeout
     }
 
     if timeout > 0 do
@@ -204,7 +210,7 @@ defmodule Vws.CEC.Interlock do
         :ok
 
       {:error, why} ->
-        left = c.deadline - now()
+        left = c.deadline - clock_now(c)
 
         if left <= 0 do
           emit(:refused, c, %{why: why})
@@ -219,18 +225,20 @@ defmodule Vws.CEC.Interlock do
   # Until a lease on the volume ends (the event release/4 causes) or `ms` pass: the conditions
   # of `:check` (the machine idle, the table parked) change without an event, so they are read
   # again at every try, four times a second as in the seed.
-  defp await_release(%{workstation: ws, volume: volume}, ms) do
+  defp await_release(%{workstation: ws, volume: volume, clock: {_now, pause}}, ms) do
     receive do
       {:vws_event, ^ws, :interlock, ^volume} -> :ok
     after
-      ms -> :ok
+      if(pause, do: 0, else: ms) -> if pause, do: pause.(ms), else: :ok
     end
   end
+
+  defp clock_now(%{clock: {now, _pause}}), do: now.()
 
   defp emit(event, c, meta) do
     Vws.Telemetry.execute(
       [:vws, :interlock, event],
-      %{wait_ms: now() - c.started, tries: c.tries},
+      %{wait_ms: clock_now(c) - c.started, tries: c.tries},
       Map.merge(
         %{workstation: c.workstation, volume: c.volume, holder: c.holder, reason: c.as},
         meta

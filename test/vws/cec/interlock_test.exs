@@ -80,16 +80,23 @@ defmodule Vws.CEC.InterlockTest do
     assert Interlock.release(ws, :tray2, :robot) == :ok
   end
 
+  # Simulated time for the retry loop: `now` reads it, `pause` lets it pass at once (and
+  # records each pause), so the count of tries does not depend on how busy the machine is.
+  defp simulated_clock do
+    {:ok, clock} = Agent.start_link(fn -> {0, []} end)
+    now = fn -> Agent.get(clock, &elem(&1, 0)) end
+    pause = fn ms -> Agent.update(clock, fn {t, ps} -> {t + ms, [ms | ps]} end) end
+    pauses = fn -> Agent.get(clock, &Enum.reverse(elem(&1, 1))) end
+    {{now, pause}, pauses}
+  end
+
   test "a refused request is tried again about four times a second until the timeout", %{ws: ws} do
     me = self()
     check = fn -> send(me, :read) && {:error, "MACHINE ACTIVE"} end
-    t0 = System.monotonic_time(:millisecond)
+    {clock, pauses} = simulated_clock()
 
-    assert Interlock.acquire(ws, :table, :robot, 1_000, check: check) ==
+    assert Interlock.acquire(ws, :table, :robot, 1_000, check: check, clock: clock) ==
              {:error, "INTERLOCK TABLE MACHINE ACTIVE"}
-
-    elapsed = System.monotonic_time(:millisecond) - t0
-    assert elapsed >= 1_000
 
     tries =
       length(
@@ -102,10 +109,22 @@ defmodule Vws.CEC.InterlockTest do
             do: 1
       )
 
-    # at 0, ~250, ~500, ~750 and ~1000 ms (with ±20 % jitter)
-    assert tries in 4..6
+    # at 0, ~250, ~500, ~750 and ~1000 ms (with ±20 % jitter): every pause but the last (cut
+    # to the time left) is 200..300 ms, and together they reach the timeout: 5 or 6 tries
+    assert tries in 5..6
+    pauses = pauses.()
+    assert length(pauses) == tries - 1
+    assert Enum.all?(Enum.drop(pauses, -1), &(&1 in 200..300))
+    assert Enum.sum(pauses) == 1_000
     # a request that was refused leaves nothing behind
     assert :ets.match_object(Mailbox.table(ws), {{:interlock, :_, :_}, :_}) == []
+  end
+
+  test "on the monotonic clock, a refused request waits out its timeout", %{ws: ws} do
+    t0 = System.monotonic_time(:millisecond)
+    check = fn -> {:error, "MACHINE ACTIVE"} end
+    assert {:error, _} = Interlock.acquire(ws, :table, :robot, 300, check: check, retry_ms: 50)
+    assert System.monotonic_time(:millisecond) - t0 >= 300
   end
 
   test "telemetry: acquired, refused (with the tries) and released", %{ws: ws} do
@@ -127,12 +146,15 @@ defmodule Vws.CEC.InterlockTest do
     on_exit(fn -> Vws.Telemetry.detach(id) end)
     :ok = Interlock.acquire(ws, :tray1, :mhs, 0)
     assert_received {[:vws, :interlock, :acquired], %{tries: 1}, %{holder: :mhs, volume: :tray1}}
-    {:error, _} = Interlock.acquire(ws, :tray1, :robot, 100, retry_ms: 20, as: :inside)
+    {clock, pauses} = simulated_clock()
+    opts = [retry_ms: 20, as: :inside, clock: clock]
+    {:error, _} = Interlock.acquire(ws, :tray1, :robot, 100, opts)
 
     assert_received {[:vws, :interlock, :refused], %{tries: tries, wait_ms: wait},
                      %{holder: :robot, reason: :inside, why: "HELD BY MHS"}}
 
-    assert tries >= 4 and wait >= 100
+    # 16..24 ms pauses until 100 ms have passed: 6 to 8 tries, the wait exactly the timeout
+    assert tries in 6..8 and tries == length(pauses.()) + 1 and wait == 100
     :ok = Interlock.release(ws, :tray1, :mhs)
     assert_received {[:vws, :interlock, :released], %{count: 1}, %{holder: :mhs, reason: :all}}
   end
