@@ -287,7 +287,19 @@ defmodule Vws.Partitions.MonarchTest do
     GE2000.set_fault(ctx.sim, :silent)
     task = Task.async(fn -> monarch(ctx.peer, 2, "DOWNLOAD_GE", 30_000) end)
     # the first transmission ends unanswered; the second one finds the GE-2000 back
-    assert_receive {:request_again, :part_program, :no_answer_to_bid}, 10_000
+    receive do
+      {:request_again, :part_program, :no_answer_to_bid} -> :ok
+    after
+      10_000 ->
+        # seen once in a full suite, never alone: say what the command and the link were doing
+        flunk("""
+        no request_again within 10 s
+        the command: #{inspect(Task.yield(task, 0))}
+        the link: #{inspect(DNC.info(ctx.link), limit: :infinity)}
+        MONARCH: #{inspect(Vws.CEC.Mailbox.command_status(ctx.ws, :monarch))}
+        """)
+    end
+
     GE2000.set_fault(ctx.sim, :none)
     assert Task.await(task, 30_000) == "0002DONE"
     assert GE2000.program(ctx.sim, "004711.PRO") == Program.to_text(program)
