@@ -24,10 +24,15 @@ defmodule Vws.Ops.MTConnect.Agent do
   data item the moment it is announced, with the time of the write: no transition between two
   reads is lost. Numeric samples (and the numbers in a message) are recorded only when they move
   by at least their deadband (`MINIMUM_DELTA` in the probe), so sensor noise does not flood the
-  buffer. The links' connection states are read every `:interval` ms (default 250).
+  buffer. The links' connection states too: each link tells its changes in its telemetry
+  (`[:vws, :sun_comm, :wc_connected | :wc_disconnected]`, `[:vws, :ddcmp, :state_change |
+  :link_down]`, `[:vws, :dnc, :connected | :disconnected]`, `[:vws, :hpib, :connected |
+  :disconnected]`), which the agent follows, recording each change at the time the link made it;
+  a link process that dies is seen by its monitor, its connection `CLOSED` at once; a link seen
+  for the first time (a restarted one's first word) has its workstation's links read again.
 
   Workstations on other nodes: a forwarder process on each such node subscribes to their change
-  notices, reads their mailboxes once and sends the agent that snapshot and then every change, so
+  notices (and their GE-2000 links' transfer progress), reads their mailboxes once and sends the agent that snapshot and then every change, so
   their transitions are recorded as they happen too; before each answer the agent asks each
   forwarder to confirm what it has sent, so an answer is never older than the request. Until a
   workstation's snapshot is in (or when its forwarder is gone), it is read as before: every
@@ -55,6 +60,16 @@ defmodule Vws.Ops.MTConnect.Agent do
   @default_buffer 131_072
   @default_checkpoint 1000
   @default_count 100
+  @link_events [
+    [:vws, :sun_comm, :wc_connected],
+    [:vws, :sun_comm, :wc_disconnected],
+    [:vws, :ddcmp, :state_change],
+    [:vws, :ddcmp, :link_down],
+    [:vws, :dnc, :connected],
+    [:vws, :dnc, :disconnected],
+    [:vws, :hpib, :connected],
+    [:vws, :hpib, :disconnected]
+  ]
   @asset_buffer 1024
 
   @type agent :: GenServer.server()
@@ -165,6 +180,10 @@ defmodule Vws.Ops.MTConnect.Agent do
       first_checkpoint: %{},
       checkpoints: %{},
       waiters: [],
+      # this node's links: pid => {workstation, key}, each monitored; when each workstation's
+      # links were last read (a link's word older than that is in the reading)
+      link_pids: %{},
+      links_read: %{},
       first: 1,
       next: 1
     }
@@ -177,14 +196,47 @@ defmodule Vws.Ops.MTConnect.Agent do
       |> record(added, "UNAVAILABLE", now)
       |> record(removed, "UNAVAILABLE", now)
 
+    :ok =
+      Vws.Telemetry.attach_many(
+        {__MODULE__, self()},
+        @link_events,
+        &__MODULE__.link_event/4,
+        self()
+      )
+
     send(self(), :tick)
     {:ok, s}
+  end
+
+  @doc false
+  # A link's connection changed: its telemetry, in the link's own process, tells the agent with
+  # the time it happened.
+  def link_event(event, _measurements, meta, agent) do
+    send(agent, {:link_event, self(), List.last(event), meta, System.system_time(:microsecond)})
+    :ok
   end
 
   @impl true
   def handle_info(:tick, s) do
     Process.send_after(self(), :tick, s.interval)
-    {:noreply, s |> refresh(:ask_all) |> read_links()}
+    {:noreply, refresh(s, :ask_all)}
+  end
+
+  def handle_info({:link_event, pid, event, meta, at}, s) do
+    case s.link_pids do
+      %{^pid => {ws, key}} ->
+        {:noreply, link_changed(s, ws, key, link_state(key, event, meta), at)}
+
+      _ ->
+        # a link not seen yet (restarted), or another process's (a simulator's end of a line):
+        # the workstation's links are read again
+        ws = meta[:workstation] || meta[:bus]
+
+        if Map.has_key?(s.local, ws) and Map.has_key?(s.facts, ws) and
+             not MapSet.member?(s.gone, ws),
+           do: {:noreply, read_links(s, ws)},
+           else: {:noreply, s}
+    end
   end
 
   def handle_info({:vws_event, ws, :mailbox, {change, at}}, s),
@@ -206,11 +258,19 @@ defmodule Vws.Ops.MTConnect.Agent do
     end
   end
 
-  # a forwarder ended (its node went away): its workstations are read again until followed anew
+  # a link process died: its connection is closed; a forwarder ended (its node went away): its
+  # workstations are read again until followed anew
   def handle_info({:DOWN, _ref, :process, pid, _reason}, s) do
     case Enum.find(s.forwarders, fn {_n, p} -> p == pid end) do
       nil ->
-        {:noreply, s}
+        case Map.pop(s.link_pids, pid) do
+          {{ws, key}, pids} ->
+            s = %{s | link_pids: pids}
+            {:noreply, link_changed(s, ws, key, "CLOSED", System.system_time(:microsecond))}
+
+          {nil, _} ->
+            {:noreply, s}
+        end
 
       {n, _} ->
         lost = for {ws, ^pid} <- s.following, do: ws
@@ -235,7 +295,10 @@ defmodule Vws.Ops.MTConnect.Agent do
   def handle_info(_other, s), do: {:noreply, s}
 
   @impl true
-  def terminate(_reason, s), do: :ets.delete(s.buffer)
+  def terminate(_reason, s) do
+    Vws.Telemetry.detach({__MODULE__, self()})
+    :ets.delete(s.buffer)
+  end
 
   @impl true
   def handle_call({:probe, device, opts}, _from, s) do
@@ -631,7 +694,11 @@ defmodule Vws.Ops.MTConnect.Agent do
   defp forward(agent, ref, since) do
     receive do
       {:follow, ws} ->
-        if not Map.has_key?(since, ws), do: Vws.CEC.Events.subscribe(ws, :mailbox)
+        if not Map.has_key?(since, ws) do
+          :ok = Vws.CEC.Events.subscribe(ws, :mailbox)
+          :ok = Vws.CEC.Events.subscribe(ws, :dnc_progress)
+        end
+
         t = System.system_time(:microsecond)
         send(agent, {:mtc_snapshot, ws, read(ws)})
         forward(agent, ref, Map.put(since, ws, t))
@@ -643,6 +710,11 @@ defmodule Vws.Ops.MTConnect.Agent do
           _ -> :ok
         end
 
+        forward(agent, ref, since)
+
+      # a transfer's progress (the VMC's transfer message): told as it comes
+      {:vws_event, ws, :dnc_progress, _progress} = notice ->
+        if Map.has_key?(since, ws), do: send(agent, notice)
         forward(agent, ref, since)
 
       {:sync, from, sync_ref} ->
@@ -777,7 +849,8 @@ defmodule Vws.Ops.MTConnect.Agent do
             facts = Map.update(facts, :program, program(facts), &(program(facts) || &1))
             s = %{s | local: Map.put(s.local, ws, %{table: table, since: now})}
             s = ensure_device(s, ws, now)
-            observe(%{s | facts: Map.put(s.facts, ws, facts)}, ws, facts, now)
+            s = observe(%{s | facts: Map.put(s.facts, ws, facts)}, ws, facts, now)
+            read_links(s, ws)
         end
     end
   end
@@ -879,24 +952,73 @@ defmodule Vws.Ops.MTConnect.Agent do
 
   # The links' connection states, for the workstations of this node (sampled: links announce
   # nothing).
-  defp read_links(s) do
+  # A workstation's links read now: their states recorded, their processes known and monitored.
+  defp read_links(s, ws) do
     now = System.system_time(:microsecond)
+    {links, pids} = links_of(ws)
 
-    Enum.reduce(Map.keys(s.local), s, fn ws, s ->
-      if MapSet.member?(s.gone, ws) or not Map.has_key?(s.facts, ws) do
-        s
-      else
-        links = link_states(ws)
-        facts = Map.put(Map.fetch!(s.facts, ws), :links, links)
-        observe(%{s | facts: Map.put(s.facts, ws, facts)}, ws, facts, now)
+    new =
+      for {pid, key} <- pids, not Map.has_key?(s.link_pids, pid), into: %{} do
+        Process.monitor(pid)
+        {pid, {ws, key}}
       end
-    end)
+
+    facts = Map.put(Map.fetch!(s.facts, ws), :links, links)
+
+    s = %{
+      s
+      | link_pids: Map.merge(s.link_pids, new),
+        links_read: Map.put(s.links_read, ws, now),
+        facts: Map.put(s.facts, ws, facts)
+    }
+
+    observe(s, ws, facts, now)
   end
 
-  @doc false
+  # One link's word: recorded unless the reading of its workstation's links came after it.
+  defp link_changed(s, _ws, _key, nil, _at), do: s
+
+  defp link_changed(s, ws, key, state, at) do
+    with %{^ws => facts} <- s.facts,
+         false <- MapSet.member?(s.gone, ws),
+         true <- at >= Map.get(s.links_read, ws, 0) do
+      facts = Map.update(facts, :links, %{key => state}, &Map.put(&1, key, state))
+      observe(%{s | facts: Map.put(s.facts, ws, facts)}, ws, facts, at)
+    else
+      _ -> s
+    end
+  end
+
+  # The connection a link's telemetry event says it has (nil: the event does not say).
+  defp link_state(:wc, :wc_connected, _meta), do: "ESTABLISHED"
+  defp link_state(:wc, :wc_disconnected, _meta), do: "LISTEN"
+  defp link_state(:val, :state_change, %{to: :running}), do: "ESTABLISHED"
+  defp link_state(:val, :state_change, _meta), do: "CLOSED"
+  defp link_state(:val, :link_down, _meta), do: "CLOSED"
+  defp link_state(_key, :connected, _meta), do: "ESTABLISHED"
+  defp link_state(_key, :disconnected, _meta), do: "CLOSED"
+  defp link_state(_key, _event, _meta), do: nil
+
+  # `{states, [{pid, key}]}`: the link states of `link_states/1` and the processes that have them
+  # (SUN_COMM for the WC link).
+  defp links_of(ws) do
+    rows = Vws.Ops.Inspect.link_rows(ws)
+    sun_comm = Vws.CEC.Workstation.whereis(ws, :sun_comm)
+
+    pids =
+      for(row <- rows, key = link_key(row), key != nil, is_pid(row.pid), do: {row.pid, key}) ++
+        if(is_pid(sun_comm), do: [{sun_comm, :wc}], else: [])
+
+    {states(ws, rows), pids}
+  rescue
+    _ -> {%{}, []}
+  catch
+    :exit, _ -> {%{}, []}
+  end
+
   # `%{wc | val | dnc | daq1 | hydraulic => "ESTABLISHED" | "LISTEN" | "CLOSED"}` for the links a
-  # workstation has.
-  def link_states(ws) do
+  # workstation has (`rows`: its link rows, `Vws.Ops.Inspect.link_rows/1`).
+  defp states(ws, rows) do
     wc =
       case Vws.Ops.Inspect.wc_info(ws) do
         %{peer: peer} when peer != nil -> "ESTABLISHED"
@@ -905,7 +1027,7 @@ defmodule Vws.Ops.MTConnect.Agent do
       end
 
     links =
-      for row <- Vws.Ops.Inspect.link_rows(ws), key = link_key(row), key != nil, into: %{} do
+      for row <- rows, key = link_key(row), key != nil, into: %{} do
         {key, connection(key, row.state)}
       end
 

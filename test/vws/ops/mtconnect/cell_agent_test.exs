@@ -184,5 +184,34 @@ defmodule Vws.Ops.MTConnect.CellAgentTest do
 
     assert Enum.count(exec, &(&1 == "ACTIVE")) == 25
     assert Enum.count(exec, &(&1 == "READY")) == 25
+
+    # a download's progress on that node is the VMC's transfer message here, block by block
+    for blocks <- 1..3 do
+      progress = %{
+        operation: :download,
+        program: "001234.PRO",
+        direction: :out,
+        bytes: blocks * 256,
+        total_bytes: 768,
+        retries: 0,
+        ended: blocks == 3
+      }
+
+      :ok =
+        :erpc.call(peers.a.node, Vws.CEC.Events, :notify, [peers.a.id, :dnc_progress, progress])
+    end
+
+    assert eventually(fn ->
+             {:ok, xml} = Vws.Ops.MTConnect.Agent.sample(a, next, 10_000)
+
+             Regex.scan(
+               ~r{dataItemId="#{id}_vmc_path_transfer"[^>]*>([^<]*)<},
+               xml |> IO.iodata_to_binary(),
+               capture: :all_but_first
+             )
+             |> List.flatten()
+             |> Enum.filter(&(&1 =~ "001234"))
+             |> length() == 3
+           end)
   end
 end

@@ -17,7 +17,8 @@ defmodule Vws.Ops.MTConnect.FloorAgentTest do
 
     {:ok, floor} = Vws.Ops.Demo.start_shop_floor(id: ws, wc: "loopback:#{ws}", time_scale: 50.0)
 
-    a = start_supervised!({Agent, workstations: fn -> [ws] end, interval: 50}, id: make_ref())
+    # (no periodic read: every change of the links is told by the links themselves)
+    a = start_supervised!({Agent, workstations: fn -> [ws] end, interval: 60_000}, id: make_ref())
 
     %{next: start} = Agent.sequences(a)
 
@@ -30,8 +31,6 @@ defmodule Vws.Ops.MTConnect.FloorAgentTest do
     {where, _age} = Vws.CEC.Mailbox.get_device(ws, 9)
     assert where == "NO DATA (VAL II NOT READ YET)"
 
-    # (the last link states are read every 50 ms)
-    Process.sleep(200)
     {:ok, xml} = Agent.sample(a, start, 100_000)
     text = XMLLint.validate!(xml, :streams)
     obs = MTCClient.observations(text)
@@ -112,6 +111,58 @@ defmodule Vws.Ops.MTConnect.FloorAgentTest do
     end
 
     assert current.("#{id}_wc_link_conn") == "ESTABLISHED"
+  end
+
+  test "each link's connection is recorded when it changes: a WC that comes and goes, links killed" do
+    ws = "floor-links-#{System.unique_integer([:positive])}"
+    id = "ws_" <> ws
+    on_exit(fn -> Vws.CEC.Workstation.stop(ws) end)
+    {:ok, floor} = Vws.Ops.Demo.start_shop_floor(id: ws, wc: "loopback:#{ws}", time_scale: 50.0)
+
+    # the agent never reads the links on its own (its periodic read is a minute away)
+    a = start_supervised!({Agent, workstations: fn -> [ws] end, interval: 60_000}, id: make_ref())
+
+    conn = fn link ->
+      {:ok, xml} = Agent.current(a)
+
+      obs = MTCClient.observations(IO.iodata_to_binary(xml))
+      for({_, item, _, v} <- obs, item == "#{id}_#{link}_link_conn", do: v) |> List.last()
+    end
+
+    for link <- ~w(val dnc daq1 hydraulic) do
+      assert Vws.Test.Eventually.eventually(fn -> conn.(link) == "ESTABLISHED" end, 10_000), link
+    end
+
+    assert conn.("wc") == "LISTEN"
+    %{next: start} = Agent.sequences(a)
+
+    # a WC comes and goes, twice
+    for _ <- 1..2 do
+      {:ok, client} = Client.connect(floor.wc)
+      assert Vws.Test.Eventually.eventually(fn -> conn.("wc") == "ESTABLISHED" end)
+      Client.close(client)
+      assert Vws.Test.Eventually.eventually(fn -> conn.("wc") == "LISTEN" end)
+    end
+
+    # the GE-2000's and the robot's link processes killed: closed, then up again on their own
+    for key <- [:ge2000, :val] do
+      pid = Vws.CEC.Workstation.whereis(ws, key)
+      ref = Process.monitor(pid)
+      Process.exit(pid, :kill)
+      assert_receive {:DOWN, ^ref, _, _, _}
+    end
+
+    for link <- ~w(dnc val) do
+      assert Vws.Test.Eventually.eventually(fn -> conn.(link) == "ESTABLISHED" end, 10_000), link
+    end
+
+    {:ok, xml} = Agent.sample(a, start, 1000)
+    obs = MTCClient.observations(XMLLint.validate!(xml, :streams))
+    values = fn link -> for {_, item, _, v} <- obs, item == "#{id}_#{link}_link_conn", do: v end
+
+    assert values.("wc") == ~w(ESTABLISHED LISTEN ESTABLISHED LISTEN)
+    assert values.("dnc") == ~w(CLOSED ESTABLISHED)
+    assert values.("val") == ~w(CLOSED ESTABLISHED)
   end
 
   test "a command that ends ERROR is a Fault condition with its native code, then Normal again" do
