@@ -220,7 +220,8 @@ defmodule Vws.Partitions.Hydraulic do
   device and the PALLET monitor for the links supervisor, and HYDRAULIC's `link:`. Options:
   `:address` (the controller's primary address on the CEC's HPIB, default 8), `:hpib`
   (`Vws.Links.HPIB.start_link/1` options), `:status_interval` (ms between PALLET reads, default 1000;
-  `nil` for no monitor), `:hydraulic` (partition options, e.g. `options: [timeout_ms: …]`).
+  `nil` for no monitor), `:status_timeout` (ms one PALLET read may take, default 1000),
+  `:hydraulic` (partition options, e.g. `options: [timeout_ms: …]`).
   """
   @spec wiring(Mailbox.workstation(), String.t() | Vws.Links.Endpoint.t(), keyword) ::
           %{links: [Supervisor.child_spec()], partitions: keyword}
@@ -236,8 +237,17 @@ defmodule Vws.Partitions.Hydraulic do
 
     monitor =
       case Keyword.get(opts, :status_interval, 1_000) do
-        nil -> []
-        ms -> [{__MODULE__.Monitor, workstation: ws, link: link, interval: ms}]
+        nil ->
+          []
+
+        ms ->
+          [
+            {__MODULE__.Monitor,
+             workstation: ws,
+             link: link,
+             interval: ms,
+             timeout: Keyword.get(opts, :status_timeout, 1_000)}
+          ]
       end
 
     %{

@@ -6,8 +6,12 @@ defmodule Vws.Partitions.FixtureTest do
   alias Vws.Test.DAQFloor
 
   # The jaw potentiometer's noise is ±0.005 V = ±0.1 mm: a closed vise reads 0.0 or 0.1 mm.
+  # Fault tests: short enough that a failure is told quickly, long enough that a loaded
+  # machine's late polls do not fail the command that works before it.
   @short [
-    partitions: [fixture: [options: [timeout_ms: 300, interlock: [timeout: 300, retry_ms: 50]]]]
+    partitions: [
+      fixture: [options: [timeout_ms: 1_500, interlock: [timeout: 1_000, retry_ms: 50]]]
+    ]
   ]
 
   defp number(text, regex) do

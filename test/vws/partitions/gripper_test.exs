@@ -4,9 +4,11 @@ defmodule Vws.Partitions.GripperTest do
   alias Vws.Sim.Plant
   alias Vws.Test.DAQFloor
 
-  # Fault tests give the sensors 300 ms to confirm (the plant runs 1000x: a stroke takes 0.5 ms);
-  # success paths keep the default timeouts.
-  @short [partitions: [gripper: [options: [timeout_ms: 300]]]]
+  # Fault tests give the sensors 1.5 s to confirm (the plant runs 1000x: a stroke takes 0.5 ms):
+  # short enough that a failure is told quickly, long enough that a loaded machine's late polls
+  # do not fail the command that works before it (CLOSE, then a faulty OPEN). Success paths keep
+  # the default timeouts.
+  @short [partitions: [gripper: [options: [timeout_ms: 1_500]]]]
 
   defp mm_apart(text) do
     [mm] = Regex.run(~r/FINGERS (?:ARE )?(\d+\.\d) MM APART/, text, capture: :all_but_first)

@@ -50,7 +50,10 @@ defmodule Vws.Partitions.HydraulicTest do
   end
 
   test "DAQ #2 not answering: ERROR DAQ #2 NOT ANSWERING, PALLET NO DATA" do
-    %{peer: peer, daq2: daq2} = HydraulicFloor.start()
+    # the CEC waits on the controller longer than the controller waits on DAQ #2 (300 ms), so
+    # that a loaded machine cannot make the controller's answer come too late to be heard
+    slow_cec = [status_timeout: 3_000, hydraulic: [options: [request_ms: 3_000]]]
+    %{peer: peer, daq2: daq2} = HydraulicFloor.start(hydraulic: slow_cec)
     assert HydraulicFloor.await_pallet(peer, &(&1 =~ "PALLET")) == "PALLET NOT CLAMPED"
     :ok = DAQ.set_fault(daq2, :mute)
 
