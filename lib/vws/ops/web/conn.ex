@@ -1,16 +1,18 @@
 defmodule Vws.Ops.Web.Conn do
   @moduledoc false
   # One HTTP connection of `Vws.Ops.Web.Server`, in a process of its own: reads each request's head
-  # (the socket parses it, `packet: :http_bin`) within its deadline, asks the handler whether the
-  # request is allowed, reads the body only then, answers, and keeps the connection alive while
-  # the client wants it and the limits allow. See `Vws.Ops.Web.Server` for the limits.
+  # within its deadline (the socket is raw; OTP's HTTP parser takes the head line by line from a
+  # buffer bounded by `max_line`, see next_line/2), asks the handler whether the request is
+  # allowed, reads the body only then, answers, and keeps the connection alive while the client
+  # wants it and the limits allow. A request line or a header line longer than `max_line` is
+  # answered 414 or 431 and the connection closed. See `Vws.Ops.Web.Server` for the limits.
 
   alias Vws.Ops.Web.Handler
 
   @doc false
   def serve(socket, conf) do
     Process.flag(:priority, :low)
-    loop(socket, conf, 1, conf.limits.head_timeout)
+    loop(socket, conf, 1, conf.limits.head_timeout, "")
   end
 
   @doc false
@@ -20,21 +22,23 @@ defmodule Vws.Ops.Web.Conn do
     :gen_tcp.close(socket)
   end
 
-  defp loop(socket, conf, n, wait) do
+  # `buffer`: bytes read from the socket but not used yet — the start of the next request when the
+  # client sent it along with the previous one (pipelining).
+  defp loop(socket, conf, n, wait, buffer) do
     deadline = now() + wait
 
-    case read_head(socket, conf.limits, deadline) do
-      {:ok, request} ->
-        case answer(socket, request, conf) do
-          {:keep, {:stream, _type, _first, _more} = stream} ->
+    case read_head(socket, buffer, conf.limits, deadline) do
+      {:ok, request, buffer} ->
+        case answer(socket, request, buffer, conf) do
+          {:keep, {:stream, _type, _first, _more} = stream, _rest} ->
             _ = stream(socket, stream, conf, request)
             :gen_tcp.close(socket)
 
-          {:keep, response} ->
+          {:keep, response, rest} ->
             keep = n < conf.limits.max_requests and keep_alive?(request)
 
             case respond(socket, response, keep, conf, request) do
-              :ok when keep -> loop(socket, conf, n + 1, conf.limits.idle_timeout)
+              :ok when keep -> loop(socket, conf, n + 1, conf.limits.idle_timeout, rest)
               _ -> :gen_tcp.close(socket)
             end
 
@@ -54,10 +58,19 @@ defmodule Vws.Ops.Web.Conn do
 
   ## The head
 
-  defp read_head(socket, limits, deadline) do
-    with {:ok, {:http_request, method, uri, version}} <- recv(socket, deadline),
+  # The request's head, and what of the bytes read came after it (a body, or the next request).
+  defp read_head(socket, buffer, limits, deadline) do
+    reader = %{
+      socket: socket,
+      deadline: deadline,
+      max_line: limits.max_line,
+      buffer: buffer,
+      bytes: 0
+    }
+
+    with {:ok, {:http_request, method, uri, version}, reader} <- next_line(reader, :http_bin),
          {:ok, path, query} <- target(uri),
-         {:ok, headers} <- read_headers(socket, limits, deadline, %{}, 0, 0) do
+         {:ok, headers, reader} <- read_headers(reader, limits, %{}, 0) do
       {:ok,
        %{
          method: method_name(method),
@@ -66,37 +79,67 @@ defmodule Vws.Ops.Web.Conn do
          query: query,
          version: version,
          headers: headers
-       }}
+       }, reader.buffer}
     else
-      {:ok, {:http_error, _}} -> {:error, {400, "bad request line"}}
-      {:ok, _other} -> {:error, {400, "bad request"}}
+      {:ok, {:http_error, _}, _} -> {:error, {400, "bad request line"}}
+      {:ok, _other, _} -> {:error, {400, "bad request"}}
+      {:error, :too_long} -> {:error, {414, "request line longer than #{limits.max_line} bytes"}}
       {:error, :bad_target} -> {:error, {400, "bad request target"}}
       {:error, _} = error -> error
     end
   end
 
-  defp read_headers(socket, limits, deadline, acc, count, bytes) do
-    case recv(socket, deadline) do
-      {:ok, :http_eoh} ->
-        {:ok, acc}
+  defp read_headers(reader, limits, acc, count) do
+    case next_line(reader, :httph_bin) do
+      {:ok, :http_eoh, reader} ->
+        {:ok, acc, reader}
 
-      {:ok, {:http_header, _, name, _, value}} ->
+      {:ok, {:http_header, _, name, _, value}, reader} ->
         count = count + 1
-        name = header_name(name)
-        bytes = bytes + byte_size(name) + byte_size(value)
 
-        if count > limits.max_headers or bytes > limits.max_head do
+        if count > limits.max_headers or reader.bytes > limits.max_head do
           {:error, {431, "request header fields too large"}}
         else
+          name = header_name(name)
           acc = Map.update(acc, name, value, &(&1 <> ", " <> value))
-          read_headers(socket, limits, deadline, acc, count, bytes)
+          read_headers(reader, limits, acc, count)
         end
 
-      {:ok, {:http_error, _}} ->
+      {:ok, {:http_error, _}, _} ->
         {:error, {400, "bad header line"}}
+
+      {:error, :too_long} ->
+        {:error, {431, "header line longer than #{limits.max_line} bytes"}}
 
       {:error, _} = error ->
         error
+    end
+  end
+
+  # The next line of the head (`type` :http_bin for the request line, :httph_bin for a header)
+  # parsed by OTP's HTTP parser — the one of `packet: :http_bin` — from the front of the buffer,
+  # reading from the socket while the buffer holds no whole line, until the head's deadline.
+  # `packet_size: max_line` bounds the line, its CR LF included: as soon as max_line bytes without
+  # a line end are in, it is too long, so the buffer never holds more than max_line bytes and one
+  # read of the socket (its `buffer` option, 1460 bytes by default). A header line is only
+  # complete once the byte after it is in (a line starting with a space continues a header).
+  # `bytes` counts the bytes of head taken so far.
+  defp next_line(reader, type) do
+    case :erlang.decode_packet(type, reader.buffer, packet_size: reader.max_line) do
+      {:ok, packet, rest} ->
+        taken = byte_size(reader.buffer) - byte_size(rest)
+        {:ok, packet, %{reader | buffer: rest, bytes: reader.bytes + taken}}
+
+      {:more, _} when byte_size(reader.buffer) <= reader.max_line ->
+        with {:ok, data} <- recv(reader.socket, reader.deadline) do
+          next_line(%{reader | buffer: reader.buffer <> data}, type)
+        end
+
+      # {:error, :invalid}, the parser's only error for HTTP lines, is a line longer than
+      # packet_size; {:more, _} with more than max_line bytes buffered would be one too (the
+      # parser says :invalid first: the guard above only makes the bound plain here)
+      _too_long ->
+        {:error, :too_long}
     end
   end
 
@@ -128,9 +171,11 @@ defmodule Vws.Ops.Web.Conn do
   ## Answering
 
   # Authorize on the head alone; only then read a body (bounded), then let the handler answer.
-  defp answer(socket, request, conf) do
+  # `buffer` holds the bytes read after the head; answers {:keep, response, bytes after the body}
+  # or {:close, response}.
+  defp answer(socket, request, buffer, conf) do
     case pace(conf) do
-      :ok -> authorized(socket, request, conf)
+      :ok -> authorized(socket, request, buffer, conf)
       :busy -> {:close, {503, "text/plain", "busy: too many requests"}}
     end
   end
@@ -158,16 +203,13 @@ defmodule Vws.Ops.Web.Conn do
     end
   end
 
-  defp authorized(socket, request, conf) do
+  defp authorized(socket, request, buffer, conf) do
     case Handler.authorize(request, conf.settings) do
       :ok ->
         case body_length(request, conf.limits) do
-          {:ok, 0} ->
-            {:keep, handle(Map.put(request, :body, ""), conf)}
-
           {:ok, length} ->
-            case read_body(socket, length, now() + conf.limits.body_timeout) do
-              {:ok, body} -> {:keep, handle(Map.put(request, :body, body), conf)}
+            case read_body(socket, length, buffer, now() + conf.limits.body_timeout) do
+              {:ok, body, rest} -> {:keep, handle(Map.put(request, :body, body), conf), rest}
               {:error, _} -> {:close, {408, "text/plain", "request body too slow"}}
             end
 
@@ -206,17 +248,18 @@ defmodule Vws.Ops.Web.Conn do
     end
   end
 
-  defp read_body(socket, length, deadline) do
-    :ok = :inet.setopts(socket, packet: :raw)
+  # The body: what of it came with the head is in `buffer`, the rest is read from the socket.
+  # Answers the bytes after it too (the next request, when the client pipelines).
+  defp read_body(_socket, length, buffer, _deadline) when byte_size(buffer) >= length do
+    <<body::binary-size(length), rest::binary>> = buffer
+    {:ok, body, rest}
+  end
 
-    result =
-      case :gen_tcp.recv(socket, length, max(deadline - now(), 0)) do
-        {:ok, body} -> {:ok, body}
-        {:error, _} = error -> error
-      end
-
-    _ = :inet.setopts(socket, packet: :http_bin)
-    result
+  defp read_body(socket, length, buffer, deadline) do
+    case :gen_tcp.recv(socket, length - byte_size(buffer), max(deadline - now(), 0)) do
+      {:ok, more} -> {:ok, buffer <> more, ""}
+      {:error, _} = error -> error
+    end
   end
 
   defp keep_alive?(%{version: version, headers: headers}) do
@@ -315,7 +358,6 @@ defmodule Vws.Ops.Web.Conn do
   # dropped — never kept — for at most a second and 16 MB, then the socket is closed.
   defp close_unread(socket) do
     _ = :gen_tcp.shutdown(socket, :write)
-    _ = :inet.setopts(socket, packet: :raw)
     drain(socket, now() + 1_000, 16 * 1024 * 1024)
     :gen_tcp.close(socket)
   end
@@ -347,6 +389,7 @@ defmodule Vws.Ops.Web.Conn do
   defp reason(408), do: "Request Timeout"
   defp reason(411), do: "Length Required"
   defp reason(413), do: "Content Too Large"
+  defp reason(414), do: "URI Too Long"
   defp reason(431), do: "Request Header Fields Too Large"
   defp reason(500), do: "Internal Server Error"
   defp reason(503), do: "Service Unavailable"

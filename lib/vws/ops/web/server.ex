@@ -8,9 +8,11 @@ defmodule Vws.Ops.Web.Server do
   150 s, and a 300 MB POST that was answered 403 grew the node by 600 MB. This server gives the
   guarantees instead (decisions; each one is an option, defaults in brackets):
 
-    * the request line and each header line at most `:max_line` bytes [8192], at most
-      `:max_headers` headers [64] and `:max_head` bytes of head in all [32 768]: a longer line
-      closes the connection, too many headers answer 431;
+    * the request line and each header line at most `:max_line` bytes [8192], CR LF included,
+      at most `:max_headers` headers [64] and `:max_head` bytes of head in all [32 768]: a
+      longer request line is answered 414, a longer header line, too many headers or too large
+      a head 431, and the connection is closed (the rest of the head is read and dropped for at
+      most a second, so that the client reads the answer; it is never kept);
     * the whole head (request line and headers) must arrive within `:head_timeout` ms [10 000]
       of the connection's first request, or of the end of the previous answer on a kept-alive
       connection within `:idle_timeout` ms [5 000] — a client that is idle or trickles a byte
@@ -31,10 +33,13 @@ defmodule Vws.Ops.Web.Server do
       (`bench/http_load.exs`).
 
   Each connection is a process of its own (under a `Task.Supervisor` whose `max_children` is the
-  connection limit) reading passively with timeouts; the head is parsed by the socket itself
-  (`packet: :http_bin`, lines bounded by `packet_size`). Acceptors and connections run at low
-  process priority, so the workstations' own processes — SUN_COMM answering its WC first of
-  all — are scheduled before any HTTP work (`bench/http_load.exs` measures it).
+  connection limit) reading passively with timeouts from a raw socket; the head is parsed line by
+  line by OTP's HTTP parser (`:erlang.decode_packet/3`, the one of `packet: :http_bin`) from a
+  buffer that never holds more than `:max_line` bytes and one read of the socket, and the bytes
+  after it — a body, or the next request of a client that pipelines — are kept for what follows
+  (`Vws.Ops.Web.Conn`). Acceptors and connections run at low process priority, so the
+  workstations' own processes — SUN_COMM answering its WC first of all — are scheduled before any
+  HTTP work (`bench/http_load.exs` measures it).
   """
   use GenServer
   require Logger
@@ -136,8 +141,7 @@ defmodule Vws.Ops.Web.Server do
       :binary,
       if(tuple_size(address) == 8, do: :inet6, else: :inet),
       ip: address,
-      packet: :http_bin,
-      packet_size: limits[:max_line],
+      packet: :raw,
       active: false,
       reuseaddr: true,
       nodelay: true,

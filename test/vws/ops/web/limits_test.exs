@@ -1,6 +1,7 @@
 defmodule Vws.Ops.Web.LimitsTest do
   # The attacks of issue 16 against the dashboard's HTTP server, from plain TCP clients: a huge
-  # body and a huge URI (memory), idle and trickling connections (starvation), and the tokens.
+  # body and a huge URI (memory), idle and trickling connections (starvation), and the tokens;
+  # and the bounds of the head reader (a line at the limit, a body or a request read with a head).
   # Not async: the memory assertions want the node to themselves.
   use ExUnit.Case, async: false
 
@@ -148,21 +149,22 @@ defmodule Vws.Ops.Web.LimitsTest do
              )
   end
 
-  test "a 4 MB URI and a 4 MB header are refused after the first 8 KB, memory bounded" do
+  test "a 4 MB URI is answered 414 and a 4 MB header 431 after the first 8 KB, memory bounded" do
     port = web([])
     :erlang.garbage_collect()
     before = :erlang.memory(:total)
     sampler = memory_peak()
     long = :binary.copy("a", 4 * 1024 * 1024)
 
-    for head <- [
-          "GET /#{long} HTTP/1.1\r\nhost: x\r\n\r\n",
-          "GET / HTTP/1.1\r\nhost: x\r\nx-long: #{long}\r\n\r\n"
+    for {head, status} <- [
+          {"GET /#{long} HTTP/1.1\r\nhost: x\r\n\r\n", 414},
+          {"GET / HTTP/1.1\r\nhost: x\r\nx-long: #{long}\r\n\r\n", 431}
         ] do
       socket = connect(port)
       parent = self()
       spawn(fn -> send(parent, {:sent, :gen_tcp.send(socket, head)}) end)
-      # closed without an answer (the socket refuses the line; there is nothing to answer on)
+      # answered while the client is still sending, then closed
+      assert {^status, %{"connection" => "close"}, _} = read_answer(socket, 10_000)
       assert {:error, _} = :gen_tcp.recv(socket, 0, 10_000)
       assert_receive {:sent, _}, 10_000
       :gen_tcp.close(socket)
@@ -173,6 +175,81 @@ defmodule Vws.Ops.Web.LimitsTest do
     many = for i <- 1..100, into: "", do: "x-h#{i}: v\r\n"
     assert {431, _, _} = request(port, "GET / HTTP/1.1\r\nhost: x\r\n#{many}\r\n")
     assert {200, _, _} = get(port, "/api/state")
+  end
+
+  test "a request line or a header line of max_line bytes (CR LF included) is read, one byte more is refused" do
+    port = web([])
+    max = Vws.Ops.Web.Server.defaults()[:max_line]
+    # "GET /api/state?p=" <> pad <> " HTTP/1.1\r\n" and "x-pad: " <> pad <> "\r\n" of `size` bytes
+    uri = fn size -> "/api/state?p=" <> :binary.copy("a", size - 28) end
+    header = fn size -> "x-pad: " <> :binary.copy("a", size - 9) <> "\r\n" end
+    assert byte_size("GET #{uri.(max)} HTTP/1.1\r\n") == max
+    assert byte_size(header.(max)) == max
+
+    assert {200, _, _} = get(port, uri.(max))
+
+    assert {414, %{"connection" => "close"}, "request line longer than 8192 bytes"} =
+             get(port, uri.(max + 1))
+
+    assert {200, _, _} = get(port, "/api/state", header.(max))
+
+    assert {431, %{"connection" => "close"}, "header line longer than 8192 bytes"} =
+             get(port, "/api/state", header.(max + 1))
+
+    # lines may end in a bare LF, as OTP's HTTP parser allows
+    assert {200, _, _} = request(port, "GET /api/state HTTP/1.1\nhost: x\nconnection: close\n\n")
+  end
+
+  test "a body that comes with its head, whole or in part, is read; what follows it is the next request" do
+    port = web(token: "s3cret", body_timeout: 1_000)
+    body = ~s({"a": 1, "b": "GET / HTTP/1.1"})
+
+    post =
+      "POST /api/status?ws=NOPE&name=VISE HTTP/1.1\r\nhost: x\r\nx-vws-token: s3cret\r\n" <>
+        "content-length: #{byte_size(body)}\r\n\r\n"
+
+    next = "GET /api/state HTTP/1.1\r\nhost: x\r\nconnection: close\r\n\r\n"
+
+    # head, body and the next request in one write
+    socket = connect(port)
+    :ok = :gen_tcp.send(socket, post <> body <> next)
+    assert {404, %{"connection" => "keep-alive"}, answer} = read_answer(socket, 5_000)
+    assert answer =~ "no workstation NOPE"
+    assert {200, %{"content-type" => "application/json"}, _} = read_answer(socket, 5_000)
+    :gen_tcp.close(socket)
+
+    # the head and the first bytes of the body in one write, the rest later
+    socket = connect(port)
+    {first, rest} = String.split_at(body, 5)
+    :ok = :gen_tcp.send(socket, post <> first)
+    Process.sleep(100)
+    :ok = :gen_tcp.send(socket, rest <> next)
+    assert {404, _, _} = read_answer(socket, 5_000)
+    assert {200, _, _} = read_answer(socket, 5_000)
+    :gen_tcp.close(socket)
+  end
+
+  test "two GETs pipelined in one write on a kept-alive connection are both answered, in order" do
+    port = web([])
+    socket = connect(port)
+
+    :ok =
+      :gen_tcp.send(
+        socket,
+        "GET /api/state HTTP/1.1\r\nhost: x\r\n\r\nGET / HTTP/1.1\r\nhost: x\r\n\r\n"
+      )
+
+    assert {200, %{"content-type" => "application/json", "connection" => "keep-alive"}, _} =
+             read_answer(socket, 5_000)
+
+    assert {200, %{"content-type" => "text/html" <> _, "connection" => "keep-alive"}, html} =
+             read_answer(socket, 5_000)
+
+    assert html =~ "<title>VWS dashboard</title>"
+    # and the connection is still there for a third
+    :ok = :gen_tcp.send(socket, "GET /api/state HTTP/1.1\r\nhost: x\r\nconnection: close\r\n\r\n")
+    assert {200, %{"connection" => "close"}, _} = read_answer(socket, 5_000)
+    :gen_tcp.close(socket)
   end
 
   test "a GET is answered while 60 idle connections are open" do
