@@ -1,6 +1,6 @@
 defmodule Vws.CycleScriptsTest do
   @moduledoc "The shipped cycle scripts run green against the whole simulated shop floor."
-  use ExUnit.Case, async: false
+  use ExUnit.Case, async: true
 
   import ExUnit.CaptureIO
   alias Vws.Peers.WC.Runner.Summary

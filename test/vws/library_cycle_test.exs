@@ -5,7 +5,7 @@ defmodule Vws.LibraryCycleTest do
   001234.PRO, the cycle sends version 1 by name, checks it with a full read-back and runs it,
   against the whole simulated shop floor.
   """
-  use ExUnit.Case, async: false
+  use ExUnit.Case, async: true
 
   import ExUnit.CaptureIO
   alias Vws.Links.DNC.Library

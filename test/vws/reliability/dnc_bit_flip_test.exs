@@ -1,71 +1,18 @@
-defmodule Vws.Reliability.DNCBitFlipTest do
-  @moduledoc """
-  DOWNLOAD_GE and UPLOAD_GE under bit errors on the DNC link (issue 15, PROTOCOLS.md §2 "A
-  program is whole or it is nothing", "Directory"): for every single-bit flip in every byte of a
-  transfer's traffic, both directions — and random bursts — the program arrives unchanged or the
-  Monarch command ends `ERROR` with a reason; never `DONE` with other bytes. MONARCH's DNC link
-  talks to the simulated GE-2000 over TCP through `Vws.Test.FlipRelay`.
+# DOWNLOAD_GE, UPLOAD_GE and DRIP_FEED under bit errors on the DNC link (issue 15; the floor and
+# the checks are Vws.Test.DNCFlip's): every single-bit flip in every byte of a transfer's
+# traffic, both directions, and random bursts — the program arrives unchanged or the command
+# ends ERROR with a reason, never DONE with other bytes. One module per test, each with its own
+# GE-2000 and workstation, so that they run at once (each spends most of its time waiting out
+# the link's timeouts, not on a core).
+for kind <- [:download, :upload] do
+  name = kind |> Atom.to_string() |> Macro.camelize()
 
-  Before, an ENQ damaged into EOT ended a download early: the GE-2000 kept part of the program
-  and MONARCH said DONE.
-  """
-  use ExUnit.Case, async: true
-  use Vws.PropCase
-
-  alias Vws.Links.DNC
-  alias Vws.CEC.{Mailbox, Workstation}
-  alias Vws.Links.DNC.Program
-  alias Vws.Sim.GE2000
-  alias Vws.Test.FlipRelay
-  alias Vws.Peers.WC.Client
-  import Vws.Test.Eventually
-
-  @moduletag timeout: 900_000
-
-  @link_opts [
-    reply_timeout: 40,
-    response_timeout: 200,
-    receive_timeout: 200,
-    wack_delay: 10,
-    backoff_min: 5,
-    backoff_max: 20
-  ]
-  @program ["%", "O000012", "N10 G1X1", "%"]
-  @file_name "000012.PRO"
-  @old "%\nO000012\nN10 G0X9\n%\n"
-  # drip feed: a program of several text blocks (max_text 64 on both ends)
-  @drip ["%", "O000012"] ++ for(i <- 1..12, do: "N#{i * 10} G1X#{i}.5Y-#{i}") ++ ["M30", "%"]
-
-  setup do
-    sim =
-      start_supervised!(
-        {GE2000, link: [max_text: 64] ++ @link_opts, memory: 4_096, feed_rate: 100_000, tick: 5}
-      )
-
-    {:ok, relay} = FlipRelay.start_link(GE2000.endpoint(sim))
-
-    %{ws: ws, wc: wc} =
-      Vws.Test.Workstation.start(
-        # no status monitor: the DNC traffic is the commands' alone
-        devices: [
-          ge2000:
-            [endpoint: FlipRelay.endpoint(relay), status_interval: nil, max_text: 64] ++
-              @link_opts
-        ],
-        partitions: [monarch: [options: [request_timeout: 20_000]]]
-      )
-
-    link = Workstation.whereis(ws, :ge2000)
-    assert eventually(fn -> DNC.info(link).state == :idle end)
-    {:ok, client} = Client.connect(wc, numbers: %{"M" => 1})
-    %{ws: ws, sim: sim, relay: relay, client: client, link: link}
-  end
-
-  for kind <- [:download, :upload] do
+  defmodule Module.concat(Vws.Reliability.DNCBitFlipTest, "#{name}SingleBit") do
+    use Vws.Test.DNCFlip
     @kind kind
+
     test "#{kind}: single-bit flips in every byte, both directions", ctx do
-      kind = @kind
-      {to_target, to_client} = traffic(ctx, kind)
+      {to_target, to_client} = DNCFlip.traffic(ctx, @kind)
 
       flips =
         for {dir, n} <- [to_target: to_target, to_client: to_client],
@@ -73,131 +20,33 @@ defmodule Vws.Reliability.DNCBitFlipTest do
             bit <- 0..7,
             do: {dir, index, Bitwise.bsl(1, bit)}
 
-      outcomes = Enum.map(flips, &check!(ctx, kind, [&1]))
+      outcomes = Enum.map(flips, &DNCFlip.check!(ctx, @kind, [&1]))
       assert Enum.count(outcomes, &(&1 == :done)) > length(flips) / 2
     end
+  end
+
+  defmodule Module.concat(Vws.Reliability.DNCBitFlipTest, "#{name}Bursts") do
+    use Vws.Test.DNCFlip
+    @kind kind
 
     test "#{kind}: random bursts", ctx do
-      kind = @kind
-      {to_target, to_client} = traffic(ctx, kind)
-
+      {to_target, to_client} = DNCFlip.traffic(ctx, @kind)
       burst = Vws.Test.FlipRelay.burst(to_target, to_client)
-
-      property = :proper.forall(burst, &(check!(ctx, kind, &1) in [:done, :error]))
+      property = :proper.forall(burst, &(DNCFlip.check!(ctx, @kind, &1) in [:done, :error]))
       assert_property(property, 120)
     end
   end
+end
+
+defmodule Vws.Reliability.DNCBitFlipTest.DripFeedBursts do
+  use Vws.Test.DNCFlip
 
   # Drip feed (E): the machine runs the program while it arrives; a line fault never makes it
   # skip or repeat a block — DONE: it ran exactly the program; ERROR: it ran a prefix of it.
   test "drip feed: random bursts", ctx do
-    {to_target, to_client} = traffic(ctx, :drip_feed)
+    {to_target, to_client} = DNCFlip.traffic(ctx, :drip_feed)
     burst = Vws.Test.FlipRelay.burst(to_target, to_client)
-    property = :proper.forall(burst, &(check!(ctx, :drip_feed, &1) in [:done, :error]))
+    property = :proper.forall(burst, &(DNCFlip.check!(ctx, :drip_feed, &1) in [:done, :error]))
     assert_property(property, 60)
-  end
-
-  defp traffic(ctx, kind) do
-    :ok = FlipRelay.plan(ctx.relay, {:bytes, []})
-    assert check!(ctx, kind, []) == :done
-    counts = FlipRelay.counts(ctx.relay)
-    assert counts.to_target > 20 and counts.to_client > 20
-    {counts.to_target, counts.to_client}
-  end
-
-  # One DOWNLOAD_GE or UPLOAD_GE with `flips` on the DNC line: `:done` with the program exactly
-  # where it went, or `:error` with a reason; anything else fails the test.
-  defp check!(ctx, kind, flips) do
-    ws = ctx.ws
-    text = Program.to_text(@program)
-    await_idle(ctx.link)
-
-    case kind do
-      :download ->
-        :ok = GE2000.put_program(ctx.sim, @file_name, @old)
-        :ok = Mailbox.put_nc_file(ws, @program)
-
-      :upload ->
-        :ok = GE2000.put_program(ctx.sim, @file_name, text)
-        :ok = Mailbox.put_nc_up(ws, [])
-
-      :drip_feed ->
-        :ok = Mailbox.put_nc_file(ws, @drip)
-    end
-
-    drips = GE2000.state(ctx.sim).drips
-
-    :ok = FlipRelay.plan(ctx.relay, {:bytes, flips})
-
-    command =
-      case kind do
-        :download -> "DOWNLOAD_GE"
-        :upload -> "UPLOAD_GE(#{@file_name})"
-        :drip_feed -> "DRIP_FEED"
-      end
-
-    {:ok, [{"M", n}]} = Client.send_commands(ctx.client, [{"M", command}])
-    result = Client.await_command(ctx.client, "M", n, 120_000, poll_interval: 5)
-
-    case {kind, result} do
-      {:download, :done} ->
-        assert GE2000.program(ctx.sim, @file_name) == text,
-               "DONE with other bytes, flips #{inspect(flips)}"
-
-        :done
-
-      {:upload, :done} ->
-        assert Mailbox.nc_up(ws) == @program, "DONE with other bytes, flips #{inspect(flips)}"
-        :done
-
-      {:drip_feed, result} ->
-        drip_outcome(ctx, result, drips, flips)
-
-      {kind, {:error, %{reason: :command_failed, data: %{status: "ERROR " <> reason}}}}
-      when reason != "" ->
-        # whole or nothing: NC_UP is never part of a program
-        if kind == :upload, do: assert(Mailbox.nc_up(ws) == [])
-        :error
-
-      other ->
-        flunk("#{inspect(other)}, flips #{inspect(flips)}")
-    end
-  end
-
-  defp drip_outcome(ctx, result, drips, flips) do
-    text = Program.to_text(@drip)
-
-    drip =
-      if GE2000.state(ctx.sim).drips > drips do
-        assert eventually(fn -> GE2000.drip(ctx.sim).state in [:done, :broken] end, 10_000)
-        GE2000.drip(ctx.sim)
-      end
-
-    case result do
-      :done ->
-        assert drip.state == :done and drip.received == byte_size(text) and
-                 drip.crc == Vws.Codecs.CRC16.compute(text),
-               "DONE with other bytes run, flips #{inspect(flips)}: #{inspect(drip)}"
-
-        :done
-
-      {:error, %{reason: :command_failed, data: %{status: "ERROR " <> reason}}}
-      when reason != "" ->
-        # what the machine ran is the program's beginning: no block skipped or repeated
-        if drip do
-          assert drip.received <= byte_size(text) and
-                   drip.crc == Vws.Codecs.CRC16.compute(binary_part(text, 0, drip.received)),
-                 "a block skipped or repeated, flips #{inspect(flips)}: #{inspect(drip)}"
-        end
-
-        :error
-
-      other ->
-        flunk("#{inspect(other)}, flips #{inspect(flips)}")
-    end
-  end
-
-  defp await_idle(link) do
-    assert eventually(fn -> DNC.info(link).state == :idle end, 10_000)
   end
 end
