@@ -440,6 +440,7 @@ defmodule Vws.Test.CrashCampaign do
     unattributed =
       for {{:nobody, kind}, n} <- attributed, do: "#{inspect(kind)} ran #{n} times, no command"
 
+    twice_ids = for {id, n} <- attributed, n > 1, do: id
     twice_run = for {id, n} <- attributed, n > 1, do: "#{inspect(id)} ran #{n} times"
 
     not_run =
@@ -448,10 +449,17 @@ defmodule Vws.Test.CrashCampaign do
           Map.get(attributed, id) != 1,
           do: "#{inspect(id)} DONE but #{inspect(kind)} ran #{Map.get(attributed, id, 0)} times"
 
+    not_run_ids =
+      for {_key, id, _kind} <- kinds,
+          match?([{_, :done}], finished[id]),
+          Map.get(attributed, id) != 1,
+          do: id
+
     problems = twice_dispatched ++ bad_ends ++ not_error ++ unattributed ++ twice_run ++ not_run
 
     assert problems == [],
-           Enum.join(problems, "\n") <> "\n\n" <> story(rows, twice_run ++ not_run, kinds)
+           Enum.join(problems, "\n") <>
+             "\n\n" <> story(rows, Enum.uniq(twice_ids ++ not_run_ids), kinds)
 
     %{
       dispatched: length(dispatched),
@@ -460,32 +468,34 @@ defmodule Vws.Test.CrashCampaign do
     }
   end
 
-  # What happened around a command that ran twice (or not once): every dispatch, start, end and
-  # physical execution of its kind, and the kills, in order, with ms from the first of them.
+  # What happened around each command that ran twice (or not once): every event of the
+  # workstation (dispatches, starts, ends, physical executions, kills) from a second before its
+  # dispatch to a second after the next command of its kind, in order, with ms from the first.
   defp story(_rows, [], _kinds), do: ""
 
-  defp story(rows, _problems, kinds) do
-    kind_of = Map.new(kinds, fn {_key, id, kind} -> {id, kind} end)
-    suspicious = kind_of |> Map.values() |> MapSet.new()
+  defp story(rows, ids, kinds) do
+    rows = Enum.sort(rows)
+    t0 = rows |> List.first() |> elem(0) |> elem(0)
+    ms = &System.convert_time_unit(&1 - t0, :native, :millisecond)
+    second = System.convert_time_unit(1, :second, :native)
 
-    relevant =
-      for {{t, _}, what, a, b} <- Enum.sort(rows),
-          what == :kill or
-            (what == :executed and MapSet.member?(suspicious, a)) or
-            (what in [:dispatched, :started, :finished] and
-               MapSet.member?(suspicious, kind_of[a])),
-          do: {t, what, a, b}
+    Enum.map_join(Enum.take(ids, 3), "\n\n", fn id ->
+      {{from, _}, _, kind} = Enum.find(kinds, fn {_key, i, _kind} -> i == id end)
 
-    t0 = relevant |> List.first() |> elem(0)
+      until =
+        case Enum.find(kinds, fn {{t, _}, i, k} -> k == kind and t > from and i != id end) do
+          {{t, _}, _, _} -> t
+          nil -> from + 3 * second
+        end
 
-    relevant
-    |> Enum.map(fn {t, what, a, b} ->
-      ms = System.convert_time_unit(t - t0, :native, :millisecond)
-      b = if what == :started, do: :links, else: b
-      "#{ms} ms #{what} #{inspect(a)} #{inspect(b, limit: 5)}"
+      lines =
+        for {{t, _}, what, a, b} <- rows, t >= from - second, t <= until + second do
+          b = if what == :started, do: :links, else: b
+          "#{ms.(t)} ms #{what} #{inspect(a)} #{inspect(b, limit: 5)}"
+        end
+
+      "#{inspect(id)} (#{inspect(kind)}):\n" <> Enum.join(Enum.take(lines, 300), "\n")
     end)
-    |> Enum.take(-400)
-    |> Enum.join("\n")
   end
 
   # Per partition, its last command to finish and how: {number, :done | {:error, reason}}.

@@ -10,8 +10,11 @@ defmodule Vws.CEC.SunCommWireTest do
     WCPeer.send_line(peer, "*0054*R0009DO MOVE MV1:TRANS(63.5,0,0,90,-90,0)*G0004OPEN*241")
     assert WCPeer.recv_line(peer) == "05A0054" <> bcc("05A0054")
 
+    # both commands end ERROR (no link to the VAL II, none to DAQ #1): waited for, so that a
+    # loaded machine does not find the gripper's still EXECUTING when its status is asked below
     assert Vws.Test.Eventually.eventually(fn ->
-             match?({9, {:error, _}}, Vws.CEC.Mailbox.command_status(ws, :robot))
+             match?({9, {:error, _}}, Vws.CEC.Mailbox.command_status(ws, :robot)) and
+               match?({4, {:error, _}}, Vws.CEC.Mailbox.command_status(ws, :gripper))
            end)
 
     WCPeer.send_line(peer, "*0055*S0039ROBOT_CMD*032")
