@@ -9,3 +9,21 @@ ExUnit.start(
   assert_receive_timeout: 2_000,
   max_cases: System.schedulers_online() * 8
 )
+
+# The acceptance tests (tag :acceptance) start `mix` (MIX_ENV=dev) and the release (MIX_ENV=prod)
+# as OS processes. Their builds are made here, before any test runs, when this run includes them:
+# made by the first test that needed them, they took both cores for up to a minute in the middle
+# of the async phase and starved the simulated floors (DAQ #1 not answering in 300 ms).
+{opts, paths, _} =
+  OptionParser.parse(Enum.drop(System.argv(), 1),
+    switches: [exclude: :keep, include: :keep, only: :keep, formatter: :keep, seed: :integer]
+  )
+
+acceptance? =
+  "acceptance" not in Keyword.get_values(opts, :exclude) and
+    (paths == [] or Enum.any?(paths, &(&1 =~ ~r{(^|/)test/acceptance|release_test})))
+
+if acceptance? do
+  Vws.Test.Acceptance.prebuild("dev")
+  Vws.Test.Acceptance.release()
+end

@@ -279,7 +279,10 @@ defmodule Vws.Partitions.MonarchTest do
       Vws.Telemetry.attach(
         handler,
         [:vws, :monarch, :request_again],
-        fn _, _, md, _ -> send(test_pid, {:request_again, md.operation, md.reason}) end,
+        fn _, _, md, _ ->
+          if md.workstation == ctx.ws,
+            do: send(test_pid, {:request_again, md.operation, md.reason})
+        end,
         nil
       )
 

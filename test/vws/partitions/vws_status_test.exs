@@ -284,7 +284,8 @@ defmodule Vws.Partitions.VwsStatusTest do
     end
 
     test "a release that fails is tried again until the button is let go" do
-      %{ws: ws, plant: plant, daq: daq} = DAQFloor.start(vws_status: [timeout_ms: 100])
+      # 500 ms: the press must be confirmed while the DAQ still answers, on a loaded machine too
+      %{ws: ws, plant: plant, daq: daq} = DAQFloor.start(vws_status: [timeout_ms: 500])
       me = self()
       press = VwsStatus.cycle_start_fun(ws, pulse_ms: 300)
       spawn_link(fn -> send(me, {:pressed, press.()}) end)
@@ -351,18 +352,6 @@ defmodule Vws.Partitions.VwsStatusTest do
     defp fake_daq1 do
       name = "fake-daq1-#{System.unique_integer([:positive])}"
       {:ok, listener} = Vws.Links.Transport.listen("loopback:" <> name)
-      handler = "actuation-retry-#{name}"
-      test_pid = self()
-
-      :ok =
-        Vws.Telemetry.attach(
-          handler,
-          [:vws, :vws_status, :actuation_retry],
-          fn _, _, md, _ -> send(test_pid, {:actuation_retry, md.reason, md.try}) end,
-          nil
-        )
-
-      on_exit(fn -> Vws.Telemetry.detach(handler) end)
 
       %{ws: ws} =
         Workstation.start(
@@ -370,6 +359,22 @@ defmodule Vws.Partitions.VwsStatusTest do
             daq1: [endpoint: "loopback:" <> name, vws_status: [poll_ms: 600_000]]
           ]
         )
+
+      # this workstation's retries only (the other tests' workstations retry too)
+      handler = "actuation-retry-#{name}"
+      test_pid = self()
+
+      :ok =
+        Vws.Telemetry.attach(
+          handler,
+          [:vws, :vws_status, :actuation_retry],
+          fn _, _, md, _ ->
+            if md.workstation == ws, do: send(test_pid, {:actuation_retry, md.reason, md.try})
+          end,
+          nil
+        )
+
+      on_exit(fn -> Vws.Telemetry.detach(handler) end)
 
       {:ok, conn} = Vws.Links.Transport.accept(listener, 2_000)
       :ok = Vws.Links.Transport.activate(conn)

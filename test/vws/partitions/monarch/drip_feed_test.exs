@@ -127,7 +127,9 @@ defmodule Vws.Partitions.Monarch.DripFeedTest do
       Vws.Telemetry.attach(
         handler,
         [:vws, :monarch, :request_again],
-        fn _, _, md, _ -> send(test_pid, {:request_again, md.operation}) end,
+        fn _, _, md, _ ->
+          if md.workstation == ctx.ws, do: send(test_pid, {:request_again, md.operation})
+        end,
         nil
       )
 
