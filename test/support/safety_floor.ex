@@ -19,7 +19,9 @@ defmodule Vws.Test.SafetyFloor do
   # Timers. `:fast` (the stateful test, the soak): everything short, so that a sequence takes
   # tens of milliseconds; on a loaded machine more commands end in a timeout, which the safety
   # properties allow. `:steady` (the rule tests, the default): long enough that a loaded
-  # machine does not turn an expected DONE into an error.
+  # machine does not turn an expected DONE into an error — DAQ #1 answers within a second
+  # (a loaded suite has delayed its answers by 300 ms and more), a
+  # reading is stale after two, and an interlock waits up to 1.5 s for a fresh one.
   @timing %{
     fast: %{
       dnc: [reply_timeout: 50, wack_delay: 10, backoff_min: 5, backoff_max: 50],
@@ -39,9 +41,9 @@ defmodule Vws.Test.SafetyFloor do
       start_timeout: 2_000,
       device_ms: 3_000,
       val_ms: 5_000,
-      hpib: [timeout: 300, connect_timeout: 500],
-      vws_status: [poll_ms: 10, timeout_ms: 300, stale_after_ms: 600],
-      interlock: [timeout: 150, retry_ms: 30, machine_stale_ms: 600, sensor_timeout_ms: 500]
+      hpib: [timeout: 1_000, connect_timeout: 1_000],
+      vws_status: [poll_ms: 10, timeout_ms: 1_000, stale_after_ms: 2_000],
+      interlock: [timeout: 150, retry_ms: 30, machine_stale_ms: 600, sensor_timeout_ms: 1_500]
     }
   }
 
