@@ -91,6 +91,10 @@ defmodule Vws.Sim.DAQ do
   @impl true
   def init(opts) do
     Process.flag(:trap_exit, true)
+    # The simulated DAQ (and its plant) stand in for equipment with a processor of its own: they
+    # run ahead of the node's normal work, so that a loaded node (a full test suite on two
+    # cores) does not make the instrument answer late. Each request is a few microseconds.
+    Process.flag(:priority, :high)
     plant = Keyword.fetch!(opts, :plant)
     daq = Keyword.get(opts, :daq, :daq1)
 

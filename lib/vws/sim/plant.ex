@@ -176,6 +176,8 @@ defmodule Vws.Sim.Plant do
 
   @impl true
   def init(opts) do
+    # equipment: its own machine, which the CEC's load does not slow (see Vws.Sim.DAQ)
+    Process.flag(:priority, :high)
     config = ChannelMap.load(Keyword.get(opts, :config, ChannelMap.default_path()))
     scale = Keyword.get(opts, :time_scale, 1.0)
 

@@ -38,6 +38,9 @@ defmodule Vws.Links.HPIB.Device do
 
   @impl true
   def init(opts) do
+    # The bus carries VWS_STATUS's polls, which run at high priority so that the node's other
+    # work does not delay them (Vws.Partitions.VwsStatus): the bus does too. It only moves lines.
+    Process.flag(:priority, :high)
     bus = Keyword.fetch!(opts, :bus)
     address = Keyword.fetch!(opts, :address)
     endpoint = Vws.Links.Endpoint.parse!(Keyword.fetch!(opts, :endpoint))
