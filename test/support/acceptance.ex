@@ -572,15 +572,35 @@ defmodule Vws.Test.Acceptance do
   @doc false
   def wrapper, do: @wrapper
 
+  defp data_root do
+    key = {__MODULE__, :data_root}
+
+    :global.trans({key, self()}, fn ->
+      case :persistent_term.get(key, nil) do
+        nil ->
+          root = Path.join(System.tmp_dir!(), "vws-acceptance-data-#{System.pid()}")
+          File.rm_rf!(root)
+          ExUnit.after_suite(fn _ -> File.rm_rf(root) end)
+          :persistent_term.put(key, root)
+          root
+
+        root ->
+          root
+      end
+    end)
+  end
+
   @doc false
   # `env` with a fresh `VWS_DATA_DIR` unless it names one (see the moduledoc).
   def with_data_dir(env) do
     if List.keymember?(env, "VWS_DATA_DIR", 0) do
       env
     else
-      dir =
-        Path.join(System.tmp_dir!(), "vws-acceptance-data-#{System.unique_integer([:positive])}")
-
+      # always empty: unique integers start again in every test run, and a directory left by
+      # an earlier run (its journal restored the mailboxes: a FIXTURE command "already DONE")
+      # must not be taken over; the run's directories go with the suite
+      dir = Path.join(data_root(), Integer.to_string(System.unique_integer([:positive])))
+      File.rm_rf!(dir)
       File.mkdir_p!(dir)
       [{"VWS_DATA_DIR", dir} | env]
     end

@@ -32,7 +32,8 @@ defmodule Vws.Ops.MTConnect.Agent do
   for the first time (a restarted one's first word) has its workstation's links read again.
 
   Workstations on other nodes: a forwarder process on each such node subscribes to their change
-  notices (and their GE-2000 links' transfer progress), reads their mailboxes once and sends the agent that snapshot and then every change, so
+  notices (and their GE-2000 links' transfer progress, and their links' connection changes,
+  `Vws.Ops.MTConnect.LinkWatch`), reads their mailboxes once and sends the agent that snapshot and then every change, so
   their transitions are recorded as they happen too; before each answer the agent asks each
   forwarder to confirm what it has sent, so an answer is never older than the request. Until a
   workstation's snapshot is in (or when its forwarder is gone), it is read as before: every
@@ -55,21 +56,11 @@ defmodule Vws.Ops.MTConnect.Agent do
   use GenServer
 
   alias Vws.CEC.Mailbox
-  alias Vws.Ops.MTConnect.{Model, Path, XML}
+  alias Vws.Ops.MTConnect.{LinkWatch, Model, Path, XML}
 
   @default_buffer 131_072
   @default_checkpoint 1000
   @default_count 100
-  @link_events [
-    [:vws, :sun_comm, :wc_connected],
-    [:vws, :sun_comm, :wc_disconnected],
-    [:vws, :ddcmp, :state_change],
-    [:vws, :ddcmp, :link_down],
-    [:vws, :dnc, :connected],
-    [:vws, :dnc, :disconnected],
-    [:vws, :hpib, :connected],
-    [:vws, :hpib, :disconnected]
-  ]
   @asset_buffer 1024
 
   @type agent :: GenServer.server()
@@ -180,10 +171,8 @@ defmodule Vws.Ops.MTConnect.Agent do
       first_checkpoint: %{},
       checkpoints: %{},
       waiters: [],
-      # this node's links: pid => {workstation, key}, each monitored; when each workstation's
-      # links were last read (a link's word older than that is in the reading)
-      link_pids: %{},
-      links_read: %{},
+      # this node's workstations' links, told as they change (LinkWatch)
+      link_watch: LinkWatch.new(),
       first: 1,
       next: 1
     }
@@ -196,24 +185,10 @@ defmodule Vws.Ops.MTConnect.Agent do
       |> record(added, "UNAVAILABLE", now)
       |> record(removed, "UNAVAILABLE", now)
 
-    :ok =
-      Vws.Telemetry.attach_many(
-        {__MODULE__, self()},
-        @link_events,
-        &__MODULE__.link_event/4,
-        self()
-      )
+    :ok = LinkWatch.attach()
 
     send(self(), :tick)
     {:ok, s}
-  end
-
-  @doc false
-  # A link's connection changed: its telemetry, in the link's own process, tells the agent with
-  # the time it happened.
-  def link_event(event, _measurements, meta, agent) do
-    send(agent, {:link_event, self(), List.last(event), meta, System.system_time(:microsecond)})
-    :ok
   end
 
   @impl true
@@ -223,20 +198,37 @@ defmodule Vws.Ops.MTConnect.Agent do
   end
 
   def handle_info({:link_event, pid, event, meta, at}, s) do
-    case s.link_pids do
-      %{^pid => {ws, key}} ->
-        {:noreply, link_changed(s, ws, key, link_state(key, event, meta), at)}
+    case LinkWatch.event(s.link_watch, pid, event, meta, at) do
+      {:change, ws, key, state, at} ->
+        {:noreply, link_changed(s, ws, key, state, at)}
 
-      _ ->
-        # a link not seen yet (restarted), or another process's (a simulator's end of a line):
-        # the workstation's links are read again
-        ws = meta[:workstation] || meta[:bus]
-
+      # a link not seen yet (restarted), or another process's (a simulator's end of a line):
+      # the workstation's links are read again
+      {:read, ws} ->
         if Map.has_key?(s.local, ws) and Map.has_key?(s.facts, ws) and
              not MapSet.member?(s.gone, ws),
            do: {:noreply, read_links(s, ws)},
            else: {:noreply, s}
+
+      :none ->
+        {:noreply, s}
     end
+  end
+
+  # another node's workstation: its forwarder tells its links' states and their changes
+  def handle_info({:mtc_links, ws, links, at}, s) do
+    if MapSet.member?(s.followed, ws) and Map.has_key?(s.facts, ws) do
+      facts = Map.put(Map.fetch!(s.facts, ws), :links, links)
+      {:noreply, observe(%{s | facts: Map.put(s.facts, ws, facts)}, ws, facts, at)}
+    else
+      {:noreply, s}
+    end
+  end
+
+  def handle_info({:mtc_link, ws, key, state, at}, s) do
+    if MapSet.member?(s.followed, ws),
+      do: {:noreply, link_changed(s, ws, key, state, at)},
+      else: {:noreply, s}
   end
 
   def handle_info({:vws_event, ws, :mailbox, {change, at}}, s),
@@ -263,12 +255,11 @@ defmodule Vws.Ops.MTConnect.Agent do
   def handle_info({:DOWN, _ref, :process, pid, _reason}, s) do
     case Enum.find(s.forwarders, fn {_n, p} -> p == pid end) do
       nil ->
-        case Map.pop(s.link_pids, pid) do
-          {{ws, key}, pids} ->
-            s = %{s | link_pids: pids}
-            {:noreply, link_changed(s, ws, key, "CLOSED", System.system_time(:microsecond))}
+        case LinkWatch.down(s.link_watch, pid) do
+          {watch, {:change, ws, key, state, at}} ->
+            {:noreply, link_changed(%{s | link_watch: watch}, ws, key, state, at)}
 
-          {nil, _} ->
+          {_watch, :none} ->
             {:noreply, s}
         end
 
@@ -296,7 +287,7 @@ defmodule Vws.Ops.MTConnect.Agent do
 
   @impl true
   def terminate(_reason, s) do
-    Vws.Telemetry.detach({__MODULE__, self()})
+    LinkWatch.detach()
     :ets.delete(s.buffer)
   end
 
@@ -688,10 +679,12 @@ defmodule Vws.Ops.MTConnect.Agent do
   # The forwarder, on a workstation's node (see follow_remote/3). It ends with its agent.
   def forwarder(agent) do
     ref = Process.monitor(agent)
-    forward(agent, ref, %{})
+    # this node's links tell their changes (LinkWatch), passed on for the workstations followed
+    :ok = LinkWatch.attach()
+    forward_notices(agent, ref, %{}, LinkWatch.new())
   end
 
-  defp forward(agent, ref, since) do
+  defp forward_notices(agent, ref, since, watch) do
     receive do
       {:follow, ws} ->
         if not Map.has_key?(since, ws) do
@@ -701,7 +694,9 @@ defmodule Vws.Ops.MTConnect.Agent do
 
         t = System.system_time(:microsecond)
         send(agent, {:mtc_snapshot, ws, read(ws)})
-        forward(agent, ref, Map.put(since, ws, t))
+        {watch, links, at} = LinkWatch.read(watch, ws)
+        send(agent, {:mtc_links, ws, links, at})
+        forward_notices(agent, ref, Map.put(since, ws, t), watch)
 
       {:vws_event, ws, :mailbox, {_change, at}} = notice ->
         # what was written before the snapshot was read is in it already
@@ -710,22 +705,47 @@ defmodule Vws.Ops.MTConnect.Agent do
           _ -> :ok
         end
 
-        forward(agent, ref, since)
+        forward_notices(agent, ref, since, watch)
 
       # a transfer's progress (the VMC's transfer message): told as it comes
       {:vws_event, ws, :dnc_progress, _progress} = notice ->
         if Map.has_key?(since, ws), do: send(agent, notice)
-        forward(agent, ref, since)
+        forward_notices(agent, ref, since, watch)
+
+      {:link_event, pid, event, meta, at} ->
+        case LinkWatch.event(watch, pid, event, meta, at) do
+          {:change, ws, key, state, at} ->
+            send(agent, {:mtc_link, ws, key, state, at})
+            forward_notices(agent, ref, since, watch)
+
+          {:read, ws} when is_map_key(since, ws) ->
+            {watch, links, at} = LinkWatch.read(watch, ws)
+            send(agent, {:mtc_links, ws, links, at})
+            forward_notices(agent, ref, since, watch)
+
+          _ ->
+            forward_notices(agent, ref, since, watch)
+        end
 
       {:sync, from, sync_ref} ->
         send(from, {:mtc_synced, sync_ref})
-        forward(agent, ref, since)
+        forward_notices(agent, ref, since, watch)
 
       {:DOWN, ^ref, :process, _, _} ->
-        :ok
+        LinkWatch.detach()
+
+      {:DOWN, _, :process, pid, _} ->
+        case LinkWatch.down(watch, pid) do
+          {watch, {:change, ws, key, state, at}} ->
+            send(agent, {:mtc_link, ws, key, state, at})
+            forward_notices(agent, ref, since, watch)
+
+          {watch, :none} ->
+            forward_notices(agent, ref, since, watch)
+        end
 
       _other ->
-        forward(agent, ref, since)
+        forward_notices(agent, ref, since, watch)
     end
   end
 
@@ -950,107 +970,24 @@ defmodule Vws.Ops.MTConnect.Agent do
     end)
   end
 
-  # The links' connection states, for the workstations of this node (sampled: links announce
-  # nothing).
   # A workstation's links read now: their states recorded, their processes known and monitored.
   defp read_links(s, ws) do
-    now = System.system_time(:microsecond)
-    {links, pids} = links_of(ws)
-
-    new =
-      for {pid, key} <- pids, not Map.has_key?(s.link_pids, pid), into: %{} do
-        Process.monitor(pid)
-        {pid, {ws, key}}
-      end
-
+    {watch, links, at} = LinkWatch.read(s.link_watch, ws)
     facts = Map.put(Map.fetch!(s.facts, ws), :links, links)
-
-    s = %{
-      s
-      | link_pids: Map.merge(s.link_pids, new),
-        links_read: Map.put(s.links_read, ws, now),
-        facts: Map.put(s.facts, ws, facts)
-    }
-
-    observe(s, ws, facts, now)
+    s = %{s | link_watch: watch, facts: Map.put(s.facts, ws, facts)}
+    observe(s, ws, facts, at)
   end
 
-  # One link's word: recorded unless the reading of its workstation's links came after it.
-  defp link_changed(s, _ws, _key, nil, _at), do: s
-
+  # One link's change, at the time the link made it.
   defp link_changed(s, ws, key, state, at) do
     with %{^ws => facts} <- s.facts,
-         false <- MapSet.member?(s.gone, ws),
-         true <- at >= Map.get(s.links_read, ws, 0) do
+         false <- MapSet.member?(s.gone, ws) do
       facts = Map.update(facts, :links, %{key => state}, &Map.put(&1, key, state))
       observe(%{s | facts: Map.put(s.facts, ws, facts)}, ws, facts, at)
     else
       _ -> s
     end
   end
-
-  # The connection a link's telemetry event says it has (nil: the event does not say).
-  defp link_state(:wc, :wc_connected, _meta), do: "ESTABLISHED"
-  defp link_state(:wc, :wc_disconnected, _meta), do: "LISTEN"
-  defp link_state(:val, :state_change, %{to: :running}), do: "ESTABLISHED"
-  defp link_state(:val, :state_change, _meta), do: "CLOSED"
-  defp link_state(:val, :link_down, _meta), do: "CLOSED"
-  defp link_state(_key, :connected, _meta), do: "ESTABLISHED"
-  defp link_state(_key, :disconnected, _meta), do: "CLOSED"
-  defp link_state(_key, _event, _meta), do: nil
-
-  # `{states, [{pid, key}]}`: the link states of `link_states/1` and the processes that have them
-  # (SUN_COMM for the WC link).
-  defp links_of(ws) do
-    rows = Vws.Ops.Inspect.link_rows(ws)
-    sun_comm = Vws.CEC.Workstation.whereis(ws, :sun_comm)
-
-    pids =
-      for(row <- rows, key = link_key(row), key != nil, is_pid(row.pid), do: {row.pid, key}) ++
-        if(is_pid(sun_comm), do: [{sun_comm, :wc}], else: [])
-
-    {states(ws, rows), pids}
-  rescue
-    _ -> {%{}, []}
-  catch
-    :exit, _ -> {%{}, []}
-  end
-
-  # `%{wc | val | dnc | daq1 | hydraulic => "ESTABLISHED" | "LISTEN" | "CLOSED"}` for the links a
-  # workstation has (`rows`: its link rows, `Vws.Ops.Inspect.link_rows/1`).
-  defp states(ws, rows) do
-    wc =
-      case Vws.Ops.Inspect.wc_info(ws) do
-        %{peer: peer} when peer != nil -> "ESTABLISHED"
-        %{listening: listening} when listening != nil -> "LISTEN"
-        _ -> "CLOSED"
-      end
-
-    links =
-      for row <- rows, key = link_key(row), key != nil, into: %{} do
-        {key, connection(key, row.state)}
-      end
-
-    Map.put(links, :wc, wc)
-  rescue
-    _ -> %{}
-  catch
-    :exit, _ -> %{}
-  end
-
-  defp link_key(%{id: :val}), do: :val
-  defp link_key(%{id: :ge2000}), do: :dnc
-  defp link_key(%{id: {Vws.Links.HPIB, _, _}, info: %{device: "DAQ #1"}}), do: :daq1
-  defp link_key(%{id: {Vws.Links.HPIB, _, _}, info: %{device: "HYDRAULIC" <> _}}), do: :hydraulic
-  defp link_key(_row), do: nil
-
-  # the VAL II layer: {lun2, activity}, lun2 :down when its DDCMP link is not running
-  defp connection(:val, {:down, _}), do: "CLOSED"
-  defp connection(:val, {_lun2, _activity}), do: "ESTABLISHED"
-  defp connection(:dnc, state) when state in [:disconnected, :down], do: "CLOSED"
-  defp connection(:dnc, state) when is_atom(state), do: "ESTABLISHED"
-  defp connection(_hpib, state) when state in [:ready, :busy], do: "ESTABLISHED"
-  defp connection(_key, _state), do: "CLOSED"
 
   defp remove(s, ws, now) do
     device = Map.fetch!(s.devices, ws)
@@ -1062,7 +999,7 @@ defmodule Vws.Ops.MTConnect.Agent do
         %{^ws => _} ->
           Vws.CEC.Events.unsubscribe(ws, :mailbox)
           Vws.CEC.Events.unsubscribe(ws, :dnc_progress)
-          %{s | local: Map.delete(s.local, ws)}
+          %{s | local: Map.delete(s.local, ws), link_watch: LinkWatch.forget(s.link_watch, ws)}
 
         _ ->
           s

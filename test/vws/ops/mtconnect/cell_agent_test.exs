@@ -214,4 +214,54 @@ defmodule Vws.Ops.MTConnect.CellAgentTest do
              |> length() == 3
            end)
   end
+
+  test "a workstation on another node: its links' connection changes are recorded, too",
+       %{peers: peers} do
+    a = start_supervised!({Vws.Ops.MTConnect.Agent, interval: 60_000}, id: make_ref())
+    ws = "#{peers.a.id}-tcp"
+    id = "ws_" <> ws
+    {:ok, _} = :erpc.call(peers.a.node, Workstation, :start, [[id: ws, wc: "tcp://127.0.0.1:0"]])
+    on_exit(fn -> :erpc.call(peers.a.node, Workstation, :stop, [ws]) end)
+
+    port =
+      fn -> :erpc.call(peers.a.node, Vws.CEC.SunComm, :listening, [ws]) end
+      |> Stream.repeatedly()
+      |> Enum.find_value(fn
+        nil -> Process.sleep(20) && nil
+        endpoint -> endpoint.port
+      end)
+
+    conn = fn ->
+      {:ok, xml} = Vws.Ops.MTConnect.Agent.current(a)
+
+      case Regex.run(~r{dataItemId="#{id}_wc_link_conn"[^>]*>(\w+)<}, IO.iodata_to_binary(xml)) do
+        [_, v] -> v
+        nil -> nil
+      end
+    end
+
+    # followed through its node's forwarder: the WC link listens
+    assert eventually(fn -> conn.() == "LISTEN" end, 10_000)
+    assert MapSet.member?(:sys.get_state(a).followed, ws)
+    %{next: next} = Vws.Ops.MTConnect.Agent.sequences(a)
+
+    # a WC comes and goes (a plain TCP client from this node), twice
+    for _ <- 1..2 do
+      {:ok, sock} = :gen_tcp.connect({127, 0, 0, 1}, port, [:binary, active: false])
+      assert eventually(fn -> conn.() == "ESTABLISHED" end)
+      :ok = :gen_tcp.close(sock)
+      assert eventually(fn -> conn.() == "LISTEN" end)
+    end
+
+    {:ok, xml} = Vws.Ops.MTConnect.Agent.sample(a, next, 1000)
+
+    states =
+      for [v] <-
+            Regex.scan(~r{dataItemId="#{id}_wc_link_conn"[^>]*>(\w+)<}, IO.iodata_to_binary(xml),
+              capture: :all_but_first
+            ),
+          do: v
+
+    assert states == ~w(ESTABLISHED LISTEN ESTABLISHED LISTEN)
+  end
 end
