@@ -69,24 +69,16 @@ defmodule Vws.Test.Acceptance do
   VM's build; concurrent callers wait for the first one.
   """
   def prebuild(mix_env) do
-    key = {__MODULE__, :prebuilt, mix_env}
+    once({:prebuilt, mix_env}, fn ->
+      {out, status} =
+        System.cmd(mix(), ["compile"],
+          env: [{"MIX_ENV", mix_env}],
+          cd: @root,
+          stderr_to_stdout: true
+        )
 
-    :global.trans({key, self()}, fn ->
-      case :persistent_term.get(key, nil) do
-        nil ->
-          {out, status} =
-            System.cmd(mix(), ["compile"],
-              env: [{"MIX_ENV", mix_env}],
-              cd: @root,
-              stderr_to_stdout: true
-            )
-
-          if status != 0, do: flunk("MIX_ENV=#{mix_env} mix compile failed:\n#{out}")
-          :persistent_term.put(key, true)
-
-        true ->
-          :ok
-      end
+      if status != 0, do: flunk("MIX_ENV=#{mix_env} mix compile failed:\n#{out}")
+      true
     end)
 
     :ok
@@ -99,27 +91,35 @@ defmodule Vws.Test.Acceptance do
   `VWS_DATA_DIR`, `RELEASE_TMP` and `VWS_ID`.
   """
   def release do
-    key = {__MODULE__, :release}
+    once(:release, fn ->
+      path = Path.join(System.tmp_dir!(), "vws-release-#{System.unique_integer([:positive])}")
+
+      {out, status} =
+        System.cmd(mix(), ["release", "--path", path, "--overwrite", "--quiet"],
+          env: [{"MIX_ENV", "prod"}],
+          cd: @root,
+          stderr_to_stdout: true
+        )
+
+      if status != 0, do: flunk("MIX_ENV=prod mix release failed:\n#{out}")
+      ExUnit.after_suite(fn _ -> File.rm_rf(path) end)
+      path
+    end)
+  end
+
+  # `fun`'s value, made by the first caller in this test run; concurrent callers wait for it.
+  defp once(name, fun) do
+    key = {__MODULE__, name}
 
     :global.trans({key, self()}, fn ->
       case :persistent_term.get(key, nil) do
         nil ->
-          path = Path.join(System.tmp_dir!(), "vws-release-#{System.unique_integer([:positive])}")
+          value = fun.()
+          :persistent_term.put(key, value)
+          value
 
-          {out, status} =
-            System.cmd(mix(), ["release", "--path", path, "--overwrite", "--quiet"],
-              env: [{"MIX_ENV", "prod"}],
-              cd: @root,
-              stderr_to_stdout: true
-            )
-
-          if status != 0, do: flunk("MIX_ENV=prod mix release failed:\n#{out}")
-          ExUnit.after_suite(fn _ -> File.rm_rf(path) end)
-          :persistent_term.put(key, path)
-          path
-
-        path ->
-          path
+        value ->
+          value
       end
     end)
   end
@@ -573,20 +573,11 @@ defmodule Vws.Test.Acceptance do
   def wrapper, do: @wrapper
 
   defp data_root do
-    key = {__MODULE__, :data_root}
-
-    :global.trans({key, self()}, fn ->
-      case :persistent_term.get(key, nil) do
-        nil ->
-          root = Path.join(System.tmp_dir!(), "vws-acceptance-data-#{System.pid()}")
-          File.rm_rf!(root)
-          ExUnit.after_suite(fn _ -> File.rm_rf(root) end)
-          :persistent_term.put(key, root)
-          root
-
-        root ->
-          root
-      end
+    once(:data_root, fn ->
+      root = Path.join(System.tmp_dir!(), "vws-acceptance-data-#{System.pid()}")
+      File.rm_rf!(root)
+      ExUnit.after_suite(fn _ -> File.rm_rf(root) end)
+      root
     end)
   end
 

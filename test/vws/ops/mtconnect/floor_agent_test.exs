@@ -10,15 +10,18 @@ defmodule Vws.Ops.MTConnect.FloorAgentTest do
 
   @moduletag timeout: 120_000
 
-  test "a machining cycle: robot messages, program, part count, samples, conditions, links" do
-    ws = "floor-mtc-#{System.unique_integer([:positive])}"
-    id = "ws_" <> ws
+  # The demo's shop floor (time scale ×50) and an agent that serves it alone. The agent never
+  # reads on its own (its periodic read is a minute away): every change is told.
+  defp floor_and_agent(prefix) do
+    ws = "#{prefix}-#{System.unique_integer([:positive])}"
     on_exit(fn -> Vws.CEC.Workstation.stop(ws) end)
-
     {:ok, floor} = Vws.Ops.Demo.start_shop_floor(id: ws, wc: "loopback:#{ws}", time_scale: 50.0)
-
-    # (no periodic read: every change of the links is told by the links themselves)
     a = start_supervised!({Agent, workstations: fn -> [ws] end, interval: 60_000}, id: make_ref())
+    %{ws: ws, id: "ws_" <> ws, floor: floor, agent: a}
+  end
+
+  test "a machining cycle: robot messages, program, part count, samples, conditions, links" do
+    %{ws: ws, id: id, floor: floor, agent: a} = floor_and_agent("floor-mtc")
 
     %{next: start} = Agent.sequences(a)
 
@@ -114,13 +117,7 @@ defmodule Vws.Ops.MTConnect.FloorAgentTest do
   end
 
   test "each link's connection is recorded when it changes: a WC that comes and goes, links killed" do
-    ws = "floor-links-#{System.unique_integer([:positive])}"
-    id = "ws_" <> ws
-    on_exit(fn -> Vws.CEC.Workstation.stop(ws) end)
-    {:ok, floor} = Vws.Ops.Demo.start_shop_floor(id: ws, wc: "loopback:#{ws}", time_scale: 50.0)
-
-    # the agent never reads the links on its own (its periodic read is a minute away)
-    a = start_supervised!({Agent, workstations: fn -> [ws] end, interval: 60_000}, id: make_ref())
+    %{id: id, ws: ws, floor: floor, agent: a} = floor_and_agent("floor-links")
 
     conn = fn link ->
       {:ok, xml} = Agent.current(a)
