@@ -380,12 +380,31 @@ defmodule Vws.Test.Acceptance do
 
   ## Talking to it
 
-  @doc "A TCP port free on 127.0.0.1 at this moment."
+  @doc """
+  A TCP port free on 127.0.0.1 at this moment, below the kernel's ephemeral range
+  (`/proc/sys/net/ipv4/ip_local_port_range`, 32768 and up by default): the OS gives ports of
+  that range to every `port 0` listener and connection — the simulators of the process the
+  test then starts, the other tests' — so a port picked there could be taken before the process
+  binds it (`:eaddrinuse`, seen). Picked at random among 20000–32767, each port at most once
+  per run.
+  """
   def free_port do
-    {:ok, socket} = :gen_tcp.listen(0, ip: {127, 0, 0, 1}, reuseaddr: true)
-    {:ok, port} = :inet.port(socket)
-    :gen_tcp.close(socket)
-    port
+    port = 20_000 + :rand.uniform(12_767) - 1
+    key = {__MODULE__, :port, port}
+
+    taken? =
+      :global.trans({{__MODULE__, :ports}, self()}, fn ->
+        with nil <- :persistent_term.get(key, nil),
+             {:ok, socket} <- :gen_tcp.listen(port, ip: {127, 0, 0, 1}, reuseaddr: true) do
+          :gen_tcp.close(socket)
+          :persistent_term.put(key, true)
+          false
+        else
+          _ -> true
+        end
+      end)
+
+    if taken?, do: free_port(), else: port
   end
 
   @doc ~S"""
