@@ -594,6 +594,8 @@ defmodule Vws.Test.CrashCampaign do
     {:relay, :ram_x_valve, :close}
   ]
 
+  # (WHERE asks where the arm is: it moves nothing)
+  defp physical?({:val2, "WHERE"}), do: false
   defp physical?({:val2, _text}), do: true
   defp physical?({:ge2000, op}), do: op in [:part_program, :remote_control]
   defp physical?(relay), do: relay in @relays

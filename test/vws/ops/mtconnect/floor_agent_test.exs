@@ -30,9 +30,10 @@ defmodule Vws.Ops.MTConnect.FloorAgentTest do
     summary = Runner.run(client, script, poll_interval: 5)
     assert summary.result == :completed, inspect(summary, limit: 20)
 
-    # the robot's location says what is true: linked, not read (no WHERE in the cycle)
+    # the robot's location: the cycle asks WHERE at SAFE (twice), so WHERE_ROBOT holds numbers
     {where, _age} = Vws.CEC.Mailbox.get_device(ws, 9)
-    assert where == "NO DATA (VAL II NOT READ YET)"
+    assert length(String.split(where, "/")) == 12, where
+    assert Enum.all?(String.split(where, "/"), &(&1 =~ ~r/^-?\d+\.\d$/)), where
 
     {:ok, xml} = Agent.sample(a, start, 100_000)
     text = XMLLint.validate!(xml, :streams)
@@ -57,6 +58,9 @@ defmodule Vws.Ops.MTConnect.FloorAgentTest do
       for({_, ^item, _, v} <- MTCClient.observations(now), do: v) |> List.last()
     end
 
+    # ... and the agent shows the arm's position and joint angles from it
+    assert current.("#{id}_robot_x_pos") =~ ~r/^-?\d+(\.\d+)?$/
+    assert current.("#{id}_robot_j1_angle") =~ ~r/^-?\d+(\.\d+)?$/
     assert current.("#{id}_vmc_path_program") =~ ~r/^\d+$/
     assert current.("#{id}_vmc_path_part_count") == "1"
     # the cycle's DOWNLOAD_GE, block by block, as the VMC's transfer message (the link's progress)
