@@ -43,11 +43,12 @@ defmodule Vws.Ops.Web.State do
   @doc """
   The dashboard state. Options: `:control` (whether control actions are enabled),
   `:library_cache` (a public ETS table: the library section is then read again only when older
-  than ten times what reading it took, see `library/2`).
+  than ten times what reading it took, see `library/2`), `:workstations` (the ids of the
+  workstations to show; default every workstation of this node).
   """
   @spec build(keyword) :: map
   def build(opts \\ []) do
-    ids = Vws.CEC.Workstation.list()
+    ids = Keyword.get_lazy(opts, :workstations, &Vws.CEC.Workstation.list/0)
     cache = Keyword.get(opts, :library_cache)
 
     %{
