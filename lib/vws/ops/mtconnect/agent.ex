@@ -33,13 +33,13 @@ defmodule Vws.Ops.MTConnect.Agent do
 
   Workstations on other nodes: a forwarder process on each such node subscribes to their change
   notices (and their GE-2000 links' transfer progress, and their links' connection changes,
-  `Vws.Ops.MTConnect.LinkWatch`), reads their mailboxes once and sends the agent that snapshot and then every change, so
-  their transitions are recorded as they happen too; before each answer the agent asks each
-  forwarder to confirm what it has sent, so an answer is never older than the request. Until a
-  workstation's snapshot is in (or when its forwarder is gone), it is read as before: every
-  `:interval` ms and before each answer, all of a node's in one call (`:erpc`). A node that does
-  not answer within `:node_timeout` ms (default 1000) has every data item of its workstations
-  made `UNAVAILABLE`.
+  `Vws.Ops.MTConnect.LinkWatch`), reads their mailboxes once and sends the agent that snapshot
+  and then every change, so their transitions are recorded as they happen too; before each
+  answer the agent asks each forwarder to confirm what it has sent, so an answer is never older
+  than the request. Until a workstation's snapshot is in (or when its forwarder is gone), it is
+  read as before: every `:interval` ms and before each answer, all of a node's in one call
+  (`:erpc`). A node that does not answer within `:node_timeout` ms (default 1000) has every data
+  item of its workstations made `UNAVAILABLE`.
 
   ## Buffer and checkpoints
 
