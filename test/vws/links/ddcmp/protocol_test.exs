@@ -127,12 +127,17 @@ defmodule Vws.Links.DDCMP.ProtocolTest do
   end
 
   # Message bodies: an index and letters only, so no body holds a class byte that a damaged
-  # header could make the decoder resynchronise on. A body begins with a letter, not with the
-  # index's zero bytes: DDCMP's CRC-16 starts at zero, so a frame cut short after leading zero
-  # bytes and followed by the next frame passes its CRC — a limit of the protocol itself (see
-  # the test "what the CRC cannot see" below and docs/integrity-and-durability.md).
+  # header could make the decoder resynchronise on. Two limits of the protocol itself are kept
+  # out (the tests "what the CRC cannot see" below, docs/integrity-and-durability.md): DDCMP's
+  # CRC-16 starts at zero and a block followed by its CRC leaves it at zero, so
+  #   * a frame cut short after leading zero bytes, then the next frame, passes its CRC: a body
+  #     begins with a letter, not with the index's zero bytes;
+  #   * a frame whose data is lost after its header takes the next frame's header (6 bytes and
+  #     their CRC) or header and data (8 + M bytes and the data's CRC) as its own, when it counts
+  #     that many: bodies are 13 to 19 bytes long, never 6 and never 8 more than another's.
   defp body(w, side, size) do
-    <<"m", w.serial::32, String.duplicate("x", size)::binary, Atom.to_string(side)::binary>>
+    x = String.duplicate("x", 7 + rem(size, 7))
+    <<"m", w.serial::32, x::binary, Atom.to_string(side)::binary>>
   end
 
   defp run_step(w, {:send, side, size}) do
@@ -243,6 +248,29 @@ defmodule Vws.Links.DDCMP.ProtocolTest do
     <<cut::binary-size(11), _lost::binary>> = wire([data])
     {_b, _, events} = Protocol.handle_bytes(b, cut <> wire([Frame.ack(0)]))
     refute Enum.any?(events, &match?({:data, _}, &1))
+  end
+
+  test "what the CRC cannot see: a frame's data lost after its header, then a frame as long" do
+    # The receiver of a header counting 6 data bytes, whose data and CRC are lost, takes the
+    # next frame's header (6 bytes) and its header CRC as data and data CRC; one counting 8 + M
+    # takes the next data frame's header, header CRC and M data bytes, and lands on that frame's
+    # data CRC — a block followed by its CRC leaves CRC-16/ARC at zero. (Found by the lossy-line
+    # property with give-ups.) A VAL II message begins with its logical unit (0–5), never with a
+    # class byte (0x81 data, 0x05 control, 0x90 maintenance): the VAL layer refuses such data.
+    for {lost_size, next_size} <- [{6, nil}, {20, 12}] do
+      {a, b} = running_pair(window: 7)
+      {:ok, a, [first], _} = Protocol.send(a, String.duplicate("m", lost_size))
+
+      next =
+        if next_size,
+          do: elem(Protocol.send(a, String.duplicate("n", next_size)), 2),
+          else: [Frame.ack(0)]
+
+      <<header::binary-size(8), _lost::binary>> = wire([first])
+      {_b, _, events} = Protocol.handle_bytes(b, header <> wire(next))
+      assert [{:data, <<class, _::binary>> = impostor}] = for({:data, _} = e <- events, do: e)
+      assert class in [0x81, 0x05] and byte_size(impostor) == lost_size
+    end
   end
 
   test "lossy line: every message delivered exactly once, in order, whatever is lost, damaged, split or duplicated" do
