@@ -212,9 +212,12 @@ defmodule Vws.Ops.InspectTest do
     {:ok, device} = StringIO.open("")
     watcher = Task.async(fn -> Inspect.watch(ws, :robot, timeout: 30_000, device: device) end)
 
-    assert Vws.Test.Eventually.eventually(fn ->
-             StringIO.contents(device) |> elem(1) =~ "watching"
-           end)
+    # (attaching its handlers is a persistent_term update, which a full suite's thousands of
+    # processes make slow)
+    assert Vws.Test.Eventually.eventually(
+             fn -> StringIO.contents(device) |> elem(1) =~ "watching" end,
+             15_000
+           )
 
     WCPeer.send_string(peer, 1, [{"R", 1, "WHERE"}])
 
