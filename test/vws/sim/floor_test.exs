@@ -23,9 +23,11 @@ defmodule Vws.Sim.FloorTest do
 
     :ok = Vws.Sim.Plant.close_channel(Vws.Sim.Floor.plant(ws), 207)
 
-    assert Vws.Test.Eventually.eventually(fn ->
-             Vws.CEC.SunComm.Status.answer(ws, "VACUUM") == "VACUUM IS ON"
-           end)
+    # (15 s: under a full suite the reading after the relay closed once took longer than 5 s)
+    assert Vws.Test.Eventually.eventually(
+             fn -> Vws.CEC.SunComm.Status.answer(ws, "VACUUM") == "VACUUM IS ON" end,
+             15_000
+           )
 
     # the hydraulic controller on DAQ #2 keeps the PALLET status
     assert Vws.Test.Eventually.eventually(fn ->
