@@ -217,12 +217,9 @@ defmodule Vws.Ops.MTConnect.Agent do
 
   # another node's workstation: its forwarder tells its links' states and their changes
   def handle_info({:mtc_links, ws, links, at}, s) do
-    if MapSet.member?(s.followed, ws) and Map.has_key?(s.facts, ws) do
-      facts = Map.put(Map.fetch!(s.facts, ws), :links, links)
-      {:noreply, observe(%{s | facts: Map.put(s.facts, ws, facts)}, ws, facts, at)}
-    else
-      {:noreply, s}
-    end
+    if MapSet.member?(s.followed, ws) and Map.has_key?(s.facts, ws),
+      do: {:noreply, observe_links(s, ws, links, at)},
+      else: {:noreply, s}
   end
 
   def handle_info({:mtc_link, ws, key, state, at}, s) do
@@ -867,10 +864,12 @@ defmodule Vws.Ops.MTConnect.Agent do
             old = Map.get(s.facts, ws, %{})
             facts = Map.merge(Map.take(old, [:program, :part_count, :links, :transfer]), facts)
             facts = Map.update(facts, :program, program(facts), &(program(facts) || &1))
-            s = %{s | local: Map.put(s.local, ws, %{table: table, since: now})}
+            # its links read too, their processes watched from now on
+            {watch, links, _at} = LinkWatch.read(s.link_watch, ws)
+            facts = Map.put(facts, :links, links)
+            s = %{s | local: Map.put(s.local, ws, %{table: table, since: now}), link_watch: watch}
             s = ensure_device(s, ws, now)
-            s = observe(%{s | facts: Map.put(s.facts, ws, facts)}, ws, facts, now)
-            read_links(s, ws)
+            observe(%{s | facts: Map.put(s.facts, ws, facts)}, ws, facts, now)
         end
     end
   end
@@ -973,9 +972,12 @@ defmodule Vws.Ops.MTConnect.Agent do
   # A workstation's links read now: their states recorded, their processes known and monitored.
   defp read_links(s, ws) do
     {watch, links, at} = LinkWatch.read(s.link_watch, ws)
+    observe_links(%{s | link_watch: watch}, ws, links, at)
+  end
+
+  defp observe_links(s, ws, links, at) do
     facts = Map.put(Map.fetch!(s.facts, ws), :links, links)
-    s = %{s | link_watch: watch, facts: Map.put(s.facts, ws, facts)}
-    observe(s, ws, facts, at)
+    observe(%{s | facts: Map.put(s.facts, ws, facts)}, ws, facts, at)
   end
 
   # One link's change, at the time the link made it.

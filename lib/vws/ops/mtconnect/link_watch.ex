@@ -2,12 +2,12 @@ defmodule Vws.Ops.MTConnect.LinkWatch do
   @moduledoc false
   # The connection states of the links of a node's workstations, as they change — for the
   # MTConnect agent (this node's workstations) and its forwarders (another node's). A process
-  # that keeps a watch calls `attach/1` once: each link then tells it of its changes through its
+  # that keeps a watch calls `attach/0` once: each link then tells it of its changes through its
   # telemetry, in the link's own process, with the time it happened —
   #
   #     {:link_event, pid, event, meta, at}
   #
-  # which `event/6` turns into a change of one link (or a call to read the workstation's links
+  # which `event/5` turns into a change of one link (or a call to read the workstation's links
   # again: a process not known yet, e.g. a restarted link's first word). `read/2` reads a
   # workstation's links and monitors their processes; `down/2` turns a monitored process's
   # :DOWN into its link CLOSED. A link's word older than the last reading of its workstation's
@@ -69,8 +69,7 @@ defmodule Vws.Ops.MTConnect.LinkWatch do
   @doc false
   # A `{:link_event, …}` message: the change it makes, the workstation whose links are to be read
   # again (a process not known: `ws` from the event, which may not be watched), or nothing.
-  @spec event(t, pid, atom, map, integer) ::
-          {:change, term, atom, String.t(), integer} | {:read, term} | :none
+  @spec event(t, pid, atom, map, integer) :: change | {:read, term} | :none
   def event(%__MODULE__{} = w, pid, event, meta, at) do
     case w.pids do
       %{^pid => {ws, key}} ->
@@ -93,7 +92,7 @@ defmodule Vws.Ops.MTConnect.LinkWatch do
   @doc false
   # A monitored process ended: `{watch, {:change, ws, key, "CLOSED", now}}`, or `{watch, :none}`
   # for a process that is not a link's.
-  @spec down(t, pid) :: {t, {:change, term, atom, String.t(), integer} | :none}
+  @spec down(t, pid) :: {t, change | :none}
   def down(%__MODULE__{} = w, pid) do
     case Map.pop(w.pids, pid) do
       {{ws, key}, pids} ->
@@ -125,43 +124,33 @@ defmodule Vws.Ops.MTConnect.LinkWatch do
   defp state(_key, :disconnected, _meta), do: "CLOSED"
   defp state(_key, _event, _meta), do: nil
 
-  # `{states, [{pid, key}]}`: the link states and the processes that have them
-  # (SUN_COMM for the WC link).
+  # `{states, [{pid, key}]}` for the links a workstation has: `%{wc | val | dnc | daq1 |
+  # hydraulic => "ESTABLISHED" | "LISTEN" | "CLOSED"}` and the processes that have them (SUN_COMM
+  # for the WC link), from its link rows (`Vws.Ops.Inspect.link_rows/1`).
   defp links_of(ws) do
-    rows = Vws.Ops.Inspect.link_rows(ws)
+    keyed =
+      for row <- Vws.Ops.Inspect.link_rows(ws), key = link_key(row), key != nil, do: {key, row}
+
     sun_comm = Vws.CEC.Workstation.whereis(ws, :sun_comm)
 
     pids =
-      for(row <- rows, key = link_key(row), key != nil, is_pid(row.pid), do: {row.pid, key}) ++
+      for({key, %{pid: pid}} <- keyed, is_pid(pid), do: {pid, key}) ++
         if(is_pid(sun_comm), do: [{sun_comm, :wc}], else: [])
 
-    {states(ws, rows), pids}
+    states = Map.new(keyed, fn {key, row} -> {key, connection(key, row.state)} end)
+    {Map.put(states, :wc, wc_state(ws)), pids}
   rescue
     _ -> {%{}, []}
   catch
     :exit, _ -> {%{}, []}
   end
 
-  # `%{wc | val | dnc | daq1 | hydraulic => "ESTABLISHED" | "LISTEN" | "CLOSED"}` for the links a
-  # workstation has (`rows`: its link rows, `Vws.Ops.Inspect.link_rows/1`).
-  defp states(ws, rows) do
-    wc =
-      case Vws.Ops.Inspect.wc_info(ws) do
-        %{peer: peer} when peer != nil -> "ESTABLISHED"
-        %{listening: listening} when listening != nil -> "LISTEN"
-        _ -> "CLOSED"
-      end
-
-    links =
-      for row <- rows, key = link_key(row), key != nil, into: %{} do
-        {key, connection(key, row.state)}
-      end
-
-    Map.put(links, :wc, wc)
-  rescue
-    _ -> %{}
-  catch
-    :exit, _ -> %{}
+  defp wc_state(ws) do
+    case Vws.Ops.Inspect.wc_info(ws) do
+      %{peer: peer} when peer != nil -> "ESTABLISHED"
+      %{listening: listening} when listening != nil -> "LISTEN"
+      _ -> "CLOSED"
+    end
   end
 
   defp link_key(%{id: :val}), do: :val
