@@ -179,7 +179,7 @@ end
 
 obedient =
   for p <- [:robot, :monarch, :gripper, :fixture, :vacuum, :hydraulic],
-      do: {p, [module: Bench.Obedient, link: :none, options: [ms: command_ms]]}
+      do: {p, [module: Bench.Obedient, interlocks: :off, link: :none, options: [ms: command_ms]]}
 
 wait_until = fn fun, ms ->
   deadline = System.monotonic_time(:millisecond) + ms

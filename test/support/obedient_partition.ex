@@ -32,6 +32,6 @@ defmodule Vws.Test.ObedientPartition do
   @doc "Partition options giving every command set to this module."
   def partitions(options \\ []) do
     for p <- [:robot, :monarch, :gripper, :fixture, :vacuum, :hydraulic],
-        do: {p, [module: __MODULE__, link: :test, options: options]}
+        do: {p, [module: __MODULE__, interlocks: :off, link: :test, options: options]}
   end
 end

@@ -58,6 +58,9 @@ defmodule Vws.Test.SafetyFloor do
   """
   def start(opts \\ []) do
     ws = "safety-#{System.unique_integer([:positive])}"
+    # a library with a version of the selected program, for DOWNLOAD_GE(…/v) and COMPARE_GE
+    library = Path.join(System.tmp_dir!(), "vws-#{ws}-library")
+    {:ok, _} = Vws.Links.DNC.Library.store({:dir, library}, "000100.PRO", @program)
     t = Map.fetch!(@timing, Keyword.get(opts, :timing, :steady))
     interlock = Keyword.merge(t.interlock, Keyword.get(opts, :interlock, []))
 
@@ -85,6 +88,7 @@ defmodule Vws.Test.SafetyFloor do
       Vws.CEC.Workstation.start(
         id: ws,
         wc: nil,
+        library: library,
         devices: [
           daq1: [
             endpoint: devices[:daq1],
@@ -128,7 +132,8 @@ defmodule Vws.Test.SafetyFloor do
       ge2000: Floor.ge2000(ws),
       robot: Floor.robot(ws),
       mhs: Floor.mhs(ws),
-      interlock: interlock
+      interlock: interlock,
+      library: library
     }
 
     ready =
@@ -143,6 +148,13 @@ defmodule Vws.Test.SafetyFloor do
 
     unless ready, do: raise("the safety floor of #{ws} did not come up")
     :ok = Plant.set_part(f.plant, :vise, true)
+    # an NC file for DOWNLOAD_GE and DRIP_FEED: a drip-fed run lasts a few hundred ms
+    :ok =
+      Mailbox.put_nc_file(
+        ws,
+        ["%", "O100"] ++ for(i <- 1..60, do: "N#{i} G01 X#{i}") ++ ["M30", "%"]
+      )
+
     # a program ready for the cycle start
     :done = command(f, :monarch, "PROGRAM_SELECT(000100)")
     f
@@ -152,6 +164,7 @@ defmodule Vws.Test.SafetyFloor do
   def stop(f) do
     _ = Vws.CEC.Workstation.stop(f.ws)
     if Process.alive?(f.floor), do: Supervisor.stop(f.floor, :shutdown, 5_000)
+    File.rm_rf(f.library)
     :ok
   catch
     :exit, _ -> :ok

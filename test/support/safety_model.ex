@@ -5,6 +5,10 @@ defmodule Vws.Test.SafetyModel do
   material-handling system and injected faults, run against the real partitions and simulators
   (`Vws.Test.SafetyFloor`, a fresh floor per sequence).
 
+  The commands cover every kind of every set (`texts/0`, checked against
+  `Vws.Codecs.Commands.kinds/0`), ours included — `DRIP_FEED`, `DOWNLOAD_GE(nnnnnn.PRO/v)`,
+  `COMPARE_GE` — and the operator sends programs from the machine (`from_machine/1`).
+
   Commands are handed to the partitions as SUN_COMM hands them over, without waiting for them
   to finish — so several partitions run at once and race for the work volumes; a partition whose
   previous command still runs is waited for first (SUN_COMM would answer `ERROR BUSY`).
@@ -61,8 +65,16 @@ defmodule Vws.Test.SafetyModel do
     {1, "STATUS"},
     {1, "TABLE(1/3)"},
     {1, "UPLOAD_GE(000100.PRO)"},
-    {1, "DOWNLOAD_GE"}
+    {1, "DOWNLOAD_GE"},
+    {3, "DRIP_FEED"},
+    {1, "DOWNLOAD_GE(000100.PRO/1)"},
+    {1, "DOWNLOAD_GE(000100.PRO)"},
+    {1, "COMPARE_GE"},
+    {1, "COMPARE_GE(000100.PRO)"},
+    {1, "PROGRAM_DELETE(000100.PRO)"}
   ]
+  # SUN_COMM carries these out on the WC link; handed to MONARCH they end ERROR in words
+  @transfers [{1, "DOWNLOAD_HP"}, {1, "UPLOAD_SUN"}]
   @fixture [{4, "OPEN"}, {4, "CLOSE"}, {2, "DISABLE_TABLE"}, {3, "RELEASE_TABLE"}]
   @gripper [{2, "OPEN"}, {2, "CLOSE"}, {1, "ROTATE_90"}]
   @vacuum [{1, "ON"}, {1, "OFF"}]
@@ -101,7 +113,7 @@ defmodule Vws.Test.SafetyModel do
   def command(_state) do
     :proper_types.frequency([
       {14, {:call, __MODULE__, :wc, [:robot, text(@robot)]}},
-      {8, {:call, __MODULE__, :wc, [:monarch, text(@monarch)]}},
+      {8, {:call, __MODULE__, :wc, [:monarch, text(@monarch ++ @transfers)]}},
       {7, {:call, __MODULE__, :wc, [:fixture, text(@fixture)]}},
       {2, {:call, __MODULE__, :wc, [:gripper, text(@gripper)]}},
       {1, {:call, __MODULE__, :wc, [:vacuum, text(@vacuum)]}},
@@ -109,11 +121,29 @@ defmodule Vws.Test.SafetyModel do
       {1, {:call, __MODULE__, :wc, [partition(), "BOGUS"]}},
       {4,
        {:call, __MODULE__, :mhs, [:proper_types.oneof([1, 2]), :proper_types.oneof([:in, :out])]}},
+      {1,
+       {:call, __MODULE__, :from_machine, [:proper_types.oneof(["000100.PRO", "000200.PRO"])]}},
       {3, {:call, __MODULE__, :fault, [:proper_types.oneof(@faults)]}},
       {2, {:call, __MODULE__, :heal, []}},
       {3, {:call, __MODULE__, :pause, [:proper_types.oneof([1, 5, 20, 40])]}},
       {1, {:call, __MODULE__, :settle, []}}
     ])
+  end
+
+  @doc """
+  Every command text the model generates, by partition: the safety test checks that they cover
+  every kind of every set (`Vws.Codecs.Commands.kinds/0`).
+  """
+  def texts do
+    %{
+      robot: @robot,
+      monarch: @monarch ++ @transfers,
+      fixture: @fixture,
+      gripper: @gripper,
+      vacuum: @vacuum,
+      hydraulic: @hydraulic
+    }
+    |> Map.new(fn {p, weighted} -> {p, Enum.map(weighted, &elem(&1, 1))} end)
   end
 
   defp text(weighted), do: :proper_types.frequency(for {w, t} <- weighted, do: {w, t})
@@ -198,6 +228,17 @@ defmodule Vws.Test.SafetyModel do
   def mhs(tray, direction) do
     f = floor()
     :ok = MHS.request(f.mhs, tray, direction)
+    no_collisions(f)
+  end
+
+  @doc """
+  The operator sends a program from the machine's panel (it is stored, never started). Sent in
+  a process of its own: the GE-2000 waits for the line while MONARCH may be using it.
+  """
+  def from_machine(name) do
+    f = floor()
+    _ = GE2000.put_program(f.ge2000, "000200.PRO", "%\nO200\nN10 M30\n%\n")
+    spawn(fn -> GE2000.send_program(f.ge2000, name, 2_000) end)
     no_collisions(f)
   end
 

@@ -17,6 +17,13 @@ defmodule Vws.Test.Workstation do
 
   @doc "Robot partition options that hold every command until the test releases it."
   def held_robot(test_pid \\ self()) do
-    [robot: [module: Vws.Test.HeldPartition, link: :test, options: [test: test_pid]]]
+    [
+      robot: [
+        module: Vws.Test.HeldPartition,
+        interlocks: :off,
+        link: :test,
+        options: [test: test_pid]
+      ]
+    ]
   end
 end

@@ -38,3 +38,24 @@ for part <- 1..3 do
     end
   end
 end
+
+defmodule Vws.SafetyStatemTest.Coverage do
+  use ExUnit.Case, async: true
+
+  # the model generates every kind of every set, so a command we add is in the sequences too
+  test "the model's commands cover every kind of every command set" do
+    texts = Vws.Test.SafetyModel.texts()
+
+    for {partition, kinds} <- Vws.Codecs.Commands.kinds(), {kind, _example} <- kinds do
+      covered =
+        Enum.any?(Map.fetch!(texts, partition), fn text ->
+          case Vws.Codecs.Commands.parse(partition, text) do
+            {:ok, command} -> Vws.CEC.Interlock.Rules.kind(command) == kind
+            {:error, _} -> false
+          end
+        end)
+
+      assert covered, "the safety model never generates #{partition} #{kind}"
+    end
+  end
+end

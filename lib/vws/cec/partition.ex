@@ -19,6 +19,22 @@ defmodule Vws.CEC.Partition do
   and the restarted partition ends the command it finds in flight with
   `ERROR INTERRUPTED BY PARTITION RESTART` — it never runs it again by itself.
 
+  ## Interlocks
+
+  Between the grammar and `execute/2`, every command passes the one interlock table,
+  `Vws.CEC.Interlock.Rules`: the work volumes it needs are taken first (a refusal ends it
+  `ERROR INTERLOCK …` before the device acts) and kept or given back as the table says once it
+  has ended. A module takes part through three optional callbacks:
+
+      @callback volumes(command :: term, ctx) :: {:ok, [volume]} | {:error, String.t()}
+      @callback conditions(volume :: atom, ctx) :: (-> :ok | {:error, String.t()})
+      @callback missing_link(command :: term, ctx) :: String.t() | nil
+
+  — the volumes a command's target lies in (ROBOT's motions), the physical conditions of a
+  volume (the machine idle and the table parked), and a second device a command needs beyond
+  the partition's link (MONARCH's CYCLE_START: the relay on DAQ #1), refused `ERROR NO LINK TO
+  <device>` before anything is taken.
+
   ## After a restart of the workstation
 
   A command the journal found `EXECUTING` when the workstation went down answers
@@ -40,6 +56,7 @@ defmodule Vws.CEC.Partition do
   require Logger
 
   alias Vws.CEC.{Events, Mailbox}
+  alias Vws.CEC.Interlock.Rules
 
   @type ctx :: %{
           workstation: term,
@@ -54,7 +71,10 @@ defmodule Vws.CEC.Partition do
   @callback parse(String.t()) :: {:ok, term} | {:error, :unknown | String.t()}
   @callback execute(command :: term, ctx) :: :done | {:error, String.t()}
   @callback interrupted(command :: term, ctx) :: :ok | {:error, String.t()}
-  @optional_callbacks interrupted: 2
+  @callback volumes(command :: term, ctx) :: {:ok, [atom]} | {:error, String.t()}
+  @callback conditions(volume :: atom, ctx) :: (() -> :ok | {:error, String.t()})
+  @callback missing_link(command :: term, ctx) :: String.t() | nil
+  @optional_callbacks interrupted: 2, volumes: 2, conditions: 2, missing_link: 2
 
   @doc false
   def child_spec(opts) do
@@ -68,7 +88,8 @@ defmodule Vws.CEC.Partition do
   @doc """
   Starts a partition. Options: `:workstation`, `:partition` (its set), `:module` (the callback
   module), `:link` (whatever the module needs to reach its device, `nil` when not configured) and
-  `:options` (passed to the module in `ctx.options`).
+  `:options` (passed to the module in `ctx.options`), `:interlocks` (`:on`; `:off` only for a
+  stand-in module whose commands are not a seed set's, see `Vws.CEC.Workstation`).
   """
   @spec start_link(keyword) :: GenServer.on_start()
   def start_link(opts) do
@@ -148,6 +169,7 @@ defmodule Vws.CEC.Partition do
        module: Keyword.fetch!(opts, :module),
        link: Keyword.get(opts, :link),
        options: Keyword.get(opts, :options, []),
+       interlocks: Keyword.get(opts, :interlocks, :on),
        current: nil,
        done: 0,
        errors: 0,
@@ -231,7 +253,8 @@ defmodule Vws.CEC.Partition do
       number: number,
       text: text,
       link: s.link,
-      options: s.options
+      options: s.options,
+      interlocks: s.interlocks
     }
 
     module = s.module
@@ -271,11 +294,33 @@ defmodule Vws.CEC.Partition do
           {:error, :unknown} -> {:error, "UNKNOWN COMMAND " <> ctx.text}
           {:error, reason} -> {:error, reason}
           {:ok, _command} when ctx.link == nil -> {:error, "NO LINK TO " <> module.device()}
-          {:ok, command} -> normalise(module.execute(command, ctx))
+          {:ok, command} -> guarded(module, command, ctx)
         end
 
       {result, Map.put(meta, :result, result)}
     end)
+  end
+
+  # Every command passes the one interlock table (`Vws.CEC.Interlock.Rules`): what it needs is
+  # taken before the device acts, and kept or given back as the table says once it has ended.
+  defp guarded(module, command, ctx) do
+    missing =
+      if function_exported?(module, :missing_link, 2), do: module.missing_link(command, ctx)
+
+    cond do
+      missing ->
+        {:error, "NO LINK TO " <> missing}
+
+      Map.get(ctx, :interlocks, :on) == :off ->
+        normalise(module.execute(command, ctx))
+
+      true ->
+        with {:ok, taken} <- Rules.acquire(module, command, ctx) do
+          result = normalise(module.execute(command, ctx))
+          :ok = Rules.finish(command, taken, ctx, result)
+          result
+        end
+    end
   end
 
   # The safe clean-up of a command the workstation's restart interrupted (see the moduledoc),

@@ -34,7 +34,11 @@ defmodule Vws.CEC.Workstation do
       VACUUM to it, and gives MONARCH its cycle-start relay and ROBOT its tray locks;
       `[hydraulic: "tcp://host:port"]` puts the hydraulic controller on the HPIB and links HYDRAULIC
       and the PALLET status to it
-    * `:partitions` — per partition, keyword options: `[robot: [link: …, module: …, options: …]]`
+    * `:partitions` — per partition, keyword options: `[robot: [link: …, module: …, options: …]]`;
+      a stand-in `module:` (a test double, the scale benchmark's obedient partitions) whose
+      commands are not the seed's sets says `interlocks: :off` — the partitions' own modules
+      always go through the interlock table (`Vws.CEC.Interlock.Rules`), and `:off` with one of
+      them raises
 
   `start_link/1` checks these options, and the `sun_comm:` ones against `Vws.CEC.SunComm`'s schema,
   before anything starts: an unknown option or a bad value raises `Vws.Options.Error` naming it
@@ -107,11 +111,21 @@ defmodule Vws.CEC.Workstation do
       ] ++
         for {p, default_module} <- @partition_modules do
           popts = Keyword.get(partition_opts, p, [])
+          module = Keyword.get(popts, :module, default_module)
+          interlocks = Keyword.get(popts, :interlocks, :on)
+
+          if interlocks not in [:on, :off] or (interlocks == :off and module == default_module),
+            do:
+              raise(
+                ArgumentError,
+                "partition #{p}: interlocks: #{inspect(interlocks)} (only a stand-in module may be :off)"
+              )
 
           {Vws.CEC.Partition,
            workstation: ws,
            partition: p,
-           module: Keyword.get(popts, :module, default_module),
+           module: module,
+           interlocks: interlocks,
            link: Keyword.get(popts, :link),
            options: Keyword.get(popts, :options, [])}
         end

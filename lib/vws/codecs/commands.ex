@@ -37,10 +37,71 @@ defmodule Vws.Codecs.Commands do
   # the Monarch commands that are transfers on the WC link, carried out by SUN_COMM itself
   @transfers %{"DOWNLOAD_HP" => :download_hp, "UPLOAD_SUN" => :upload_sun}
 
+  # Every kind of command each set has, with one text of each: what every guarantee that covers
+  # "every command" walks (the interlock table, Vws.CEC.Interlock.Rules, is checked against it).
+  # A parse that yields a kind missing here raises, so a new command cannot be forgotten.
+  @examples %{
+    robot: [
+      where: "WHERE",
+      speed: "SPEED 80",
+      do: "DO MOVE SAFE",
+      disable_tray: "DISABLE_TRAY1",
+      release_tray: "RELEASE_TRAY1",
+      disable_table: "DISABLE_TABLE",
+      release_table: "RELEASE_TABLE",
+      execute: "EXECUTE PARK"
+    ],
+    monarch: [
+      cycle_start: "CYCLE_START",
+      release_table: "RELEASE_TABLE",
+      status: "STATUS",
+      download_hp: "DOWNLOAD_HP",
+      upload_sun: "UPLOAD_SUN",
+      download_ge: "DOWNLOAD_GE",
+      drip_feed: "DRIP_FEED",
+      compare_ge: "COMPARE_GE",
+      upload_ge: "UPLOAD_GE(000100.PRO)",
+      program_select: "PROGRAM_SELECT(000100)",
+      program_delete: "PROGRAM_DELETE(000100.PRO)",
+      table: "TABLE(1/3)"
+    ],
+    gripper: [open: "OPEN", close: "CLOSE", rotate: "ROTATE_90"],
+    fixture: [
+      open: "OPEN",
+      close: "CLOSE",
+      disable_table: "DISABLE_TABLE",
+      release_table: "RELEASE_TABLE"
+    ],
+    vacuum: [on: "ON", off: "OFF"],
+    hydraulic: [clamp_pallet: "CLAMP_PALLET", release_pallet: "RELEASE_PALLET"]
+  }
+
+  @doc """
+  Every kind of command of every set, with one command text of each:
+  `%{partition => [{kind, text}]}`. A kind is the parsed term's atom, or its first element
+  (`{:do, :move, "SAFE"}` is a `:do`).
+
+      iex> Vws.Codecs.Commands.kinds()[:vacuum]
+      [on: "ON", off: "OFF"]
+  """
+  @spec kinds() :: %{partition => [{atom, String.t()}]}
+  def kinds, do: @examples
+
   @doc "Parses a command of a partition's set."
   @spec parse(partition, String.t()) :: result
   def parse(partition, text) when is_binary(text) do
-    do_parse(partition, normalise(text))
+    case do_parse(partition, normalise(text)) do
+      {:ok, command} = ok ->
+        kind = if is_tuple(command), do: elem(command, 0), else: command
+
+        unless Keyword.has_key?(Map.get(@examples, partition, []), kind),
+          do: raise(ArgumentError, "command kind #{inspect(kind)} of #{partition} not in kinds/0")
+
+        ok
+
+      error ->
+        error
+    end
   end
 
   @doc """

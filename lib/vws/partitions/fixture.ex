@@ -25,7 +25,9 @@ defmodule Vws.Partitions.Fixture do
   ## Interlocks (seed §2.3.8 rules 3a, 3b)
 
   FIXTURE holds the `:table` volume as holder `:fixture`, shared with ROBOT (the robot holds the
-  part while the vise closes on it) and never with MONARCH's cycle:
+  part while the vise closes on it) and never with MONARCH's cycle. The interlock table
+  (`Vws.CEC.Interlock.Rules`) takes and gives back the lease around each command; this module
+  gives the conditions (`conditions/2`) and the releases after a failure:
 
     * `OPEN` and `CLOSE` take it for the vise motion (reason `:vise`) before a valve moves, on the
       conditions of rule 3a — the machine idle and the table parked, as read
@@ -68,9 +70,8 @@ defmodule Vws.Partitions.Fixture do
   def execute(:open, ctx), do: vise_motion(ctx, &open/1)
   def execute(:close, ctx), do: vise_motion(ctx, &close/1)
 
-  def execute(:disable_table, ctx) do
-    with :ok <- take_table(ctx, :disabled), do: :done
-  end
+  # taken as :disabled by the interlock table (Vws.CEC.Interlock.Rules)
+  def execute(:disable_table, _ctx), do: :done
 
   def execute(:release_table, ctx) do
     ws = ctx.workstation
@@ -99,31 +100,30 @@ defmodule Vws.Partitions.Fixture do
 
   def interrupted(_command, _ctx), do: :ok
 
-  # The table is the vise's while it moves; what the sensors confirm gives it back.
+  # The table is the vise's while it moves: the interlock table (Vws.CEC.Interlock.Rules) takes
+  # it as :vise before a valve moves and gives that reason back when the motion ends DONE.
   defp vise_motion(ctx, motion) do
-    with :ok <- take_table(ctx, :vise) do
-      case motion.(ctx) do
-        :done ->
-          Interlock.release(ctx.workstation, :table, :fixture, :vise)
-          :done
+    case motion.(ctx) do
+      :done ->
+        :done
 
-        error ->
-          # both valves off: the vise holds where it is, whatever a valve does later
-          _ = VwsStatus.actuate(ctx.workstation, vise_open_valve: :open, vise_close_valve: :open)
-          error
-      end
+      error ->
+        # both valves off: the vise holds where it is, whatever a valve does later
+        _ = VwsStatus.actuate(ctx.workstation, vise_open_valve: :open, vise_close_valve: :open)
+        error
     end
   end
 
-  defp take_table(ctx, reason) do
-    opts = Keyword.get(ctx.options, :interlock, [])
-
-    Interlock.acquire(ctx.workstation, :table, :fixture, Keyword.get(opts, :timeout, 10_000),
-      as: reason,
-      check: Vws.Partitions.TableConditions.check(ctx.workstation, opts),
-      retry_ms: Keyword.get(opts, :retry_ms, 250)
+  @doc "The conditions of rule 3a for the table (`Vws.Partitions.TableConditions`)."
+  @impl true
+  def conditions(:table, ctx) do
+    Vws.Partitions.TableConditions.check(
+      ctx.workstation,
+      Keyword.get(ctx.options, :interlock, [])
     )
   end
+
+  def conditions(_volume, _ctx), do: fn -> :ok end
 
   # Two fresh readings that agree.
   defp at_rest(ctx) do

@@ -43,14 +43,17 @@ defmodule Vws.Partitions.Monarch do
   damaged into EOT looks like a normal end) ends `ERROR PROGRAM INCOMPLETE` and NC_UP keeps the
   old program. (`verify: false` skips the directory too.)
 
-  **Table interlock** (seed App. I A, §2.3.8 rules 1b and 3b). CYCLE_START first takes the
-  table's work volume for the machine (`Vws.CEC.Interlock`, holder `:monarch`) — re-tried four times a
-  second while the robot or the vise holds it, until `interlock: [timeout: ms]` (default
-  10 000) ends it `ERROR INTERLOCK TABLE HELD BY ROBOT` (or `FIXTURE`) — so the vise may not open
-  nor the robot approach the table, then closes the cycle-start relay of DAQ #1 through the
-  `:cycle_start` option, a function `(-> :ok | {:error, reason})` (without it CYCLE_START ends
-  `ERROR NO LINK TO DAQ #1` and takes nothing). The machine keeps the table, whatever became of
-  the start, until RELEASE_TABLE gives it up once the machine reports IDLE.
+  **Table interlock** (seed App. I A, §2.3.8 rules 1b and 3b), decided for every command by the
+  one interlock table, `Vws.CEC.Interlock.Rules`: CYCLE_START and DRIP_FEED — both set the
+  machine moving — first take the table's work volume for the machine (holder `:monarch`,
+  reason `:cycle`), re-tried four times a second while the robot or the vise holds it, until
+  `interlock: [timeout: ms]` (default 10 000) ends the command `ERROR INTERLOCK TABLE HELD BY
+  ROBOT` (or `FIXTURE`) before a byte is sent or the relay closed — so the vise may not open
+  nor the robot approach the table. CYCLE_START then closes the cycle-start relay of DAQ #1
+  through the `:cycle_start` option, a function `(-> :ok | {:error, reason})` (without it
+  CYCLE_START ends `ERROR NO LINK TO DAQ #1` and takes nothing: `missing_link/2`). The machine
+  keeps the table, whatever became of the start or the feed, until RELEASE_TABLE gives it up
+  once the machine reports IDLE. A program the operator sends from the machine starts nothing.
 
   **Following the machine.** The `MONARCH` status is kept current without the WC asking:
   `Vws.Partitions.Monarch.Monitor`, started with the DNC link by the workstation's `devices:`
@@ -101,6 +104,13 @@ defmodule Vws.Partitions.Monarch do
 
   @impl true
   def parse(text), do: Vws.Codecs.Commands.parse(:monarch, text)
+
+  @doc "CYCLE_START needs the cycle-start relay on DAQ #1 (the `:cycle_start` option) too."
+  @impl true
+  def missing_link(:cycle_start, ctx),
+    do: if(is_function(ctx.options[:cycle_start], 0), do: nil, else: "DAQ #1")
+
+  def missing_link(_command, _ctx), do: nil
 
   @impl true
   def execute(command, ctx)
@@ -195,32 +205,15 @@ defmodule Vws.Partitions.Monarch do
     with {:ok, _report} <- status_report(ctx), do: :done
   end
 
+  # The table was taken for the machine (:cycle) by the interlock table, Vws.CEC.Interlock.Rules.
   def execute(:cycle_start, ctx) do
-    case ctx.options[:cycle_start] do
-      nil ->
-        {:error, "NO LINK TO DAQ #1"}
+    case ctx.options[:cycle_start].() do
+      :ok ->
+        deadline = now() + Keyword.get(ctx.options, :start_timeout, 10_000)
+        await_active(ctx, deadline)
 
-      relay when is_function(relay, 0) ->
-        interlock = Keyword.get(ctx.options, :interlock, [])
-
-        with :ok <-
-               Interlock.acquire(
-                 ctx.workstation,
-                 :table,
-                 :monarch,
-                 Keyword.get(interlock, :timeout, 10_000),
-                 as: :cycle,
-                 retry_ms: Keyword.get(interlock, :retry_ms, 250)
-               ) do
-          case relay.() do
-            :ok ->
-              deadline = now() + Keyword.get(ctx.options, :start_timeout, 10_000)
-              await_active(ctx, deadline)
-
-            {:error, reason} ->
-              {:error, "CYCLE START RELAY FAILED #{reason_text(reason)}"}
-          end
-        end
+      {:error, reason} ->
+        {:error, "CYCLE START RELAY FAILED #{reason_text(reason)}"}
     end
   end
 

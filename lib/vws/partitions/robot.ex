@@ -24,7 +24,9 @@ defmodule Vws.Partitions.Robot do
 
   ## Interlocks (seed §2.3.8, §4.4 Fig. 13)
 
-  Through `Vws.CEC.Interlock`, with ROBOT as holder `:robot`:
+  Through `Vws.CEC.Interlock`, with ROBOT as holder `:robot`; the leases a command needs are
+  taken by the one interlock table (`Vws.CEC.Interlock.Rules`) before the arm moves, from the
+  volumes and conditions this module gives (`volumes/2`, `conditions/2`):
 
     * `DISABLE_TRAYn` takes tray n's volume (`:tray1`, `:tray2`; re-tried while the
       material-handling system holds it — rule 2a) and then locks the tray through the
@@ -114,20 +116,18 @@ defmodule Vws.Partitions.Robot do
   end
 
   defp run({:execute, name}, ctx) do
-    with {:ok, %{enters: volumes, ends: ends}} <- WorkVolumes.program(work_volumes(ctx), name),
-         :ok <- enter_all(ctx, volumes) do
-      with {:ok, _} <- val(VAL.execute(ctx.link, name, timeout(ctx, :program))) do
-        arrived(ctx, ends)
-      end
+    with {:ok, %{ends: ends}} <- WorkVolumes.program(work_volumes(ctx), name),
+         {:ok, _} <- val(VAL.execute(ctx.link, name, timeout(ctx, :program))) do
+      arrived(ctx, ends)
     end
   end
 
   defp run({:do, _, _} = motion, ctx), do: motion(motion, ctx)
   defp run({:do, _, _, _} = motion, ctx), do: motion(motion, ctx)
 
+  # The volumes were taken by the interlock table (Vws.CEC.Interlock.Rules, through volumes/2).
   defp motion(command, ctx) do
     with {:ok, target} <- target(command, ctx),
-         :ok <- enter(ctx, target),
          # what it waits for is known from the parsed command, not read back from its text
          {:ok, _} <-
            val(
@@ -219,39 +219,35 @@ defmodule Vws.Partitions.Robot do
   defp target({:do, _kind, loc}, ctx), do: WorkVolumes.location(work_volumes(ctx), loc)
   defp target({:do, _kind, loc, _dist}, ctx), do: WorkVolumes.location(work_volumes(ctx), loc)
 
-  # Fig. 13's device lock-out: the arm takes the volume before it moves into it.
-  defp enter(_ctx, target) when target in [:here, :safe], do: :ok
-
-  defp enter(ctx, volume) do
-    Interlock.acquire(ctx.workstation, volume, :robot, interlock_timeout(ctx),
-      as: :inside,
-      check: conditions(ctx, volume),
-      retry_ms: interlock(ctx, :retry_ms, 250)
-    )
+  @doc """
+  The work volumes a motion or a program enters (Fig. 13's device lock-out), for the interlock
+  table (`Vws.CEC.Interlock.Rules`), which takes them all, as `:inside`, before the arm moves:
+  a location's volume (none for `SAFE` or a `DEPART`), a program's `enters`.
+  """
+  @impl true
+  def volumes({:execute, name}, ctx) do
+    with {:ok, %{enters: volumes}} <- WorkVolumes.program(work_volumes(ctx), name),
+         do: {:ok, volumes}
   end
 
-  # A program's volumes, all or none: those taken here are given back when one is refused.
-  defp enter_all(ctx, volumes) do
-    before = inside(ctx)
-
-    Enum.reduce_while(volumes, {:ok, []}, fn volume, {:ok, taken} ->
-      case enter(ctx, volume) do
-        :ok ->
-          {:cont, {:ok, [volume | taken]}}
-
-        error ->
-          for v <- taken,
-              v not in before,
-              do: Interlock.release(ctx.workstation, v, :robot, :inside)
-
-          {:halt, error}
-      end
-    end)
-    |> case do
-      {:ok, _} -> :ok
+  def volumes(motion, ctx) do
+    case target(motion, ctx) do
+      {:ok, target} when target in [:here, :safe] -> {:ok, []}
+      {:ok, volume} -> {:ok, [volume]}
       error -> error
     end
   end
+
+  @doc "The conditions of rule 1a for the table (`Vws.Partitions.TableConditions`); none elsewhere."
+  @impl true
+  def conditions(:table, ctx) do
+    Vws.Partitions.TableConditions.check(
+      ctx.workstation,
+      Keyword.get(ctx.options, :interlock, [])
+    )
+  end
+
+  def conditions(_volume, _ctx), do: fn -> :ok end
 
   # The motion completed: the arm is in `target` (or where it was, for :here) and has left
   # every other volume.
@@ -271,44 +267,14 @@ defmodule Vws.Partitions.Robot do
         do: v
   end
 
-  defp conditions(ctx, :table) do
-    Vws.Partitions.TableConditions.check(
-      ctx.workstation,
-      Keyword.get(ctx.options, :interlock, [])
-    )
-  end
+  # The table was taken as :disabled by the interlock table; nothing more to do.
+  defp disable_table(_ctx), do: :done
 
-  defp conditions(_ctx, _volume), do: fn -> :ok end
-
-  defp disable_table(ctx) do
-    result =
-      Interlock.acquire(ctx.workstation, :table, :robot, interlock_timeout(ctx),
-        as: :disabled,
-        check: conditions(ctx, :table),
-        retry_ms: interlock(ctx, :retry_ms, 250)
-      )
-
-    with :ok <- result, do: :done
-  end
-
+  # The tray was taken as :disabled by the interlock table, which gives it back if the lock fails.
   defp disable_tray(ctx, n) do
-    volume = tray(n)
-
-    result =
-      Interlock.acquire(ctx.workstation, volume, :robot, interlock_timeout(ctx),
-        as: :disabled,
-        retry_ms: interlock(ctx, :retry_ms, 250)
-      )
-
-    with :ok <- result do
-      case tray_lock(ctx, volume, :lock) do
-        :ok ->
-          :done
-
-        {:error, reason} ->
-          Interlock.release(ctx.workstation, volume, :robot, :disabled)
-          {:error, "TRAY #{n} LOCK FAILED #{reason}"}
-      end
+    case tray_lock(ctx, tray(n), :lock) do
+      :ok -> :done
+      {:error, reason} -> {:error, "TRAY #{n} LOCK FAILED #{reason}"}
     end
   end
 
@@ -333,11 +299,6 @@ defmodule Vws.Partitions.Robot do
       source -> WorkVolumes.load(source)
     end
   end
-
-  defp interlock(ctx, key, default),
-    do: ctx.options |> Keyword.get(:interlock, []) |> Keyword.get(key, default)
-
-  defp interlock_timeout(ctx), do: interlock(ctx, :timeout, 10_000)
 
   defp tray(1), do: :tray1
   defp tray(2), do: :tray2

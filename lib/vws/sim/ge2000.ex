@@ -665,6 +665,8 @@ defmodule Vws.Sim.GE2000 do
   end
 
   defp drip_tick(%{drip: drip} = s) do
+    # the machine moves from its first block on: the plant sees the table leave its park
+    unless drip.running, do: plant(s, :table_out_of_park)
     drip = %{drip | running: true}
     now = now_ms()
     owed = drip.owed + s.feed_rate * (now - drip.last_tick) / 1000
@@ -712,6 +714,7 @@ defmodule Vws.Sim.GE2000 do
     })
 
     s = if how == :broken, do: alarm(s, :incomplete), else: s
+    if drip.running, do: plant(s, :table_in_park)
     %{s | drip: nil, last_drip: %{drip | state: how}, active: false}
   end
 

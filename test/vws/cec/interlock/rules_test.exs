@@ -110,6 +110,54 @@ defmodule Vws.CEC.Interlock.RulesTest do
     end
   end
 
+  # DRIP_FEED (ours) runs the machine as CYCLE_START does: the interlock table gives it the same
+  # rule. Before, it ran the program around an arm inside the machine while MONARCH said IDLE.
+  describe "1b and 3b hold for a drip feed as for a cycle start" do
+    defp with_nc_file(f) do
+      lines = ["%", "O4711"] ++ for(i <- 1..40, do: "N#{i} G01 X#{i}.0 F300") ++ ["M30", "%"]
+      :ok = Mailbox.put_nc_file(f.ws, lines)
+    end
+
+    test "refused while the arm is inside the machine; the machine runs nothing", %{f: f} do
+      with_nc_file(f)
+      assert run(f, :robot, "DISABLE_TABLE") == :done
+      assert run(f, :robot, "DO APPRO VISE/50") == :done
+      assert run(f, :robot, "DO MOVES VISE") == :done
+      assert run(f, :monarch, "DRIP_FEED") == {:error, "INTERLOCK TABLE HELD BY ROBOT"}
+      assert run(f, :monarch, "CYCLE_START") == {:error, "INTERLOCK TABLE HELD BY ROBOT"}
+      assert GE2000.drip(f.ge2000) == nil
+      assert GE2000.state(f.ge2000).cycles == 0
+      refute Interlock.holds?(f.ws, :table, :monarch)
+      no_collisions(f)
+    end
+
+    test "refused while the vise holds the table", %{f: f} do
+      with_nc_file(f)
+      assert run(f, :fixture, "DISABLE_TABLE") == :done
+      assert run(f, :monarch, "DRIP_FEED") == {:error, "INTERLOCK TABLE HELD BY FIXTURE"}
+      assert GE2000.drip(f.ge2000) == nil
+      no_collisions(f)
+    end
+
+    test "allowed with the table free; then the machine keeps it until RELEASE_TABLE", %{f: f} do
+      with_nc_file(f)
+      assert run(f, :monarch, "DRIP_FEED") == :done
+      assert GE2000.drip(f.ge2000) != nil
+      assert Interlock.holds?(f.ws, :table, :monarch, :cycle)
+      assert run(f, :robot, "DO APPRO VISE/50") == {:error, "INTERLOCK TABLE HELD BY MONARCH"}
+      assert run(f, :fixture, "OPEN") == {:error, "INTERLOCK TABLE HELD BY MONARCH"}
+      assert robot_at(f) == "SAFE"
+
+      assert SafetyFloor.wait_until(
+               fn -> run(f, :monarch, "RELEASE_TABLE") == :done end,
+               15_000
+             )
+
+      assert run(f, :robot, "DO APPRO VISE/50") == :done
+      no_collisions(f)
+    end
+  end
+
   describe "1b: a cycle starts only once the robot has released the table" do
     test "allowed once the robot has released it and left", %{f: f} do
       assert run(f, :robot, "DISABLE_TABLE") == :done

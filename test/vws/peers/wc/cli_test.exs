@@ -9,7 +9,7 @@ defmodule Vws.Codecs.WC.CLITest do
     %{ws: ws} =
       Vws.Test.Workstation.start(
         wc: "tcp://127.0.0.1:0",
-        partitions: [vacuum: [module: Vws.Test.ObedientPartition, link: :test]]
+        partitions: [vacuum: [module: Vws.Test.ObedientPartition, interlocks: :off, link: :test]]
       )
 
     endpoint =
