@@ -757,13 +757,23 @@ defmodule Vws.Sim.GE2000 do
     %{s | active: false}
   end
 
+  # while a drip feed runs, the program it runs is the machine's program
   defp report(s) do
     %{
       state: if(s.active, do: :active, else: :idle),
-      program: s.selected || "000000",
+      program: drip_number(s.drip) || s.selected || "000000",
       alarm: s.alarm
     }
   end
+
+  defp drip_number(%{program: program}) do
+    case Regex.run(~r/^\d{6}/, program) do
+      [number] -> number
+      nil -> nil
+    end
+  end
+
+  defp drip_number(nil), do: nil
 
   defp alarm(s, name), do: %{s | alarm: Map.fetch!(@alarms, name)}
 

@@ -26,6 +26,9 @@ defmodule Vws.Partitions.Monarch.Monitor do
   use GenServer
   require Logger
 
+  # the MONARCH device-status location
+  @monarch_location 8
+
   @doc false
   def child_spec(opts) do
     %{id: Keyword.get(opts, :id, __MODULE__), start: {__MODULE__, :start_link, [opts]}}
@@ -45,7 +48,9 @@ defmodule Vws.Partitions.Monarch.Monitor do
       store: Keyword.get(opts, :store, &Vws.Partitions.Monarch.store_from_machine/3),
       # the link process this monitor owns (a restarted link is owned again)
       owner: nil,
-      failing: false
+      failing: false,
+      # the process reading the status report, while it waits or reads
+      reading: nil
     }
 
     send(self(), :read)
@@ -58,15 +63,32 @@ defmodule Vws.Partitions.Monarch.Monitor do
     {:noreply, own_link(s)}
   end
 
+  # The read runs in a process of its own: it waits for the line while a transfer holds it, and
+  # the monitor meanwhile takes that transfer's progress (and a drip feed's ACTIVE, see
+  # machine_runs/2) as it comes. One read at a time; the next is due `interval` after its end.
+  def handle_info(:read, %{reading: pid} = s) when is_pid(pid), do: {:noreply, s}
+
   def handle_info(:read, s) do
     s = own_link(s)
+    monitor = self()
+    %{workstation: ws, link: link, options: options} = s
 
-    result =
-      if Vws.CEC.Mailbox.exists?(s.workstation),
-        do: Vws.Partitions.Monarch.refresh_status(s.workstation, s.link, s.options),
-        else: {:error, "NO MAILBOXES"}
+    pid =
+      spawn_link(fn ->
+        result =
+          if Vws.CEC.Mailbox.exists?(ws),
+            do: Vws.Partitions.Monarch.refresh_status(ws, link, options),
+            else: {:error, "NO MAILBOXES"}
 
+        send(monitor, {:read_done, self(), result})
+      end)
+
+    {:noreply, %{s | reading: pid}}
+  end
+
+  def handle_info({:read_done, pid, result}, %{reading: pid} = s) do
     Process.send_after(self(), :read, s.interval)
+    s = %{s | reading: nil}
 
     case result do
       {:ok, _report} ->
@@ -96,6 +118,7 @@ defmodule Vws.Partitions.Monarch.Monitor do
   # ({:vws_event, ws, :dnc_progress, payload}, payload as documented in Vws.Links.DNC).
   def handle_info({:dnc, _link, {:progress, payload}}, s) do
     ws = s.workstation
+    machine_runs(ws, payload)
 
     with {:error, :no_such_event} <- Vws.CEC.Events.cause(ws, :dnc_progress, payload) do
       :ok = Vws.CEC.Events.create(ws, :dnc_progress)
@@ -109,6 +132,30 @@ defmodule Vws.Partitions.Monarch.Monitor do
   end
 
   def handle_info({:dnc, _link, _event}, s), do: {:noreply, s}
+
+  # A drip-fed program (operation E) runs from its first block until it ends, while the
+  # half-duplex line carries it and no status report can be read: each block that reaches the
+  # machine says so — MONARCH `ACTIVE`, the report naming the program it runs — so the WC, the
+  # views and the table's interlock conditions see a running machine, not an old IDLE. Once the
+  # feed has ended, the reports read again tell when the program is done.
+  defp machine_runs(ws, %{operation: :download_execute, ended: false} = payload) do
+    alarm =
+      case Vws.CEC.Mailbox.readings(ws) do
+        %{monarch: {%{alarm: alarm}, _age}} -> alarm
+        _ -> 0
+      end
+
+    number =
+      case Regex.run(~r/^\d{6}/, to_string(payload.program)) do
+        [number] -> number
+        nil -> "000000"
+      end
+
+    Vws.CEC.Mailbox.put_readings(ws, :monarch, %{state: :active, program: number, alarm: alarm})
+    Vws.CEC.Mailbox.put_device(ws, @monarch_location, "ACTIVE")
+  end
+
+  defp machine_runs(_ws, _payload), do: :ok
 
   # The monitor is the link's owner: it is told what the machine sends of its own accord.
   defp own_link(s) do

@@ -144,6 +144,43 @@ defmodule Vws.Partitions.Monarch.DripFeedTest do
     assert eventually(fn -> GE2000.drip(ctx.sim).state == :broken end, 30_000)
   end
 
+  # Issue 25: while the GE-2000 ran a drip-fed program, MONARCH said IDLE (the monitor's status
+  # read waited for the line the feed held). From its first block until it ends, the WC's MONARCH
+  # status says ACTIVE and the report names the program it runs.
+  @tag feed_rate: 1_500
+  test "MONARCH says ACTIVE, naming the program, from the first block until it has run", ctx do
+    _text = with_nc_file(ctx, 3 * @memory)
+    :ok = Vws.CEC.Events.subscribe(ctx.ws, :dnc_progress)
+    send_monarch(ctx.peer, 1, "DRIP_FEED")
+    assert_receive {:vws_event, _, :dnc_progress, %{operation: :download_execute}}, 10_000
+
+    samples = sample_while_running(ctx, [])
+    assert length(samples) > 10
+
+    for {monarch, program} <- samples do
+      assert monarch == "ACTIVE"
+      assert program == "004711"
+    end
+
+    assert finished(ctx.peer) == "0001DONE"
+  end
+
+  # MONARCH's status and program, read before the machine's state: every sample taken while the
+  # simulated GE-2000 still feeds or drains the program must say ACTIVE.
+  defp sample_while_running(ctx, acc) do
+    monarch = Vws.CEC.SunComm.Status.answer(ctx.ws, "MONARCH")
+    {%{program: program}, _age} = Mailbox.readings(ctx.ws).monarch
+
+    case GE2000.drip(ctx.sim) do
+      %{state: state} when state in [:feeding, :draining] ->
+        Process.sleep(20)
+        sample_while_running(ctx, [{monarch, program} | acc])
+
+      _ended ->
+        acc
+    end
+  end
+
   test "transfer progress: telemetry, the :dnc_progress event and DNC.progress/1", ctx do
     text = with_nc_file(ctx, 4 * @memory)
     :ok = Vws.CEC.Events.subscribe(ctx.ws, :dnc_progress)
