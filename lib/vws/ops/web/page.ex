@@ -234,7 +234,8 @@ defmodule Vws.Ops.Web.Page do
       const bar = el("span", null, "bar");
       const fill = el("span"); fill.style.width = (t.percent === null ? 0 : t.percent) + "%"; bar.appendChild(fill);
       const prog = el("span"); prog.appendChild(bar); prog.appendChild(el("span", t.percent === null ? " length not announced" : " " + t.percent + " %"));
-      return [(t.kind + " " + (t.number || "")).trim(), t.link, prog,
+      const what = [t.kind, t.number, t.program, t.version ? "v" + t.version : null].filter(x => x).join(" ");
+      return [what, t.link, prog,
         t.done + (t.total !== null ? " of " + t.total : "") + " " + t.unit + ", " + t.bytes + (t.total_bytes !== null ? " of " + t.total_bytes : "") + " bytes",
         {text: t.bytes_per_s + " B/s", cls: "num"}, {text: t.eta_s === null ? "unknown" : t.eta_s + " s", cls: "num"}];
     }), "transfers-" + ws.id);

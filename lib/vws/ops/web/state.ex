@@ -459,13 +459,53 @@ defmodule Vws.Ops.Web.State do
         _ -> []
       end
 
-    # NC programs only: the status reads of MONARCH's monitor are not transfers to follow
+    # NC programs only: the status reads of MONARCH's monitor are not transfers to follow. The
+    # MONARCH command under way names the row (a program sent from the machine has none)
+    monarch = Enum.find_value(snapshot.partitions, &(&1.partition == :monarch && &1.current))
+
     dnc =
       for %{id: :ge2000, info: %{transfer: %{} = t}} <- snapshot.links,
-          kind = dnc_kind(t),
-          do: progress("GE-2000 (DNC)", kind, nil, :blocks, t, now)
+          kind = dnc_kind(t) do
+        command = if kind != "FROM THE MACHINE", do: monarch
+        row = progress("GE-2000 (DNC)", kind, command && command.number, :blocks, t, now)
+        Map.merge(row, program_version(snapshot.workstation, t[:program], command))
+      end
 
     wc ++ dnc
+  end
+
+  # Which program a transfer carries, and which version of the library: the one its command
+  # names (`DOWNLOAD_GE(nnnnnn.PRO/v)`), else the library's latest (what `DOWNLOAD_GE(nnnnnn.PRO)`
+  # sends, and what DOWNLOAD_HP stored last for the NC file); nil when the library has none.
+  defp program_version(ws, program, command) do
+    program = if program in [nil, ""], do: nc_file_program(ws), else: program
+
+    named =
+      case command && Regex.run(~r{/(\d+)\)\s*$}, command.text) do
+        [_, v] -> String.to_integer(v)
+        _ -> nil
+      end
+
+    version =
+      named ||
+        with true <- is_binary(program),
+             {:ok, %{version: v}} <- Vws.Links.DNC.Library.version(ws, program, :latest) do
+          v
+        else
+          _ -> nil
+        end
+
+    %{program: program, version: version}
+  end
+
+  # the seed's DOWNLOAD_GE names no program on the line: the NC file's own (its first O word)
+  defp nc_file_program(ws) do
+    Enum.find_value(Mailbox.nc_file(ws), fn line ->
+      case Regex.run(~r/^\s*[O:](\d{1,6})/, line) do
+        [_, n] -> String.pad_leading(n, 6, "0") <> ".PRO"
+        nil -> nil
+      end
+    end)
   end
 
   defp dnc_kind(%{direction: :out, command: %{direction: :send, operation: :part_program}}),

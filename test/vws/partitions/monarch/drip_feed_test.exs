@@ -153,6 +153,8 @@ defmodule Vws.Partitions.Monarch.DripFeedTest do
     :ok = Vws.CEC.Events.subscribe(ctx.ws, :dnc_progress)
     send_monarch(ctx.peer, 1, "DRIP_FEED")
     assert_receive {:vws_event, _, :dnc_progress, %{operation: :download_execute}}, 10_000
+    # the simulated machine takes the block from its link a moment after the link acknowledged it
+    assert eventually(fn -> GE2000.drip(ctx.sim) != nil end)
 
     samples = sample_while_running(ctx, [])
     assert length(samples) > 10
@@ -192,7 +194,9 @@ defmodule Vws.Partitions.Monarch.DripFeedTest do
              Enum.any?(Vws.Ops.Web.State.build(workstations: [ctx.ws]).workstations, fn w ->
                Enum.any?(
                  Map.get(w, :transfers, []),
-                 &(&1.kind == "DRIP_FEED" and &1.percent >= 0)
+                 # which command and which program (the row had "number": null)
+                 &(&1.kind == "DRIP_FEED" and &1.percent >= 0 and &1.number == "0001" and
+                     &1.program == "004711.PRO")
                )
              end)
            end)
