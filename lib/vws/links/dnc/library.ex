@@ -1,16 +1,16 @@
 defmodule Vws.Links.DNC.Library do
   @moduledoc """
-  The program library (issue 18): every workstation's NC programs on disk, each with its
-  versions — who or what stored it, when, its size and CRC-16/ARC — kept across restarts and
-  crashes. A plain module over files: no process of its own, so MONARCH, SUN_COMM, iex and the
+  The program library (issues 18 and 30): every workstation's NC programs on disk, each with its
+  versions — who or what stored it, when, its size, CRC-16/ARC and SHA-256 digest — kept across
+  restarts and crashes. A plain module over files: no process of its own, so MONARCH, SUN_COMM, iex and the
   command-line task (`mix vws.library`, which also works while the workstation is stopped) use
   the same directory side by side.
 
   ## Where
 
       <data directory>/library/<workstation id>/      (Vws.Ops.DataDir.library_dir/2)
-      ├── 001234.PRO~000001~20261125T090000.123Z~wc~000412~BB3D    version 1: exactly its bytes
-      ├── 001234.PRO~000002~20261125T093512.004Z~from+the+machine~000415~1F0C
+      ├── 001234.PRO~000001~20261125T090000.123Z~wc~000412~BB3D~<SHA-256, 64 hex>   version 1
+      ├── 001234.PRO~000002~20261125T093512.004Z~from+the+machine~000415~1F0C~<SHA-256>
       ├── MACHINE.DIR                      the GE-2000's directory as last read (compare)
       └── .v/
           ├── 001234.PRO~000001 -> ../001234.PRO~000001~…       the version's number, taken
@@ -18,8 +18,21 @@ defmodule Vws.Links.DNC.Library do
 
   One flat directory per workstation (decision): listing 10,000 programs is one directory read
   (`bench/library.exs`). A version is a file holding exactly the program's bytes, named
-  `<program>~<version>~<stored at, UTC>~<source>~<size>~<CRC>` (source's blanks as `+`); the
-  name carries what a listing shows, so a listing reads no file.
+  `<program>~<version>~<stored at, UTC>~<source>~<size>~<CRC>~<SHA-256>` (source's blanks as
+  `+`); the name carries what a listing shows, so a listing reads no file (but for versions stored
+  before the digest, named without it: their digest is computed from their bytes as they are
+  listed).
+
+  **Versions are told apart by content**: by their SHA-256 digest (`digest/1`) — "the same
+  program again", "the machine holds version n" — never by size and CRC-16, which different texts
+  share (the GE-2000's directory speaks only those: `on_machine/2` says `{:ambiguous, [n]}` when
+  versions that differ share them, and a read-back tells).
+
+  **Released or from the machine.** A version whose source is `"from the machine"` (a program
+  the operator sent from the control panel) is not released (`released?/1`, the version's
+  `origin: :machine`, `released: false`): `:latest` names the newest *released* version, so such
+  a version is sent to a machine only by a `DOWNLOAD_GE(nnnnnn.PRO/v)` naming it, until
+  `release/4` stores its bytes as a new, released version.
 
   **Program names** are the GE-2000's file names, `nnnnnn.PRO` or `nnnnnn.GSU` (a library
   program is the file it becomes on the machine); `1234`, `001234` and `o1234.pro` are read as
@@ -34,13 +47,14 @@ defmodule Vws.Links.DNC.Library do
   directory. A version is visible only under its full name, which appears by the rename with
   all its bytes on disk: a crash leaves either no version or a whole one (at worst a number
   taken by a store that never finished: that number is then skipped). Reading a version checks
-  its size and CRC against its name: a file damaged on disk reads `{:error, :damaged}`.
+  its size, CRC and digest against its name: a file damaged on disk reads `{:error, :damaged}`.
 
   **Compare** (`compare/1`): MONARCH records the machine's directory here each time it reads it
   (`record_machine/2`: after every DOWNLOAD_GE, on `COMPARE_GE`, `Vws.Partitions.Monarch.compare/2`);
-  a program is then `same` (the entry's size and CRC are those of one of its versions: which),
-  `differs` or `absent` on the machine; `unknown` before any directory was read. A full
-  read-back (`Vws.Partitions.Monarch.compare/2` with `read_back:`) compares every byte.
+  a program is then `same` (the entry's size and CRC are those of versions holding one text:
+  which), `ambiguous` (of versions that differ), `differs` or `absent` on the machine; `unknown`
+  before any directory was read. A full read-back (`Vws.Partitions.Monarch.compare/2`,
+  `COMPARE_GE(nnnnnn.PRO)`) takes the digest of every byte and names the version that has it.
 
   ## Used from
 
