@@ -654,12 +654,18 @@ defmodule Vws.Links.DNC.Library do
       [] ->
         :differs
 
-      [%{digest: digest} | _] = matching ->
-        if digest != nil and Enum.all?(matching, &(&1.digest == digest)) do
-          {:ok, v} = same_as(matching, digest)
-          {:same, v.version}
-        else
-          {:ambiguous, Enum.map(matching, & &1.version)}
+      matching ->
+        case matching |> Enum.map(& &1.digest) |> Enum.uniq() do
+          # one version stored before digests, whose bytes no longer match its name
+          [nil] ->
+            {:same, List.last(matching).version}
+
+          [digest] ->
+            {:ok, v} = same_as(matching, digest)
+            {:same, v.version}
+
+          _ ->
+            {:ambiguous, Enum.map(matching, & &1.version)}
         end
     end
   end
@@ -737,8 +743,13 @@ defmodule Vws.Links.DNC.Library do
   end
 
   def on_machine_text({:ambiguous, ns}, _, _) do
-    {init, [last]} = Enum.split(Enum.map(ns, &"v#{&1}"), -1)
-    "size and CRC of #{Enum.join(init, ", ")} and #{last}, which differ (read back to tell)"
+    names =
+      case Enum.map(ns, &"v#{&1}") do
+        [one] -> one
+        many -> Enum.join(Enum.drop(many, -1), ", ") <> " and " <> List.last(many)
+      end
+
+    "size and CRC of #{names}, which differ (read back to tell)"
   end
 
   def on_machine_text(:differs, _, _), do: "differs"
