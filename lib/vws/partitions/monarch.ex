@@ -186,7 +186,7 @@ defmodule Vws.Partitions.Monarch do
          :ok <- uploadable(lines, file) do
       case Mailbox.put_nc_up(ctx.workstation, lines) do
         :ok -> :done
-        {:error, reason} -> {:error, "NC_UP NOT STORED #{inspect(reason)}"}
+        {:error, reason} -> {:error, "NC_UP NOT STORED #{words(reason)}"}
       end
     end
   end
@@ -359,7 +359,20 @@ defmodule Vws.Partitions.Monarch do
   defp library_error(file, _which, :damaged), do: "LIBRARY FILE OF #{file} DAMAGED"
 
   defp library_error(file, _which, reason),
-    do: "#{file} NOT READ FROM LIBRARY #{reason_text(reason)}"
+    do: "#{file} NOT READ FROM LIBRARY #{words(reason)}"
+
+  # A reason in upper-case words and numbers for an ERROR status (never an Elixir term):
+  # {:journal, :enospc} → "JOURNAL ENOSPC".
+  defp words(reason) when is_binary(reason),
+    do: reason |> String.upcase() |> String.replace(~r/[^A-Z0-9 .\/-]+/, " ") |> String.trim()
+
+  defp words(reason) when is_atom(reason), do: reason |> Atom.to_string() |> words()
+  defp words(reason) when is_integer(reason), do: Integer.to_string(reason)
+
+  defp words(reason) when is_tuple(reason),
+    do: reason |> Tuple.to_list() |> Enum.map_join(" ", &words/1)
+
+  defp words(_reason), do: "FAILED"
 
   @doc """
   Compares the program library of workstation `ws` with what its GE-2000 holds, from iex: reads
@@ -494,7 +507,7 @@ defmodule Vws.Partitions.Monarch do
           :ok
 
         {:error, reason} ->
-          {:error, "LIBRARY #{reason_text(reason)}"}
+          {:error, "LIBRARY #{words(reason)}"}
       end
     else
       {:error, "NO PROGRAM LIBRARY"}

@@ -335,8 +335,8 @@ defmodule Vws.Links.DNC.Library do
 
   @doc """
   DOWNLOAD_HP's program (the lines the WC sent) as the next version of its program (named by its
-  program number), source `"wc"` — unless the latest version holds exactly these bytes (the
-  same program downloaded again is not a new version): `:ok` — also when the workstation has no library, or the
+  program number), source `"wc"` — unless the latest released version holds exactly these bytes
+  (the same SHA-256 digest: the same program downloaded again is not a new version): `:ok` — also when the workstation has no library, or the
   program has no program number (then it is the NC file only, as in the seed) — or
   `{:error, {:library, reason}}`: SUN_COMM then ends DOWNLOAD_HP with an error and keeps the old
   NC file.

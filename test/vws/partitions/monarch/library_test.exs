@@ -100,6 +100,16 @@ defmodule Vws.Partitions.Monarch.LibraryTest do
              "ERROR 000055.PRO VERSION 3 NOT IN LIBRARY"
 
     assert monarch(peer, 4, "DOWNLOAD_GE(000056.PRO)") == "ERROR 000056.PRO NOT IN LIBRARY"
+
+    # a library file that cannot be read: said in words, never as an Elixir term
+    {:ok, v} = Library.store(ws, "57", v1)
+    {:ok, dir} = Library.dir(ws)
+    File.rm!(Path.join(dir, v.file))
+    File.mkdir!(Path.join(dir, v.file))
+
+    assert monarch(peer, 8, "DOWNLOAD_GE(000057.PRO)") ==
+             "ERROR 000057.PRO NOT READ FROM LIBRARY EISDIR"
+
     assert monarch(peer, 5, "DOWNLOAD_GE(../../x)") =~ "ERROR BAD PROGRAM FILE"
 
     assert download_hp(peer, 6, @lines) == "DONE"
