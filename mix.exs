@@ -24,7 +24,7 @@ defmodule Vws.MixProject do
 
   def application do
     [
-      extra_applications: [:logger, :runtime_tools, :inets],
+      extra_applications: [:logger, :runtime_tools, :inets, :crypto],
       mod: {Vws.Application, []}
     ]
   end

@@ -1,5 +1,5 @@
 defmodule Mix.Tasks.Vws.Library do
-  @shortdoc "The program library: list, show, import, export, diff, compare"
+  @shortdoc "The program library: list, show, import, export, diff, release, compare"
   @moduledoc """
   The program library of a workstation (`Vws.Links.DNC.Library`), running or stopped
   (`Vws.Ops.LibraryCLI` has every option):
@@ -9,6 +9,7 @@ defmodule Mix.Tasks.Vws.Library do
       mix vws.library import part.nc [--name 1234]
       mix vws.library export 001234.PRO out.nc [--version 2]
       mix vws.library diff 001234.PRO 1 2
+      mix vws.library release 001234.PRO 3    # v3 (from the machine) stored as a released version
       mix vws.library compare [--refresh --endpoint tcp://127.0.0.1:7070]
       mix vws.library --id VWS1 list          # library/VWS1 of the data directory
       mix vws.library --library DIR list      # a library directory itself

@@ -12,6 +12,7 @@ defmodule Vws.Ops.LibraryCLI do
       mix vws.library import part.nc --name 1234
       mix vws.library export 001234.PRO out.nc [--version 2]
       mix vws.library diff 001234.PRO 1 2           # version 1 against 2 (2 omitted: the latest)
+      mix vws.library release 001234.PRO 3          # version 3 (from the machine) as the latest released
       mix vws.library compare                       # each program: same / differs / absent
       mix vws.library compare --refresh --endpoint tcp://127.0.0.1:7070
 
@@ -76,16 +77,23 @@ defmodule Vws.Ops.LibraryCLI do
         with {:ok, versions} <- Library.versions(lib, name),
              {:ok, result} <- Library.compare(lib) do
           row = Enum.find(result.programs, &(&1.name == hd(versions).name))
+          latest = row.latest && row.latest.version
           IO.puts("#{row.name}: #{length(versions)} versions")
 
           for v <- versions do
-            mark = if row.on_machine == {:same, v.version}, do: "  <- on the machine", else: ""
+            marks =
+              [
+                row.on_machine == {:same, v.version} && "on the machine",
+                v.version == latest && "latest released",
+                not v.released && Library.release_text(v)
+              ]
+              |> Enum.filter(& &1)
+
+            mark = if marks == [], do: "", else: "  <- " <> Enum.join(marks, ", ")
             IO.puts("  v#{v.version}  #{line(v)}#{mark}")
           end
 
-          IO.puts(
-            "on the machine: #{Library.on_machine_text(row.on_machine, List.last(versions).version)}"
-          )
+          IO.puts("on the machine: #{Library.on_machine_text(row.on_machine, latest, versions)}")
 
           0
         end
@@ -139,6 +147,19 @@ defmodule Vws.Ops.LibraryCLI do
     |> result(name)
   end
 
+  defp run(["release", name, which], opts, lib) do
+    with {:ok, n} <- version_arg(which),
+         before = Library.version(lib, name, :latest),
+         {:ok, v} <- Library.release(lib, name, n, source: opts[:source] || "cli") do
+      if before == {:ok, v},
+        do: IO.puts("#{v.name}: v#{v.version}, the latest released, already holds these bytes"),
+        else: IO.puts("released #{v.name} as v#{v.version}  #{line(v)}")
+
+      0
+    end
+    |> result(name)
+  end
+
   defp run(["compare"], opts, lib) do
     if opts[:refresh] do
       endpoint = opts[:endpoint] || "tcp://127.0.0.1:7070"
@@ -176,7 +197,9 @@ defmodule Vws.Ops.LibraryCLI do
 
   defp line(v) do
     crc = String.pad_leading(Integer.to_string(v.crc, 16), 4, "0")
-    "#{DateTime.to_iso8601(v.at)}  #{v.source}  #{v.size} bytes  CRC #{crc}"
+    sha = if v.digest, do: String.slice(v.digest, 0, 16), else: "unreadable"
+
+    "#{DateTime.to_iso8601(v.at)}  #{v.source}  #{v.size} bytes  CRC #{crc}  SHA-256 #{sha}…"
   end
 
   defp result(status, _what) when is_integer(status), do: status
@@ -190,7 +213,8 @@ defmodule Vws.Ops.LibraryCLI do
 
   defp reason_text(:not_found), do: "not in the library"
   defp reason_text(:bad_name), do: "not a program name (nnnnnn.PRO or nnnnnn.GSU)"
-  defp reason_text(:damaged), do: "its file is damaged (size or CRC not as stored)"
+  defp reason_text(:damaged), do: "its file is damaged (size, CRC or SHA-256 not as stored)"
+  defp reason_text(:not_released), do: "no released version (every one came from the machine)"
   defp reason_text(:no_program_number), do: "no program number (O word); give --name"
   defp reason_text(:too_large), do: "larger than #{Library.max_bytes()} bytes"
   defp reason_text(:enoent), do: "no such file"
@@ -209,6 +233,7 @@ defmodule Vws.Ops.LibraryCLI do
       import FILE [--name NAME] [--source SOURCE]
       export NAME FILE [--version V]
       diff NAME V1 [V2]
+      release NAME V [--source SOURCE]
       compare [--refresh [--endpoint tcp://127.0.0.1:7070]]\
     """
   end

@@ -19,9 +19,13 @@ defmodule Vws.Partitions.Monarch do
 
   | command | on the link | result |
   |---------|-------------|--------|
-  | `DOWNLOAD_GE(nnnnnn.PRO)` / `DOWNLOAD_GE(nnnnnn.PRO/v)` | `SCS`/`SNS` with the file name as command text + the program, then `RNL`, `RNF` | the library's latest version (or version v) filed under that name, verified like DOWNLOAD_GE |
+  | `DOWNLOAD_GE(nnnnnn.PRO)` / `DOWNLOAD_GE(nnnnnn.PRO/v)` | `SCS`/`SNS` with the file name as command text + the program, then `RNL`, `RNF` | the library's latest released version (or version v, whatever its origin) filed under that name, verified like DOWNLOAD_GE; `ERROR nnnnnn.PRO HAS NO RELEASED VERSION` when every version came from the machine |
   | `COMPARE_GE` | `RNF` | the machine's directory recorded in the library: each program `same`/`differs`/`absent` |
-  | `COMPARE_GE(nnnnnn.PRO)` | `RNF`, then `RNS` + file name | DONE only when the machine holds exactly a version of the program, every byte read back; else `ERROR PROGRAM ABSENT nnnnnn.PRO`, `ERROR PROGRAM DIFFERS nnnnnn.PRO` |
+  | `COMPARE_GE(nnnnnn.PRO)` | `RNF`, then `RNS` + file name | DONE only when the machine holds exactly a version of the program, every byte read back (its SHA-256 digest that of a version); else `ERROR PROGRAM ABSENT nnnnnn.PRO`, `ERROR PROGRAM DIFFERS nnnnnn.PRO` |
+
+  A program the operator sends from the machine unasked goes to the library as a version from
+  the machine, not released (`store_from_machine/3`), never to NC_UP: NC_UP holds only what
+  `UPLOAD_GE` brought.
 
   Every directory MONARCH reads (also after each DOWNLOAD_GE) is recorded in the library, so
   the dashboard and `mix vws.library` show where each program stands; `compare/2` does the
@@ -151,13 +155,24 @@ defmodule Vws.Partitions.Monarch do
     with {:ok, _entries} <- read_directory(ctx), do: :done
   end
 
+  # The directory (size, CRC-16) finds the versions the machine may hold; the read-back's
+  # SHA-256 digest says which one it holds, if any.
   def execute({:compare_ge, file}, ctx) do
     with {:ok, versions} <- library_versions(ctx.workstation, file),
          {:ok, entries} <- read_directory(ctx) do
       case Vws.Links.DNC.Library.on_machine(versions, Map.get(entries, file)) do
-        :absent -> {:error, "PROGRAM ABSENT #{file}"}
-        :differs -> {:error, "PROGRAM DIFFERS #{file}"}
-        {:same, n} -> read_back(ctx, file, n)
+        :absent ->
+          {:error, "PROGRAM ABSENT #{file}"}
+
+        :differs ->
+          {:error, "PROGRAM DIFFERS #{file}"}
+
+        _same_or_ambiguous ->
+          case read_back(ctx, file, versions) do
+            {:same, _n} -> :done
+            :differs -> {:error, "PROGRAM DIFFERS #{file}"}
+            {:error, _} = error -> error
+          end
       end
     end
   end
@@ -171,7 +186,7 @@ defmodule Vws.Partitions.Monarch do
          :ok <- uploadable(lines, file) do
       case Mailbox.put_nc_up(ctx.workstation, lines) do
         :ok -> :done
-        {:error, reason} -> {:error, "NC_UP NOT STORED #{inspect(reason)}"}
+        {:error, reason} -> {:error, "NC_UP NOT STORED #{words(reason)}"}
       end
     end
   end
@@ -306,13 +321,20 @@ defmodule Vws.Partitions.Monarch do
     end
   end
 
-  # RNS → every byte of the file, compared with version n of the library.
-  defp read_back(ctx, file, n) do
-    with {:ok, text} <- library_program(ctx.workstation, file, n),
-         {:ok, blocks} <- request(ctx, :receive, :part_program, file, []) do
-      if IO.iodata_to_binary(blocks) == text,
-        do: :done,
-        else: {:error, "PROGRAM DIFFERS #{file}"}
+  # RNS → every byte of the file: `{:same, n}` for the version of the library that holds exactly
+  # these bytes (the same SHA-256 digest, and its file reads whole), else `:differs`.
+  defp read_back(ctx, file, versions) do
+    with {:ok, blocks} <- request(ctx, :receive, :part_program, file, []) do
+      digest = Vws.Links.DNC.Library.digest(IO.iodata_to_binary(blocks))
+
+      case Vws.Links.DNC.Library.same_as(versions, digest) do
+        {:ok, v} ->
+          with {:ok, _text} <- library_program(ctx.workstation, file, v.version),
+               do: {:same, v.version}
+
+        :none ->
+          :differs
+      end
     end
   end
 
@@ -332,11 +354,25 @@ defmodule Vws.Partitions.Monarch do
 
   defp library_error(_file, _which, :no_library), do: "NO PROGRAM LIBRARY"
   defp library_error(file, :latest, :not_found), do: "#{file} NOT IN LIBRARY"
+  defp library_error(file, :latest, :not_released), do: "#{file} HAS NO RELEASED VERSION"
   defp library_error(file, n, :not_found), do: "#{file} VERSION #{n} NOT IN LIBRARY"
   defp library_error(file, _which, :damaged), do: "LIBRARY FILE OF #{file} DAMAGED"
 
   defp library_error(file, _which, reason),
-    do: "#{file} NOT READ FROM LIBRARY #{reason_text(reason)}"
+    do: "#{file} NOT READ FROM LIBRARY #{words(reason)}"
+
+  # A reason in upper-case words and numbers for an ERROR status (never an Elixir term):
+  # {:journal, :enospc} → "JOURNAL ENOSPC".
+  defp words(reason) when is_binary(reason),
+    do: reason |> String.upcase() |> String.replace(~r/[^A-Z0-9 .\/-]+/, " ") |> String.trim()
+
+  defp words(reason) when is_atom(reason), do: reason |> Atom.to_string() |> words()
+  defp words(reason) when is_integer(reason), do: Integer.to_string(reason)
+
+  defp words(reason) when is_tuple(reason),
+    do: reason |> Tuple.to_list() |> Enum.map_join(" ", &words/1)
+
+  defp words(_reason), do: "FAILED"
 
   @doc """
   Compares the program library of workstation `ws` with what its GE-2000 holds, from iex: reads
@@ -345,7 +381,9 @@ defmodule Vws.Partitions.Monarch do
   `:absent`. With `read_back: true` (every program the directory shows the same) or
   `read_back: [file names]` those programs are also read back whole (`RNS`) and compared byte for
   byte: each such row gets `read_back: :same | :differs` (a `:differs` also makes it `on_machine:
-  :differs`). `Vws.Links.DNC.Library.print_compare/1` prints the result.
+  :differs`; a `:same` names the version the bytes are: their SHA-256 digest's). A program whose
+  directory entry has the size and CRC-16 of versions that differ (`{:ambiguous, [n]}`) is
+  always read back. `Vws.Links.DNC.Library.print_compare/1` prints the result.
 
   Options: `:link` (default the workstation's GE-2000 link), `:check`, `:request_timeout`.
   """
@@ -366,12 +404,12 @@ defmodule Vws.Partitions.Monarch do
           read_back? = wanted == true or (is_list(wanted) and row.name in wanted)
 
           case row.on_machine do
-            {:same, n} when read_back? ->
-              case read_back(ctx, row.name, n) do
-                :done ->
-                  Map.put(row, :read_back, :same)
+            {state, _} when (state == :same and read_back?) or state == :ambiguous ->
+              case read_back(ctx, row.name, row.versions) do
+                {:same, n} ->
+                  %{row | on_machine: {:same, n}} |> Map.put(:read_back, :same)
 
-                {:error, "PROGRAM DIFFERS" <> _} ->
+                :differs ->
                   %{row | on_machine: :differs} |> Map.put(:read_back, :differs)
 
                 {:error, reason} ->
@@ -405,10 +443,10 @@ defmodule Vws.Partitions.Monarch do
   A program the operator sent from the machine (auto-receive, ours: docs/dnc-drip-feed.md): the
   GE-2000 bid and sent `SCS`/`SNS` + `name` and the program's text unasked. A whole program
   (ending in its `%` line, no control characters) is handed to `store` — by default
-  `store_from_machine/3`, which keeps it as NC_UP, the program from the machine — and counted
-  (`[:vws, :monarch, :program_received]`, `from: :machine`); anything else is refused and
-  logged. This is the one place a received program is handed over (the program library takes it
-  here).
+  `store_from_machine/3`, which keeps it in the program library as a version from the machine,
+  not released — and counted (`[:vws, :monarch, :program_received]`, `from: :machine`); anything
+  else is refused and logged. This is the one place a received program is handed over. It never
+  touches NC_UP: that is what the WC's `UPLOAD_GE` brought, and only that.
   """
   @spec received_program(
           Mailbox.workstation(),
@@ -443,28 +481,36 @@ defmodule Vws.Partitions.Monarch do
   end
 
   @doc """
-  Keeps a program received from the machine: as a new version in the workstation's program
-  library, source `"from the machine"` (when it has a library), and as NC_UP (the program from
-  the machine tool). Not stored in the library, it is not kept as NC_UP either.
+  Keeps a program received from the machine in the workstation's program library: a new
+  version, source `"from the machine"` — not released, so `DOWNLOAD_GE(nnnnnn.PRO)` never sends
+  it; only a `DOWNLOAD_GE(nnnnnn.PRO/v)` naming it does, or a release (`mix vws.library release`,
+  `Vws.Links.DNC.Library.release/4`). When a version already holds exactly these bytes (the same
+  SHA-256 digest) nothing new is stored. NC_UP is left alone: it holds only what the WC's
+  `UPLOAD_GE` asked for. Without a library the program is refused (`NO PROGRAM LIBRARY`, logged
+  by the monitor).
   """
   @spec store_from_machine(Mailbox.workstation(), String.t(), [binary]) :: :ok | {:error, term}
   def store_from_machine(ws, name, lines) do
     require Logger
-    Logger.info("MONARCH: program #{name} received from the machine (#{length(lines)} lines)")
 
-    with :ok <- library_from_machine(ws, name, lines), do: Mailbox.put_nc_up(ws, lines)
-  end
-
-  defp library_from_machine(ws, name, lines) do
     if Vws.Links.DNC.Library.enabled?(ws) do
       case Vws.Links.DNC.Library.store(ws, name, Program.to_text(lines),
-             source: "from the machine"
+             source: "from the machine",
+             only_if_new: true
            ) do
-        {:ok, _version} -> :ok
-        {:error, reason} -> {:error, "LIBRARY #{inspect(reason)}"}
+        {:ok, v} ->
+          Logger.info(
+            "MONARCH: program #{name} received from the machine (#{length(lines)} lines): " <>
+              "library version #{v.version} (#{Vws.Links.DNC.Library.release_text(v)})"
+          )
+
+          :ok
+
+        {:error, reason} ->
+          {:error, "LIBRARY #{words(reason)}"}
       end
     else
-      :ok
+      {:error, "NO PROGRAM LIBRARY"}
     end
   end
 

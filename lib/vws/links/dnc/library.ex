@@ -1,16 +1,16 @@
 defmodule Vws.Links.DNC.Library do
   @moduledoc """
-  The program library (issue 18): every workstation's NC programs on disk, each with its
-  versions — who or what stored it, when, its size and CRC-16/ARC — kept across restarts and
-  crashes. A plain module over files: no process of its own, so MONARCH, SUN_COMM, iex and the
+  The program library (issues 18 and 30): every workstation's NC programs on disk, each with its
+  versions — who or what stored it, when, its size, CRC-16/ARC and SHA-256 digest — kept across
+  restarts and crashes. A plain module over files: no process of its own, so MONARCH, SUN_COMM, iex and the
   command-line task (`mix vws.library`, which also works while the workstation is stopped) use
   the same directory side by side.
 
   ## Where
 
       <data directory>/library/<workstation id>/      (Vws.Ops.DataDir.library_dir/2)
-      ├── 001234.PRO~000001~20261125T090000.123Z~wc~000412~BB3D    version 1: exactly its bytes
-      ├── 001234.PRO~000002~20261125T093512.004Z~from+the+machine~000415~1F0C
+      ├── 001234.PRO~000001~20261125T090000.123Z~wc~000412~BB3D~<SHA-256, 64 hex>   version 1
+      ├── 001234.PRO~000002~20261125T093512.004Z~from+the+machine~000415~1F0C~<SHA-256>
       ├── MACHINE.DIR                      the GE-2000's directory as last read (compare)
       └── .v/
           ├── 001234.PRO~000001 -> ../001234.PRO~000001~…       the version's number, taken
@@ -18,8 +18,21 @@ defmodule Vws.Links.DNC.Library do
 
   One flat directory per workstation (decision): listing 10,000 programs is one directory read
   (`bench/library.exs`). A version is a file holding exactly the program's bytes, named
-  `<program>~<version>~<stored at, UTC>~<source>~<size>~<CRC>` (source's blanks as `+`); the
-  name carries what a listing shows, so a listing reads no file.
+  `<program>~<version>~<stored at, UTC>~<source>~<size>~<CRC>~<SHA-256>` (source's blanks as
+  `+`); the name carries what a listing shows, so a listing reads no file (but for versions stored
+  before the digest, named without it: their digest is computed from their bytes as they are
+  listed).
+
+  **Versions are told apart by content**: by their SHA-256 digest (`digest/1`) — "the same
+  program again", "the machine holds version n" — never by size and CRC-16, which different texts
+  share (the GE-2000's directory speaks only those: `on_machine/2` says `{:ambiguous, [n]}` when
+  versions that differ share them, and a read-back tells).
+
+  **Released or from the machine.** A version whose source is `"from the machine"` (a program
+  the operator sent from the control panel) is not released (`released?/1`, the version's
+  `origin: :machine`, `released: false`): `:latest` names the newest *released* version, so such
+  a version is sent to a machine only by a `DOWNLOAD_GE(nnnnnn.PRO/v)` naming it, until
+  `release/4` stores its bytes as a new, released version.
 
   **Program names** are the GE-2000's file names, `nnnnnn.PRO` or `nnnnnn.GSU` (a library
   program is the file it becomes on the machine); `1234`, `001234` and `o1234.pro` are read as
@@ -34,13 +47,14 @@ defmodule Vws.Links.DNC.Library do
   directory. A version is visible only under its full name, which appears by the rename with
   all its bytes on disk: a crash leaves either no version or a whole one (at worst a number
   taken by a store that never finished: that number is then skipped). Reading a version checks
-  its size and CRC against its name: a file damaged on disk reads `{:error, :damaged}`.
+  its size, CRC and digest against its name: a file damaged on disk reads `{:error, :damaged}`.
 
   **Compare** (`compare/1`): MONARCH records the machine's directory here each time it reads it
   (`record_machine/2`: after every DOWNLOAD_GE, on `COMPARE_GE`, `Vws.Partitions.Monarch.compare/2`);
-  a program is then `same` (the entry's size and CRC are those of one of its versions: which),
-  `differs` or `absent` on the machine; `unknown` before any directory was read. A full
-  read-back (`Vws.Partitions.Monarch.compare/2` with `read_back:`) compares every byte.
+  a program is then `same` (the entry's size and CRC are those of versions holding one text:
+  which), `ambiguous` (of versions that differ), `differs` or `absent` on the machine; `unknown`
+  before any directory was read. A full read-back (`Vws.Partitions.Monarch.compare/2`,
+  `COMPARE_GE(nnnnnn.PRO)`) takes the digest of every byte and names the version that has it.
 
   ## Used from
 
@@ -74,10 +88,17 @@ defmodule Vws.Links.DNC.Library do
           source: String.t(),
           size: non_neg_integer,
           crc: 0..0xFFFF,
+          digest: String.t() | nil,
+          origin: :library | :machine,
+          released: boolean,
           file: String.t()
         }
 
-  @type on_machine :: :unknown | :absent | :differs | {:same, pos_integer}
+  @type on_machine ::
+          :unknown | :absent | :differs | {:same, pos_integer} | {:ambiguous, [pos_integer]}
+
+  # the source of a program the operator sent from the machine: its version is not released
+  @from_machine "from the machine"
 
   ## Where
 
@@ -150,17 +171,40 @@ defmodule Vws.Links.DNC.Library do
   (`:bad_name`, `:bad_source`, `:too_large`, `:no_library`, a file error) and nothing stored.
 
   Options: `:source` — who or what stored it (`"wc"`, `"cli"`, `"from the machine"`, `"iex"`;
-  default `"iex"`; lower-case letters, digits, blanks, `.`, `-`, `_`, at most 32), `:at` (a
-  `DateTime`, default now), `:only_if_changed` — when the latest version holds exactly these
-  bytes, store nothing and answer that version (default false).
+  default `"iex"`; lower-case letters, digits, blanks, `.`, `-`, `_`, at most 32; a version
+  whose source is `"from the machine"` is not released, `released?/1`), `:at` (a `DateTime`,
+  default now), `:only_if_changed` — when the latest released version holds exactly these bytes
+  (the same SHA-256 digest, and its file reads whole), store nothing and answer that version
+  (default false), `:only_if_new` — likewise when any version holds them (the one `same_as/2`
+  names).
   """
   @spec store(lib, term, binary, keyword) :: {:ok, version} | {:error, term}
   def store(lib, name, bytes, opts \\ []) when is_binary(bytes) do
-    with true <- Keyword.get(opts, :only_if_changed, false),
-         {:ok, ^bytes, latest} <- read(lib, name) do
-      {:ok, latest}
-    else
+    dedupe =
+      cond do
+        Keyword.get(opts, :only_if_new, false) -> :any
+        Keyword.get(opts, :only_if_changed, false) -> :latest
+        true -> nil
+      end
+
+    case dedupe && existing(lib, name, digest(bytes), dedupe) do
+      {:ok, v} -> {:ok, v}
       _ -> store_new(lib, name, bytes, opts)
+    end
+  end
+
+  # The version that already holds bytes of this digest (the latest released one, or any:
+  # same_as/2), when its file reads whole.
+  defp existing(lib, name, digest, which) do
+    with {:ok, vs} <- versions(lib, name),
+         {:ok, v} <-
+           (case which do
+              :latest -> latest_released(vs)
+              :any -> same_as(vs, digest)
+            end),
+         true <- v.digest == digest,
+         {:ok, _bytes, v} <- read(lib, name, v.version) do
+      {:ok, v}
     end
   end
 
@@ -179,15 +223,17 @@ defmodule Vws.Links.DNC.Library do
              "#{@tmp_prefix}#{name}-#{:os.getpid()}-#{System.unique_integer([:positive])}"
            ),
          :ok <- write_synced(tmp, bytes) do
-      v = %{
-        name: name,
-        version: nil,
-        at: at,
-        source: source,
-        size: byte_size(bytes),
-        crc: Vws.Codecs.CRC16.compute(bytes),
-        file: nil
-      }
+      v =
+        with_origin(%{
+          name: name,
+          version: nil,
+          at: at,
+          source: source,
+          size: byte_size(bytes),
+          crc: Vws.Codecs.CRC16.compute(bytes),
+          digest: digest(bytes),
+          file: nil
+        })
 
       case take_number(dir, v, first_free(dir, name)) do
         {:ok, v} ->
@@ -203,6 +249,46 @@ defmodule Vws.Links.DNC.Library do
           File.rm(tmp)
           error
       end
+    end
+  end
+
+  @doc """
+  The SHA-256 digest of a program's bytes, as the library names versions by it (64 lower-case
+  hexadecimal digits). Two versions hold the same bytes exactly when their digests are equal;
+  size and CRC-16 are kept only because the GE-2000's directory speaks them.
+
+      iex> Vws.Links.DNC.Library.digest("") |> String.slice(0, 16)
+      "e3b0c44298fc1c14"
+  """
+  @spec digest(binary) :: String.t()
+  def digest(bytes), do: :crypto.hash(:sha256, bytes) |> Base.encode16(case: :lower)
+
+  @doc """
+  True for a version that `:latest` may name — every version but those the operator sent from
+  the machine (source `"from the machine"`): such a version is sent to a machine only by a
+  `DOWNLOAD_GE(nnnnnn.PRO/v)` that names it, until `release/4` stores it as a released version.
+  """
+  @spec released?(map) :: boolean
+  def released?(%{source: source}), do: source != @from_machine
+
+  defp with_origin(v) do
+    released = released?(v)
+    Map.merge(v, %{origin: if(released, do: :library, else: :machine), released: released})
+  end
+
+  @doc """
+  Releases version `which` of `name`: stores its bytes as a new, released version (source
+  `"<source> release of v<n>"`, `opts[:source]` default `"iex"`) — the version the next
+  `DOWNLOAD_GE(nnnnnn.PRO)` sends. When the latest released version already holds exactly these
+  bytes nothing is stored and that version is the answer. `{:ok, version}` or `{:error, reason}`
+  (`:not_found`, `:damaged`, …).
+  """
+  @spec release(lib, term, pos_integer | :latest | :newest, keyword) ::
+          {:ok, version} | {:error, term}
+  def release(lib, name, which, opts \\ []) do
+    with {:ok, bytes, v} <- read(lib, name, which) do
+      source = "#{Keyword.get(opts, :source, "iex")} release of v#{v.version}"
+      store(lib, name, bytes, source: source, only_if_changed: true)
     end
   end
 
@@ -249,8 +335,8 @@ defmodule Vws.Links.DNC.Library do
 
   @doc """
   DOWNLOAD_HP's program (the lines the WC sent) as the next version of its program (named by its
-  program number), source `"wc"` — unless the latest version holds exactly these bytes (the
-  same program downloaded again is not a new version): `:ok` — also when the workstation has no library, or the
+  program number), source `"wc"` — unless the latest released version holds exactly these bytes
+  (the same SHA-256 digest: the same program downloaded again is not a new version): `:ok` — also when the workstation has no library, or the
   program has no program number (then it is the NC file only, as in the seed) — or
   `{:error, {:library, reason}}`: SUN_COMM then ends DOWNLOAD_HP with an error and keeps the old
   NC file.
@@ -340,18 +426,29 @@ defmodule Vws.Links.DNC.Library do
     with {:ok, dir} <- dir(lib),
          {:ok, name} <- name(name),
          {:ok, files} <- ls(dir) do
-      case files |> Enum.filter(&String.starts_with?(&1, name <> "~")) |> parse_files() do
+      case files
+           |> Enum.filter(&String.starts_with?(&1, name <> "~"))
+           |> parse_files()
+           |> with_digests(dir) do
         [] -> {:error, :not_found}
         vs -> {:ok, Enum.sort_by(vs, & &1.version)}
       end
     end
   end
 
-  @doc "One version of `name` (`:latest` by default): `{:ok, version}` or `{:error, :not_found}`."
-  @spec version(lib, term, pos_integer | :latest) :: {:ok, version} | {:error, term}
+  @doc """
+  One version of `name`: `{:ok, version}` or `{:error, :not_found}`. `:latest` (the default) is
+  the newest *released* version (`released?/1`) — `{:error, :not_released}` when every version
+  came from the machine; `:newest` the newest of all; `n` version n.
+  """
+  @spec version(lib, term, pos_integer | :latest | :newest) :: {:ok, version} | {:error, term}
   def version(lib, name, which \\ :latest)
 
   def version(lib, name, :latest) do
+    with {:ok, vs} <- versions(lib, name), do: latest_released(vs)
+  end
+
+  def version(lib, name, :newest) do
     with {:ok, vs} <- versions(lib, name), do: {:ok, List.last(vs)}
   end
 
@@ -362,7 +459,7 @@ defmodule Vws.Links.DNC.Library do
            [v] <- parse_files([target |> to_string() |> Path.basename()]),
            true <- v.name == name and v.version == n,
            true <- File.regular?(Path.join(dir, v.file)) do
-        {:ok, v}
+        {:ok, hd(with_digests([v], dir))}
       else
         _ -> {:error, :not_found}
       end
@@ -372,18 +469,51 @@ defmodule Vws.Links.DNC.Library do
   def version(_lib, _name, _n), do: {:error, :not_found}
 
   @doc """
-  The bytes of a version (`:latest` by default): `{:ok, bytes, version}`; `{:error, :damaged}`
-  when the file's size or CRC is not the one it was stored with.
+  The newest released version among `versions` (oldest first, as `versions/2` gives them):
+  `{:ok, version}`, or `{:error, :not_released}` when there is none.
   """
-  @spec read(lib, term, pos_integer | :latest) :: {:ok, binary, version} | {:error, term}
+  @spec latest_released([version]) :: {:ok, version} | {:error, :not_released}
+  def latest_released(versions) do
+    case versions |> Enum.filter(&released?/1) |> List.last() do
+      nil -> {:error, :not_released}
+      v -> {:ok, v}
+    end
+  end
+
+  @doc """
+  The version among `versions` that holds the bytes of SHA-256 `digest` (`digest/1`): the newest
+  released one with it, else the newest with it — `{:ok, version}` or `:none`.
+  """
+  @spec same_as([version], String.t() | nil) :: {:ok, version} | :none
+  def same_as(_versions, nil), do: :none
+
+  def same_as(versions, digest) do
+    holding = Enum.filter(versions, &(&1.digest == digest))
+
+    case Enum.filter(holding, &released?/1) do
+      [] -> if holding == [], do: :none, else: {:ok, List.last(holding)}
+      released -> {:ok, List.last(released)}
+    end
+  end
+
+  @doc """
+  The bytes of a version (`:latest` by default, see `version/3`): `{:ok, bytes, version}`;
+  `{:error, :damaged}` when the file's size, CRC or SHA-256 digest is not the one it was stored
+  with.
+  """
+  @spec read(lib, term, pos_integer | :latest | :newest) ::
+          {:ok, binary, version} | {:error, term}
   def read(lib, name, which \\ :latest) do
     with {:ok, dir} <- dir(lib),
          {:ok, v} <- version(lib, name, which),
          {:ok, bytes} <- File.read(Path.join(dir, v.file)) do
-      if byte_size(bytes) == v.size and Vws.Codecs.CRC16.compute(bytes) == v.crc,
-        do: {:ok, bytes, v},
-        else: {:error, :damaged}
+      if whole?(bytes, v), do: {:ok, bytes, v}, else: {:error, :damaged}
     end
+  end
+
+  defp whole?(bytes, v) do
+    byte_size(bytes) == v.size and Vws.Codecs.CRC16.compute(bytes) == v.crc and
+      v.digest != nil and digest(bytes) == v.digest
   end
 
   @doc """
@@ -499,30 +629,53 @@ defmodule Vws.Links.DNC.Library do
   Where the machine stands for one program, from its versions and the machine's directory
   entry (nil when the directory has none; `:unknown` for no directory read).
 
-      iex> v = %{version: 2, size: 9, crc: 0xBB3D}
+  The directory speaks only size and CRC-16, which different texts may share: the entry names a
+  version (`{:same, n}`: `same_as/2` of their digest) only when every version with its size and
+  CRC holds the same bytes (the same SHA-256 digest); when versions with different bytes match
+  it, it is `{:ambiguous, [n]}` — only reading the program back (`COMPARE_GE(nnnnnn.PRO)`,
+  `Vws.Partitions.Monarch.compare/2`) tells which, if any, the machine holds.
+
+      iex> v = %{version: 2, size: 9, crc: 0xBB3D, digest: "aa", source: "wc"}
       iex> Vws.Links.DNC.Library.on_machine([v], %{size: 9, crc: 0xBB3D})
       {:same, 2}
       iex> Vws.Links.DNC.Library.on_machine([v], %{size: 9, crc: 0x1234})
       :differs
       iex> Vws.Links.DNC.Library.on_machine([v], nil)
       :absent
+      iex> Vws.Links.DNC.Library.on_machine([%{v | version: 1, digest: "bb"}, v], %{size: 9, crc: 0xBB3D})
+      {:ambiguous, [1, 2]}
   """
   @spec on_machine([map], map | nil | :unknown) :: on_machine
   def on_machine(_versions, :unknown), do: :unknown
   def on_machine(_versions, nil), do: :absent
 
   def on_machine(versions, %{size: size, crc: crc}) do
-    case versions |> Enum.filter(&(&1.size == size and &1.crc == crc)) |> List.last() do
-      nil -> :differs
-      v -> {:same, v.version}
+    case Enum.filter(versions, &(&1.size == size and &1.crc == crc)) do
+      [] ->
+        :differs
+
+      matching ->
+        case matching |> Enum.map(& &1.digest) |> Enum.uniq() do
+          # one version stored before digests, whose bytes no longer match its name
+          [nil] ->
+            {:same, List.last(matching).version}
+
+          [digest] ->
+            {:ok, v} = same_as(matching, digest)
+            {:same, v.version}
+
+          _ ->
+            {:ambiguous, Enum.map(matching, & &1.version)}
+        end
     end
   end
 
   @doc """
-  Every program with its latest version and where it stands on the machine, from the directory
-  last recorded: `{:ok, %{read_at: DateTime | nil, programs: [%{name, latest, versions,
-  on_machine}], machine_only: [file name]}}` — `machine_only` the machine's files the library
-  does not have.
+  Every program with its versions and where it stands on the machine, from the directory last
+  recorded: `{:ok, %{read_at: DateTime | nil, programs: [%{name, latest, newest, versions,
+  on_machine}], machine_only: [file name]}}` — `latest` the newest released version (what
+  `DOWNLOAD_GE(nnnnnn.PRO)` sends; nil when every version came from the machine), `newest` the
+  newest of all, `machine_only` the machine's files the library does not have.
   """
   @spec compare(lib) :: {:ok, map} | {:error, term}
   def compare(lib) do
@@ -540,7 +693,12 @@ defmodule Vws.Links.DNC.Library do
           %{
             name: p.name,
             versions: p.versions,
-            latest: List.last(p.versions),
+            latest:
+              case latest_released(p.versions) do
+                {:ok, v} -> v
+                {:error, :not_released} -> nil
+              end,
+            newest: List.last(p.versions),
             on_machine: on_machine(p.versions, entry)
           }
         end
@@ -561,24 +719,56 @@ defmodule Vws.Links.DNC.Library do
   end
 
   @doc """
-  The words for a compare state, as iex, the dashboard and `mix vws.library` show them.
+  The words for a compare state, as iex, the dashboard and `mix vws.library` show them: `latest`
+  is the number of the latest released version, `versions` (optional) the program's versions,
+  so that a version from the machine is said to be one.
 
       iex> Vws.Links.DNC.Library.on_machine_text({:same, 3}, 3)
       "same"
       iex> Vws.Links.DNC.Library.on_machine_text({:same, 2}, 3)
       "same as v2 (not the latest)"
+      iex> Vws.Links.DNC.Library.on_machine_text({:same, 4}, 3, [%{version: 4, source: "from the machine"}])
+      "same as v4 (from the machine, not released)"
+      iex> Vws.Links.DNC.Library.on_machine_text({:ambiguous, [1, 3]}, 3)
+      "size and CRC of v1 and v3, which differ (read back to tell)"
   """
-  @spec on_machine_text(on_machine, pos_integer | nil) :: String.t()
-  def on_machine_text({:same, n}, latest) when n == latest, do: "same"
-  def on_machine_text({:same, n}, _latest), do: "same as v#{n} (not the latest)"
-  def on_machine_text(:differs, _), do: "differs"
-  def on_machine_text(:absent, _), do: "absent"
-  def on_machine_text(:unknown, _), do: "unknown (directory not read yet)"
+  @spec on_machine_text(on_machine, pos_integer | nil, [map]) :: String.t()
+  def on_machine_text(state, latest, versions \\ [])
+  def on_machine_text({:same, n}, latest, _) when n == latest, do: "same"
+
+  def on_machine_text({:same, n}, _latest, versions) do
+    if Enum.any?(versions, &(&1.version == n and not released?(&1))),
+      do: "same as v#{n} (from the machine, not released)",
+      else: "same as v#{n} (not the latest)"
+  end
+
+  def on_machine_text({:ambiguous, ns}, _, _) do
+    names =
+      case Enum.map(ns, &"v#{&1}") do
+        [one] -> one
+        many -> Enum.join(Enum.drop(many, -1), ", ") <> " and " <> List.last(many)
+      end
+
+    "size and CRC of #{names}, which differ (read back to tell)"
+  end
+
+  def on_machine_text(:differs, _, _), do: "differs"
+  def on_machine_text(:absent, _, _), do: "absent"
+  def on_machine_text(:unknown, _, _), do: "unknown (directory not read yet)"
+
+  @doc """
+  What a version is, in words, for listings: `"released"` or `"from the machine, not
+  released"`.
+  """
+  @spec release_text(map) :: String.t()
+  def release_text(v),
+    do: if(released?(v), do: "released", else: "from the machine, not released")
 
   @doc """
   A compare (`compare/1`, `Vws.Partitions.Monarch.compare/2`) as text lines: one per program —
-  name, latest version, its source and time, size, CRC, and on the machine — then the machine's
-  files the library does not have.
+  name, latest released version (else the newest, said to be from the machine), its source and
+  time, size, CRC, and on the machine; then the versions from the machine newer than it — then
+  the machine's files the library does not have.
   """
   @spec format_compare(map) :: [String.t()]
   def format_compare(%{read_at: read_at, programs: programs, machine_only: machine_only}) do
@@ -590,7 +780,8 @@ defmodule Vws.Links.DNC.Library do
 
     rows =
       for p <- programs do
-        v = p.latest
+        v = p.latest || p.newest
+        latest = p.latest && p.latest.version
 
         back =
           case Map.get(p, :read_back) do
@@ -600,9 +791,20 @@ defmodule Vws.Links.DNC.Library do
             {:error, reason} -> ", read back failed: #{reason}"
           end
 
-        "#{p.name}  v#{v.version} of #{length(p.versions)}  #{DateTime.to_iso8601(v.at)}  " <>
+        unreleased =
+          for u <- p.versions, not released?(u), latest == nil or u.version > latest do
+            "v#{u.version}"
+          end
+
+        "#{p.name}  v#{v.version} of #{length(p.versions)}#{if latest, do: "", else: " (from the machine, not released)"}" <>
+          "  #{DateTime.to_iso8601(v.at)}  " <>
           "#{v.source}  #{v.size} bytes  CRC #{hex4(v.crc)}  on the machine: " <>
-          on_machine_text(p.on_machine, v.version) <> back
+          on_machine_text(p.on_machine, latest, p.versions) <>
+          back <>
+          if(unreleased == [] or latest == nil,
+            do: "",
+            else: "  (newer, from the machine, not released: #{Enum.join(unreleased, ", ")})"
+          )
       end
 
     [head | rows] ++ Enum.map(machine_only, &"#{&1}  on the machine only")
@@ -626,7 +828,7 @@ defmodule Vws.Links.DNC.Library do
   defp all_versions(lib) do
     with {:ok, dir} <- dir(lib) do
       case ls(dir) do
-        {:ok, files} -> {:ok, parse_files(files)}
+        {:ok, files} -> {:ok, files |> parse_files() |> with_digests(dir)}
         error -> error
       end
     end
@@ -649,17 +851,19 @@ defmodule Vws.Links.DNC.Library do
   end
 
   # Only whole version names count; the number links, temporary files, MACHINE.DIR and anything
-  # foreign are skipped.
+  # foreign are skipped. A name without a digest (stored before versions had one) gets
+  # `digest: nil`: with_digests/2 reads its bytes.
   # (binary matches, no regular expressions: a listing parses every name of the directory)
   defp parse_files(files) do
     for <<name::binary-10, "~", n::binary-6, "~", rest::binary>> = file <- files,
         stored_name?(name),
-        [at, source, size, crc] <- [:binary.split(rest, "~", [:global])],
+        [at, source, size, crc | digest] <- [:binary.split(rest, "~", [:global])],
+        digest <- parse_digest(digest),
         v when v > 0 <- [int(n, 10)],
         size when size >= 0 <- [int(size, 10)],
         crc when crc >= 0 <- [int(crc, 16)],
         {:ok, at} <- [parse_at(at)] do
-      %{
+      with_origin(%{
         name: name,
         version: v,
         at: at,
@@ -670,9 +874,40 @@ defmodule Vws.Links.DNC.Library do
           ),
         size: size,
         crc: crc,
+        digest: digest,
         file: file
-      }
+      })
     end
+  end
+
+  # [] (a version stored before digests) → nil; 64 lower-case hexadecimal digits; else none
+  defp parse_digest([]), do: [nil]
+  defp parse_digest([<<_::binary-64>> = d]), do: if(hex?(d), do: [d], else: [])
+  defp parse_digest(_), do: []
+
+  defp hex?(<<>>), do: true
+  defp hex?(<<c, rest::binary>>) when c in ?0..?9 or c in ?a..?f, do: hex?(rest)
+  defp hex?(_), do: false
+
+  # A version stored before versions had a digest: its digest is computed from its bytes when
+  # they are whole (size and CRC as stored); a file that is not keeps `digest: nil` — it is the
+  # same as no other version, and reads as damaged.
+  defp with_digests(versions, dir) do
+    Enum.map(versions, fn
+      %{digest: nil} = v ->
+        case File.read(Path.join(dir, v.file)) do
+          {:ok, bytes} ->
+            if byte_size(bytes) == v.size and Vws.Codecs.CRC16.compute(bytes) == v.crc,
+              do: %{v | digest: digest(bytes)},
+              else: v
+
+          _ ->
+            v
+        end
+
+      v ->
+        v
+    end)
   end
 
   defp file_name(v) do
@@ -683,7 +918,8 @@ defmodule Vws.Links.DNC.Library do
         format_at(v.at),
         String.replace(v.source, " ", "+"),
         pad(v.size, 6),
-        String.pad_leading(Integer.to_string(v.crc, 16), 4, "0")
+        String.pad_leading(Integer.to_string(v.crc, 16), 4, "0"),
+        v.digest
       ],
       "~"
     )

@@ -249,10 +249,11 @@ defmodule Vws.Ops.Web.Page do
     const c = l.counts;
     d.appendChild(el("div", l.programs + " programs, " + l.versions + " versions — on the machine: " +
       (c.same || 0) + " same, " + (c.differs || 0) + " differ, " + (c.absent || 0) + " absent" +
+      (c.ambiguous ? ", " + c.ambiguous + " to read back" : "") +
       (l.machine_only.length ? ", " + l.machine_only.length + " only on the machine" : "") +
       " — " + (l.read_at ? "machine directory read " + l.read_at : "machine directory not read yet"), "muted"));
     if (l.rows.length) d.appendChild(table(["program", "versions", "latest", "stored", "by", "bytes", "CRC", "on the machine"],
-      l.rows.map(r => [r.name, {text: r.versions, cls: "num"}, "v" + r.latest, r.at, r.source, {text: r.size, cls: "num"}, r.crc,
+      l.rows.map(r => [r.name, {text: r.versions, cls: "num"}, "v" + r.latest + (r.note ? " (" + r.note + ")" : ""), r.at, r.source, {text: r.size, cls: "num"}, r.crc,
         {text: r.on_machine, cls: r.on_machine_class === "same" ? "" : (r.on_machine_class === "unknown" ? "muted" : "bad")}]),
       "library-" + ws.id));
     return d;

@@ -209,39 +209,58 @@ defmodule Vws.Ops.Web.State do
   def library(lib) do
     with true <- Vws.Links.DNC.Library.enabled?(lib),
          {:ok, c} <- Vws.Links.DNC.Library.compare(lib) do
-      words = fn p -> Vws.Links.DNC.Library.on_machine_text(p.on_machine, p.latest.version) end
+      words = fn p ->
+        Vws.Links.DNC.Library.on_machine_text(
+          p.on_machine,
+          p.latest && p.latest.version,
+          p.versions
+        )
+      end
+
+      # the latest released version, else (every version from the machine) the newest
+      shown = fn p -> p.latest || p.newest end
 
       %{
         programs: length(c.programs),
         versions: Enum.reduce(c.programs, 0, &(length(&1.versions) + &2)),
         read_at: c.read_at && DateTime.to_iso8601(c.read_at),
         machine_only: c.machine_only,
-        counts:
-          Enum.frequencies_by(c.programs, fn p ->
-            case p.on_machine do
-              {:same, _} -> "same"
-              other -> to_string(other)
-            end
-          end),
+        counts: Enum.frequencies_by(c.programs, &on_machine_class(&1.on_machine)),
         rows:
           c.programs
-          |> Enum.sort_by(&DateTime.to_unix(&1.latest.at, :millisecond), :desc)
+          |> Enum.sort_by(&DateTime.to_unix(&1.newest.at, :millisecond), :desc)
           |> Enum.take(@library_rows)
           |> Enum.map(fn p ->
+            v = shown.(p)
+
+            unreleased =
+              for u <- p.versions,
+                  not u.released,
+                  p.latest == nil or u.version > p.latest.version,
+                  do: "v#{u.version}"
+
             %{
               name: p.name,
               versions: length(p.versions),
-              latest: p.latest.version,
-              at: DateTime.to_iso8601(p.latest.at),
-              source: p.latest.source,
-              size: p.latest.size,
-              crc: String.pad_leading(Integer.to_string(p.latest.crc, 16), 4, "0"),
+              latest: v.version,
+              # versions the operator sent from the machine: not released
+              note:
+                cond do
+                  p.latest == nil ->
+                    "from the machine, not released"
+
+                  unreleased != [] ->
+                    "#{Enum.join(unreleased, ", ")} from the machine, not released"
+
+                  true ->
+                    ""
+                end,
+              at: DateTime.to_iso8601(v.at),
+              source: v.source,
+              size: v.size,
+              crc: String.pad_leading(Integer.to_string(v.crc, 16), 4, "0"),
               on_machine: words.(p),
-              on_machine_class:
-                case p.on_machine do
-                  {:same, _} -> "same"
-                  other -> to_string(other)
-                end
+              on_machine_class: on_machine_class(p.on_machine)
             }
           end)
       }
@@ -250,6 +269,10 @@ defmodule Vws.Ops.Web.State do
       {:error, reason} -> %{error: "could not be read: #{Inspect.words(reason)}"}
     end
   end
+
+  defp on_machine_class({:same, _}), do: "same"
+  defp on_machine_class({:ambiguous, _}), do: "ambiguous"
+  defp on_machine_class(other), do: to_string(other)
 
   defp partition(r) do
     status = Mailbox.status_word(r.status)

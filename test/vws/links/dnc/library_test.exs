@@ -5,6 +5,7 @@ defmodule Vws.Links.DNC.LibraryTest do
   alias Vws.Links.DNC.Library
 
   doctest Library
+  doctest Vws.Test.CRCCollision
 
   @prog "%\nO1234 (BRACKET)\nN10 G90 G00 X0 Y0\nN20 M30\n%\n"
 
@@ -32,6 +33,9 @@ defmodule Vws.Links.DNC.LibraryTest do
 
     assert p.versions |> hd() |> Map.take([:size, :crc, :at]) == Map.take(v1, [:size, :crc, :at])
     assert {:ok, @prog, %{version: 2}} = Library.read(lib, "1234", 2)
+    assert {v1.released, v2.released, v3.released} == {true, false, true}
+    assert {v1.origin, v2.origin} == {:library, :machine}
+    assert v1.digest == Library.digest(@prog) and v2.digest == v1.digest
     assert {:ok, text, %{version: 3}} = Library.read(lib, "1234")
     assert text =~ "X5"
     assert {:error, :not_found} = Library.read(lib, "1234", 4)
@@ -39,7 +43,12 @@ defmodule Vws.Links.DNC.LibraryTest do
   end
 
   test "bad names, sources and sizes store nothing and never leave the directory",
-       %{lib: lib, dir: dir} do
+       %{dir: parent} do
+    # the library one level down in a directory of this test's own: a name that left it would
+    # show beside it (not in the shared temporary directory, where anything may be)
+    dir = Path.join(parent, "lib")
+    lib = {:dir, dir}
+
     for bad <- [
           "../x",
           "/etc/passwd",
@@ -252,5 +261,163 @@ defmodule Vws.Links.DNC.LibraryTest do
 
     {:ok, files} = File.ls(dir)
     assert Enum.all?(files, &(&1 == ".v" or &1 =~ ~r/^\d{6}\.(PRO|GSU)~\d{6}~/))
+  end
+
+  describe "versions from the machine (issue 30 item 6)" do
+    test "are never what :latest names; they are read by number, released as a new version",
+         %{lib: lib} do
+      {:ok, _} = Library.store(lib, "10", "%\nO10\nN1\n%\n", source: "wc")
+      edited = "%\nO10\nN1 (EDITED AT THE PANEL)\n%\n"
+      {:ok, m} = Library.store(lib, "10", edited, source: "from the machine")
+      assert {m.version, m.released, m.origin} == {2, false, :machine}
+
+      assert {:ok, "%\nO10\nN1\n%\n", %{version: 1}} = Library.read(lib, "10")
+      assert {:ok, ^edited, %{version: 2}} = Library.read(lib, "10", 2)
+      assert {:ok, %{version: 2}} = Library.version(lib, "10", :newest)
+      # export and diff take :latest the same way
+      {:ok, diff} = Library.diff(lib, "10", :latest, 2)
+      assert "+ N1 (EDITED AT THE PANEL)" in Library.format_diff(diff)
+
+      # only from the machine: nothing released
+      {:ok, _} = Library.store(lib, "11", "%\nO11\n%\n", source: "from the machine")
+      assert Library.read(lib, "11") == {:error, :not_released}
+
+      # released: a new version with its bytes, which :latest names
+      {:ok, r} = Library.release(lib, "10", 2, source: "cli")
+
+      assert {r.version, r.source, r.released, r.digest} ==
+               {3, "cli release of v2", true, m.digest}
+
+      assert {:ok, ^edited, %{version: 3}} = Library.read(lib, "10")
+      # released again: the latest released already holds these bytes, nothing stored
+      assert {:ok, %{version: 3}} = Library.release(lib, "10", 2)
+      assert {:ok, [_, _, _]} = Library.versions(lib, "10")
+      assert {:ok, %{version: 2, released: true}} = Library.release(lib, "11", 1)
+    end
+
+    test "the compare and its words say which version came from the machine", %{lib: lib} do
+      a = "%\nO12\nN1\n%\n"
+      b = "%\nO12\nN2\n%\n"
+      {:ok, _} = Library.store(lib, "12", a, source: "wc")
+      {:ok, _} = Library.store(lib, "12", b, source: "from the machine")
+      {:ok, _} = Library.store(lib, "13", "%\nO13\n%\n", source: "from the machine")
+      :ok = Library.record_machine(lib, %{"000012.PRO" => Vws.Links.DNC.Report.entry("x", b)})
+
+      {:ok, c} = Library.compare(lib)
+      [p12, p13] = c.programs
+      assert {p12.latest.version, p12.newest.version, p12.on_machine} == {1, 2, {:same, 2}}
+      assert {p13.latest, p13.newest.version} == {nil, 1}
+      text = Enum.join(Library.format_compare(c), "\n")
+
+      assert text =~
+               ~r/000012.PRO  v1 of 2 .* on the machine: same as v2 \(from the machine, not released\)  \(newer, from the machine, not released: v2\)/
+
+      assert text =~ ~r/000013.PRO  v1 of 1 \(from the machine, not released\) .* absent/
+    end
+  end
+
+  describe "versions are told apart by content (issue 30 item 7)" do
+    test "two programs of one size and CRC-16 are two versions; the directory cannot tell " <>
+           "which the machine holds",
+         %{lib: lib} do
+      [a, b] = Vws.Test.CRCCollision.programs(14, 2)
+      {:ok, v1} = Library.store(lib, "14", a, source: "wc", only_if_changed: true)
+      # not "the same program again": the digest differs, size and CRC do not
+      {:ok, v2} = Library.store(lib, "14", b, source: "wc", only_if_changed: true)
+      assert {v1.size, v1.crc} == {v2.size, v2.crc}
+      assert {v1.version, v2.version} == {1, 2} and v1.digest != v2.digest
+      # the very same bytes again are not a new version
+      assert {:ok, %{version: 2}} = Library.store(lib, "14", b, only_if_changed: true)
+      assert {:ok, ^a, _} = Library.read(lib, "14", 1)
+
+      entry = Vws.Links.DNC.Report.entry("000014.PRO", a)
+      {:ok, vs} = Library.versions(lib, "14")
+      assert Library.on_machine(vs, entry) == {:ambiguous, [1, 2]}
+      assert Library.on_machine_text({:ambiguous, [1, 2]}, 2) =~ "read back to tell"
+      assert Library.same_as(vs, Library.digest(a)) == {:ok, v1}
+      assert Library.same_as(vs, Library.digest(b)) == {:ok, v2}
+      assert Library.same_as(vs, Library.digest("%\nO14\n%\n")) == :none
+
+      # a third version with v1's bytes: the same content, so the directory names it (the newest)
+      {:ok, _} = Library.store(lib, "15", a)
+      {:ok, _} = Library.store(lib, "15", a)
+      {:ok, vs15} = Library.versions(lib, "15")
+      assert Library.on_machine(vs15, entry) == {:same, 2}
+    end
+
+    test "a version whose file no longer has its digest reads as damaged", %{lib: lib, dir: dir} do
+      [a, b] = Vws.Test.CRCCollision.programs(16, 2)
+      {:ok, v} = Library.store(lib, "16", a)
+      # same size, same CRC-16: only the digest sees it
+      File.write!(Path.join(dir, v.file), b)
+      assert Library.read(lib, "16") == {:error, :damaged}
+      # and a store of the same bytes is a new version (the damaged one is not them)
+      assert {:ok, %{version: 2}} = Library.store(lib, "16", a, only_if_changed: true)
+    end
+
+    test "a library stored before digests: each digest is computed from the bytes on load",
+         %{lib: lib, dir: dir} do
+      {:ok, v} = Library.store(lib, "17", "%\nO17\nN1\n%\n", source: "wc")
+      # the version as it was named before digests: without its last field
+      old = String.replace(v.file, ~r/~[0-9a-f]{64}$/, "")
+      File.rename!(Path.join(dir, v.file), Path.join(dir, old))
+      File.rm!(Path.join([dir, ".v", "000017.PRO~000001"]))
+      File.ln_s!(Path.join("..", old), Path.join([dir, ".v", "000017.PRO~000001"]))
+
+      assert {:ok, [p]} = Library.list(lib)
+      assert [%{file: ^old, digest: digest}] = p.versions
+      assert digest == v.digest
+      assert {:ok, %{digest: ^digest}} = Library.version(lib, "17", 1)
+      assert {:ok, "%\nO17\nN1\n%\n", _} = Library.read(lib, "17")
+
+      assert {:ok, %{version: 1}} =
+               Library.store(lib, "17", "%\nO17\nN1\n%\n", only_if_changed: true)
+
+      {:ok, v2} = Library.store(lib, "17", "%\nO17\nN2\n%\n")
+      assert v2.file =~ ~r/~[0-9a-f]{64}$/
+    end
+
+    test "property: every listed version's digest is that of its bytes; a version from the " <>
+           "machine is never :latest; equal digests only for equal bytes",
+         %{dir: dir} do
+      [c1, c2, c3] = Vws.Test.CRCCollision.programs(1, 3)
+
+      bytes =
+        :proper_types.oneof([
+          :proper_types.elements([c1, c2, c3]),
+          :proper_types.binary(),
+          :proper_types.elements(["%\nO1\n%\n", ""])
+        ])
+
+      source = :proper_types.elements(["wc", "cli", "from the machine"])
+      stores = :proper_types.non_empty(:proper_types.list({bytes, source, :proper_types.bool()}))
+
+      property =
+        :proper.forall(stores, fn stores ->
+          lib = {:dir, Path.join(dir, "p#{System.unique_integer([:positive])}")}
+
+          for {b, src, dedupe} <- stores,
+              do: {:ok, _} = Library.store(lib, "1", b, source: src, only_if_changed: dedupe)
+
+          {:ok, [p]} = Library.list(lib)
+
+          read =
+            for v <- p.versions do
+              {:ok, b, ^v} = Library.read(lib, "1", v.version)
+              {v, b}
+            end
+
+          released = for {b, src, _} <- stores, src != "from the machine", do: b
+
+          Enum.all?(read, fn {v, b} -> v.digest == Library.digest(b) end) and
+            Enum.all?(for({v, b} <- read, {w, c} <- read, do: v.digest == w.digest == (b == c))) and
+            case Library.read(lib, "1") do
+              {:ok, b, v} -> v.released and released != [] and b == List.last(released)
+              {:error, :not_released} -> released == []
+            end
+        end)
+
+      assert_property(property, 100)
+    end
   end
 end

@@ -31,8 +31,30 @@ defmodule Vws.Ops.Web.LibraryStateTest do
     assert %{versions: 2, latest: 2, source: "cli", on_machine: "same as v1 (not the latest)"} =
              rows["000001.PRO"]
 
-    assert %{source: "from the machine", on_machine: "absent", on_machine_class: "absent"} =
-             rows["000002.PRO"]
+    assert %{
+             source: "from the machine",
+             on_machine: "absent",
+             on_machine_class: "absent",
+             note: "from the machine, not released"
+           } = rows["000002.PRO"]
+
+    assert rows["000001.PRO"].note == ""
+    # an edited program sent from the machine: the latest released is still shown, and the newer
+    {:ok, _} = Library.store(ws, "1", "%\nO1\nN3\n%\n", source: "from the machine")
+    rows = Map.new(Vws.Ops.Web.State.library(ws).rows, &{&1.name, &1})
+
+    assert %{latest: 2, source: "cli", note: "v3 from the machine, not released"} =
+             rows["000001.PRO"]
+
+    # a directory entry two different versions share (size and CRC-16): to be read back
+    [x, y] = Vws.Test.CRCCollision.programs(3, 2)
+    {:ok, _} = Library.store(ws, "3", x)
+    {:ok, _} = Library.store(ws, "3", y)
+    :ok = Library.record_machine(ws, %{"000003.PRO" => Vws.Links.DNC.Report.entry("x", x)})
+    l = Vws.Ops.Web.State.library(ws)
+    assert l.counts["ambiguous"] == 1
+    row = Enum.find(l.rows, &(&1.name == "000003.PRO"))
+    assert row.on_machine =~ "read back to tell" and row.on_machine_class == "ambiguous"
 
     # the JSON the page reads
     json = IO.iodata_to_binary(Vws.Ops.Web.JSON.encode(state))

@@ -29,7 +29,9 @@ defmodule Vws.Partitions.Monarch.DripFeedTest do
     %{ws: ws, wc: wc} =
       Vws.Test.Workstation.start(
         devices: [ge2000: [endpoint: GE2000.endpoint(sim)] ++ @link_opts],
-        partitions: [monarch: [options: []]]
+        partitions: [monarch: [options: []]],
+        # (the auto-receive tests': programs from the machine go to the library)
+        library: context[:tmp_dir]
       )
 
     link = Workstation.whereis(ws, :ge2000)
@@ -227,12 +229,20 @@ defmodule Vws.Partitions.Monarch.DripFeedTest do
   end
 
   describe "auto-receive" do
-    test "the operator sends a program from the machine: MONARCH keeps it as NC_UP", ctx do
-      assert GE2000.send_program(ctx.sim, "000100.PRO") == :ok
+    @describetag :tmp_dir
 
-      assert eventually(fn ->
-               Mailbox.nc_up(ctx.ws) == ["%", "O100", "N10 G01 X1", "N20 M30", "%"]
-             end)
+    # the program 000100.PRO the machine sent: in the library, from the machine (never NC_UP)
+    defp from_machine?(ws) do
+      match?(
+        {:ok, "%\nO100\nN10 G01 X1\nN20 M30\n%\n", %{source: "from the machine"}},
+        Vws.Links.DNC.Library.read(ws, "000100.PRO", 1)
+      )
+    end
+
+    test "the operator sends a program from the machine: MONARCH keeps it in the library", ctx do
+      assert GE2000.send_program(ctx.sim, "000100.PRO") == :ok
+      assert eventually(fn -> from_machine?(ctx.ws) end)
+      assert Mailbox.nc_up(ctx.ws) == []
     end
 
     test "during a WC command: the command is not disturbed, the program is kept", ctx do
@@ -244,9 +254,7 @@ defmodule Vws.Partitions.Monarch.DripFeedTest do
       assert Task.await(sent, 30_000) == :ok
       assert_fed_exactly(ctx.sim, text)
 
-      assert eventually(fn ->
-               Mailbox.nc_up(ctx.ws) == ["%", "O100", "N10 G01 X1", "N20 M30", "%"]
-             end)
+      assert eventually(fn -> from_machine?(ctx.ws) end)
 
       # and the line is MONARCH's again
       assert monarch(ctx.peer, 2, "STATUS") == "0002DONE"

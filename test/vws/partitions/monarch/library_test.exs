@@ -100,6 +100,16 @@ defmodule Vws.Partitions.Monarch.LibraryTest do
              "ERROR 000055.PRO VERSION 3 NOT IN LIBRARY"
 
     assert monarch(peer, 4, "DOWNLOAD_GE(000056.PRO)") == "ERROR 000056.PRO NOT IN LIBRARY"
+
+    # a library file that cannot be read: said in words, never as an Elixir term
+    {:ok, v} = Library.store(ws, "57", v1)
+    {:ok, dir} = Library.dir(ws)
+    File.rm!(Path.join(dir, v.file))
+    File.mkdir!(Path.join(dir, v.file))
+
+    assert monarch(peer, 8, "DOWNLOAD_GE(000057.PRO)") ==
+             "ERROR 000057.PRO NOT READ FROM LIBRARY EISDIR"
+
     assert monarch(peer, 5, "DOWNLOAD_GE(../../x)") =~ "ERROR BAD PROGRAM FILE"
 
     assert download_hp(peer, 6, @lines) == "DONE"
@@ -175,21 +185,133 @@ defmodule Vws.Partitions.Monarch.LibraryTest do
     |> Enum.find(&(Vws.Codecs.CRC16.compute(&1) == crc and &1 != text))
   end
 
-  test "a program the operator sends from the machine is a new library version, source from the machine",
-       %{ws: ws, sim: sim} do
+  defp upload_sun(peer, number) do
+    s = seq()
+    WCPeer.send_string(peer, s, [{"M", number, "UPLOAD_SUN"}])
+    assert Vws.Codecs.WC.Reply.decode(WCPeer.recv_line(peer)) == {:ok, {:ack, s}}
+    lines = receive_lines(peer, [])
+    {lines, finished(peer)}
+  end
+
+  defp receive_lines(peer, acc) do
+    n = rem(length(acc) + 1, 10_000)
+    {:ok, {:line, ^n, line}} = Vws.Codecs.WC.Reply.decode_line(WCPeer.recv_line(peer))
+    WCPeer.send_raw(peer, Vws.Codecs.WC.Reply.encode({:line_ack, n}))
+    acc = [line | acc]
+    if line == "%" and length(acc) > 1, do: Enum.reverse(acc), else: receive_lines(peer, acc)
+  end
+
+  test "a program the operator sends from the machine is a library version from the machine, " <>
+         "not released, and never NC_UP",
+       %{ws: ws, sim: sim, peer: peer} do
+    test_pid = self()
+    handler = "lib-received-#{System.unique_integer([:positive])}"
+
     :ok =
-      GE2000.put_program(sim, "000100.PRO", "%\nO100 (FROM THE PANEL)\nN10 G01 X1\nN20 M30\n%\n")
+      Vws.Telemetry.attach(
+        handler,
+        [:vws, :monarch, :program_received],
+        fn _, _, md, _ -> if md.workstation == ws, do: send(test_pid, {:received, md.result}) end,
+        nil
+      )
+
+    on_exit(fn -> Vws.Telemetry.detach(handler) end)
+    text = "%\nO100 (FROM THE PANEL)\nN10 G01 X1\nN20 M30\n%\n"
+    :ok = GE2000.put_program(sim, "000100.PRO", text)
 
     assert GE2000.send_program(sim, "000100.PRO") == :ok
-    assert eventually(fn -> match?({:ok, [_]}, Library.versions(ws, "000100.PRO")) end)
+    assert_receive {:received, :ok}, 10_000
     {:ok, [v1]} = Library.versions(ws, "000100.PRO")
-    assert v1.source == "from the machine"
+    assert {v1.source, v1.origin, v1.released} == {"from the machine", :machine, false}
+    assert {:ok, ^text, _} = Library.read(ws, "000100.PRO", 1)
+    assert Library.read(ws, "000100.PRO") == {:error, :not_released}
 
-    assert {:ok, "%\nO100 (FROM THE PANEL)\nN10 G01 X1\nN20 M30\n%\n", _} =
-             Library.read(ws, "000100.PRO")
+    # sent again unchanged: the library has these bytes already, nothing new
+    assert GE2000.send_program(sim, "000100.PRO") == :ok
+    assert_receive {:received, :ok}, 10_000
+    assert {:ok, [_]} = Library.versions(ws, "000100.PRO")
 
-    # and, as before the library, as NC_UP (put after the library's version is stored)
-    nc_up = ["%", "O100 (FROM THE PANEL)", "N10 G01 X1", "N20 M30", "%"]
-    assert eventually(fn -> Vws.CEC.Mailbox.nc_up(ws) == nc_up end)
+    # NC_UP is the WC's (UPLOAD_GE): untouched
+    assert Vws.CEC.Mailbox.nc_up(ws) == []
+    # not released: DOWNLOAD_GE(name) does not send it, only one that names the version
+    GE2000.put_program(sim, "000100.PRO", "%\nO100\n%\n")
+
+    assert monarch(peer, 1, "DOWNLOAD_GE(000100.PRO)") ==
+             "ERROR 000100.PRO HAS NO RELEASED VERSION"
+
+    assert GE2000.program(sim, "000100.PRO") == "%\nO100\n%\n"
+    assert monarch(peer, 3, "DOWNLOAD_GE(000100.PRO/1)") == "DONE"
+    assert GE2000.program(sim, "000100.PRO") == text
+  end
+
+  test "what the WC asked for is what it gets: UPLOAD_GE, then a program sent from the machine, " <>
+         "then UPLOAD_SUN brings UPLOAD_GE's program",
+       %{ws: ws, sim: sim, peer: peer} do
+    asked = "%\nO4321 (ASKED FOR)\nN10 G01 X1\nN20 M30\n%\n"
+    unasked = "%\nO5555 (SENT AT THE PANEL)\nN10 G01 X9\nN20 M30\n%\n"
+    :ok = GE2000.put_program(sim, "004321.PRO", asked)
+    :ok = GE2000.put_program(sim, "005555.PRO", unasked)
+
+    assert monarch(peer, 1, "UPLOAD_GE(004321.PRO)") == "DONE"
+    assert GE2000.send_program(sim, "005555.PRO") == :ok
+    assert eventually(fn -> match?({:ok, [_]}, Library.versions(ws, "005555.PRO")) end)
+
+    assert upload_sun(peer, 2) == {Vws.Links.DNC.Program.from_text(asked), "DONE"}
+    assert {:ok, ^unasked, %{released: false}} = Library.read(ws, "005555.PRO", 1)
+  end
+
+  test "an edited program sent from the machine does not become what DOWNLOAD_GE(name) sends, " <>
+         "until it is released",
+       %{ws: ws, sim: sim, peer: peer} do
+    released = "%\nO4321\nN10 G01 X1\nN20 M30\n%\n"
+    edited = "%\nO4321\nN10 G01 X1.5 (OPERATOR)\nN20 M30\n%\n"
+    {:ok, _} = Library.store(ws, "4321", released, source: "wc")
+    :ok = GE2000.put_program(sim, "004321.PRO", edited)
+    assert GE2000.send_program(sim, "004321.PRO") == :ok
+    assert eventually(fn -> match?({:ok, [_, _]}, Library.versions(ws, "004321.PRO")) end)
+
+    assert monarch(peer, 1, "DOWNLOAD_GE(004321.PRO)") == "DONE"
+    assert GE2000.program(sim, "004321.PRO") == released
+    assert monarch(peer, 2, "DOWNLOAD_GE(004321.PRO/2)") == "DONE"
+    assert GE2000.program(sim, "004321.PRO") == edited
+    # the directory shows the machine holds v2, which came from the machine
+    {:ok, c} = Library.compare(ws)
+    text = Enum.join(Library.format_compare(c), "\n")
+    assert text =~ "same as v2 (from the machine, not released)"
+
+    {:ok, v3} = Library.release(ws, "4321", 2, source: "iex")
+    assert {v3.version, v3.released} == {3, true}
+    assert monarch(peer, 3, "DOWNLOAD_GE(000100.PRO)") == "ERROR 000100.PRO NOT IN LIBRARY"
+    GE2000.put_program(sim, "004321.PRO", released)
+    assert monarch(peer, 4, "DOWNLOAD_GE(004321.PRO)") == "DONE"
+    assert GE2000.program(sim, "004321.PRO") == edited
+    {:ok, c} = Library.compare(ws)
+    assert [%{on_machine: {:same, 3}}] = c.programs
+  end
+
+  test "size and CRC-16 shared by two versions: the read-back's digest names the version the " <>
+         "machine holds",
+       %{ws: ws, sim: sim, peer: peer} do
+    [a, b, c] = Vws.Test.CRCCollision.programs(77, 3)
+    {:ok, _} = Library.store(ws, "77", a, source: "wc")
+    {:ok, _} = Library.store(ws, "77", b, source: "wc")
+
+    for {on_machine, named} <- [{a, 1}, {b, 2}] do
+      GE2000.put_program(sim, "000077.PRO", on_machine)
+      # the directory alone cannot tell
+      assert monarch(peer, 1, "COMPARE_GE") == "DONE"
+      {:ok, %{programs: [row]}} = Library.compare(ws)
+      assert row.on_machine == {:ambiguous, [1, 2]}
+      # the read-back can (Monarch.compare reads back what the directory cannot tell)
+      {:ok, %{programs: [row]}} = Monarch.compare(ws)
+      assert {row.on_machine, row.read_back} == {{:same, named}, :same}
+      assert monarch(peer, 2, "COMPARE_GE(000077.PRO)") == "DONE"
+    end
+
+    # a third text of that size and CRC: no version of the library
+    GE2000.put_program(sim, "000077.PRO", c)
+    {:ok, %{programs: [row]}} = Monarch.compare(ws)
+    assert {row.on_machine, row.read_back} == {:differs, :differs}
+    assert monarch(peer, 3, "COMPARE_GE(000077.PRO)") == "ERROR PROGRAM DIFFERS 000077.PRO"
   end
 end
