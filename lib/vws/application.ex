@@ -10,6 +10,8 @@ defmodule Vws.Application do
     :ok = Vws.Ops.Signals.install()
     # the log in rotating files too, where configured (VWS_LOG_DIR)
     :ok = Vws.Ops.LogFile.start_configured()
+    # a crashing :gen_statem (SUN_COMM, the links) is logged as a crashing GenServer is
+    :ok = Logger.add_translator({Vws.Ops.CrashLog, :translate})
 
     children =
       [
@@ -32,6 +34,7 @@ defmodule Vws.Application do
   @impl true
   def stop(_state) do
     :ok = Vws.Ops.LogFile.stop()
+    Logger.remove_translator({Vws.Ops.CrashLog, :translate})
     Vws.Ops.Signals.uninstall()
   end
 
