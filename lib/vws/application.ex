@@ -10,7 +10,9 @@ defmodule Vws.Application do
     :ok = Vws.Ops.Signals.install()
     # the log in rotating files too, where configured (VWS_LOG_DIR)
     :ok = Vws.Ops.LogFile.start_configured()
-    # a crashing :gen_statem (SUN_COMM, the links) is logged as a crashing GenServer is
+    # a crashing :gen_statem (SUN_COMM, the links) is logged as a crashing GenServer is. Added
+    # once (add_translator replaces an equal one) and never removed: removing it in stop/1 waits
+    # on the application controller, which is busy stopping this application (a deadlock)
     :ok = Logger.add_translator({Vws.Ops.CrashLog, :translate})
 
     children =
@@ -34,7 +36,6 @@ defmodule Vws.Application do
   @impl true
   def stop(_state) do
     :ok = Vws.Ops.LogFile.stop()
-    Logger.remove_translator({Vws.Ops.CrashLog, :translate})
     Vws.Ops.Signals.uninstall()
   end
 
