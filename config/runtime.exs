@@ -21,10 +21,12 @@ import Config
 #   VWS_HTTP_PORT     the dashboard and MTConnect agent (default 4000 in a release; "off": none)
 #   VWS_HTTP_BIND     the address they listen on (default 127.0.0.1)
 #   VWS_HTTP_TOKEN    enables the dashboard's control actions for requests carrying it
+#   VWS_HTTP_TOKEN_FILE  the control token from this file instead (mode 0600; Vws.Ops.Web.Tokens)
 #   VWS_LOG_DIR       the log also goes to DIR/vws.log, rotated at 10 MB, 10 old files kept
 #                     (Vws.Ops.LogFile); a release's default is its own log/ directory; "off": none
 #   VWS_LOG_LEVEL     debug, info (a release's default), notice, warning or error
 #   VWS_HTTP_READ_TOKEN  every read of the dashboard and MTConnect agent needs it (Basic password)
+#   VWS_HTTP_READ_TOKEN_FILE  the read token from this file instead
 env = fn name ->
   case System.get_env(name) do
     nil -> nil
@@ -83,11 +85,17 @@ http_port =
   end
 
 if http_port do
+  # the tokens from their files or the environment, never from a command line (Vws.Ops.Web.Tokens)
+  token = fn
+    {:ok, token} -> token
+    {:error, message} -> raise message
+  end
+
   config :vws, :http,
     port: http_port,
     bind: env.("VWS_HTTP_BIND") || "127.0.0.1",
-    token: env.("VWS_HTTP_TOKEN"),
-    read_token: env.("VWS_HTTP_READ_TOKEN")
+    token: token.(Vws.Ops.Web.Tokens.control()),
+    read_token: token.(Vws.Ops.Web.Tokens.read())
 end
 
 # The log: to rotating files as well as the console (Vws.Ops.LogFile), at the level asked.

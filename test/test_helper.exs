@@ -13,6 +13,14 @@ ExUnit.start(
   max_cases: System.schedulers_online() * 8
 )
 
+# The tests validating MTConnect documents against the official schemas (tag :mtconnect_schemas)
+# need them beside the project (../shared/mtconnect) or in $VWS_MTCONNECT_SCHEMAS: without them
+# they are excluded, and this says why (Vws.Test.XMLLint).
+if reason = Vws.Test.XMLLint.missing_schemas() do
+  IO.puts("Excluding the tests tagged :mtconnect_schemas: #{reason}")
+  ExUnit.configure(exclude: Enum.uniq(ExUnit.configuration()[:exclude] ++ [:mtconnect_schemas]))
+end
+
 # The acceptance tests (tag :acceptance) start `mix` (MIX_ENV=dev) and the release (MIX_ENV=prod)
 # as OS processes. Their builds are made here, before any test runs, when this run includes them:
 # made by the first test that needed them, they took both cores for up to a minute in the middle

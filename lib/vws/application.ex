@@ -10,6 +10,10 @@ defmodule Vws.Application do
     :ok = Vws.Ops.Signals.install()
     # the log in rotating files too, where configured (VWS_LOG_DIR)
     :ok = Vws.Ops.LogFile.start_configured()
+    # a crashing :gen_statem (SUN_COMM, the links) is logged as a crashing GenServer is. Added
+    # once (add_translator replaces an equal one) and never removed: removing it in stop/1 waits
+    # on the application controller, which is busy stopping this application (a deadlock)
+    :ok = Logger.add_translator({Vws.Ops.CrashLog, :translate})
 
     children =
       [

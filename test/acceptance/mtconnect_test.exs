@@ -8,6 +8,7 @@ defmodule Vws.Acceptance.MTConnectTest do
   alias Vws.Test.{Acceptance, JSONDecode, MTCClient, XMLLint}
 
   @moduletag :acceptance
+  @moduletag :mtconnect_schemas
   @moduletag timeout: 240_000
 
   setup_all do

@@ -42,8 +42,7 @@ defmodule Vws.Acceptance.ReleaseTest do
           {"VWS_HTTP_PORT", "#{http}"},
           {"VWS_LOG_DIR", log_dir},
           {"VWS_DATA_DIR", data},
-          {"RELEASE_DISTRIBUTION", "none"},
-          {"RELEASE_COOKIE", "acceptance-#{System.unique_integer([:positive])}"}
+          {"RELEASE_DISTRIBUTION", "none"}
         ]
       )
 

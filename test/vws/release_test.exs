@@ -54,6 +54,35 @@ defmodule Vws.ReleaseTest do
       do: System.cmd("kill", ["-9", os_pid], stderr_to_stdout: true)
   end
 
+  # every process on the host: [{"1234", "argv joined by spaces"}]
+  defp cmdlines do
+    for pid <- File.ls!("/proc"),
+        pid =~ ~r/^\d+$/,
+        {:ok, bytes} <- [File.read("/proc/#{pid}/cmdline")],
+        bytes != "",
+        do: {pid, String.replace(bytes, <<0>>, " ")}
+  end
+
+  # the processes whose command line holds one of `secrets`
+  defp no_secret(cmdlines, secrets) do
+    for {pid, line} <- cmdlines,
+        secret <- List.wrap(secrets),
+        String.contains?(line, secret),
+        do: {pid, line}
+  end
+
+  defp http_status(port, token) do
+    {:ok, _} = Application.ensure_all_started(:inets)
+    headers = if token, do: [{~c"x-vws-token", String.to_charlist(token)}], else: []
+
+    case :httpc.request(:get, {~c"http://127.0.0.1:#{port}/current", headers}, [timeout: 10_000],
+           body_format: :binary
+         ) do
+      {:ok, {{_, status, _}, _, _}} -> status
+      {:error, _} -> :no_answer
+    end
+  end
+
   # every listening socket of an OS process: ["127.0.0.1:4000", …]
   defp listening(os_pid) do
     {out, 0} = System.cmd("ss", ["-ltnpH"])
@@ -71,7 +100,7 @@ defmodule Vws.ReleaseTest do
     node = "vws_#{String.downcase(id)}@127.0.0.1"
     os_pid = start_release(root, id)
 
-    cookie = Path.join(root, "data/cookie")
+    cookie = Path.join(root, "data/.erlang.cookie")
     assert {:ok, %File.Stat{mode: mode}} = File.stat(cookie)
     assert (mode &&& 0o777) == 0o400
     assert byte_size(File.read!(cookie)) == 64
@@ -132,7 +161,84 @@ defmodule Vws.ReleaseTest do
       ])
 
       assert eventually(fn -> pane.() =~ "ON #{node}" end, 10_000), pane.()
+
+      # the remote shell's own VM holds no cookie on its command line either
+      cmdlines = cmdlines()
+      assert Enum.any?(cmdlines, fn {_, line} -> line =~ "rem-" and line =~ root end), pane.()
+      assert no_secret(cmdlines, File.read!(cookie)) == []
     end
+
+    # the cookie is never taken from the environment: that would put it on the command line
+    assert {out, 1} = bin(root, id, ["rpc", "IO.puts(1)"], [{"RELEASE_COOKIE", "abc"}])
+    assert out =~ "RELEASE_COOKIE is not used"
+    assert out =~ ".erlang.cookie (mode 0400)"
+  end
+
+  # Issue 30 item 5: /proc/<pid>/cmdline is readable by every local user, who would connect with
+  # the cookie and run code as the service's user, or use a token. Every process on the host is
+  # read (NUL-separated argv → spaces) while the release runs, while an rpc runs (its own VM
+  # included, read from inside the node) and while a remote shell is open (the first test).
+  test "no secret on a command line: the cookie and the tokens are in no process's argv; rpc works",
+       %{root: root} do
+    id = "relS#{System.unique_integer([:positive])}"
+    secrets = Path.join(root, "secrets-#{id}")
+    File.mkdir_p!(secrets)
+    control = "control-#{Base.encode16(:crypto.strong_rand_bytes(16))}"
+    read = "read-#{Base.encode16(:crypto.strong_rand_bytes(16))}"
+    File.write!(Path.join(secrets, "control"), control <> "\n")
+    File.write!(Path.join(secrets, "read"), read <> "\n")
+    File.chmod!(Path.join(secrets, "control"), 0o600)
+    File.chmod!(Path.join(secrets, "read"), 0o600)
+    http = Vws.Test.Acceptance.free_port()
+
+    extra = [
+      {"VWS_HTTP_PORT", "#{http}"},
+      {"VWS_HTTP_TOKEN_FILE", Path.join(secrets, "control")},
+      {"VWS_HTTP_READ_TOKEN_FILE", Path.join(secrets, "read")}
+    ]
+
+    {_, 0} = System.cmd(Path.join(root, "bin/vws"), ["daemon"], env: env(root, id, extra))
+    assert eventually(fn -> match?({_, 0}, bin(root, id, ["pid"])) end, 30_000)
+    {os_pid, 0} = bin(root, id, ["pid"])
+    os_pid = String.trim(os_pid)
+    on_exit(fn -> stop_release(root, id, os_pid) end)
+
+    cookie = File.read!(Path.join(root, "data/.erlang.cookie"))
+    assert cookie =~ ~r/^[0-9a-f]{64}$/
+
+    # the tokens were read from their files: reads need the read token, and it works
+    assert eventually(fn -> http_status(http, nil) == 401 end, 20_000)
+    assert http_status(http, read) == 200
+    assert http_status(http, control) == 200
+
+    # the release's processes: the node (beam.smp), run_erl holding its command, EPMD
+    cmdlines = cmdlines()
+    {_, node_line} = List.keyfind(cmdlines, os_pid, 0)
+    assert node_line =~ "beam.smp" and node_line =~ root and node_line =~ "-name vws_"
+    assert Enum.any?(cmdlines, fn {_, line} -> line =~ "run_erl" and line =~ root end)
+    assert Enum.any?(cmdlines, fn {_, line} -> line =~ ~r{(^|/)epmd } end)
+    assert no_secret(cmdlines, [cookie, control, read]) == []
+
+    # nor in the node's environment (readable by its user only, but the cookie has no need there)
+    environ = File.read!("/proc/#{os_pid}/environ")
+    refute environ =~ cookie
+    refute environ =~ control
+
+    # bin/vws rpc still works, and its own VM (rpc-…) is among the processes it sees, clean
+    read_all =
+      ~S|for p <- File.ls!("/proc"), p =~ ~r/^\d+$/, | <>
+        ~S|{:ok, c} <- [File.read("/proc/#{p}/cmdline")], c != "", | <>
+        ~S|do: IO.puts(p <> " " <> String.replace(c, <<0>>, " "))|
+
+    assert {out, 0} = bin(root, id, ["rpc", read_all])
+
+    seen =
+      for line <- String.split(out, "\n", trim: true),
+          do: List.to_tuple(String.split(line, " ", parts: 2))
+
+    assert Enum.any?(seen, fn {_, line} -> line =~ "rpc-" and line =~ "--rpc-eval" end), out
+    assert List.keymember?(seen, os_pid, 0)
+    assert no_secret(seen, [cookie, control, read]) == []
   end
 
   test "a second release on the host starts under its own VWS_ID; the same name is refused with a message",

@@ -42,11 +42,14 @@ defmodule Mix.Tasks.Vws.Serve do
     * `--http-port N` — the dashboard and MTConnect agent (`Vws.Ops.Web`) on port N (default 4000;
       0 picks a free port)
     * `--http-bind ADDR` — the address they listen on (default 127.0.0.1)
-    * `--http-token TOKEN` — enables the dashboard's control actions for requests carrying this
-      token (default: `$VWS_HTTP_TOKEN`, else none: read-only)
-    * `--http-read-token TOKEN` — every read (dashboard, `/api/state`, MTConnect) needs this
-      token too (HTTP Basic password or `x-vws-token`; default: `$VWS_HTTP_READ_TOKEN`, else
-      none: reads open)
+    * `--http-token-file PATH` — enables the dashboard's control actions for requests carrying
+      the token in this file (mode 0600; default: the file in `$VWS_HTTP_TOKEN_FILE`, else
+      `$VWS_HTTP_TOKEN`, else none: read-only). A token is never given on the command line,
+      where every local user reads it (`ps`): `--http-token TOKEN` is refused
+    * `--http-read-token-file PATH` — every read (dashboard, `/api/state`, MTConnect) needs the
+      token in this file too (HTTP Basic password or `x-vws-token`; default: the file in
+      `$VWS_HTTP_READ_TOKEN_FILE`, else `$VWS_HTTP_READ_TOKEN`, else none: reads open);
+      `--http-read-token TOKEN` is refused (`Vws.Ops.Web.Tokens`)
     * `--robot ENDPOINT` — the VAL II's supervisory port (`tty:/dev/ttyS1?baud=9600`, a terminal
       server's `tcp://host:port`); without it a simulated VAL II (`Vws.Sim.VAL2`) is started on a
       free local port and ROBOT is connected to it
@@ -79,17 +82,20 @@ defmodule Mix.Tasks.Vws.Serve do
     http_port: :integer,
     http_bind: :string,
     http_token: :string,
+    http_token_file: :string,
     journal: :string,
     no_journal: :boolean,
     library: :string,
     no_library: :boolean,
-    http_read_token: :string
+    http_read_token: :string,
+    http_read_token_file: :string
   ]
 
   @impl true
   def run(args) do
     {opts, _rest, invalid} = OptionParser.parse(args, strict: @switches)
     if invalid != [], do: Mix.raise("unknown options: #{inspect(invalid)}")
+    opts = http_tokens(opts)
 
     # config/runtime.exs starts a workstation of its own when VWS_WC is set (a release's way):
     # this task starts the one it is asked for instead, so that one must not start too
@@ -290,6 +296,31 @@ defmodule Mix.Tasks.Vws.Serve do
 
   def stop_hint(false),
     do: "Stop: Ctrl-\\ or kill #{System.pid()} (in order); Ctrl-C twice aborts at once"
+
+  # The tokens from files or the environment (Vws.Ops.Web.Tokens), never from the command line:
+  # there every local user reads them (`ps`, /proc/<pid>/cmdline).
+  defp http_tokens(opts) do
+    for {key, flag, file_flag, var} <- [
+          {:http_token, "--http-token", "--http-token-file", "VWS_HTTP_TOKEN"},
+          {:http_read_token, "--http-read-token", "--http-read-token-file", "VWS_HTTP_READ_TOKEN"}
+        ],
+        Keyword.has_key?(opts, key) do
+      Mix.raise(
+        "#{flag} puts the token on the command line, where every local user can read it " <>
+          "(ps): write it to a file only you can read (chmod 0600) and give #{file_flag} PATH, " <>
+          "or set #{var}_FILE (the file) or #{var} (the token) in the environment"
+      )
+    end
+
+    token = fn
+      {:ok, token} -> token
+      {:error, message} -> Mix.raise(message)
+    end
+
+    opts
+    |> Keyword.put(:http_token, token.(Vws.Ops.Web.Tokens.control(opts[:http_token_file])))
+    |> Keyword.put(:http_read_token, token.(Vws.Ops.Web.Tokens.read(opts[:http_read_token_file])))
+  end
 
   defp start_web(opts) do
     case Vws.Ops.Web.start_from_cli(opts) do

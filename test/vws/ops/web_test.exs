@@ -113,6 +113,7 @@ defmodule Vws.Ops.WebTest do
     assert {404, _} = post(url <> "api/status?ws=nope&name=VISE", [{~c"x-vws-token", ~c"s3cret"}])
   end
 
+  @tag :mtconnect_schemas
   test "the MTConnect agent answers on the same server, and its documents validate", %{ws: ws} do
     url = web(workstations: fn -> [ws] end)
 

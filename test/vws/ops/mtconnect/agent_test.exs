@@ -1,6 +1,9 @@
 defmodule Vws.Ops.MTConnect.AgentTest do
   use ExUnit.Case, async: true
 
+  # validates against the official schemas (test/test_helper.exs excludes it without them)
+  @moduletag :mtconnect_schemas
+
   alias Vws.CEC.{Mailbox, Workstation}
   alias Vws.Ops.MTConnect.Agent
   alias Vws.Test.XMLLint

@@ -80,6 +80,7 @@ defmodule Vws.Ops.MTConnect.CellAgentTest do
     |> Map.new(fn [id, value] -> {id, value} end)
   end
 
+  @tag :mtconnect_schemas
   test "/probe and /current list the workstations of every node, each read on its node",
        %{peers: peers, local: local, url: url} do
     {200, body} = get!(url <> "probe")
@@ -111,6 +112,7 @@ defmodule Vws.Ops.MTConnect.CellAgentTest do
     refute text =~ peers.b.id
   end
 
+  @tag :mtconnect_schemas
   test "a node that does not answer is UNAVAILABLE, the others still answer; a stopped one is removed",
        %{peers: peers, local: local, url: url} do
     [a, b, l] = Enum.map([peers.a.id, peers.b.id, local], &"ws_#{&1}")
@@ -156,6 +158,7 @@ defmodule Vws.Ops.MTConnect.CellAgentTest do
     assert XMLLint.validate!(body, :devices) =~ ~s(name="#{peers.b.id}")
   end
 
+  @tag :mtconnect_schemas
   test "a workstation on another node: every transition recorded when it happens, too",
        %{peers: peers} do
     a = start_supervised!({Vws.Ops.MTConnect.Agent, interval: 60_000}, id: make_ref())

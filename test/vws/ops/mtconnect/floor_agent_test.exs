@@ -4,6 +4,9 @@ defmodule Vws.Ops.MTConnect.FloorAgentTest do
   # commands (it read "NO DATA (NO LINK TO VAL II)" while the robot worked).
   use ExUnit.Case, async: true
 
+  # validates against the official schemas (test/test_helper.exs excludes it without them)
+  @moduletag :mtconnect_schemas
+
   alias Vws.Ops.MTConnect.Agent
   alias Vws.Test.{MTCClient, XMLLint}
   alias Vws.Peers.WC.{Client, Runner, Script}

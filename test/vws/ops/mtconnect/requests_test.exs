@@ -4,6 +4,9 @@ defmodule Vws.Ops.MTConnect.RequestsTest do
   # documents for everything the agent cannot serve. Every XML document is validated.
   use ExUnit.Case, async: true
 
+  # validates against the official schemas (test/test_helper.exs excludes it without them)
+  @moduletag :mtconnect_schemas
+
   alias Vws.CEC.Mailbox
   alias Vws.Test.{JSONDecode, MTCClient, XMLLint}
 

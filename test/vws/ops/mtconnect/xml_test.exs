@@ -23,11 +23,13 @@ defmodule Vws.Ops.MTConnect.XMLTest do
     assert XML.escape("tab\there é→") == "tab\there é→"
   end
 
+  @tag :mtconnect_schemas
   test "a probe of two workstations validates (ids that need cleaning too)" do
     XML.devices(@header, [Model.device("VWS"), Model.device("cell <2> & co")])
     |> XMLLint.validate!(:devices)
   end
 
+  @tag :mtconnect_schemas
   test "streams with hostile text values validate and keep the text" do
     d = Model.device("VWS")
     items = Map.new(Model.items(d), &{&1.id, &1})
@@ -46,10 +48,12 @@ defmodule Vws.Ops.MTConnect.XMLTest do
              ~r{<Samples><PathPosition dataItemId="ws_VWS_robot_path_pos"[^>]*>1.5 -2 300</PathPosition></Samples>}
   end
 
+  @tag :mtconnect_schemas
   test "an empty stream validates" do
     XML.streams(@header, []) |> XMLLint.validate!(:streams)
   end
 
+  @tag :mtconnect_schemas
   test "error documents validate" do
     for code <- ~w(OUT_OF_RANGE NO_DEVICE INVALID_REQUEST) do
       XML.error(@header, code, "'from' must be <= 4 & > 0") |> XMLLint.validate!(:error)

@@ -1,0 +1,82 @@
+defmodule Vws.Ops.CrashLog do
+  @moduledoc """
+  Every crashed process is logged once, with its reason — state machines included (issue 30
+  item 8). A Logger translator, added by `Vws.Application` at start.
+
+  Why it is needed: Elixir 1.14's `Logger.Translator` turns a GenServer's termination report
+  into the familiar "GenServer … terminating" line, but answers `:skip` for a `:gen_statem`'s
+  (`%{label: {:gen_statem, :terminate}}`), and the other report of the same crash — proc_lib's
+  crash report — is in the `[:otp, :sasl]` domain, which Logger drops unless
+  `handle_sasl_reports` is on (and turning that on would log every GenServer crash twice, with
+  every supervisor report besides). So a crashing SUN_COMM, DNC link, DDCMP or HPIB link wrote
+  nothing at all. This translator writes the gen_statem's report as Logger writes a
+  GenServer's: the process, its module, the reason (exception and stacktrace, or the exit
+  reason), the event it was handling and, when the log level is debug, its state.
+
+  It never raises (a translator that raises would cost the log its handler): anything it cannot
+  read it leaves to the translators after it.
+  """
+
+  @doc false
+  # Logger translator: {:ok, chardata, metadata} | :skip | :none
+  def translate(min_level, _level, :report, {:logger, %{label: {:gen_statem, :terminate}} = r}) do
+    gen_statem_terminate(min_level, r)
+  rescue
+    _ -> :none
+  end
+
+  def translate(_min_level, _level, _kind, _message), do: :none
+
+  defp gen_statem_terminate(min_level, %{name: name, reason: {class, reason, stack}} = r) do
+    opts = Application.get_env(:logger, :translator_inspect_opts, [])
+    {crash_reason, formatted} = format_reason(class, reason, stack)
+
+    module =
+      case r do
+        %{modules: [module | _]} -> [" (", inspect(module), ")"]
+        _ -> []
+      end
+
+    event =
+      case r do
+        %{queue: [event | _]} -> ["\nLast event: ", inspect(event, opts)]
+        _ -> []
+      end
+
+    state =
+      if min_level == :debug and Map.has_key?(r, :state),
+        do: ["\nState: ", inspect(r.state, opts)],
+        else: []
+
+    client =
+      case r do
+        %{client_info: {pid, :dead}} -> ["\nClient ", inspect(pid), " is dead"]
+        %{client_info: {pid, _}} when is_pid(pid) -> ["\nClient ", inspect(pid), " is alive"]
+        _ -> []
+      end
+
+    message = [
+      [":gen_statem ", inspect(name), module, " terminating\n"],
+      formatted,
+      event,
+      state,
+      client
+    ]
+
+    metadata =
+      [crash_reason: crash_reason] ++ if(is_atom(name), do: [registered_name: name], else: [])
+
+    {:ok, message, metadata}
+  end
+
+  defp gen_statem_terminate(_min_level, _report), do: :none
+
+  # as Logger does for a GenServer: an error is an exception with its stacktrace, an exit its term
+  defp format_reason(:error, reason, stack) do
+    exception = Exception.normalize(:error, reason, stack)
+    {{exception, stack}, Exception.format(:error, exception, stack)}
+  end
+
+  defp format_reason(class, reason, stack),
+    do: {{reason, stack}, Exception.format(class, reason, stack)}
+end
