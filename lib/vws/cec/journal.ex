@@ -1,6 +1,7 @@
 defmodule Vws.CEC.Journal do
   @moduledoc """
-  The workstation's durable command journal, on OTP's `disk_log`.
+  The workstation's durable command journal: durable or refused, never in between; a restart
+  restores every status it can, and says so of the rest.
 
   Every accepted command string and every command-status change is written and synced to disk
   before SUN_COMM acknowledges the string or the mailbox shows the status, so a WC that asks the
@@ -10,15 +11,40 @@ defmodule Vws.CEC.Journal do
   ## Records
 
     * `{:string, seq, line, [{partition, number}]}` — a command string SUN_COMM accepted (before `05A`)
-    * `{:status, partition, number, status}` — a command status written outright (dispatch, a rule)
+    * `{:status, partition, number, status, text}` — a command dispatched (its CMD_IN too)
+    * `{:status, partition, number, status}` — a command status written outright (a rule, BUSY)
     * `{:finish, partition, number, status}` — a command ended: applied only while the status
       location still shows `number`, exactly as `Vws.CEC.Mailbox.finish/4` does
     * `{:unknown_status, letter, number, status}` — a command of a set letter the CEC does not
       know, refused by rule 5 (`Vws.CEC.Mailbox.put_unknown_status/4`)
     * `{:lease, volume, holder, reasons}` — a work-volume lease (`Vws.CEC.Interlock`) taken or
       changed, `reasons` `[]` when it ended: written before the lease counts
-    * `{:snapshot, state}` — the whole restorable state, written when the journal opens and every
-      `:snapshot_every` records, so the newest state survives the wrap of old files
+    * `{:snapshot, state}` — the whole restorable state, the first record of the file
+
+  Each is one frame of `Vws.CEC.Journal.Log` in the file `journal.log`: its own CRC-32 over the
+  header and over the record, and an end mark after the last record. `Vws.CEC.Journal.Replay`
+  checks every frame's checksums and every record's shape before it applies it.
+
+  The journal process writes every record itself (the callers wait for it, `record/2`): it keeps
+  the state its records add up to, so a snapshot is exactly what the records it replaces give.
+  When the file has `:snapshot_every` records or `:max_bytes` bytes it is compacted: a new file
+  holding one snapshot and the end mark is written and synced beside it, then renamed over it.
+
+  ## Durable or refused
+
+  A record is appended with its end mark after it, then synced; only then does `record/2` say
+  `:ok`. When a write or sync fails (a full disk):
+
+    * the caller gets `{:error, reason}`: SUN_COMM does not acknowledge the string (`E`); a
+      command whose dispatch, status or end could not be recorded ends `ERROR JOURNAL WRITE
+      FAILED` (`Vws.CEC.Mailbox`), never DONE;
+    * the file is cut back to its last whole record and its end mark written again, so no torn
+      record stays in front of later ones;
+    * the journal is *not healthy*: every record is refused at once (`health/1` says why; the log
+      says which string was refused) — the node accepts no work — until a fresh snapshot file has
+      been written, tried every `:retry_ms` (2 s); then it logs that it is healthy again.
+
+  A program (the NC file, NC_UP) that cannot be stored makes it not healthy too.
 
   ## Programs
 
@@ -38,29 +64,44 @@ defmodule Vws.CEC.Journal do
   leases are kept because what they stand for outlived the workstation: the arm that was moving
   into the vise is in the table's volume still, and no cycle may start until it has left.
 
+  **Replay is total and damage is loud.** Nothing in the file stops the start. Bytes that are no
+  frame (a bit flip, zeroed or random blocks, a file cut short or empty, a missing end mark) and
+  records this version cannot apply (a newer version's, a shape it does not know) are each logged
+  with their offset; the file is copied aside as `journal.damaged-<UTC time>` in the same
+  directory; and everything the lost bytes could have changed reads `NO DATA (JOURNAL DAMAGED)`
+  or `NO DATA (JOURNAL RECORD UNREADABLE)` (`Vws.CEC.Journal.Replay`) — never an older status as
+  the current one. The next command of a partition makes its status known again.
+
+  The file is compacted to one snapshot of the restored state as it opens, so damage never
+  stands in front of new records (and statuses marked unknown stay so across restarts until a
+  command changes them).
+
+  A journal of the `disk_log` format of earlier versions (`journal.1`, … without `journal.log`)
+  is read once, as well as it can be: its records carry no checksums, so whatever it could not
+  read marks the statuses unknown as above; it is then moved aside (`journal.disk_log-<time>`).
+
   One OS process at a time may write a journal directory: a `LOCK` file names it, and a
   workstation whose directory is held by another live OS process does not start (one left by a
-  process that is gone, after a `kill -9`, is taken over).
-
-  The log is a wrap log (`:max_bytes` × `:max_files`, bounded) opened with `repair: true`; it is
-  read record by record, so a torn last record (power lost in the middle of a write) is cut off and
-  the records before it are kept. Each time the journal opens it is compacted to one snapshot of
-  the restored state, so damage never stands in front of new records.
+  process that is gone, after a `kill -9`, is taken over). A directory that cannot be made or
+  written stops the start with the reason in words.
 
   ## Options
 
-    * `:workstation` (required), `:dir` — the directory of the log files (required)
-    * `:max_bytes` (256 KiB per file), `:max_files` (8), `:snapshot_every` (500 records)
+    * `:workstation` (required), `:dir` — the directory of the journal (required)
+    * `:max_bytes` (1 MiB), `:snapshot_every` (500 records), `:retry_ms` (2,000)
   """
   use GenServer
   require Logger
 
   alias Vws.CEC.{Interlock, Mailbox}
+  alias Vws.CEC.Journal.{Log, Replay}
 
   # the mailbox's recorder: every change is given here before it is visible
   @behaviour Vws.CEC.Mailbox
 
   @interrupted {:error, "INTERRUPTED BY RESTART"}
+  @journal_failed {:error, "JOURNAL WRITE FAILED"}
+  @file_name "journal.log"
 
   @doc false
   def child_spec(opts), do: %{id: __MODULE__, start: {__MODULE__, :start_link, [opts]}}
@@ -73,7 +114,8 @@ defmodule Vws.CEC.Journal do
 
   @doc """
   Appends `record` to the workstation's journal and syncs it to disk. Does nothing when the
-  workstation has no journal. Returns `{:error, reason}` when the record could not be made durable.
+  workstation has no journal. Returns `{:error, reason}` when the record could not be made
+  durable: the write failed, or the journal is not healthy (`{:error, :not_healthy}`).
 
   A journal whose process has ended records nothing (`{:error, :journal_down}`): the workstation
   is going down, and what its parts still do on the way — a command ended `ERROR VAL II LINK
@@ -84,31 +126,38 @@ defmodule Vws.CEC.Journal do
   @spec record(:ets.tid(), tuple) :: :ok | {:error, term}
   def record(table, record) do
     case :ets.lookup(table, :journal) do
-      [] ->
-        :ok
-
-      [{:journal, log, every, journal}] ->
-        # The journal is linked to the workstation's supervisor and does not trap exits: it is
-        # gone before anything its supervisor's death sets off further down reaches this point.
-        if Process.alive?(journal) do
-          # A snapshot goes before the record: the table does not show the record's change yet.
-          if :ets.update_counter(table, :journal_records, 1, {:journal_records, 0}) >= every do
-            :ets.insert(table, {:journal_records, 0})
-            :disk_log.log(log, {:snapshot, state_of(table)})
-          end
-
-          with :ok <- :disk_log.log(log, record), do: :disk_log.sync(log)
-        else
-          {:error, :journal_down}
-        end
+      [] -> :ok
+      [{:journal, journal}] -> call(journal, {:record, record})
     end
   end
 
-  @doc "Every record in the journal, oldest first (for inspection and tests)."
+  # The journal is linked to the workstation's supervisor and does not trap exits: it is gone
+  # before anything its supervisor's death sets off further down reaches this point.
+  defp call(journal, request) do
+    GenServer.call(journal, request, :infinity)
+  catch
+    :exit, _ -> {:error, :journal_down}
+  end
+
+  @doc """
+  Whether the workstation's journal accepts records: `:ok`, `{:error, words}` (not healthy, and
+  why), or `:none` (no journal, or it is not running).
+  """
+  @spec health(term) :: :ok | {:error, String.t()} | :none
+  def health(ws) do
+    case Vws.Names.whereis(ws, :journal) do
+      nil -> :none
+      pid -> with {:error, :journal_down} <- call(pid, :health), do: :none
+    end
+  end
+
+  @doc "Every record in the journal's file, oldest first (for inspection and tests)."
   @spec records(term) :: [tuple]
   def records(ws) do
-    [{:journal, log, _, _}] = :ets.lookup(Mailbox.table(ws), :journal)
-    read_all(log)
+    dir = GenServer.call(Vws.Names.via(ws, :journal), :dir)
+
+    for {:record, _off, payload} <- Log.parse(File.read!(Path.join(dir, @file_name))),
+        do: :erlang.binary_to_term(payload, [:safe])
   end
 
   @doc """
@@ -125,14 +174,15 @@ defmodule Vws.CEC.Journal do
 
   @doc """
   Stores a program (`:nc_file` or `:nc_up`) in the journal's directory, whole or not at all, and
-  syncs it to disk. Does nothing when the workstation has no journal.
+  syncs it to disk. Does nothing when the workstation has no journal. A program that cannot be
+  stored makes the journal not healthy (a full disk), as a record does.
   """
   @impl Vws.CEC.Mailbox
   @spec store_lines(:ets.tid(), :nc_file | :nc_up, [binary]) :: :ok | {:error, term}
   def store_lines(table, key, lines) when key in [:nc_file, :nc_up] do
-    case :ets.lookup(table, :journal_dir) do
+    case :ets.lookup(table, :journal) do
       [] -> :ok
-      [{:journal_dir, dir}] -> write_whole(Path.join(dir, Atom.to_string(key)), lines)
+      [{:journal, journal}] -> call(journal, {:store_lines, key, lines})
     end
   end
 
@@ -143,6 +193,10 @@ defmodule Vws.CEC.Journal do
     with {:ok, fd} <- :file.open(tmp, [:write, :raw, :binary]),
          :ok <- write_sync_close(fd, bin) do
       :file.rename(tmp, path)
+    else
+      error ->
+        _ = :file.delete(tmp)
+        error
     end
   end
 
@@ -156,14 +210,15 @@ defmodule Vws.CEC.Journal do
     path = Path.join(dir, Atom.to_string(key))
 
     with {:ok, bin} <- File.read(path),
-         {:lines, lines} when is_list(lines) <- safe_term(bin) do
+         {:lines, lines} when is_list(lines) <- safe_term(bin),
+         true <- Enum.all?(lines, &is_binary/1) do
       lines
     else
       {:error, :enoent} ->
         []
 
-      other ->
-        Logger.error("#{path} unreadable (#{inspect(other, limit: 5)}): no #{key} restored")
+      _other ->
+        Logger.error("#{path} unreadable (damaged): no #{key} restored")
         []
     end
   end
@@ -180,55 +235,243 @@ defmodule Vws.CEC.Journal do
   def init(opts) do
     ws = Keyword.fetch!(opts, :workstation)
     dir = Keyword.fetch!(opts, :dir)
-    File.mkdir_p!(dir)
-    :ok = lock!(dir)
-    log = {:vws_journal, ws}
-    size = {Keyword.get(opts, :max_bytes, 256 * 1024), Keyword.get(opts, :max_files, 8)}
 
-    case :disk_log.open(
-           name: log,
-           file: String.to_charlist(Path.join(dir, "journal")),
-           type: :wrap,
-           size: size,
-           repair: true
-         ) do
-      {:ok, ^log} ->
-        :ok
-
-      {:repaired, ^log, {:recovered, n}, {:badbytes, bad}} ->
-        Logger.warning(
-          "journal of #{inspect(ws)} repaired: #{n} records kept, #{bad} torn bytes dropped"
-        )
+    case File.mkdir_p(dir) do
+      :ok -> :ok
+      {:error, why} -> raise "journal directory #{dir} cannot be made: #{words(why)}"
     end
 
+    :ok = lock!(dir)
     table = Mailbox.table(ws)
+
+    s = %{
+      workstation: ws,
+      dir: dir,
+      path: Path.join(dir, @file_name),
+      fd: nil,
+      pos: 0,
+      records: 0,
+      state: nil,
+      healthy: :ok,
+      max_bytes: Keyword.get(opts, :max_bytes, 1024 * 1024),
+      every: Keyword.get(opts, :snapshot_every, 500),
+      retry_ms: Keyword.get(opts, :retry_ms, 2_000)
+    }
 
     # Restore only into a fresh table: if only the journal restarted, the mailboxes are current.
     if :ets.insert_new(table, {:journal_restored, true}) do
-      restore(table, read_all(log))
+      restore(ws, table, dir, s.path)
       for key <- [:nc_file, :nc_up], do: :ets.insert(table, {key, read_lines(dir, key)})
     end
 
-    :ets.insert(table, {:journal_dir, dir})
-
     # Compact: the snapshot of the restored state replaces everything before it, so a damaged
     # record never stands in front of the records written from now on.
-    :ok = :disk_log.truncate(log)
-    :ok = :disk_log.log(log, {:snapshot, state_of(table)})
-    :ok = :disk_log.sync(log)
-    :ets.insert(table, {:journal, log, Keyword.get(opts, :snapshot_every, 500), self()})
+    s = %{s | state: state_of(table)}
+
+    s =
+      case compact(s) do
+        {:ok, s} ->
+          s
+
+        {:error, why} ->
+          Logger.error(
+            "journal of #{inspect(ws)} cannot be written (#{words(why)}): " <>
+              "the workstation accepts no work until it can"
+          )
+
+          not_healthy(s, why)
+      end
+
+    :ets.insert(table, {:journal, self()})
     :ok = Mailbox.attach_recorder(table, __MODULE__)
-    {:ok, %{workstation: ws, log: log, dir: dir}}
+    {:ok, s}
   end
 
   @impl true
-  def terminate(_reason, s) do
-    :disk_log.close(s.log)
-    # a stop that runs this lets the directory go; a kill leaves the lock to be taken over
-    if File.read(Path.join(s.dir, "LOCK")) == {:ok, System.pid()},
-      do: File.rm(Path.join(s.dir, "LOCK"))
+  def handle_call({:record, record}, _from, %{healthy: {:error, since, why}} = s) do
+    Logger.error(
+      "journal not healthy since #{since} (#{why}): #{what(record)} refused " <>
+        "(ERROR JOURNAL WRITE FAILED); a fresh snapshot is tried every #{s.retry_ms} ms"
+    )
 
-    :ok
+    {:reply, {:error, :not_healthy}, s}
+  end
+
+  def handle_call({:record, record}, _from, s) do
+    with {:ok, s} <- maybe_compact(s),
+         {:ok, s} <- append(s, record) do
+      {:reply, :ok, %{s | state: applied(Replay.apply_record(record, s.state), s.state)}}
+    else
+      {:error, why, s} ->
+        Logger.error(
+          "journal write failed (#{words(why)}): #{what(record)} not recorded " <>
+            "(ERROR JOURNAL WRITE FAILED); the workstation accepts no work until a fresh " <>
+            "snapshot is written"
+        )
+
+        {:reply, {:error, why}, not_healthy(%{s | state: failed(record, s.state)}, why)}
+    end
+  end
+
+  def handle_call({:store_lines, key, lines}, _from, s) do
+    case write_whole(Path.join(s.dir, Atom.to_string(key)), lines) do
+      :ok ->
+        {:reply, :ok, s}
+
+      {:error, why} ->
+        Logger.error("#{key} not stored (#{words(why)}): the old program is kept")
+        {:reply, {:error, why}, not_healthy(s, why)}
+    end
+  end
+
+  def handle_call(:health, _from, %{healthy: :ok} = s), do: {:reply, :ok, s}
+
+  def handle_call(:health, _from, %{healthy: {:error, since, why}} = s),
+    do: {:reply, {:error, "JOURNAL WRITE FAILED AT #{since} (#{String.upcase(why)})"}, s}
+
+  def handle_call(:dir, _from, s), do: {:reply, s.dir, s}
+
+  @impl true
+  def handle_info(:retry, %{healthy: :ok} = s), do: {:noreply, s}
+
+  def handle_info(:retry, s) do
+    case compact(s) do
+      {:ok, s} ->
+        Logger.warning(
+          "journal of #{inspect(s.workstation)} healthy again: a fresh snapshot is written, " <>
+            "strings are accepted"
+        )
+
+        {:noreply, %{s | healthy: :ok}}
+
+      {:error, _why} ->
+        Process.send_after(self(), :retry, s.retry_ms)
+        {:noreply, s}
+    end
+  end
+
+  def handle_info(_other, s), do: {:noreply, s}
+
+  # the change an unrecorded record stands for: what the mailbox shows instead
+  # (`Vws.CEC.Mailbox`: ERROR JOURNAL WRITE FAILED), written with the next snapshot. A string
+  # not recorded was not acknowledged, a lease not recorded was not granted (or, released,
+  # stays held on disk: the safe side).
+  defp failed({:status, p, n, _status, text}, state),
+    do: applied_or(Replay.apply_record({:status, p, n, @journal_failed, text}, state), state)
+
+  defp failed({tag, p, n, _status}, state) when tag in [:status, :finish],
+    do: applied_or(Replay.apply_record({tag, p, n, @journal_failed}, state), state)
+
+  defp failed({:unknown_status, l, n, _status}, state),
+    do: applied_or(Replay.apply_record({:unknown_status, l, n, @journal_failed}, state), state)
+
+  defp failed(_record, state), do: state
+
+  defp applied_or({:ok, state}, _old), do: state
+  defp applied_or(_error, old), do: old
+
+  # a record the live system writes and this version cannot apply is a bug: it is logged, and
+  # what it could have changed is marked as a replay would
+  defp applied({:ok, state}, _old), do: state
+  defp applied({:partly, state, why, scope}, _old), do: marked(state, why, scope)
+  defp applied({:error, why, scope}, old), do: marked(old, why, scope)
+
+  defp marked(state, why, scope) do
+    Logger.error("journal record not applicable (#{why}): marked unknown")
+    Replay.mark(state, scope, Replay.unreadable())
+  end
+
+  defp not_healthy(%{healthy: {:error, _, _}} = s, _why), do: s
+
+  defp not_healthy(s, why) do
+    Process.send_after(self(), :retry, s.retry_ms)
+    since = Calendar.strftime(DateTime.utc_now(), "%H:%M:%S UTC")
+    %{s | healthy: {:error, since, words(why)}}
+  end
+
+  defp what({:string, seq, _line, _}), do: "string #{Vws.Codecs.WC.Command.pad4(seq)}"
+  defp what(record) when is_tuple(record), do: "record #{elem(record, 0)}"
+
+  defp words(why) when is_atom(why) do
+    case :file.format_error(why) do
+      ~c"unknown POSIX error" ++ _ -> why |> Atom.to_string() |> String.replace("_", " ")
+      text -> List.to_string(text)
+    end
+  end
+
+  defp words(why) when is_binary(why), do: why
+  defp words(why), do: inspect(why)
+
+  ## The file
+
+  defp maybe_compact(%{records: n, every: every, pos: pos, max_bytes: max} = s)
+       when n >= every or pos >= max do
+    case compact(s) do
+      {:ok, s} -> {:ok, s}
+      {:error, why} -> {:error, why, s}
+    end
+  end
+
+  defp maybe_compact(s), do: {:ok, s}
+
+  # A new file holding one snapshot of the state and the end mark, synced, then renamed over the
+  # old one: after a crash it is the old file or the new one, each whole.
+  defp compact(s) do
+    tmp = s.path <> ".new"
+    snapshot = Log.record({:snapshot, s.state})
+    _ = :file.delete(tmp)
+
+    with {:ok, fd} <- :file.open(tmp, [:read, :write, :raw, :binary]),
+         :ok <- write_or_close(fd, [snapshot, Log.end_mark()]),
+         :ok <- sync_or_close(fd),
+         :ok <- rename_or_close(fd, tmp, s.path) do
+      if s.fd, do: :file.close(s.fd)
+      {:ok, %{s | fd: fd, pos: byte_size(snapshot), records: 0}}
+    else
+      {:error, why} ->
+        _ = :file.delete(tmp)
+        {:error, why}
+    end
+  end
+
+  defp write_or_close(fd, data), do: close_on_error(fd, :file.write(fd, data))
+  defp sync_or_close(fd), do: close_on_error(fd, :file.sync(fd))
+  defp rename_or_close(fd, from, to), do: close_on_error(fd, :file.rename(from, to))
+
+  defp close_on_error(_fd, :ok), do: :ok
+
+  defp close_on_error(fd, error) do
+    :file.close(fd)
+    error
+  end
+
+  defp append(%{fd: nil} = s, _record), do: {:error, :not_open, s}
+
+  defp append(s, record) do
+    frame = Log.record(record)
+
+    with :ok <- :file.pwrite(s.fd, s.pos, [frame, Log.end_mark()]),
+         :ok <- :file.datasync(s.fd) do
+      {:ok, %{s | pos: s.pos + byte_size(frame), records: s.records + 1}}
+    else
+      {:error, why} -> {:error, why, cut_back(s)}
+    end
+  end
+
+  # After a failed write: the file back to its last whole record and its end mark, so nothing
+  # torn stays in the middle of the log. If even that fails, the next start finds the file
+  # damaged and says so; the fresh snapshot (retried) replaces it.
+  defp cut_back(s) do
+    result =
+      with {:ok, _} <- :file.position(s.fd, s.pos),
+           :ok <- :file.truncate(s.fd),
+           :ok <- :file.pwrite(s.fd, s.pos, Log.end_mark()),
+           do: :file.datasync(s.fd)
+
+    if result != :ok,
+      do: Logger.error("journal could not be cut back to its last record: #{inspect(result)}")
+
+    s
   end
 
   # One OS process at a time writes a journal directory: two would damage each other's records.
@@ -250,7 +493,10 @@ defmodule Vws.CEC.Journal do
         :ok
     end
 
-    File.write!(path, me)
+    case File.write(path, me) do
+      :ok -> :ok
+      {:error, why} -> raise "journal directory #{dir} cannot be written: #{words(why)}"
+    end
   end
 
   defp os_process_alive?(pid) do
@@ -263,29 +509,14 @@ defmodule Vws.CEC.Journal do
     end
   end
 
-  defp read_all(log), do: read_all(log, :start, [])
+  @impl true
+  def terminate(_reason, s) do
+    if s.fd, do: :file.close(s.fd)
+    # a stop that runs this lets the directory go; a kill leaves the lock to be taken over
+    if File.read(Path.join(s.dir, "LOCK")) == {:ok, System.pid()},
+      do: File.rm(Path.join(s.dir, "LOCK"))
 
-  # One term at a time: a damaged record loses only itself and what follows it, never the good
-  # records read in the same block.
-  defp read_all(log, cont, acc) do
-    case :disk_log.chunk(log, cont, 1) do
-      :eof ->
-        acc |> Enum.reverse() |> List.flatten()
-
-      {:error, reason} ->
-        # Better a workstation that starts with what could be read than one that cannot start.
-        Logger.error(
-          "journal partly unreadable (#{inspect(reason)}): restoring from the records before it"
-        )
-
-        acc |> Enum.reverse() |> List.flatten()
-
-      {cont, terms} ->
-        read_all(log, cont, [terms | acc])
-
-      {cont, terms, _badbytes} ->
-        read_all(log, cont, [terms | acc])
-    end
+    :ok
   end
 
   ## Restoring
@@ -294,11 +525,69 @@ defmodule Vws.CEC.Journal do
   # string, unknown set letters) and the interlock's leases, the earliest first.
   defp state_of(table), do: Map.put(Mailbox.dump(table), :leases, Interlock.leases(table))
 
-  defp restore(_table, []), do: :ok
+  defp restore(ws, table, dir, path) do
+    case read_journal(dir, path) do
+      :none ->
+        :ok
 
-  defp restore(table, records) do
-    state = Enum.reduce(records, state_of(table), &apply_record/2)
+      {:ok, items, source} ->
+        {state, problems} = Replay.replay(items, state_of(table))
+        if problems != [], do: report_damage(ws, source, problems, state)
+        load(table, state)
+    end
+  end
 
+  # {:ok, items, file} or :none (a journal never written: a fresh start)
+  defp read_journal(dir, path) do
+    case File.read(path) do
+      {:ok, bin} ->
+        {:ok, Log.parse(bin), path}
+
+      {:error, :enoent} ->
+        case Vws.CEC.Journal.DiskLog.read(dir) do
+          :none -> :none
+          {:ok, items, aside} -> {:ok, items, aside}
+        end
+
+      {:error, why} ->
+        # there is a journal, and it cannot be read: everything it held is unknown
+        {:ok, [{:damaged, 0, {:unreadable_file, words(why)}}], path}
+    end
+  end
+
+  defp report_damage(ws, source, problems, state) do
+    aside = copy_aside(source)
+
+    for {off, why} <- problems do
+      Logger.error("journal of #{inspect(ws)} damaged at byte #{off} of #{source}: #{why}")
+    end
+
+    unknown =
+      for {p, %{status: {:no_data, why}}} <- state.partitions,
+          do: "#{p |> Atom.to_string() |> String.upcase()}_CMD NO DATA (#{why})"
+
+    Logger.error(
+      "journal of #{inspect(ws)}: #{length(problems)} damaged or unreadable place(s); " <>
+        "a copy is kept as #{aside}; restored as unknown: " <>
+        if(unknown == [], do: "no command status", else: Enum.join(unknown, ", ")) <>
+        if(state.leases == [],
+          do: "",
+          else: "; leases kept as read (a lease taken in the damaged part is not known)"
+        )
+    )
+  end
+
+  defp copy_aside(source) do
+    stamp = Calendar.strftime(DateTime.utc_now(), "%Y%m%dT%H%M%S%fZ")
+    aside = Path.join(Path.dirname(source), "journal.damaged-" <> stamp)
+
+    case File.cp_r(source, aside) do
+      {:ok, _} -> aside
+      {:error, why, _} -> "none (#{words(why)})"
+    end
+  end
+
+  defp load(table, state) do
     partitions =
       Map.new(state.partitions, fn
         {p, %{status: :executing} = c} -> {p, %{c | status: @interrupted}}
@@ -330,56 +619,4 @@ defmodule Vws.CEC.Journal do
 
     :ok
   end
-
-  # a snapshot written before leases were journaled has none
-  defp apply_record({:snapshot, snapshot}, _state),
-    do: snapshot |> Map.put_new(:leases, []) |> Map.put_new(:unknown, %{})
-
-  defp apply_record({:unknown_status, letter, n, status}, state),
-    do: put_in(state.unknown[letter], {n, status})
-
-  # a lease keeps its place among the others (the earliest first) while it is held
-  defp apply_record({:lease, volume, holder, reasons}, state) do
-    held? = &match?({^volume, ^holder, _}, &1)
-
-    leases =
-      cond do
-        reasons == [] ->
-          Enum.reject(state.leases, held?)
-
-        Enum.any?(state.leases, held?) ->
-          Enum.map(state.leases, &if(held?.(&1), do: {volume, holder, reasons}, else: &1))
-
-        true ->
-          state.leases ++ [{volume, holder, reasons}]
-      end
-
-    %{state | leases: leases}
-  end
-
-  defp apply_record({:string, seq, line, commands}, state) do
-    # acknowledged: until a later record says otherwise, each command counts as under way
-    state = %{state | last_string: {seq, line}}
-
-    Enum.reduce(commands, state, fn {p, n}, st ->
-      update_in(st.partitions[p], &%{&1 | number: n, status: :executing})
-    end)
-  end
-
-  defp apply_record({:status, p, n, status, text}, state) do
-    update_in(state.partitions[p], &%{&1 | number: n, status: status, cmd_in: {n, text}})
-  end
-
-  defp apply_record({:status, p, n, status}, state) do
-    update_in(state.partitions[p], &%{&1 | number: n, status: status})
-  end
-
-  defp apply_record({:finish, p, n, status}, state) do
-    update_in(state.partitions[p], fn
-      %{number: ^n} = entry -> %{entry | status: status}
-      entry -> entry
-    end)
-  end
-
-  defp apply_record(_unknown, state), do: state
 end

@@ -23,7 +23,8 @@ defmodule Vws.CEC.Mailbox do
 
     * **Command-status locations 34–39**, one per command partition: ROBOT 34, MONARCH 35,
       GRIPPER 36, FIXTURE 37, VACUUM 38, HYDRAULIC 39. Each holds the number of the last command of
-      that set and its status: `:none`, `:executing`, `:done` or `{:error, reason}`.
+      that set and its status: `:none`, `:executing`, `:done` or `{:error, reason}` — or
+      `{:no_data, why}` when a damaged journal could not restore it.
 
     * **CMD_IN**: the latest command text and number per set; **in flight**: the number of the
       command a partition has been given and not yet finished (at most one per set).
@@ -69,7 +70,14 @@ defmodule Vws.CEC.Mailbox do
 
   @type workstation :: term
   @type partition :: :robot | :monarch | :gripper | :fixture | :vacuum | :hydraulic
-  @type status :: :none | :executing | :done | {:error, String.t()}
+  @typedoc """
+  A command status. `{:no_data, why}`: not known — the journal could not restore it
+  (`Vws.CEC.Journal`), answered `NO DATA (why)`.
+  """
+  @type status :: :none | :executing | :done | {:error, String.t()} | {:no_data, String.t()}
+
+  # what a command whose change could not be made durable ends with (`Vws.CEC.Journal`)
+  @journal_failed {:error, "JOURNAL WRITE FAILED"}
 
   @device_locations %{
     1 => "GRIPPER",
@@ -204,17 +212,31 @@ defmodule Vws.CEC.Mailbox do
   Hands a command to a partition, atomically: refused with `{:busy, number}` while the partition's
   previous command is in flight, otherwise records it in flight, writes CMD_IN and sets the
   command status to `:executing`.
+
+  Durable or refused: when the journal cannot record the dispatch, the command is not handed
+  over — its status is `ERROR JOURNAL WRITE FAILED` (in memory) and the result
+  `{:error, "JOURNAL WRITE FAILED"}`; it must not run.
   """
-  @spec dispatch(workstation, partition, 0..9999, String.t()) :: :ok | {:busy, 0..9999}
+  @spec dispatch(workstation, partition, 0..9999, String.t()) ::
+          :ok | {:busy, 0..9999} | {:error, String.t()}
   def dispatch(ws, partition, number, text) when partition in @partitions do
     table = table(ws)
 
     if :ets.insert_new(table, {{:in_flight, partition}, number}) do
-      journal(table, {:status, partition, number, :executing, text})
-      :ets.insert(table, {{:cmd_in, partition}, number, text})
-      :ets.insert(table, {{:command_status, partition}, number, :executing})
-      changed(ws, {:command, partition, number, :executing, text})
-      :ok
+      case journal(table, {:status, partition, number, :executing, text}) do
+        :ok ->
+          :ets.insert(table, {{:cmd_in, partition}, number, text})
+          :ets.insert(table, {{:command_status, partition}, number, :executing})
+          changed(ws, {:command, partition, number, :executing, text})
+          :ok
+
+        :failed ->
+          :ets.insert(table, {{:cmd_in, partition}, number, text})
+          :ets.insert(table, {{:command_status, partition}, number, @journal_failed})
+          :ets.delete(table, {:in_flight, partition})
+          changed(ws, {:command, partition, number, @journal_failed, text})
+          @journal_failed
+      end
     else
       case :ets.lookup(table, {:in_flight, partition}) do
         [{_, busy}] -> {:busy, busy}
@@ -239,6 +261,9 @@ defmodule Vws.CEC.Mailbox do
   The status location is only written while it still shows `number` (a newer command refused as
   busy keeps its own answer). Returns `:ok`, or `:not_in_flight` when `number` was not the
   partition's command in flight (nothing is written then).
+
+  When the journal cannot record the end, the command ends `ERROR JOURNAL WRITE FAILED`
+  instead of `status`: an end that is not on disk is never shown as DONE.
   """
   @spec finish(workstation, partition, 0..9999, :done | {:error, String.t()}) ::
           :ok | :not_in_flight
@@ -247,7 +272,11 @@ defmodule Vws.CEC.Mailbox do
 
     case :ets.select_delete(table, [{{{:in_flight, partition}, number}, [], [true]}]) do
       1 ->
-        journal(table, {:finish, partition, number, status})
+        status =
+          case journal(table, {:finish, partition, number, status}) do
+            :ok -> status
+            :failed -> @journal_failed
+          end
 
         if compare_and_set_status(table, partition, number, status) == 1,
           do: changed(ws, {:command, partition, number, status, nil})
@@ -261,16 +290,26 @@ defmodule Vws.CEC.Mailbox do
 
   @doc """
   Sets the status of command `number` of a partition that is not (or no longer) run: a command
-  refused by a rule of SUN_COMM. It does not touch the command in flight.
+  refused by a rule of SUN_COMM. It does not touch the command in flight. A set with no
+  status location (`:status`, `:ack`) keeps none: nothing is written. A status the journal
+  could not record reads `ERROR JOURNAL WRITE FAILED`.
   """
-  @spec put_status(workstation, partition, 0..9999, status) :: :ok
-  def put_status(ws, partition, number, status) do
+  @spec put_status(workstation, partition | atom, 0..9999, status) :: :ok
+  def put_status(ws, partition, number, status) when partition in @partitions do
     table = table(ws)
-    journal(table, {:status, partition, number, status})
+
+    status =
+      case journal(table, {:status, partition, number, status}) do
+        :ok -> status
+        :failed -> @journal_failed
+      end
+
     :ets.insert(table, {{:command_status, partition}, number, status})
     changed(ws, {:command, partition, number, status, nil})
     :ok
   end
+
+  def put_status(_ws, set, _number, _status) when is_atom(set), do: :ok
 
   @doc """
   Attaches the recorder (a module with this module's callbacks, `Vws.CEC.Journal`) that is given
@@ -302,14 +341,20 @@ defmodule Vws.CEC.Mailbox do
     end
   end
 
-  # Durable before visible: the journal (when the workstation has one) gets the change first.
+  # Durable before visible: the journal (when the workstation has one) gets the change first;
+  # :failed when it could not be made durable (the journal has logged why).
   defp journal(table, record) do
     case record(table, record) do
       :ok ->
         :ok
 
       {:error, reason} ->
-        Logger.error("journal write failed (#{inspect(reason)}): #{inspect(record, limit: 8)}")
+        Logger.error(
+          "journal write failed (#{inspect(reason)}): ends ERROR JOURNAL WRITE FAILED: " <>
+            inspect(record, limit: 8)
+        )
+
+        :failed
     end
   end
 
@@ -320,17 +365,36 @@ defmodule Vws.CEC.Mailbox do
   @spec put_unknown_status(workstation, String.t(), 0..9999, status) :: :ok
   def put_unknown_status(ws, letter, number, status) do
     table = table(ws)
-    journal(table, {:unknown_status, letter, number, status})
+
+    status =
+      case journal(table, {:unknown_status, letter, number, status}) do
+        :ok -> status
+        :failed -> @journal_failed
+      end
+
     :ets.insert(table, {{:unknown_status, letter}, number, status})
     :ok
   end
 
-  @doc "The status of the last command of an unknown set letter: `{number | nil, status}`."
+  @doc """
+  The status of the last command of an unknown set letter: `{number | nil, status}`; for a
+  letter never seen `{nil, :none}` — or `{nil, {:no_data, why}}` when a damaged journal could
+  not tell whether one was seen.
+  """
   @spec unknown_status(workstation, String.t()) :: {0..9999 | nil, status}
   def unknown_status(ws, letter) do
-    case :ets.lookup(table(ws), {:unknown_status, letter}) do
+    table = table(ws)
+
+    case :ets.lookup(table, {:unknown_status, letter}) do
       [{_, number, status}] -> {number, status}
-      [] -> {nil, :none}
+      [] -> {nil, unknown_default(table)}
+    end
+  end
+
+  defp unknown_default(table) do
+    case :ets.lookup(table, :unknown_status_default) do
+      [{_, status}] -> status
+      [] -> :none
     end
   end
 
@@ -422,12 +486,14 @@ defmodule Vws.CEC.Mailbox do
             }
           },
           last_string: {non_neg_integer | nil, binary | nil},
-          unknown: %{String.t() => {0..9999 | nil, status}}
+          unknown: %{String.t() => {0..9999 | nil, status}},
+          unknown_default: status
         }
 
   @doc """
   The restorable part of the mailboxes: per partition its last command's number and status and
-  its CMD_IN, the last string, and the statuses of unknown set letters.
+  its CMD_IN, the last string, and the statuses of unknown set letters (`unknown_default`: that
+  of a letter never seen, `:none` unless a damaged journal could not tell).
   """
   @spec dump(:ets.tid()) :: dump
   def dump(table) do
@@ -446,12 +512,17 @@ defmodule Vws.CEC.Mailbox do
           into: %{},
           do: {letter, {n, status}}
 
-    %{partitions: partitions, last_string: {seq, line}, unknown: unknown}
+    %{
+      partitions: partitions,
+      last_string: {seq, line},
+      unknown: unknown,
+      unknown_default: unknown_default(table)
+    }
   end
 
   @doc "Writes a `dump/1` back into the mailboxes (nothing is recorded)."
   @spec load(:ets.tid(), dump) :: :ok
-  def load(table, %{partitions: partitions, last_string: {seq, line}, unknown: unknown}) do
+  def load(table, %{partitions: partitions, last_string: {seq, line}, unknown: unknown} = dump) do
     for {p, %{number: number, status: status, cmd_in: {in_n, in_text}}} <- partitions do
       :ets.insert(table, {{:command_status, p}, number, status})
       :ets.insert(table, {{:cmd_in, p}, in_n, in_text})
@@ -459,9 +530,12 @@ defmodule Vws.CEC.Mailbox do
 
     :ets.insert(table, {:last_string, seq, line})
 
+    :ets.match_delete(table, {{:unknown_status, :_}, :_, :_})
+
     for {letter, {n, status}} <- unknown,
         do: :ets.insert(table, {{:unknown_status, letter}, n, status})
 
+    :ets.insert(table, {:unknown_status_default, Map.get(dump, :unknown_default, :none)})
     :ok
   end
 
@@ -471,6 +545,7 @@ defmodule Vws.CEC.Mailbox do
   def status_word(:executing), do: "EXECUTING"
   def status_word(:done), do: "DONE"
   def status_word({:error, reason}), do: "ERROR " <> reason
+  def status_word({:no_data, why}), do: "NO DATA (" <> why <> ")"
 
   @doc """
   A device-status value in words, as a person reads it: the text itself; `{:no_data, why}` as

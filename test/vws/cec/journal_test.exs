@@ -2,6 +2,7 @@ defmodule Vws.CEC.JournalTest do
   use ExUnit.Case, async: true
 
   alias Vws.CEC.{Mailbox, Workstation}
+  alias Vws.CEC.Journal.Log
   alias Vws.Test.{Eventually, WCPeer}
 
   @moduletag :tmp_dir
@@ -99,44 +100,231 @@ defmodule Vws.CEC.JournalTest do
     assert held.() == [{:table, :robot, [:disabled]}, {:table, :fixture, [:vise]}]
   end
 
-  test "a torn last record is cut off and the records before it are kept", %{tmp_dir: dir} do
+  # the whole workstation killed and started again on the same journal directory, its log kept
+  defp restart(id, dir) do
+    :ok = stop_supervised(id)
+    ExUnit.CaptureLog.capture_log(fn -> start_ws(id, dir) end)
+  end
+
+  defp journal_file(dir), do: Path.join(dir, "journal.log")
+
+  defp statuses(id), do: Map.new(Mailbox.partitions(), &{&1, Mailbox.command_status(id, &1)})
+
+  test "a record torn by a power loss mid-write: the statuses it could have changed say so, loudly",
+       %{tmp_dir: dir} do
     id = "torn-#{System.unique_integer([:positive])}"
     start_ws(id, dir)
     :ok = Mailbox.dispatch(id, :gripper, 4, "OPEN")
     :ok = Mailbox.finish(id, :gripper, 4, :done)
-
-    # power lost: the log process dies without closing its files …
-    [log_pid] =
-      for {_, pid, _, _} <- Supervisor.which_children(:disk_log_sup),
-          :disk_log.pid2name(pid) == {:ok, {:vws_journal, id}},
-          do: pid
-
-    Process.exit(log_pid, :kill)
     :ok = stop_supervised(id)
 
-    # … in the middle of writing one more record
-    [current] = Path.wildcard(Path.join(dir, "journal.[0-9]*"))
-    File.write!(current, <<0, 0, 0, 40, 0x12, 0x34, 0x56, 0x78, 131, 104, 4>>, [:append])
+    # the next record, written over the end mark, half of it on disk
+    bin = File.read!(journal_file(dir))
+    torn = binary_part(Log.record({:finish, :vacuum, 9, :done}), 0, 20)
+    File.write!(journal_file(dir), binary_part(bin, 0, byte_size(bin) - 15) <> torn)
 
     log =
       ExUnit.CaptureLog.capture_log(fn ->
         start_ws(id, dir)
-        assert Mailbox.command_status(id, :gripper) == {4, :done}
+
+        for p <- Mailbox.partitions(),
+            do: assert(Mailbox.command_status(id, p) == {nil, {:no_data, "JOURNAL DAMAGED"}})
       end)
 
-    assert log =~ "repaired" or log =~ "unreadable"
+    assert log =~ "damaged at byte #{byte_size(bin) - 15}"
+    assert log =~ "LAST RECORD CUT SHORT"
+    assert [aside] = Path.wildcard(Path.join(dir, "journal.damaged-*"))
+    assert File.read!(aside) == binary_part(bin, 0, byte_size(bin) - 15) <> torn
 
-    # and the next restart finds the journal whole again (it was compacted on open)
-    :ok = Mailbox.dispatch(id, :gripper, 5, "CLOSE")
-    :ok = stop_supervised(id)
+    {:ok, peer} = WCPeer.connect("loopback:wc-#{id}")
+    assert WCPeer.status(peer, 1, 1, "GRIPPER_CMD") == "0000NO DATA (JOURNAL DAMAGED)"
+    assert WCPeer.status(peer, 2, 1, "Q_CMD") == "0000NO DATA (JOURNAL DAMAGED)"
 
-    quiet =
-      ExUnit.CaptureLog.capture_log(fn ->
-        start_ws(id, dir)
-        assert Mailbox.command_status(id, :gripper) == {5, {:error, "INTERRUPTED BY RESTART"}}
-      end)
+    # a new command makes its status known again; the others stay unknown across restarts
+    WCPeer.send_string(peer, 3, [{"V", 7, "ON"}])
+    assert WCPeer.recv_line(peer) =~ "05A0003"
 
-    refute quiet =~ "unreadable"
+    assert WCPeer.await_status(peer, 4, "VACUUM_CMD", &(&1 =~ "ERROR")) ==
+             "0007ERROR NO LINK TO DAQ #1"
+
+    WCPeer.close(peer)
+    quiet = restart(id, dir)
+    refute quiet =~ "damaged"
+    assert Mailbox.command_status(id, :vacuum) == {7, {:error, "NO LINK TO DAQ #1"}}
+    assert Mailbox.command_status(id, :gripper) == {nil, {:no_data, "JOURNAL DAMAGED"}}
+  end
+
+  test "the rule-2 string *0001*S0001VISE*G0001OPEN* survives a kill and a stop: the workstation starts again",
+       %{tmp_dir: dir} do
+    id = "rule2-#{System.unique_integer([:positive])}"
+    sup = start_ws(id, dir)
+    {:ok, peer} = WCPeer.connect("loopback:wc-#{id}")
+    WCPeer.send_line(peer, Vws.Test.Acceptance.wc_frame("*0001*S0001VISE*G0001OPEN*"))
+    assert WCPeer.recv_line(peer) =~ "05A0001"
+    expected = "0001ERROR RULE 2 STATUS COMMAND NOT ALONE"
+    assert WCPeer.status(peer, 2, 2, "GRIPPER_CMD") == expected
+    WCPeer.close(peer)
+
+    Process.exit(sup, :kill)
+
+    assert Eventually.eventually(fn ->
+             Workstation.whereis(id) not in [nil, sup] and listening?(id)
+           end)
+
+    assert Mailbox.command_status(id, :gripper) ==
+             {1, {:error, "RULE 2 STATUS COMMAND NOT ALONE"}}
+
+    log = restart(id, dir)
+    refute log =~ "damaged"
+    {:ok, peer} = WCPeer.connect("loopback:wc-#{id}")
+    assert WCPeer.status(peer, 3, 3, "GRIPPER_CMD") == expected
+    assert WCPeer.status(peer, 4, 4, "VISE_CMD") == "0000NONE"
+  end
+
+  defp listening?(id) do
+    Vws.CEC.SunComm.listening(id) != nil
+  catch
+    :exit, _ -> false
+  end
+
+  test "records an earlier version wrote restore, the status of set S too (nothing to restore)",
+       %{tmp_dir: dir} do
+    id = "old-#{System.unique_integer([:positive])}"
+
+    File.write!(
+      journal_file(dir),
+      Enum.map(
+        [
+          {:string, 1, "*0001*S0001VISE*G0001OPEN*", [{:gripper, 1}]},
+          {:status, :status, 1, {:error, "RULE 2 STATUS COMMAND NOT ALONE"}},
+          {:status, :gripper, 1, {:error, "RULE 2 STATUS COMMAND NOT ALONE"}},
+          {:status, :fixture, 3, :executing, "OPEN"},
+          {:finish, :fixture, 3, :done},
+          {:unknown_status, "Q", 5, {:error, "UNKNOWN COMMAND SET Q"}}
+        ],
+        &Log.record/1
+      ) ++ [Log.end_mark()]
+    )
+
+    log = ExUnit.CaptureLog.capture_log(fn -> start_ws(id, dir) end)
+    refute log =~ "damaged"
+
+    assert Mailbox.command_status(id, :gripper) ==
+             {1, {:error, "RULE 2 STATUS COMMAND NOT ALONE"}}
+
+    assert Mailbox.command_status(id, :fixture) == {3, :done}
+    assert Mailbox.cmd_in(id, :fixture) == {3, "OPEN"}
+    assert Mailbox.unknown_status(id, "Q") == {5, {:error, "UNKNOWN COMMAND SET Q"}}
+    assert Mailbox.unknown_status(id, "Z") == {nil, :none}
+    assert Mailbox.last_string(id) == {1, "*0001*S0001VISE*G0001OPEN*"}
+    assert Path.wildcard(Path.join(dir, "journal.damaged-*")) == []
+  end
+
+  test "an empty or random journal starts with every status unknown, in words, and is kept aside",
+       %{tmp_dir: dir} do
+    for {content, n} <- [{"", 1}, {:crypto.strong_rand_bytes(3_000), 2}] do
+      id = "random-#{n}-#{System.unique_integer([:positive])}"
+      jdir = Path.join(dir, "#{n}")
+      File.mkdir_p!(jdir)
+      File.write!(journal_file(jdir), content)
+      log = ExUnit.CaptureLog.capture_log(fn -> start_ws(id, jdir) end)
+      assert log =~ "damaged at byte 0"
+      assert log =~ "a copy is kept as #{jdir}/journal.damaged-"
+
+      assert statuses(id) ==
+               Map.new(Mailbox.partitions(), &{&1, {nil, {:no_data, "JOURNAL DAMAGED"}}})
+
+      assert Mailbox.unknown_status(id, "Q") == {nil, {:no_data, "JOURNAL DAMAGED"}}
+      assert [_] = Path.wildcard(Path.join(jdir, "journal.damaged-*"))
+      # the WC link and the partitions work
+      :ok = Mailbox.dispatch(id, :gripper, 1, "OPEN")
+      :ok = Mailbox.finish(id, :gripper, 1, :done)
+      assert Mailbox.command_status(id, :gripper) == {1, :done}
+      :ok = stop_supervised(id)
+    end
+  end
+
+  test "a random or empty journal.1 of the old disk_log format: started with everything unknown",
+       %{tmp_dir: dir} do
+    for {content, n} <- [{"", 1}, {:crypto.strong_rand_bytes(3_000), 2}] do
+      id = "oldrandom-#{n}-#{System.unique_integer([:positive])}"
+      jdir = Path.join(dir, "#{n}")
+      File.mkdir_p!(jdir)
+      File.write!(Path.join(jdir, "journal.1"), content)
+      log = ExUnit.CaptureLog.capture_log(fn -> start_ws(id, jdir) end)
+      assert log =~ "damaged at byte"
+      assert Mailbox.command_status(id, :vacuum) == {nil, {:no_data, "JOURNAL DAMAGED"}}
+      assert [_] = Path.wildcard(Path.join(jdir, "journal.disk_log-*"))
+      refute File.exists?(Path.join(jdir, "journal.1"))
+      :ok = stop_supervised(id)
+    end
+  end
+
+  test "a journal of the old disk_log format is read once and moved aside", %{tmp_dir: dir} do
+    name = {:old_format, make_ref()}
+
+    {:ok, ^name} =
+      :disk_log.open(
+        name: name,
+        file: String.to_charlist(Path.join(dir, "journal")),
+        type: :wrap,
+        size: {64 * 1024, 4}
+      )
+
+    :ok =
+      :disk_log.log(
+        name,
+        {:snapshot,
+         %{
+           partitions:
+             Map.new(
+               Mailbox.partitions(),
+               &{&1, %{number: nil, status: :none, cmd_in: {nil, nil}}}
+             ),
+           last_string: {nil, nil}
+         }}
+      )
+
+    :ok = :disk_log.log(name, {:status, :vacuum, 3, :executing, "ON"})
+    :ok = :disk_log.log(name, {:finish, :vacuum, 3, :done})
+    :ok = :disk_log.close(name)
+
+    id = "oldformat-#{System.unique_integer([:positive])}"
+    ExUnit.CaptureLog.capture_log(fn -> start_ws(id, dir) end)
+    assert Mailbox.command_status(id, :vacuum) == {3, :done}
+    assert Mailbox.command_status(id, :robot) == {nil, :none}
+    assert File.exists?(journal_file(dir))
+    refute File.exists?(Path.join(dir, "journal.1"))
+  end
+
+  test "a record this version cannot apply: only what it could have changed is unknown",
+       %{tmp_dir: dir} do
+    id = "newer-#{System.unique_integer([:positive])}"
+
+    frames = [
+      Log.record({:status, :fixture, 3, :executing, "OPEN"}),
+      Log.record({:status, :vacuum, 4, :done}),
+      # a status of a shape this version does not know: its partition only
+      Log.record({:status, :vacuum, 5, {:paused, 3}}),
+      Log.record({:status, :gripper, 6, :done}),
+      # a frame of a kind a newer version writes: anything could have changed
+      Log.frame(7, "whatever a newer version says"),
+      Log.record({:status, :gripper, 8, {:error, "X"}}),
+      Log.end_mark()
+    ]
+
+    File.write!(journal_file(dir), frames)
+    log = ExUnit.CaptureLog.capture_log(fn -> start_ws(id, dir) end)
+    assert log =~ "RECORD OF UNKNOWN SHAPE"
+    assert log =~ "FRAME OF UNKNOWN KIND 7"
+    assert Mailbox.command_status(id, :gripper) == {8, {:error, "X"}}
+    unreadable = {nil, {:no_data, "JOURNAL RECORD UNREADABLE"}}
+    assert Mailbox.command_status(id, :vacuum) == unreadable
+    assert Mailbox.command_status(id, :fixture) == unreadable
+    assert Mailbox.command_status(id, :robot) == unreadable
+
+    {:ok, peer} = WCPeer.connect("loopback:wc-#{id}")
+    assert WCPeer.status(peer, 1, 1, "FIXTURE_CMD") == "0000NO DATA (JOURNAL RECORD UNREADABLE)"
   end
 
   test "the journal is bounded and the newest state survives the wrap", %{tmp_dir: dir} do
@@ -153,8 +341,7 @@ defmodule Vws.CEC.JournalTest do
     :ok = Mailbox.dispatch(id, :robot, 77, "WHERE")
     :ok = stop_supervised(id)
 
-    sizes = for f <- Path.wildcard(Path.join(dir, "journal.*")), do: File.stat!(f).size
-    assert Enum.sum(sizes) < 4 * 4_000 + 1_000
+    assert File.stat!(journal_file(dir)).size < 4_000 + 1_000
 
     start_ws(id, dir)
     assert Mailbox.command_status(id, :vacuum) == {400, :done}

@@ -594,6 +594,10 @@ defmodule Vws.CEC.SunComm.Server do
         Mailbox.put_status(ws, set, number, {:error, "BUSY #{Command.pad4(previous)}"})
         {data, nil}
 
+      {:error, _journal_write_failed} ->
+        # not durable, so not run: its status says so (Mailbox.dispatch/4)
+        {data, nil}
+
       :ok ->
         Vws.Telemetry.execute([:vws, :partition, :command_dispatched], %{count: 1}, %{
           workstation: ws,
