@@ -157,7 +157,7 @@ defmodule Vws.CEC.Journal do
     dir = GenServer.call(Vws.Names.via(ws, :journal), :dir)
 
     for {:record, _off, payload} <- Log.parse(File.read!(Path.join(dir, @file_name))),
-        do: :erlang.binary_to_term(payload, [:safe])
+        do: :erlang.binary_to_term(payload)
   end
 
   @doc """

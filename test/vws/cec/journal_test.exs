@@ -297,6 +297,24 @@ defmodule Vws.CEC.JournalTest do
     refute File.exists?(Path.join(dir, "journal.1"))
   end
 
+  test "a lease whose atoms do not exist yet when the journal opens (their modules not loaded) restores",
+       %{tmp_dir: dir} do
+    # a record naming an atom this VM has never seen: written with a placeholder, renamed
+    placeholder = :journal_test_placeholder_reason
+    fresh = "r" <> Base.encode32(:crypto.strong_rand_bytes(25), case: :lower, padding: false)
+    fresh = binary_part(fresh, 0, byte_size(Atom.to_string(placeholder)))
+    bin = :erlang.term_to_binary({:lease, :table, :robot, [placeholder]})
+    bin = :binary.replace(bin, Atom.to_string(placeholder), fresh)
+    File.write!(journal_file(dir), [Log.frame(1, bin), Log.end_mark()])
+
+    id = "atoms-#{System.unique_integer([:positive])}"
+    log = ExUnit.CaptureLog.capture_log(fn -> start_ws(id, dir) end)
+    refute log =~ "damaged"
+
+    assert [%{volume: :table, holder: :robot, reasons: [reason]}] = Vws.CEC.Interlock.held(id)
+    assert Atom.to_string(reason) == fresh
+  end
+
   test "a record this version cannot apply: only what it could have changed is unknown",
        %{tmp_dir: dir} do
     id = "newer-#{System.unique_integer([:positive])}"

@@ -10,8 +10,9 @@ defmodule Vws.CEC.Journal.Replay do
   ## What cannot be applied
 
   A record is checked before it is applied: its frame's checksums (`Vws.CEC.Journal.Log`), then
-  that it decodes (`binary_to_term/2` with `:safe`: no atom this version does not know), then its
-  shape — every field of the kind and range the live system writes. What fails is a *problem*
+  that it decodes (only a frame whose CRC-32s hold is decoded), then its shape — every field of
+  the kind and range the live system writes; a partition, status or tag this version does not
+  know is refused. What fails is a *problem*
   `{offset, why}`, and everything the lost bytes could have changed is marked unknown from that
   point: a command status reads `NO DATA (JOURNAL DAMAGED)` (the bytes are no frame: damaged,
   cut short, the end mark missing) or `NO DATA (JOURNAL RECORD UNREADABLE)` (a whole frame whose
@@ -70,8 +71,13 @@ defmodule Vws.CEC.Journal.Replay do
     {state, Enum.reverse(problems)}
   end
 
+  # Decoded only once both CRC-32s of its frame hold: bytes this journal wrote. Not with `:safe`:
+  # the atoms of work volumes and lease reasons (`:tray1`, `:inside`) exist only once the modules
+  # naming them are loaded, which at the start they may not be yet (a restarted node), and
+  # `:safe` refused them — the leases of a robot inside the vise were lost. The shape check
+  # below refuses what this version does not know.
   defp item({:record, off, payload}) do
-    {:ok, :erlang.binary_to_term(payload, [:safe])}
+    {:ok, :erlang.binary_to_term(payload)}
   rescue
     ArgumentError -> {:unreadable, off, "RECORD NOT DECODABLE (WRITTEN BY A NEWER VERSION?)"}
   end
