@@ -313,6 +313,14 @@ defmodule Vws.CEC.Journal do
     end
   end
 
+  def handle_call({:store_lines, key, _lines}, _from, %{healthy: {:error, since, why}} = s) do
+    Logger.error(
+      "journal not healthy since #{since} (#{why}): #{key} not stored, the old one kept"
+    )
+
+    {:reply, {:error, :not_healthy}, s}
+  end
+
   def handle_call({:store_lines, key, lines}, _from, s) do
     case write_whole(Path.join(s.dir, Atom.to_string(key)), lines) do
       :ok ->
