@@ -290,7 +290,8 @@ defmodule Vws.CEC.Journal do
   @impl true
   def handle_call({:record, record}, _from, %{healthy: {:error, since, why}} = s) do
     Logger.error(
-      "journal not healthy since #{since} (#{why}): #{what(record)} refused " <>
+      "journal of #{inspect(s.workstation)} not healthy since #{since} (#{why}): " <>
+        "#{what(record)} refused " <>
         "(ERROR JOURNAL WRITE FAILED); a fresh snapshot is tried every #{s.retry_ms} ms"
     )
 
@@ -304,7 +305,8 @@ defmodule Vws.CEC.Journal do
     else
       {:error, why, s} ->
         Logger.error(
-          "journal write failed (#{words(why)}): #{what(record)} not recorded " <>
+          "journal of #{inspect(s.workstation)}: write failed (#{words(why)}): " <>
+            "#{what(record)} not recorded " <>
             "(ERROR JOURNAL WRITE FAILED); the workstation accepts no work until a fresh " <>
             "snapshot is written"
         )
@@ -315,7 +317,8 @@ defmodule Vws.CEC.Journal do
 
   def handle_call({:store_lines, key, _lines}, _from, %{healthy: {:error, since, why}} = s) do
     Logger.error(
-      "journal not healthy since #{since} (#{why}): #{key} not stored, the old one kept"
+      "journal of #{inspect(s.workstation)} not healthy since #{since} (#{why}): " <>
+        "#{key} not stored, the old one kept"
     )
 
     {:reply, {:error, :not_healthy}, s}
@@ -327,7 +330,11 @@ defmodule Vws.CEC.Journal do
         {:reply, :ok, s}
 
       {:error, why} ->
-        Logger.error("#{key} not stored (#{words(why)}): the old program is kept")
+        Logger.error(
+          "journal of #{inspect(s.workstation)}: #{key} not stored (#{words(why)}): " <>
+            "the old program is kept"
+        )
+
         {:reply, {:error, why}, not_healthy(s, why)}
     end
   end

@@ -131,8 +131,8 @@ defmodule Vws.CEC.JournalTest do
             do: assert(Mailbox.command_status(id, p) == {nil, {:no_data, "JOURNAL DAMAGED"}})
       end)
 
-    assert log =~ "damaged at byte #{byte_size(bin) - 15}"
-    assert log =~ "LAST RECORD CUT SHORT"
+    assert log =~ "journal of #{inspect(id)} damaged at byte #{byte_size(bin) - 15}"
+    assert log =~ ~r/journal of "#{id}" damaged at byte \d+ of \S+: LAST RECORD CUT SHORT/
     assert [aside] = Path.wildcard(Path.join(dir, "journal.damaged-*"))
     assert File.read!(aside) == binary_part(bin, 0, byte_size(bin) - 15) <> torn
 
@@ -149,7 +149,7 @@ defmodule Vws.CEC.JournalTest do
 
     WCPeer.close(peer)
     quiet = restart(id, dir)
-    refute quiet =~ "damaged"
+    refute quiet =~ "journal of #{inspect(id)} damaged"
     assert Mailbox.command_status(id, :vacuum) == {7, {:error, "NO LINK TO DAQ #1"}}
     assert Mailbox.command_status(id, :gripper) == {nil, {:no_data, "JOURNAL DAMAGED"}}
   end
@@ -175,7 +175,7 @@ defmodule Vws.CEC.JournalTest do
              {1, {:error, "RULE 2 STATUS COMMAND NOT ALONE"}}
 
     log = restart(id, dir)
-    refute log =~ "damaged"
+    refute log =~ "journal of #{inspect(id)} damaged"
     {:ok, peer} = WCPeer.connect("loopback:wc-#{id}")
     assert WCPeer.status(peer, 3, 3, "GRIPPER_CMD") == expected
     assert WCPeer.status(peer, 4, 4, "VISE_CMD") == "0000NONE"
@@ -207,7 +207,7 @@ defmodule Vws.CEC.JournalTest do
     )
 
     log = ExUnit.CaptureLog.capture_log(fn -> start_ws(id, dir) end)
-    refute log =~ "damaged"
+    refute log =~ "journal of #{inspect(id)} damaged"
 
     assert Mailbox.command_status(id, :gripper) ==
              {1, {:error, "RULE 2 STATUS COMMAND NOT ALONE"}}
@@ -228,7 +228,7 @@ defmodule Vws.CEC.JournalTest do
       File.mkdir_p!(jdir)
       File.write!(journal_file(jdir), content)
       log = ExUnit.CaptureLog.capture_log(fn -> start_ws(id, jdir) end)
-      assert log =~ "damaged at byte 0"
+      assert log =~ "journal of #{inspect(id)} damaged at byte 0"
       assert log =~ "a copy is kept as #{jdir}/journal.damaged-"
 
       assert statuses(id) ==
@@ -252,7 +252,7 @@ defmodule Vws.CEC.JournalTest do
       File.mkdir_p!(jdir)
       File.write!(Path.join(jdir, "journal.1"), content)
       log = ExUnit.CaptureLog.capture_log(fn -> start_ws(id, jdir) end)
-      assert log =~ "damaged at byte"
+      assert log =~ "journal of #{inspect(id)} damaged at byte"
       assert Mailbox.command_status(id, :vacuum) == {nil, {:no_data, "JOURNAL DAMAGED"}}
       assert [_] = Path.wildcard(Path.join(jdir, "journal.disk_log-*"))
       refute File.exists?(Path.join(jdir, "journal.1"))
@@ -309,7 +309,7 @@ defmodule Vws.CEC.JournalTest do
 
     id = "atoms-#{System.unique_integer([:positive])}"
     log = ExUnit.CaptureLog.capture_log(fn -> start_ws(id, dir) end)
-    refute log =~ "damaged"
+    refute log =~ "journal of #{inspect(id)} damaged"
 
     assert [%{volume: :table, holder: :robot, reasons: [reason]}] = Vws.CEC.Interlock.held(id)
     assert Atom.to_string(reason) == fresh
@@ -333,8 +333,8 @@ defmodule Vws.CEC.JournalTest do
 
     File.write!(journal_file(dir), frames)
     log = ExUnit.CaptureLog.capture_log(fn -> start_ws(id, dir) end)
-    assert log =~ "RECORD OF UNKNOWN SHAPE"
-    assert log =~ "FRAME OF UNKNOWN KIND 7"
+    assert log =~ ~r/journal of "#{id}" damaged at byte \d+ of \S+: RECORD OF UNKNOWN SHAPE/
+    assert log =~ ~r/journal of "#{id}" damaged at byte \d+ of \S+: FRAME OF UNKNOWN KIND 7/
     assert Mailbox.command_status(id, :gripper) == {8, {:error, "X"}}
     unreadable = {nil, {:no_data, "JOURNAL RECORD UNREADABLE"}}
     assert Mailbox.command_status(id, :vacuum) == unreadable

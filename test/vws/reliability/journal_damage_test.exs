@@ -203,10 +203,10 @@ defmodule Vws.Reliability.JournalDamageTest do
             # loud: anything not restored as it was is logged and the file kept aside
             quiet? =
               if damage == :none,
-                do: restored == truth and not (log =~ "damaged"),
+                do: restored == truth and not (log =~ "journal of #{inspect(id)} damaged"),
                 else:
                   restored == truth or
-                    (log =~ "damaged at byte" and
+                    (log =~ "journal of #{inspect(id)} damaged at byte" and
                        Enum.any?(File.ls!(jdir), &String.starts_with?(&1, "journal.damaged-")))
 
             (bad == [] and quiet?) or

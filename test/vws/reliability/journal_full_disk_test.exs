@@ -100,8 +100,10 @@ defmodule Vws.Reliability.JournalFullDiskTest do
         send(self(), {:last, n})
       end)
 
-    assert log =~ "ERROR JOURNAL WRITE FAILED"
-    assert log =~ "no space left on device"
+    assert log =~
+             ~r/journal of "#{id}": write failed \(no space left on device\): .* \(ERROR JOURNAL WRITE FAILED\)/
+
+    assert log =~ ~r/journal of "#{id}" not healthy since .*: string 0300 refused/
     assert_received {:last, last}
 
     # no torn record in the log: it ends whole, with its end mark
@@ -115,7 +117,7 @@ defmodule Vws.Reliability.JournalFullDiskTest do
         assert Eventually.eventually(fn -> Journal.health(id) == :ok end, 10_000)
       end)
 
-    assert log =~ "healthy again"
+    assert log =~ "journal of #{inspect(id)} healthy again"
     n = last + 1
     WCPeer.send_string(peer, n, [{"V", n, "ON"}])
     assert WCPeer.recv_line(peer) =~ "05A#{Vws.Codecs.WC.Command.pad4(n)}"

@@ -173,7 +173,7 @@ defmodule Vws.Reliability.JournalRestartTest do
 
             ok? =
               now == expected and Mailbox.last_string(id) == last_string and
-                not (log =~ "damaged") and
+                not (log =~ "journal of #{inspect(id)} damaged") and
                 (refute_receive({:executing, _, _, _}, 50) || true)
 
             :ok = stop_supervised(id)
