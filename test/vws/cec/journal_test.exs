@@ -293,6 +293,7 @@ defmodule Vws.CEC.JournalTest do
     # killed as by kill -9: the log is not closed, the next open must repair it (the log is
     # linked to its opener, this test)
     Process.flag(:trap_exit, true)
+
     [log_pid] =
       for {_, pid, _, _} <- Supervisor.which_children(:disk_log_sup),
           :disk_log.pid2name(pid) == {:ok, name},

@@ -191,6 +191,66 @@ defmodule Vws.Reliability.JournalRestartTest do
     assert_property(property, 100)
   end
 
+  test "killed at any point of a WC session, it starts again: nothing EXECUTING, nothing damaged, nothing run twice",
+       %{tmp_dir: dir} do
+    property =
+      :proper.forall(
+        tuple([resize(12, non_empty(list(line()))), range(0, 1_000)]),
+        fn {lines, at} ->
+          reporting(fn ->
+            id = "midkill-#{System.unique_integer([:positive])}"
+            jdir = Path.join(dir, id)
+            sup = start_ws(id, jdir)
+            {:ok, peer} = WCPeer.connect("loopback:wc-#{id}")
+            stop_at = rem(at, length(lines)) + 1
+
+            # the lines up to the chosen one, the last of them unanswered when the node dies
+            Enum.reduce_while(Enum.with_index(lines, 1), nil, fn {l, seq}, last ->
+              last = send_line(peer, l, seq, last)
+
+              if seq == stop_at,
+                do: {:halt, last},
+                else:
+                  {:cont,
+                   (
+                     WCPeer.recv_line(peer, 10_000)
+                     last
+                   )}
+            end)
+
+            log =
+              ExUnit.CaptureLog.capture_log(fn ->
+                Process.exit(sup, :kill)
+
+                assert Eventually.eventually(
+                         fn -> Workstation.whereis(id) not in [nil, sup] and listening?(id) end,
+                         15_000
+                       )
+              end)
+
+            flush_executing()
+            now = answers(id)
+
+            bad =
+              for p <-
+                    ~w(ROBOT_CMD MONARCH_CMD GRIPPER_CMD FIXTURE_CMD VACUUM_CMD HYDRAULIC_CMD Q_CMD Z_CMD K_CMD),
+                  not (now[p] =~ ~r/^\d{4}(NONE|DONE|ERROR [A-Z0-9 #().,:\/_-]+)$/),
+                  do: {p, now[p]}
+
+            ok? =
+              bad == [] and not (log =~ "journal of #{inspect(id)} damaged") and
+                (refute_receive({:executing, _, _, _}, 50) || true)
+
+            WCPeer.close(peer)
+            :ok = stop_supervised(id)
+            ok? or tell("killed at line #{stop_at} of #{inspect(lines)}: #{inspect(bad)}\n#{log}")
+          end)
+        end
+      )
+
+    assert_property(property, 60)
+  end
+
   # PropEr of this OTP cannot report an exception in a property (erlang:get_stacktrace/0)
   defp reporting(fun) do
     fun.()
