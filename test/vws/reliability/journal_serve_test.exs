@@ -128,4 +128,70 @@ defmodule Vws.Reliability.JournalServeTest do
     assert output =~
              ~r/workstation VWS did not start: journal directory \S+ cannot be made: not a directory\n/
   end
+
+  @root? match?({"0\n", 0}, System.cmd("id", ["-u"]))
+
+  @tag skip: if(@root?, do: false, else: "needs root to mount a tmpfs")
+  test "a full disk under mix vws.serve: refused or ERROR JOURNAL WRITE FAILED, never DONE; space back, work, kill -9, all there",
+       %{tmp_dir: dir} do
+    mnt = Path.join(dir, "small")
+    File.mkdir_p!(mnt)
+    {_, 0} = System.cmd("mount", ["-t", "tmpfs", "-o", "size=256k", "tmpfs", mnt])
+    on_exit(fn -> System.cmd("umount", ["-l", mnt]) end)
+    journal = Path.join(mnt, "journal")
+    %{proc: proc, wc: wc} = serve(journal)
+    deadline = fn -> System.monotonic_time(:millisecond) + 30_000 end
+
+    assert Acceptance.wc_request(wc, "*0001*F0001NONSENSE*") =~ ~r/^05A0001\d{3}$/
+    assert Acceptance.await_command(wc, "FIXTURE_CMD", 2, 1, deadline.()) =~ ~r/0001ERROR /
+
+    # the disk full
+    {:ok, fd} = :file.open(Path.join(mnt, "filler"), [:write, :raw, :binary])
+    chunk = :binary.copy(<<0>>, 4096)
+    Stream.repeatedly(fn -> :file.write(fd, chunk) end) |> Enum.find(&(&1 != :ok))
+    :file.close(fd)
+
+    # strings until the journal cannot take one: refused (E), or the command ends ERROR
+    # JOURNAL WRITE FAILED; never DONE
+    last =
+      Enum.find_value(10..200, fn n ->
+        case Acceptance.wc_request(wc, "*#{pad4(n)}*F#{pad4(n)}NONSENSE*") do
+          "E" ->
+            n
+
+          ack ->
+            assert ack =~ ~r/^05A#{pad4(n)}\d{3}$/
+            status = Acceptance.await_command(wc, "FIXTURE_CMD", 1000 + n, n, deadline.())
+            refute status =~ "DONE"
+            if status =~ "ERROR JOURNAL WRITE FAILED", do: n
+        end
+      end)
+
+    assert is_integer(last)
+    # no work while it is full
+    assert Acceptance.wc_request(wc, "*0500*G0500OPEN*") == "E"
+    assert status(wc, 501, "GRIPPER_CMD") == "0000NONE"
+    assert Acceptance.output(proc) =~ "no space left on device"
+
+    # space again: within a few seconds strings are taken
+    File.rm!(Path.join(mnt, "filler"))
+
+    assert Enum.any?(1..60, fn i ->
+             Acceptance.wc_request(wc, "*#{pad4(600 + i)}*F0700NONSENSE*") =~ ~r/^05A/ or
+               (Process.sleep(500) && false)
+           end)
+
+    fixture = Acceptance.await_command(wc, "FIXTURE_CMD", 800, 700, deadline.())
+    [_, fixture] = Regex.run(~r/^\d\dS\d{4}(.*)\d{3}$/, fixture)
+    assert fixture =~ ~r/^0700ERROR /
+    assert Acceptance.output(proc) =~ "healthy again"
+    kill_9(proc)
+
+    # everything acknowledged after the full disk is there
+    %{proc: proc, wc: wc} = serve(journal)
+    assert status(wc, 900, "FIXTURE_CMD") == fixture
+    assert status(wc, 901, "GRIPPER_CMD") == "0000NONE"
+    refute Acceptance.output(proc) =~ "damaged at byte"
+    kill_9(proc)
+  end
 end
