@@ -22,7 +22,7 @@ import Config
 #   VWS_HTTP_BIND     the address they listen on (default 127.0.0.1)
 #   VWS_HTTP_TOKEN    enables the dashboard's control actions for requests carrying it
 #   VWS_HTTP_TOKEN_FILE  the control token from this file instead (mode 0600; Vws.Ops.Web.Tokens)
-#   VWS_LOG_DIR       the log also goes to DIR/vws.log, rotated at 10 MB, 10 old files kept
+#   VWS_LOG_DIR       the log also goes to DIR/vws-<VWS_ID>.log, rotated at 10 MB, 10 old files kept
 #                     (Vws.Ops.LogFile); a release's default is its own log/ directory; "off": none
 #   VWS_LOG_LEVEL     debug, info (a release's default), notice, warning or error
 #   VWS_HTTP_READ_TOKEN  every read of the dashboard and MTConnect agent needs it (Basic password)
