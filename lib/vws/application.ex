@@ -8,6 +8,11 @@ defmodule Vws.Application do
   def start(_type, _args) do
     # SIGTERM and SIGQUIT stop the node in order (Vws.Ops.Signals)
     :ok = Vws.Ops.Signals.install()
+    # a release started in a terminal (`bin/vws start`): one Ctrl-C stops it in order, as in
+    # `mix vws.serve` (the mix tasks ask for it themselves)
+    if System.get_env("RELEASE_COMMAND") in ["start", "start_iex"],
+      do: Vws.Ops.Signals.ctrl_c_stops()
+
     # the log in rotating files too, where configured (VWS_LOG_DIR)
     :ok = Vws.Ops.LogFile.start_configured()
     # a crashing :gen_statem (SUN_COMM, the links) is logged as a crashing GenServer is. Added

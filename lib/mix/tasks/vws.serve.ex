@@ -289,6 +289,7 @@ defmodule Mix.Tasks.Vws.Serve do
   def stop_hint(iex?) do
     how =
       cond do
+        Vws.Ops.Signals.ctrl_c_mapped?() and iex? -> "Ctrl-C, System.stop()"
         Vws.Ops.Signals.ctrl_c_mapped?() -> "Ctrl-C"
         iex? -> "System.stop() or Ctrl-\\"
         true -> "Ctrl-\\"

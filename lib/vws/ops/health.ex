@@ -70,9 +70,9 @@ defmodule Vws.Ops.Health do
   @doc """
   The HTTP answer: `{200, json}` or `{503, json}`; the reasons only if `reasons?`.
   """
-  @spec answer(boolean) :: {200 | 503, iodata}
-  def answer(reasons?) do
-    case check() do
+  @spec answer(boolean, :ok | {:failing, [String.t()]}) :: {200 | 503, iodata}
+  def answer(reasons?, result \\ check()) do
+    case result do
       :ok ->
         {200, Vws.Ops.Web.JSON.encode(%{status: "ok"})}
 

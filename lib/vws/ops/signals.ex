@@ -37,9 +37,11 @@ defmodule Vws.Ops.Signals do
     :ok = :os.set_signal(:sigterm, :handle)
   end
 
-  @doc "Gives the signals back to the BEAM's own handler."
+  @doc "Gives the signals back to the BEAM's own handler (and the terminal its own settings)."
   @spec uninstall() :: :ok
   def uninstall do
+    ctrl_c_release()
+
     if __MODULE__ in :gen_event.which_handlers(@server) do
       :gen_event.swap_handler(@server, {__MODULE__, []}, {:erl_signal_handler, []})
       :os.set_signal(:sigquit, :default)
@@ -50,9 +52,10 @@ defmodule Vws.Ops.Signals do
 
   ## Ctrl-C
 
-  # Run by `sh` beside the node: when the node's standard input is its terminal and the node is
-  # that terminal's foreground process group (a user at the keyboard, not a pipe, a service or
-  # a background job), Ctrl-C is made the terminal's QUIT character and INTR is undefined; then
+  # Run by `sh` beside the node: when the node's standard input is its terminal and the node leads
+  # that terminal's foreground process group — a job a user's shell started, not a pipe, a
+  # service, a background job, nor a command inside a script (whose shell, in the same group,
+  # SIGQUIT would end) —, Ctrl-C is made the terminal's QUIT character and INTR is undefined; then
   # it waits for its standard input (a pipe from the node) to close — the node exited, in order
   # or killed — and puts the terminal's settings back. It ignores the terminal's signals
   # itself (it may be in the foreground group), and SIGTTOU to change the terminal from outside it.
@@ -63,7 +66,7 @@ defmodule Vws.Ops.Signals do
   case "$tty" in /dev/pts/* | /dev/tty*) ;; *) echo no; exit 0 ;; esac
   stat=$(cat "/proc/$pid/stat" 2>/dev/null) || { echo no; exit 0; }
   set -- ${stat##*) }
-  [ "$3" = "$6" ] || { echo no; exit 0; }
+  [ "$pid" = "$3" ] && [ "$3" = "$6" ] || { echo no; exit 0; }
   saved=$(stty -g < "$tty" 2>/dev/null) || { echo no; exit 0; }
   stty intr undef quit '^C' < "$tty" 2>/dev/null || { echo no; exit 0; }
   echo yes
@@ -137,8 +140,35 @@ defmodule Vws.Ops.Signals do
 
   defp ctrl_c_loop(port) do
     receive do
-      {^port, {:exit_status, _}} -> :persistent_term.put({__MODULE__, :ctrl_c}, false)
-      _ -> ctrl_c_loop(port)
+      {^port, {:exit_status, _}} ->
+        :persistent_term.put({__MODULE__, :ctrl_c}, false)
+
+      {:release, from, ref} ->
+        # the watcher puts the terminal back when its input closes
+        Port.close(port)
+        :persistent_term.put({__MODULE__, :ctrl_c}, false)
+        send(from, {ref, :released})
+
+      _ ->
+        ctrl_c_loop(port)
+    end
+  end
+
+  # The terminal's own settings back (the application stops): Ctrl-C is the BEAM's again.
+  defp ctrl_c_release do
+    case Process.whereis(@ctrl_c) do
+      nil ->
+        :ok
+
+      pid ->
+        ref = make_ref()
+        send(pid, {:release, self(), ref})
+
+        receive do
+          {^ref, :released} -> :ok
+        after
+          2_000 -> :ok
+        end
     end
   end
 

@@ -28,6 +28,9 @@ defmodule Vws.Ops.StartError do
   def describe(%{__exception__: true} = e), do: Exception.message(e)
   def describe({:already_started, _pid}), do: "a workstation with this id already runs here"
   def describe(reason) when is_binary(reason), do: reason
+
+  # a tagged text ({:wc_link_policy, "tcp://0.0.0.0:7070 is not a loopback address: …"}): the text
+  def describe({tag, text}) when is_atom(tag) and is_binary(text), do: text
   def describe(reason), do: inspect(reason, limit: 10)
 
   # "WC port 7070 is in use", "WC port 80 needs root …": what an operator can act on

@@ -47,7 +47,8 @@ defmodule Vws.Ops.CLIOptionsTest do
              ~w(--wc-port 7071 --time-scale 20 --ber 1e-4 --bcc xor --once part.nc --id A),
              @serve
            ) ==
-             {:ok, [wc_port: 7071, time_scale: 20.0, ber: 1.0e-4, bcc: "xor", once: true, id: "A"],
+             {:ok,
+              [wc_port: 7071, time_scale: 20.0, ber: 1.0e-4, bcc: "xor", once: true, id: "A"],
               ["part.nc"]}
 
     assert CLIOptions.parse(["--wc-port", "0"], @serve) == {:ok, [wc_port: 0], []}

@@ -113,7 +113,7 @@ defmodule Vws.Ops.Web.Handler do
   # Vws.Ops.Health: 200 {"status":"ok"} or 503 with the reasons (with the read token, if one is set)
   defp route(m, ["health"], _q, r, s) when m in @read do
     {status, body} = Vws.Ops.Health.answer(authorize_read(r.headers, s) == :ok)
-    {status, "application/json", body, [{"cache-control", "no-store"}]}
+    {status, "application/json", body}
   end
 
   defp route("POST", @control, q, _r, _s), do: status_query(q)
