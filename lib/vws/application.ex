@@ -80,7 +80,8 @@ defmodule Vws.Application do
   def start_checked(opts) do
     id = Keyword.fetch!(opts, :id)
 
-    with :ok <- check_wc_port(opts[:wc]),
+    with :ok <- check_endpoint(opts[:wc]),
+         :ok <- check_wc_port(opts[:wc]),
          {:ok, pid} <- start_configured(opts),
          :ok <- Vws.Ops.Health.expect(id),
          :ok <- await_wc(id, opts[:wc], 10_000) do
@@ -92,6 +93,14 @@ defmodule Vws.Application do
     e -> {:error, Exception.message(e)}
   catch
     :exit, reason -> {:error, Vws.Ops.StartError.describe(reason)}
+  end
+
+  # VWS_WC that cannot be read, said as the variable it came from
+  defp check_endpoint(wc) do
+    case Vws.Links.Endpoint.parse(wc) do
+      {:ok, _} -> :ok
+      {:error, e} -> {:error, "VWS_WC: " <> Exception.message(e)}
+    end
   end
 
   @doc false

@@ -114,6 +114,8 @@ defmodule Mix.Tasks.Vws.Demo do
 
           true ->
             iex? = Code.ensure_loaded?(IEx) and IEx.started?()
+            # /health: the floor keeps running, and the node is healthy while its workstation is
+            :ok = Vws.Ops.Health.expect(opts[:id] || "VWS-DEMO")
 
             IO.puts(
               "The shop floor keeps running: SUN_COMM serves the WC on #{floor.wc}. " <>

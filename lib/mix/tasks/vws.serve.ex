@@ -106,6 +106,10 @@ defmodule Mix.Tasks.Vws.Serve do
     Vws.Ops.Signals.ctrl_c_stops()
 
     wc = opts[:wc] || "tcp://#{opts[:bind] || "127.0.0.1"}:#{opts[:wc_port] || 7070}"
+
+    with {:error, e} <- Vws.Links.Endpoint.parse(wc),
+         do: Mix.raise("#{if opts[:wc], do: "--wc", else: "--bind"}: #{Exception.message(e)}")
+
     id = opts[:id] || "VWS"
     journal = Vws.Ops.DataDir.journal_dir(id, journal_choice(opts))
 

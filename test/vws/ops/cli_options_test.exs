@@ -88,4 +88,19 @@ defmodule Vws.Ops.CLIOptionsTest do
     assert Vws.Application.check_wc_port("tcp://127.0.0.1:0") == :ok
     assert Vws.Application.check_wc_port("loopback:x") == :ok
   end
+
+  test "a release's VWS_WC that cannot be read or opened: why, in one line, before anything starts" do
+    assert Vws.Application.start_checked(id: "CLI-OPT-1", wc: "tcp://127.0.0.1:70000") ==
+             {:error,
+              ~s(VWS_WC: invalid endpoint "tcp://127.0.0.1:70000": the port must be a number from 0 to 65535)}
+
+    {:ok, socket} = :gen_tcp.listen(0, ip: {127, 0, 0, 1})
+    {:ok, port} = :inet.port(socket)
+    on_exit(fn -> :gen_tcp.close(socket) end)
+
+    assert Vws.Application.start_checked(id: "CLI-OPT-2", wc: "tcp://127.0.0.1:#{port}") ==
+             {:error, "WC port #{port} is in use (tcp://127.0.0.1:#{port})"}
+
+    assert Vws.CEC.Workstation.whereis("CLI-OPT-2") == nil
+  end
 end
