@@ -103,7 +103,7 @@ if http_port do
   # the tokens from their files or the environment, never from a command line (Vws.Ops.Web.Tokens)
   token = fn
     {:ok, token} -> token
-    {:error, message} -> raise message
+    {:error, message} -> fail.(message)
   end
 
   config :vws, :http,

@@ -193,14 +193,15 @@ defmodule Vws.Ops.Health do
   # running node's /health over HTTP (VWS_HTTP_PORT, VWS_HTTP_BIND, the read token if set) and
   # halts with 0 (ok) or 1 (failing, or no node answering), having printed one line.
   def release_main do
-    {status, line} = probe(System.get_env())
+    {status, line} = probe(System.get_env(), token_files: true)
     IO.puts(line)
     System.halt(status)
   end
 
   @doc false
-  # `{exit_status, line}` for the environment `env` (a map of VWS_* variables).
-  def probe(env) do
+  # `{exit_status, line}` for the environment `env` (a map of VWS_* variables); `token_files:
+  # true` also reads the token files the node reads (VWS_HTTP_READ_TOKEN_FILE, …).
+  def probe(env, opts \\ []) do
     get = fn name ->
       env |> Map.get(name, "") |> String.trim() |> then(&if(&1 == "", do: nil, else: &1))
     end
@@ -226,9 +227,23 @@ defmodule Vws.Ops.Health do
             other -> if String.contains?(other, ":"), do: "[#{other}]", else: other
           end
 
-        token = get.("VWS_HTTP_READ_TOKEN") || get.("VWS_HTTP_TOKEN")
-        http_probe("http://#{host}:#{port}/health", token)
+        http_probe("http://#{host}:#{port}/health", token(get, opts[:token_files]))
     end
+  end
+
+  # the read token (or the control token) to be told the reasons: given in `env`, else as the
+  # node has them (Vws.Ops.Web.Tokens: VWS_HTTP_READ_TOKEN_FILE, …); none is no error — the
+  # status is told without one
+  defp token(get, files?) do
+    get.("VWS_HTTP_READ_TOKEN") || get.("VWS_HTTP_TOKEN") ||
+      if files? do
+        Enum.find_value([&Vws.Ops.Web.Tokens.read/0, &Vws.Ops.Web.Tokens.control/0], fn f ->
+          case f.() do
+            {:ok, token} when is_binary(token) -> token
+            _ -> nil
+          end
+        end)
+      end
   end
 
   defp http_probe(url, token) do
