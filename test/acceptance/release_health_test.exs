@@ -25,8 +25,7 @@ defmodule Vws.Acceptance.ReleaseHealthTest do
       {"VWS_DATA_DIR", Path.join(tmp, "data")},
       {"VWS_LOG_DIR", "off"},
       {"RELEASE_TMP", Path.join(tmp, "rel-tmp")},
-      {"RELEASE_DISTRIBUTION", "none"},
-      {"RELEASE_COOKIE", "acceptance-#{System.unique_integer([:positive])}"}
+      {"RELEASE_DISTRIBUTION", "none"}
     ] ++ extra
   end
 
