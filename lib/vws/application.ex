@@ -164,6 +164,21 @@ defmodule Vws.Application do
   def await_wc(_id, _wc, _timeout), do: :ok
 
   @doc false
+  # The configured dashboard, or — its port in use, its address not this host's — one line and
+  # status 1, as for the workstation (a failed child here took the node down with a crash dump).
+  def start_http(opts) do
+    case Vws.Ops.Web.start_link(opts) do
+      {:ok, pid} ->
+        {:ok, pid}
+
+      {:error, reason} ->
+        fatal(
+          "the dashboard cannot start: #{Vws.Ops.StartError.describe(reason)} (VWS_HTTP_PORT)"
+        )
+    end
+  end
+
+  @doc false
   # One line on the console (and in the log file), then exit status 1: no crash dump, no stack.
   def fatal(line) do
     Logger.error(line)
@@ -214,8 +229,12 @@ defmodule Vws.Application do
   # Nothing is configured in dev and test: there the mix tasks and the tests start what they need.
   defp configured_http do
     case Application.get_env(:vws, :http) do
-      nil -> []
-      opts -> [Supervisor.child_spec({Vws.Ops.Web, opts}, id: :configured_http)]
+      nil ->
+        []
+
+      opts ->
+        spec = Supervisor.child_spec({Vws.Ops.Web, opts}, id: :configured_http)
+        [%{spec | start: {__MODULE__, :start_http, [opts]}}]
     end
   end
 end

@@ -40,7 +40,7 @@ defmodule Vws.Acceptance.ReleaseHealthTest do
   @stack ~r/\*\* \(|\(stdlib|\(elixir|init terminating|Crash dump|erl_crash/
 
   @tag :tmp_dir
-  test "a workstation that cannot start, a value that cannot be used: status 1, one line, no crash dump",
+  test "a workstation that cannot start, a port in use, a value that cannot be used: status 1, one line, no crash dump",
        %{release: release, tmp_dir: tmp} do
     http = Acceptance.free_port()
 
@@ -61,6 +61,27 @@ defmodule Vws.Acceptance.ReleaseHealthTest do
     assert line =~ "VWS_WC_ALLOW"
     refute out =~ @stack, out
     refute out =~ "{:", out
+    refute File.exists?(Path.join(tmp, "erl_crash.dump"))
+
+    # the dashboard's port in use
+    {:ok, socket} = :gen_tcp.listen(0, ip: {127, 0, 0, 1})
+    {:ok, taken} = :inet.port(socket)
+    on_exit(fn -> :gen_tcp.close(socket) end)
+
+    proc =
+      start(release, tmp, [
+        {"VWS_WC", "tcp://127.0.0.1:#{Acceptance.free_port()}"},
+        {"VWS_HTTP_PORT", "#{taken}"}
+      ])
+
+    assert Acceptance.await_exit(proc, 60_000) == 1, Acceptance.output(proc)
+    out = Acceptance.output(proc)
+
+    assert out =~
+             "[error] the dashboard cannot start: HTTP port #{taken} is in use (127.0.0.1:#{taken}) (VWS_HTTP_PORT)",
+           out
+
+    refute out =~ @stack, out
     refute File.exists?(Path.join(tmp, "erl_crash.dump"))
 
     # a configuration value the release cannot use: one line from config/runtime.exs

@@ -98,6 +98,10 @@ defmodule Mix.Tasks.Vws.Demo do
         supervisor: Vws.EquipmentSupervisor
       ] ++ Keyword.take(opts, [:script, :id])
 
+    # a WC port that cannot be opened is said before anything starts: "WC port 7070 is in use"
+    with {:error, reason} <- Vws.Application.check_wc_port(demo_opts[:wc]),
+         do: Mix.raise("the demo did not start: #{Vws.Ops.StartError.describe(reason)}")
+
     IO.puts("dashboard and MTConnect agent: #{start_web(opts)}")
 
     case Vws.Ops.Demo.run(demo_opts) do

@@ -10,6 +10,8 @@ defmodule Vws.Ops.StartError do
       "WC port 7070 is in use (tcp://127.0.0.1:7070)"
       iex> Vws.Ops.StartError.describe({:shutdown, {:failed_to_start_child, :sun_comm, "no allow-list"}})
       "no allow-list"
+      iex> Vws.Ops.StartError.describe({:shutdown, {:failed_to_start_child, Vws.Ops.Web.Server, {:cannot_listen, "127.0.0.1", 4000, :eaddrinuse}}})
+      "HTTP port 4000 is in use (127.0.0.1:4000)"
   """
 
   @doc "The reason, in words (an Elixir term only for a reason nothing here knows)."
@@ -22,6 +24,23 @@ defmodule Vws.Ops.StartError do
   def describe({:cannot_listen, endpoint, reason}) when is_binary(endpoint) do
     port_words(endpoint, reason) ||
       "cannot listen on #{endpoint}: #{describe(reason)}"
+  end
+
+  # the dashboard's listener (Vws.Ops.Web.Server)
+  def describe({:cannot_listen, bind, port, reason}) when is_integer(port) do
+    case reason do
+      :eaddrinuse ->
+        "HTTP port #{port} is in use (#{bind}:#{port})"
+
+      :eacces ->
+        "HTTP port #{port} may not be opened by this user (ports below 1024 need privileges)"
+
+      :eaddrnotavail ->
+        "HTTP address #{bind} is not an address of this host"
+
+      other ->
+        "cannot listen on #{bind}:#{port}: #{describe(other)}"
+    end
   end
 
   def describe({%{__exception__: true} = e, _stacktrace}), do: Exception.message(e)
