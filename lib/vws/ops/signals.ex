@@ -70,8 +70,9 @@ defmodule Vws.Ops.Signals do
   saved=$(stty -g < "$tty" 2>/dev/null) || { echo no; exit 0; }
   stty intr undef quit '^C' < "$tty" 2>/dev/null || { echo no; exit 0; }
   echo yes
-  while read -r _; do :; done
+  while read -r line; do [ "$line" = restore ] && break; done
   stty "$saved" < "$tty" 2>/dev/null
+  echo restored
   """
 
   @ctrl_c __MODULE__.CtrlC
@@ -122,6 +123,8 @@ defmodule Vws.Ops.Signals do
 
         :persistent_term.put({__MODULE__, :ctrl_c}, answer)
         send(caller, {ref, answer})
+        # a mix task or script that ends (elixir halts): the terminal back first
+        if answer, do: System.at_exit(fn _ -> ctrl_c_release() end)
         ctrl_c_loop(port)
       end)
 
@@ -144,10 +147,20 @@ defmodule Vws.Ops.Signals do
         :persistent_term.put({__MODULE__, :ctrl_c}, false)
 
       {:release, from, ref} ->
-        # the watcher puts the terminal back when its input closes
-        Port.close(port)
+        # the terminal back before the node goes on stopping (a shell prompting at once after
+        # the node's exit must find its own settings), then the watcher is done
+        Port.command(port, "restore\n")
+
+        receive do
+          {^port, {:data, {:eol, "restored"}}} -> :ok
+          {^port, {:exit_status, _}} -> :ok
+        after
+          2_000 -> :ok
+        end
+
         :persistent_term.put({__MODULE__, :ctrl_c}, false)
         send(from, {ref, :released})
+        Port.close(port)
 
       _ ->
         ctrl_c_loop(port)
@@ -155,7 +168,10 @@ defmodule Vws.Ops.Signals do
   end
 
   # The terminal's own settings back (the application stops): Ctrl-C is the BEAM's again.
-  defp ctrl_c_release do
+  @doc false
+  # The terminal's own settings back now (the application stops, or the mix task's script ends:
+  # `elixir` halts without stopping the applications).
+  def ctrl_c_release do
     case Process.whereis(@ctrl_c) do
       nil ->
         :ok
