@@ -2,8 +2,8 @@ defmodule Vws.Ops.Signals do
   @moduledoc """
   How a node running VWS answers the OS's signals (installed by `Vws.Application`):
 
-    * **SIGTERM** (`kill PID`, `systemctl stop`, a container's stop) and **SIGQUIT** (Ctrl-\\ in
-      a terminal) stop the node cleanly, as `System.stop/0` does: the web server, then every
+    * **SIGTERM** (`kill PID`, `systemctl stop`, a container's stop) and **SIGQUIT** (Ctrl-C in
+      a terminal the node has taken, see below; else Ctrl-\\) stop the node cleanly, as `System.stop/0` does: the web server, then every
       workstation (SUN_COMM, the partitions, the device links), then the equipment started
       beside them (e.g. a simulated floor), each in order, and the node exits with status 0.
       The BEAM's own handler does this for SIGTERM, but halts at once on SIGQUIT, with nothing
@@ -14,9 +14,13 @@ defmodule Vws.Ops.Signals do
       reply, no HTTP answer, DAQ #1 not polled. So the foreground commands (`mix vws.serve`,
       `mix vws.demo`, `mix vws.hydraulic`, `mix vws.drip_feed`, `iex -S mix …`, a release's
       `bin/vws start` in a terminal) call `ctrl_c_stops/0`: while they run, their terminal sends
-      SIGQUIT for Ctrl-C instead of SIGINT, so **one Ctrl-C stops the node in order**. The
-      terminal's settings come back when the node exits, however it exits (`kill -9`
-      included). `VWS_CTRL_C=break` keeps the BEAM's BREAK menu.
+      SIGQUIT for Ctrl-C instead of SIGINT, so **one Ctrl-C stops the node in order** (Ctrl-\\
+      is then an ordinary key). Only when the node leads the terminal's foreground job — a
+      command a user's shell started — is the terminal taken: a command inside a script shares
+      its job with the script's shell, which SIGQUIT would end. The terminal's settings come
+      back when the application stops or the script ends, and, if the node is killed
+      (`kill -9`), when its watcher sees it gone. `VWS_CTRL_C=break` keeps the BEAM's BREAK
+      menu.
 
   `uninstall/0` (called when the application stops) gives the signals back to the BEAM.
   """
