@@ -81,6 +81,7 @@ defmodule Vws.Application do
     id = Keyword.fetch!(opts, :id)
 
     with :ok <- check_endpoint(opts[:wc]),
+         :ok <- check_policy(opts[:wc], get_in(opts, [:sun_comm, :allow])),
          :ok <- check_wc_port(opts[:wc]),
          {:ok, pid} <- start_configured(opts),
          :ok <- Vws.Ops.Health.expect(id),
@@ -102,6 +103,17 @@ defmodule Vws.Application do
       {:error, e} -> {:error, "VWS_WC: " <> Exception.message(e)}
     end
   end
+
+  # Who may connect (VWS_WC_ALLOW), judged before SUN_COMM starts: a listen address that is not
+  # loopback without an allow-list is one line here, not a SUN_COMM that fails to start
+  defp check_policy(wc, allow) do
+    with {:ok, allow} <- prefix(Vws.Links.Transport.Policy.parse_allow(allow), "VWS_WC_ALLOW: ") do
+      Vws.Links.Transport.Policy.check_listen(wc, allow)
+    end
+  end
+
+  defp prefix({:error, message}, text) when is_binary(message), do: {:error, text <> message}
+  defp prefix(other, _text), do: other
 
   @doc false
   # A TCP WC port that cannot be listened on (in use, not an address of this host, below 1024),

@@ -59,6 +59,8 @@ defmodule Vws.Acceptance.ReleaseHealthTest do
 
     assert line =~ "is not a loopback address"
     assert line =~ "VWS_WC_ALLOW"
+    # the one error line: nothing was started to fail on its own
+    assert length(Regex.scan(~r/\[error\]/, out)) == 1, out
     refute out =~ @stack, out
     refute out =~ "{:", out
     refute File.exists?(Path.join(tmp, "erl_crash.dump"))

@@ -102,5 +102,16 @@ defmodule Vws.Ops.CLIOptionsTest do
              {:error, "WC port #{port} is in use (tcp://127.0.0.1:#{port})"}
 
     assert Vws.CEC.Workstation.whereis("CLI-OPT-2") == nil
+
+    assert {:error, line} =
+             Vws.Application.start_checked(id: "CLI-OPT-3", wc: "tcp://0.0.0.0:7070")
+
+    assert line =~ ~r/^tcp:\/\/0\.0\.0\.0:7070 is not a loopback address: .*VWS_WC_ALLOW/
+
+    assert Vws.Application.start_checked(
+             id: "CLI-OPT-4",
+             wc: "tcp://0.0.0.0:7070",
+             sun_comm: [allow: "10.0.0.5,nonsense"]
+           ) == {:error, ~s(VWS_WC_ALLOW: "nonsense" is not an address or address/prefix)}
   end
 end
