@@ -71,6 +71,21 @@ defmodule Vws.Ops.CLIOptionsTest do
              {[wc_port: 9], ["f.nc"]}
   end
 
+  test "mix vws.library's flags are answered the same way (status 2, the line on standard error)" do
+    import ExUnit.CaptureIO
+
+    err =
+      capture_io(:stderr, fn ->
+        capture_io(fn ->
+          send(self(), {:status, Vws.Ops.LibraryCLI.main(~w(show 1.PRO --version two))})
+        end)
+      end)
+
+    assert_received {:status, 2}
+    assert err =~ "--version: two is not a whole number above 0"
+    refute err =~ "unknown options"
+  end
+
   test "a WC port in use and an address not of this host are said in words" do
     {:ok, socket} = :gen_tcp.listen(0, ip: {127, 0, 0, 1}, reuseaddr: false)
     {:ok, port} = :inet.port(socket)
