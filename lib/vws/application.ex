@@ -136,8 +136,8 @@ defmodule Vws.Application do
   def check_wc_port(_wc), do: :ok
 
   @doc false
-  # Waits until workstation `id`'s SUN_COMM listens on a TCP WC endpoint: `:ok`, or `{:error,
-  # reason}` if it stopped first (its port taken meanwhile). A tty is not waited for: SUN_COMM
+  # Waits (at most `timeout` ms) until workstation `id`'s SUN_COMM listens on a TCP WC endpoint:
+  # `:ok`, or `{:error, reason}` if it stopped first (its port taken meanwhile). A tty is not waited for: SUN_COMM
   # opens it again every second, and /health says while it cannot.
   def await_wc(id, "tcp:" <> _, timeout) do
     case Vws.CEC.Workstation.whereis(id, :sun_comm) do
@@ -163,7 +163,8 @@ defmodule Vws.Application do
               {:vws_event, ^id, :wc_listening, _endpoint} -> :ok
               {:DOWN, ^ref, :process, _, reason} -> {:error, reason}
             after
-              timeout -> {:error, "its WC link did not open in #{div(timeout, 1000)} s"}
+              # slow, not failed (a loaded machine): /health tells if it never opens
+              timeout -> :ok
             end
           end
 
