@@ -22,11 +22,26 @@ import Config
 #   VWS_HTTP_BIND     the address they listen on (default 127.0.0.1)
 #   VWS_HTTP_TOKEN    enables the dashboard's control actions for requests carrying it
 #   VWS_HTTP_TOKEN_FILE  the control token from this file instead (mode 0600; Vws.Ops.Web.Tokens)
-#   VWS_LOG_DIR       the log also goes to DIR/vws.log, rotated at 10 MB, 10 old files kept
+#   VWS_LOG_DIR       the log also goes to DIR/vws-<VWS_ID>.log, rotated at 10 MB, 10 old files kept
 #                     (Vws.Ops.LogFile); a release's default is its own log/ directory; "off": none
 #   VWS_LOG_LEVEL     debug, info (a release's default), notice, warning or error
 #   VWS_HTTP_READ_TOKEN  every read of the dashboard and MTConnect agent needs it (Basic password)
 #   VWS_HTTP_READ_TOKEN_FILE  the read token from this file instead
+
+# A value that cannot be used stops the node at once with one line naming the variable, status 1
+# — not a stack trace and an erl_crash.dump in the working directory (a raise here is both).
+fail = fn line ->
+  IO.puts(:stderr, "ERROR: " <> line)
+  System.halt(1)
+end
+
+integer = fn name, text ->
+  case Integer.parse(text) do
+    {n, ""} when n >= 0 -> n
+    _ -> fail.("#{name} must be a whole number, not #{text}")
+  end
+end
+
 env = fn name ->
   case System.get_env(name) do
     nil -> nil
@@ -48,7 +63,7 @@ if wc = env.("VWS_WC") do
 
   # VWS_STATUS polls DAQ #1 on time to within microseconds by waiting the last 2 ms before each
   # poll on the CPU (Vws.Partitions.VwsStatus, :wake_early_us); VWS_STATUS_WAKE_EARLY_US=0 sleeps
-  wake_early_us = String.to_integer(env.("VWS_STATUS_WAKE_EARLY_US") || "2000")
+  wake_early_us = integer.("VWS_STATUS_WAKE_EARLY_US", env.("VWS_STATUS_WAKE_EARLY_US") || "2000")
 
   devices =
     Enum.map(devices, fn
@@ -61,7 +76,7 @@ if wc = env.("VWS_WC") do
       nil -> :sum
       "sum" -> :sum
       "xor" -> :xor
-      other -> raise "VWS_BCC must be sum or xor, not #{other}"
+      other -> fail.("VWS_BCC must be sum or xor, not #{other}")
     end
 
   config :vws, :workstation,
@@ -81,14 +96,14 @@ http_port =
     {nil, :prod} -> 4000
     {nil, _} -> nil
     {_, :test} -> nil
-    {port, _} -> String.to_integer(port)
+    {port, _} -> integer.("VWS_HTTP_PORT", port)
   end
 
 if http_port do
   # the tokens from their files or the environment, never from a command line (Vws.Ops.Web.Tokens)
   token = fn
     {:ok, token} -> token
-    {:error, message} -> raise message
+    {:error, message} -> fail.(message)
   end
 
   config :vws, :http,
@@ -118,6 +133,6 @@ if config_env() != :test do
       config :logger, level: String.to_atom(level)
 
     other ->
-      raise "VWS_LOG_LEVEL must be debug, info, notice, warning or error, not #{other}"
+      fail.("VWS_LOG_LEVEL must be debug, info, notice, warning or error, not #{other}")
   end
 end

@@ -21,6 +21,9 @@ if reason = Vws.Test.XMLLint.missing_schemas() do
   ExUnit.configure(exclude: Enum.uniq(ExUnit.configuration()[:exclude] ++ [:mtconnect_schemas]))
 end
 
+# The suite leaves no daemon running: an epmd started by a test (distribution) is stopped after it.
+Vws.Test.Acceptance.stop_epmd_after_suite()
+
 # The acceptance tests (tag :acceptance) start `mix` (MIX_ENV=dev) and the release (MIX_ENV=prod)
 # as OS processes. Their builds are made here, before any test runs, when this run includes them:
 # made by the first test that needed them, they took both cores for up to a minute in the middle

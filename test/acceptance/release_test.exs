@@ -113,9 +113,9 @@ defmodule Vws.Acceptance.ReleaseTest do
     refute output =~ ~r/\*\* \(EXIT|SUPERVISOR REPORT|CRASH REPORT|unknown registry/, output
     assert status == 0, output
 
-    # production logging: info, not debug, to the console and to VWS_LOG_DIR/vws.log
+    # production logging: info, not debug, to the console and to VWS_LOG_DIR/vws-VWS1.log (named after its VWS_ID)
     refute output =~ "[debug]"
-    log = File.read!(Path.join(log_dir, "vws.log"))
+    log = File.read!(Path.join(log_dir, "vws-VWS1.log"))
     assert log =~ ~r/workstation=VWS1 partition=sun_comm \[info\] SUN_COMM listening for the WC/
     assert log =~ "SIGTERM received"
     refute log =~ "[debug]"

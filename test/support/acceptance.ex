@@ -126,6 +126,32 @@ defmodule Vws.Test.Acceptance do
 
   defp mix, do: System.find_executable("mix") || flunk("mix is not in PATH")
 
+  @doc """
+  Called once before the suite: when no `epmd` answers on this host now, one that a test starts
+  (a distributed test node — `Vws.Test.CellPeers` —, a release with distribution on) is
+  stopped after the suite, so that the suite leaves no daemon running. An `epmd` that was there
+  before is left alone, and `epmd -kill` refuses while any node is still registered with it.
+  """
+  def stop_epmd_after_suite do
+    if match?({:error, _}, :erl_epmd.names(~c"127.0.0.1")) do
+      ExUnit.after_suite(fn _ ->
+        _ = :net_kernel.stop()
+
+        with {:ok, _} <- :erl_epmd.names(~c"127.0.0.1"),
+             epmd when is_binary(epmd) <- epmd_executable() do
+          System.cmd(epmd, ["-kill"], stderr_to_stdout: true)
+        end
+      end)
+    end
+
+    :ok
+  end
+
+  defp epmd_executable do
+    System.find_executable("epmd") ||
+      Path.join([:code.root_dir(), "erts-#{:erlang.system_info(:version)}", "bin", "epmd"])
+  end
+
   ## OS processes
 
   # The wrapper: a watcher in the background kills the process group when its stdin (the

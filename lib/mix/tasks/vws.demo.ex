@@ -33,22 +33,22 @@ defmodule Mix.Tasks.Vws.Demo do
     * `--verbose` — keep the application's info logs (by default only warnings interleave with
       the dialogue)
 
-  Without `--once` the shop floor keeps running after the script, until stopped: Ctrl-\\ or
-  `kill PID` stop it in order (`Vws.Ops.Signals`), Ctrl-C twice aborts at once.
+  Without `--once` the shop floor keeps running after the script, until stopped: one Ctrl-C in
+  its terminal or `kill PID` stop it in order (`Vws.Ops.Signals`).
   """
   use Mix.Task
 
   @switches [
     once: :boolean,
     script: :string,
-    time_scale: :float,
-    wc_port: :integer,
-    http_port: :integer,
+    time_scale: :positive_float,
+    wc_port: :port_or_zero,
+    http_port: :port_or_zero,
     http_bind: :string,
     http_token: :string,
     id: :string,
-    ber: :float,
-    seed: :integer,
+    ber: :probability,
+    seed: :non_neg_integer,
     verbose: :boolean,
     journal: :string,
     no_journal: :boolean,
@@ -58,21 +58,18 @@ defmodule Mix.Tasks.Vws.Demo do
 
   @impl true
   def run(args) do
-    {opts, rest, invalid} = OptionParser.parse(args, strict: @switches)
-    if invalid != [], do: Mix.raise("unknown or bad options: #{inspect(invalid)}")
-    if rest != [], do: Mix.raise("unexpected arguments: #{Enum.join(rest, " ")}")
-
+    opts = Vws.Ops.CLIOptions.parse!(args, @switches)
     time_scale = opts[:time_scale] || 1.0
-    if time_scale <= 0, do: Mix.raise("--time-scale must be positive")
 
     Mix.Task.run("app.start")
+    # one Ctrl-C in this terminal: an ordered stop, never the BEAM's BREAK menu (which freezes it)
+    Vws.Ops.Signals.ctrl_c_stops()
     unless opts[:verbose], do: Logger.configure(level: :warning)
 
     lines =
       case opts[:ber] do
         nil -> false
-        ber when ber >= 0 and ber <= 1 -> [faults: [ber: ber], seed: opts[:seed] || 0]
-        _ -> Mix.raise("--ber must be between 0 and 1")
+        ber -> [faults: [ber: ber], seed: opts[:seed] || 0]
       end
 
     journal =
@@ -101,6 +98,10 @@ defmodule Mix.Tasks.Vws.Demo do
         supervisor: Vws.EquipmentSupervisor
       ] ++ Keyword.take(opts, [:script, :id])
 
+    # a WC port that cannot be opened is said before anything starts: "WC port 7070 is in use"
+    with {:error, reason} <- Vws.Application.check_wc_port(demo_opts[:wc]),
+         do: Mix.raise("the demo did not start: #{Vws.Ops.StartError.describe(reason)}")
+
     IO.puts("dashboard and MTConnect agent: #{start_web(opts)}")
 
     case Vws.Ops.Demo.run(demo_opts) do
@@ -117,6 +118,8 @@ defmodule Mix.Tasks.Vws.Demo do
 
           true ->
             iex? = Code.ensure_loaded?(IEx) and IEx.started?()
+            # /health: the floor keeps running, and the node is healthy while its workstation is
+            :ok = Vws.Ops.Health.expect(opts[:id] || "VWS-DEMO")
 
             IO.puts(
               "The shop floor keeps running: SUN_COMM serves the WC on #{floor.wc}. " <>

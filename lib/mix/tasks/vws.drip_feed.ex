@@ -31,17 +31,16 @@ defmodule Mix.Tasks.Vws.DripFeed do
 
   @switches [
     ge2000: :string,
-    baud: :integer,
-    memory: :integer,
-    feed_rate: :integer,
-    check: :string,
-    max_text: :integer
+    baud: :pos_integer,
+    memory: :pos_integer,
+    feed_rate: :pos_integer,
+    check: {:in, ["lrc", "crc"]},
+    max_text: :pos_integer
   ]
 
   @impl true
   def run(args) do
-    {opts, rest, invalid} = OptionParser.parse(args, strict: @switches)
-    if invalid != [], do: Mix.raise("unknown options: #{inspect(invalid)}")
+    {opts, rest} = Vws.Ops.CLIOptions.parse!(args, @switches, args: true)
 
     file =
       case rest do
@@ -49,7 +48,12 @@ defmodule Mix.Tasks.Vws.DripFeed do
         _ -> Mix.raise("usage: mix vws.drip_feed FILE [--ge2000 ENDPOINT] (see mix help)")
       end
 
-    text = File.read!(file)
+    text =
+      case File.read(file) do
+        {:ok, text} -> text
+        {:error, reason} -> Mix.raise("#{file}: #{:file.format_error(reason)}")
+      end
+
     lines = Program.from_text(text)
     text = Program.to_text(lines)
 
@@ -68,6 +72,8 @@ defmodule Mix.Tasks.Vws.DripFeed do
     max_text = opts[:max_text] || 256
 
     Mix.Task.run("app.start")
+    # one Ctrl-C in this terminal: an ordered stop, never the BEAM's BREAK menu (which freezes it)
+    Vws.Ops.Signals.ctrl_c_stops()
 
     {endpoint, sim} =
       case opts[:ge2000] do

@@ -26,16 +26,17 @@ defmodule Mix.Tasks.Vws.Hydraulic do
     listen: :string,
     cec: :string,
     daq2: :string,
-    time_scale: :float,
-    min_force: :integer
+    time_scale: :positive_float,
+    min_force: :pos_integer
   ]
 
   @impl true
   def run(args) do
-    {opts, _rest, invalid} = OptionParser.parse(args, strict: @switches)
-    if invalid != [], do: Mix.raise("unknown options: #{inspect(invalid)}")
+    opts = Vws.Ops.CLIOptions.parse!(args, @switches)
 
     Mix.Task.run("app.start")
+    # one Ctrl-C in this terminal: an ordered stop, never the BEAM's BREAK menu (which freezes it)
+    Vws.Ops.Signals.ctrl_c_stops()
 
     daq2 = opts[:daq2] || simulated_daq2(opts[:time_scale] || 1.0)
     listen = opts[:listen] || "tcp://127.0.0.1:5026"
@@ -71,7 +72,6 @@ defmodule Mix.Tasks.Vws.Hydraulic do
   end
 
   defp simulated_daq2(scale) do
-    if scale <= 0, do: Mix.raise("--time-scale must be positive")
     {:ok, plant} = Vws.Sim.Plant.start_link(time_scale: scale)
     {:ok, daq2} = Vws.Sim.DAQ.start_link(plant: plant, daq: :daq2)
     Process.unlink(plant)

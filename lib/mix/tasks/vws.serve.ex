@@ -65,21 +65,21 @@ defmodule Mix.Tasks.Vws.Serve do
   use Mix.Task
 
   @switches [
-    wc_port: :integer,
+    wc_port: :port_or_zero,
     bind: :string,
     wc_allow: :string,
     wc: :string,
     id: :string,
-    bcc: :string,
-    time_scale: :float,
+    bcc: {:in, ["sum", "xor"]},
+    time_scale: :positive_float,
     daq1: :string,
-    daq1_port: :integer,
+    daq1_port: :port_or_zero,
     robot: :string,
-    robot_time_scale: :float,
+    robot_time_scale: :positive_float,
     ge2000: :string,
-    ge2000_baud: :integer,
+    ge2000_baud: :pos_integer,
     hydraulic: :string,
-    http_port: :integer,
+    http_port: :port_or_zero,
     http_bind: :string,
     http_token: :string,
     http_token_file: :string,
@@ -93,8 +93,7 @@ defmodule Mix.Tasks.Vws.Serve do
 
   @impl true
   def run(args) do
-    {opts, _rest, invalid} = OptionParser.parse(args, strict: @switches)
-    if invalid != [], do: Mix.raise("unknown options: #{inspect(invalid)}")
+    opts = Vws.Ops.CLIOptions.parse!(args, @switches)
     opts = http_tokens(opts)
 
     # config/runtime.exs starts a workstation of its own when VWS_WC is set (a release's way):
@@ -103,8 +102,14 @@ defmodule Mix.Tasks.Vws.Serve do
     Mix.Task.run("app.config")
     Application.delete_env(:vws, :workstation)
     Mix.Task.run("app.start")
+    # one Ctrl-C in this terminal: an ordered stop, never the BEAM's BREAK menu (which freezes it)
+    Vws.Ops.Signals.ctrl_c_stops()
 
     wc = opts[:wc] || "tcp://#{opts[:bind] || "127.0.0.1"}:#{opts[:wc_port] || 7070}"
+
+    with {:error, e} <- Vws.Links.Endpoint.parse(wc),
+         do: Mix.raise("#{if opts[:wc], do: "--wc", else: "--bind"}: #{Exception.message(e)}")
+
     id = opts[:id] || "VWS"
     journal = Vws.Ops.DataDir.journal_dir(id, journal_choice(opts))
 
@@ -117,13 +122,11 @@ defmodule Mix.Tasks.Vws.Serve do
 
     allow = wc_allow(wc, opts[:wc_allow] || System.get_env("VWS_WC_ALLOW"))
 
-    bcc =
-      case opts[:bcc] do
-        nil -> :sum
-        "sum" -> :sum
-        "xor" -> :xor
-        other -> Mix.raise("--bcc must be sum or xor, not #{other}")
-      end
+    bcc = if opts[:bcc] == "xor", do: :xor, else: :sum
+
+    # a WC port that cannot be opened is said before anything starts: "WC port 7070 is in use"
+    with {:error, reason} <- Vws.Application.check_wc_port(wc),
+         do: Mix.raise("workstation #{id} did not start: #{Vws.Ops.StartError.describe(reason)}")
 
     robot = robot(id, opts)
     {ge2000, monarch} = ge2000(id, opts)
@@ -143,6 +146,12 @@ defmodule Mix.Tasks.Vws.Serve do
       {:error, reason} -> Mix.raise("workstation #{id} did not start: #{start_error(reason)}")
     end
 
+    # its port taken meanwhile: SUN_COMM stops, and so does this task, in words
+    with {:error, reason} <- Vws.Application.await_wc(id, wc, 10_000),
+         do: Mix.raise("workstation #{id} did not start: #{start_error(reason)}")
+
+    # /health: this node is healthy while this workstation runs with its links up
+    :ok = Vws.Ops.Health.expect(id)
     listening = Vws.CEC.SunComm.await_listening(id, 1_000)
     Mix.shell().info("VWS workstation #{id}: SUN_COMM waits for the WC on #{listening || wc}")
     Mix.shell().info("GE-2000 DNC link: #{ge2000}")
@@ -177,7 +186,6 @@ defmodule Mix.Tasks.Vws.Serve do
 
     if sim_daq1 or sim_hydraulic do
       scale = opts[:time_scale] || 1.0
-      if scale <= 0, do: Mix.raise("--time-scale must be positive")
       daq1 = sim_daq1 && "tcp://127.0.0.1:#{opts[:daq1_port] || 0}"
 
       {:ok, _} =
@@ -274,28 +282,25 @@ defmodule Mix.Tasks.Vws.Serve do
 
   # why a workstation did not start, in words: the innermost reason of the supervisor's
   # failed child (a journal directory in use by another OS process, a port taken, …)
-  defp start_error({:shutdown, reason}), do: start_error(reason)
-  defp start_error({:failed_to_start_child, _child, reason}), do: start_error(reason)
-  defp start_error({%{__exception__: true} = e, _stacktrace}), do: Exception.message(e)
-  defp start_error(%{__exception__: true} = e), do: Exception.message(e)
-
-  defp start_error({:cannot_listen, endpoint, %{__exception__: true} = e}),
-    do: "cannot listen on #{endpoint}: #{Exception.message(e)}"
-
-  defp start_error({:already_started, _pid}), do: "a workstation with this id already runs here"
-  defp start_error(reason) when is_binary(reason), do: reason
-  defp start_error(reason), do: inspect(reason)
+  defp start_error(reason), do: Vws.Ops.StartError.describe(reason)
 
   defp iex_running?, do: Code.ensure_loaded?(IEx) and IEx.started?()
 
   @doc false
-  # How to stop it cleanly (Vws.Ops.Signals): Ctrl-C is the BEAM's BREAK menu, which stops nothing
-  # in order; Ctrl-\\ (SIGQUIT) and SIGTERM do.
-  def stop_hint(true = _iex?),
-    do: "Stop: System.stop() or Ctrl-\\ (in order); Ctrl-C twice aborts at once"
+  # How to stop it cleanly (Vws.Ops.Signals): one Ctrl-C when the terminal is ours
+  # (Signals.ctrl_c_stops/0), else Ctrl-\\ (SIGQUIT); SIGTERM always. The BEAM's BREAK menu (Ctrl-C
+  # where the terminal could not be taken) stops nothing in order.
+  def stop_hint(iex?) do
+    how =
+      cond do
+        Vws.Ops.Signals.ctrl_c_mapped?() and iex? -> "Ctrl-C, System.stop()"
+        Vws.Ops.Signals.ctrl_c_mapped?() -> "Ctrl-C"
+        iex? -> "System.stop() or Ctrl-\\"
+        true -> "Ctrl-\\"
+      end
 
-  def stop_hint(false),
-    do: "Stop: Ctrl-\\ or kill #{System.pid()} (in order); Ctrl-C twice aborts at once"
+    "Stop: #{how} or kill #{System.pid()} (in order)"
+  end
 
   # The tokens from files or the environment (Vws.Ops.Web.Tokens), never from the command line:
   # there every local user reads them (`ps`, /proc/<pid>/cmdline).

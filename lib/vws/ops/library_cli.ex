@@ -33,7 +33,7 @@ defmodule Vws.Ops.LibraryCLI do
   @switches [
     id: :string,
     library: :string,
-    version: :integer,
+    version: :pos_integer,
     name: :string,
     source: :string,
     refresh: :boolean,
@@ -44,8 +44,9 @@ defmodule Vws.Ops.LibraryCLI do
   @doc "Runs the command line `argv`, printing to standard output; returns the exit status."
   @spec main([String.t()]) :: 0 | 1 | 2
   def main(argv) do
-    case OptionParser.parse(argv, strict: @switches) do
-      {opts, args, []} ->
+    # the flags' errors in words, as every VWS command says them (Vws.Ops.CLIOptions)
+    case Vws.Ops.CLIOptions.parse(argv, @switches) do
+      {:ok, opts, args} ->
         if opts[:help] do
           IO.puts(usage())
           0
@@ -55,8 +56,8 @@ defmodule Vws.Ops.LibraryCLI do
           run(args, opts, lib)
         end
 
-      {_, _, invalid} ->
-        usage_error("unknown options #{inspect(invalid)}")
+      {:error, line} ->
+        usage_error(line)
     end
   end
 

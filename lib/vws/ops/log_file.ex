@@ -1,9 +1,11 @@
 defmodule Vws.Ops.LogFile do
   @moduledoc """
   The node's log in files as well as on the console: an OTP `:logger_std_h` handler writing
-  `vws.log` in a directory, rotated by size — when it reaches `:max_bytes` (default 10 MB) it
-  becomes `vws.log.0` (the older ones `vws.log.1` …), and at most `:files` (default 10) old
-  files are kept. Each line: time, workstation and partition when known, level, message.
+  `vws-<ID>.log` in a directory — named after the node's workstation (`VWS_ID`, default `VWS`:
+  `vws-VWS.log`), so that two releases logging to one directory (`/var/log/vws`) each keep
+  their own file —, rotated by size: when it reaches `:max_bytes` (default 10 MB) it becomes
+  `vws-<ID>.log.0` (the older ones `.1` …), and at most `:files` (default 10) old files are
+  kept. Each line: time, workstation and partition when known, level, message.
 
   `Vws.Application` installs it from `config :vws, :log_file, dir: …` — in a release and for
   `mix vws.serve`, from `VWS_LOG_DIR` (see `config/runtime.exs`; a release without it writes
@@ -16,14 +18,15 @@ defmodule Vws.Ops.LogFile do
   @handler :vws_file
 
   @doc """
-  Adds the file handler (`:dir` required; `:max_bytes`, `:files`, `:id` — the handler id,
-  default `:vws_file`). Returns `{:ok, path}` or `{:error, reason}` (the directory cannot be
-  created or written: the console log goes on).
+  Adds the file handler (`:dir` required; `:workstation` — the id the file is named after,
+  default `VWS`; `:max_bytes`, `:files`, `:id` — the handler id, default `:vws_file`). Returns
+  `{:ok, path}` or `{:error, reason}` (the directory cannot be created or written: the console
+  log goes on).
   """
   @spec start(keyword) :: {:ok, Path.t()} | {:error, term}
   def start(opts) do
     dir = Keyword.fetch!(opts, :dir)
-    path = Path.join(dir, "vws.log")
+    path = Path.join(dir, file_name(Keyword.get(opts, :workstation, "VWS")))
 
     config = %{
       # what the console leaves out too: supervisor progress and SASL reports (Elixir's Logger
@@ -63,6 +66,19 @@ defmodule Vws.Ops.LogFile do
     end
   end
 
+  @doc """
+  The log file's name for workstation `id`: `vws-<id>.log`, any character that does not belong
+  in a file name made `_`.
+
+      iex> Vws.Ops.LogFile.file_name("VWS1")
+      "vws-VWS1.log"
+      iex> Vws.Ops.LogFile.file_name("cell/A 2")
+      "vws-cell_A_2.log"
+  """
+  @spec file_name(term) :: String.t()
+  def file_name(id),
+    do: "vws-" <> String.replace(to_string(id), ~r/[^A-Za-z0-9_.-]/, "_") <> ".log"
+
   @doc false
   # The formatter: :logger_formatter's, with the workstation id (a string, or any term) written
   # as text, not as an Erlang binary (<<"VWS">>).
@@ -98,7 +114,12 @@ defmodule Vws.Ops.LogFile do
         :ok
 
       opts ->
-        case start(opts) do
+        # the file named after this node's workstation (a release's VWS_ID)
+        id =
+          get_in(Application.get_env(:vws, :workstation, []), [:id]) ||
+            System.get_env("VWS_ID") || "VWS"
+
+        case start(Keyword.put_new(opts, :workstation, id)) do
           {:ok, path} ->
             Logger.info("logging to #{path} as well as the console")
 

@@ -88,7 +88,7 @@ defmodule Vws.Ops.Web do
 
       {:error, reason} ->
         {:error,
-         "the dashboard cannot listen on #{bind}:#{port} (#{inspect(reason, limit: 8)}); " <>
+         "the dashboard cannot start: #{Vws.Ops.StartError.describe(reason)}; " <>
            "choose another port with --http-port N"}
     end
   end

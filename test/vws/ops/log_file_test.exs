@@ -1,17 +1,27 @@
 defmodule Vws.Ops.LogFileTest do
   use ExUnit.Case, async: true
+  doctest Vws.Ops.LogFile
 
   require Logger
 
   @moduletag :tmp_dir
 
-  test "log lines go to DIR/vws.log, with the workstation and partition, rotated by size",
+  test "log lines go to DIR/vws-<id>.log, with the workstation and partition, rotated by size",
        %{tmp_dir: dir} do
     id = :"vws_file_test_#{System.unique_integer([:positive])}"
     dir = Path.join(dir, "logs")
-    assert {:ok, path} = Vws.Ops.LogFile.start(dir: dir, max_bytes: 2_000, files: 2, id: id)
+
+    assert {:ok, path} =
+             Vws.Ops.LogFile.start(
+               dir: dir,
+               max_bytes: 2_000,
+               files: 2,
+               id: id,
+               workstation: "VWS-LOG"
+             )
+
     on_exit(fn -> Vws.Ops.LogFile.stop(id) end)
-    assert path == Path.join(dir, "vws.log")
+    assert path == Path.join(dir, "vws-VWS-LOG.log")
 
     Logger.metadata(workstation: "VWS-LOG", partition: :robot)
     marker = "marker-#{System.unique_integer([:positive])}"
@@ -29,6 +39,20 @@ defmodule Vws.Ops.LogFileTest do
 
     assert all =~ ~r/workstation=VWS-LOG partition=robot \[warning\] line 60 #{marker}/
     refute File.exists?(path <> ".2")
+  end
+
+  test "two workstations logging to one directory each have their own file (named after the id)",
+       %{tmp_dir: dir} do
+    ids = for _ <- 1..2, do: :"vws_file_test_#{System.unique_integer([:positive])}"
+    on_exit(fn -> Enum.each(ids, &Vws.Ops.LogFile.stop/1) end)
+
+    paths =
+      for {id, ws} <- Enum.zip(ids, ["VWS1", "VWS2"]) do
+        {:ok, path} = Vws.Ops.LogFile.start(dir: dir, id: id, workstation: ws)
+        path
+      end
+
+    assert paths == [Path.join(dir, "vws-VWS1.log"), Path.join(dir, "vws-VWS2.log")]
   end
 
   test "a directory that cannot be made is an error, not a crash" do

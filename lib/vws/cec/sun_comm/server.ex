@@ -376,7 +376,11 @@ defmodule Vws.CEC.SunComm.Server do
   end
 
   defp link_lost(state, data, peer, why) do
-    Logger.warning("WC link lost (#{why})")
+    # the WC closing its connection is how a WC ends a session: news, not a warning
+    if why == "closed",
+      do: Logger.info("WC link closed by the WC"),
+      else: Logger.warning("WC link lost (#{why})")
+
     telemetry(data, :wc_disconnected, %{count: 1}, %{peer: peer, reason: why})
     data = abort_transfer(data, "WC LINK LOST")
     data = %{data | conn: nil, decoder: nil}

@@ -16,6 +16,9 @@ defmodule Vws.Ops.Web.Handler do
       control token) — as the password of HTTP Basic authentication (any user name; a browser
       asks once and sends it with the page's own requests) or in the `x-vws-token` header;
       otherwise 401. Without one the reads are open to whoever reaches the port.
+    * `GET /health` (`Vws.Ops.Health`) needs neither: a probe has no secret. It says only
+      `{"status":"ok"}` or `{"status":"failing"}`, and why it fails only with the read token
+      (when one is set).
   """
 
   alias Vws.Ops.MTConnect.Agent
@@ -28,10 +31,11 @@ defmodule Vws.Ops.Web.Handler do
   """
   @spec authorize(map, map) :: :ok | {:deny, tuple}
   def authorize(%{method: method, path: path, headers: headers}, settings) do
-    if method == "POST" and segments(path) == @control do
-      authorize_control(headers, settings)
-    else
-      authorize_read(headers, settings)
+    cond do
+      method == "POST" and segments(path) == @control -> authorize_control(headers, settings)
+      # a health probe has no secret: /health is open, and says the reasons only to a reader
+      method in ["GET", "HEAD"] and segments(path) == ["health"] -> :ok
+      true -> authorize_read(headers, settings)
     end
   end
 
@@ -105,6 +109,12 @@ defmodule Vws.Ops.Web.Handler do
 
   defp route(m, ["api", "state"], _q, _r, s) when m in @read,
     do: state(s)
+
+  # Vws.Ops.Health: 200 {"status":"ok"} or 503 with the reasons (with the read token, if one is set)
+  defp route(m, ["health"], _q, r, s) when m in @read do
+    {status, body} = Vws.Ops.Health.answer(authorize_read(r.headers, s) == :ok)
+    {status, "application/json", body}
+  end
 
   defp route("POST", @control, q, _r, _s), do: status_query(q)
 

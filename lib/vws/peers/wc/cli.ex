@@ -42,8 +42,8 @@ defmodule Vws.Peers.WC.CLI do
     command: :string,
     script: :string,
     send: :string,
-    bcc: :string,
-    timeout: :integer,
+    bcc: {:in, ["sum", "xor"]},
+    timeout: :pos_integer,
     quiet: :boolean,
     help: :boolean
   ]
@@ -83,16 +83,16 @@ defmodule Vws.Peers.WC.CLI do
   ## Arguments
 
   defp parse(argv) do
-    {opts, rest, invalid} = OptionParser.parse(argv, strict: @switches)
-    actions = Keyword.take(opts, [:status, :command, :script, :send])
+    # the flags' errors in words, as every VWS command says them (Vws.Ops.CLIOptions)
+    with {:ok, opts, rest} <- Vws.Ops.CLIOptions.parse(argv, @switches) do
+      actions = Keyword.take(opts, [:status, :command, :script, :send])
 
-    cond do
-      opts[:help] -> {:error, "help"}
-      invalid != [] -> {:error, "unknown or bad options: #{inspect(invalid)}"}
-      rest != [] -> {:error, "unexpected arguments: #{Enum.join(rest, " ")}"}
-      length(actions) != 1 -> {:error, "give one of --status, --command, --script, --send"}
-      opts[:bcc] not in [nil, "sum", "xor"] -> {:error, "--bcc must be sum or xor"}
-      true -> check_action(hd(actions), opts)
+      cond do
+        opts[:help] -> {:error, "help"}
+        rest != [] -> {:error, "#{hd(rest)}: unexpected argument (every option starts with --)"}
+        length(actions) != 1 -> {:error, "give one of --status, --command, --script, --send"}
+        true -> check_action(hd(actions), opts)
+      end
     end
   end
 

@@ -74,4 +74,24 @@ defmodule Vws.Codecs.WC.CLITest do
     assert {2, out} = cli(["--endpoint", "tcp://127.0.0.1:#{port}", "--status", "ROBOT_CMD"])
     assert out =~ "cannot reach the controller"
   end
+
+  test "a bad flag is one line naming it and what is wrong (Vws.Ops.CLIOptions), status 2" do
+    me = self()
+
+    err =
+      capture_io(:stderr, fn ->
+        capture_io(fn -> send(me, {:status, CLI.main(["--status", "X", "--timeout", "soon"])}) end)
+      end)
+
+    assert_received {:status, 2}
+    assert err =~ "--timeout: soon is not a whole number above 0"
+    refute err =~ ~r/[{}]/
+
+    err =
+      capture_io(:stderr, fn ->
+        capture_io(fn -> CLI.main(["--bcc", "crc", "--status", "X"]) end)
+      end)
+
+    assert err =~ "--bcc: crc is not one of sum, xor"
+  end
 end
