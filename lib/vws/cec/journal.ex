@@ -72,6 +72,13 @@ defmodule Vws.CEC.Journal do
   or `NO DATA (JOURNAL RECORD UNREADABLE)` (`Vws.CEC.Journal.Replay`) — never an older status as
   the current one. The next command of a partition makes its status known again.
 
+  A lease taken or given back in the lost part is not known either, so after damage every work
+  volume is held by `:journal` (reason `:damaged`), which shares with nobody: the robot, the
+  machine, the vise and the material handling are all refused (`ERROR INTERLOCK TABLE HELD BY
+  JOURNAL`) until someone who has looked at the cell gives the volume back with
+  `Vws.CEC.Interlock.release(ws, volume, :journal)` (the log line says so, and the release is
+  journaled like any other).
+
   The file is compacted to one snapshot of the restored state as it opens, so damage never
   stands in front of new records (and statuses marked unknown stay so across restarts until a
   command changes them).
@@ -547,7 +554,16 @@ defmodule Vws.CEC.Journal do
 
       {:ok, items, source} ->
         {state, problems} = Replay.replay(items, state_of(table))
-        if problems != [], do: report_damage(ws, source, problems, state)
+
+        state =
+          if problems != [] do
+            state = hold_unknown_volumes(state)
+            report_damage(ws, source, problems, state)
+            state
+          else
+            state
+          end
+
         load(table, state)
     end
   end
@@ -570,6 +586,19 @@ defmodule Vws.CEC.Journal do
     end
   end
 
+  # A lease taken or given back in the damaged part is not known: where the arm was, whether
+  # the tray was locked. An interlock that cannot be decided denies, so every work volume is held
+  # by `:journal` (reason `:damaged`), which shares with nobody, until a person who has looked at
+  # the cell gives it back: `Vws.CEC.Interlock.release(ws, volume, :journal)` in iex (journaled
+  # like any release). The leases read before the damage are kept as well.
+  @volumes [:table, :tray1, :tray2]
+
+  defp hold_unknown_volumes(state) do
+    volumes = Enum.uniq(@volumes ++ for({v, _h, _r} <- state.leases, do: v))
+    held = for v <- volumes, not Enum.any?(state.leases, &match?({^v, :journal, _}, &1)), do: v
+    %{state | leases: state.leases ++ for(v <- held, do: {v, :journal, [:damaged]})}
+  end
+
   defp report_damage(ws, source, problems, state) do
     aside = copy_aside(source)
 
@@ -585,10 +614,9 @@ defmodule Vws.CEC.Journal do
       "journal of #{inspect(ws)}: #{length(problems)} damaged or unreadable place(s); " <>
         "a copy is kept as #{aside}; restored as unknown: " <>
         if(unknown == [], do: "no command status", else: Enum.join(unknown, ", ")) <>
-        if(state.leases == [],
-          do: "",
-          else: "; leases kept as read (a lease taken in the damaged part is not known)"
-        )
+        "; leases read before the damage kept, and every work volume held by JOURNAL until " <>
+        "someone who has looked at the cell releases it " <>
+        "(Vws.CEC.Interlock.release(#{inspect(ws)}, :table, :journal), likewise :tray1, :tray2)"
     )
   end
 

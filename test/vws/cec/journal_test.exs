@@ -154,6 +154,45 @@ defmodule Vws.CEC.JournalTest do
     assert Mailbox.command_status(id, :gripper) == {nil, {:no_data, "JOURNAL DAMAGED"}}
   end
 
+  # A lease taken in the damaged part is not known (the arm may be in the vise): every volume is
+  # held by JOURNAL, which shares with nobody, until a person releases it; kept across restarts.
+  test "after damage every work volume is held by JOURNAL until released by hand", %{tmp_dir: dir} do
+    id = "lease-damage-#{System.unique_integer([:positive])}"
+    start_ws(id, dir)
+    :ok = Vws.CEC.Interlock.acquire(id, :tray1, :mhs, 0)
+    :ok = stop_supervised(id)
+
+    bin = File.read!(journal_file(dir))
+    <<head::binary-size(4), rest::binary>> = bin
+
+    File.write!(
+      journal_file(dir),
+      head <> :crypto.strong_rand_bytes(8) <> binary_part(rest, 8, byte_size(rest) - 8)
+    )
+
+    log = ExUnit.CaptureLog.capture_log(fn -> start_ws(id, dir) end)
+    assert log =~ "every work volume held by JOURNAL"
+
+    for volume <- [:table, :tray1, :tray2] do
+      assert :journal in Vws.CEC.Interlock.holders(id, volume)
+    end
+
+    assert Vws.CEC.Interlock.acquire(id, :table, :robot, 0) ==
+             {:error, "INTERLOCK TABLE HELD BY JOURNAL"}
+
+    assert Vws.CEC.Interlock.acquire(id, :table, :monarch, 0) ==
+             {:error, "INTERLOCK TABLE HELD BY JOURNAL"}
+
+    # kept across a restart until released; the release is journaled like any other
+    restart(id, dir)
+    assert :journal in Vws.CEC.Interlock.holders(id, :table)
+    :ok = Vws.CEC.Interlock.release(id, :table, :journal)
+    assert Vws.CEC.Interlock.acquire(id, :table, :robot, 0) == :ok
+    restart(id, dir)
+    refute :journal in Vws.CEC.Interlock.holders(id, :table)
+    assert :journal in Vws.CEC.Interlock.holders(id, :tray2)
+  end
+
   test "the rule-2 string *0001*S0001VISE*G0001OPEN* survives a kill and a stop: the workstation starts again",
        %{tmp_dir: dir} do
     id = "rule2-#{System.unique_integer([:positive])}"
