@@ -81,7 +81,7 @@ defmodule Vws.Acceptance.DashboardTest do
     page = text(dump_dom(url, 2_000))
 
     assert page =~
-             ~r/DOWNLOAD_GE GE-2000 \(DNC\) .*\d+ % \d+ of \d+ blocks, \d+ of \d+ bytes \d+ B\/s [\d.]+ s/
+             ~r/DOWNLOAD_GE #{Vws.Codecs.WC.Command.pad4(ge)} \d{6}\.PRO v\d+ GE-2000 \(DNC\) .*\d+ % \d+ of \d+ blocks, \d+ of \d+ bytes \d+ B\/s [\d.]+ s/
 
     assert :done = Client.await_command(client, "M", ge, 90_000)
     run(client, "R", "DISABLE_TRAY1")
