@@ -28,6 +28,111 @@ defmodule Vws.Acceptance.GuaranteesTest do
     %{proc: proc, wc: wc, http: http}
   end
 
+  # `mix vws.serve` with its journal in `dir`, started again after each stop on the same one
+  defp serve_journal(dir) do
+    wc = Acceptance.free_port()
+
+    proc =
+      Acceptance.start(
+        ["mix", "vws.serve", "--wc-port", "#{wc}", "--http-port", "0", "--journal", dir],
+        env: [{"MIX_ENV", "dev"}]
+      )
+
+    on_exit(fn -> Acceptance.stop(proc) end)
+    Acceptance.await(proc, ~r/SUN_COMM waits for the WC on tcp:\/\/127\.0\.0\.1:#{wc}/, 90_000)
+    %{proc: proc, wc: wc}
+  end
+
+  defp pad4(n), do: String.pad_leading(Integer.to_string(n), 4, "0")
+
+  # every status the WC may ask: command statuses and device statuses, each answered in words
+  @statuses ~w(ROBOT_CMD MONARCH_CMD GRIPPER_CMD FIXTURE_CMD VACUUM_CMD HYDRAULIC_CMD GRIPPER
+               TABLE VISE TRAYS VACUUM TLI_TABLE CHANGER_1 MONARCH WHERE_ROBOT PALLET)
+
+  defp all_statuses(wc, seq) do
+    for {name, i} <- Enum.with_index(@statuses), into: %{} do
+      s = pad4(seq + i)
+      reply = Acceptance.wc_request(wc, "*#{s}*S#{s}#{name}*")
+      assert [_, text] = Regex.run(~r/^\d\dS#{s}(.*)\d{3}$/, reply), "#{name}: #{reply}"
+      refute text =~ ~r/[{}%]|Elixir|:[a-z]/, "#{name}: #{text}"
+      {name, text}
+    end
+  end
+
+  test "after rule-breaking strings, garbage and a cut-off transfer, it starts again after SIGTERM and kill -9 and answers every status",
+       %{tmp_dir: tmp} do
+    journal = Path.join(tmp, "journal")
+    %{proc: proc, wc: wc} = serve_journal(journal)
+
+    {:ok, sock} = :gen_tcp.connect({127, 0, 0, 1}, wc, [:binary, active: false, packet: :line])
+    send_line = fn line -> :ok = :gen_tcp.send(sock, line <> "\r\n") end
+
+    recv = fn ->
+      {:ok, line} = :gen_tcp.recv(sock, 0, 10_000)
+      String.trim_trailing(line)
+    end
+
+    # garbage, a line with a bad BCC, an unknown set letter, rule 1 and rule 2 broken
+    send_line.("\x00\xFF garbage \x1B[2J")
+    assert recv.() == "E"
+    send_line.("*0001*G0001OPEN*999")
+    assert recv.() == "E"
+
+    for frame <- [
+          "*0002*Q0001JUMP*",
+          "*0003*G0001OPEN*G0002CLOSE*",
+          "*0004*S0001VISE*R0001WHERE*"
+        ] do
+      send_line.(Acceptance.wc_frame(frame))
+      assert recv.() =~ ~r/^05A#{String.slice(frame, 1, 4)}\d{3}$/
+    end
+
+    # a DOWNLOAD_HP cut off after two of its lines: the WC goes away
+    send_line.(Acceptance.wc_frame("*0005*M0001DOWNLOAD_HP*"))
+    assert recv.() =~ ~r/^05A0005\d{3}$/
+
+    for {n, text} <- [{1, "%"}, {2, "O4711"}] do
+      send_line.(Acceptance.wc_frame(pad4(n) <> text))
+      assert recv.() =~ ~r/^A#{pad4(n)}\d{3}$/
+    end
+
+    :gen_tcp.close(sock)
+    before = all_statuses(wc, 10)
+    assert before["GRIPPER_CMD"] =~ ~r/^0002ERROR RULE 1/
+    assert before["ROBOT_CMD"] =~ ~r/^0001ERROR RULE 2/
+
+    Acceptance.signal(proc, "TERM")
+    assert Acceptance.await_exit(proc, 30_000) == 0, Acceptance.output(proc)
+    %{proc: proc, wc: wc} = serve_journal(journal)
+    after_term = all_statuses(wc, 100)
+
+    Acceptance.signal(proc, "KILL")
+    assert Acceptance.await_exit(proc, 30_000) in [137, 9]
+    %{proc: proc, wc: wc} = serve_journal(journal)
+    after_kill = all_statuses(wc, 200)
+
+    # the command statuses read as before the stops; nothing ran twice
+    for name <- ~w(ROBOT_CMD MONARCH_CMD GRIPPER_CMD FIXTURE_CMD VACUUM_CMD HYDRAULIC_CMD) do
+      assert after_term[name] == before[name], name
+      assert after_kill[name] == before[name], name
+    end
+
+    # and it takes work
+    assert Acceptance.wc_request(wc, "*0300*F0001OPEN*") =~ ~r/^05A0300\d{3}$/
+
+    assert Acceptance.await_command(
+             wc,
+             "FIXTURE_CMD",
+             301,
+             1,
+             System.monotonic_time(:millisecond) + 30_000
+           ) =~
+             ~r/0001DONE/
+
+    Acceptance.signal(proc, "TERM")
+    assert Acceptance.await_exit(proc, 30_000) == 0
+  end
+
   defp wc(port, args, timeout \\ 120_000) do
     cli =
       Acceptance.start(
