@@ -125,7 +125,10 @@ defmodule Vws.Links.DNCTest do
       expect(peer, @enq)
       DNCPeer.send_raw(peer, @ack0)
       expect(peer, @sns_bytes)
-      # our ACK1 is "lost": the link polls
+      # our ACK1 is "lost": the link polls, and takes an acknowledgement that answers its ENQ
+      # only when it comes twice (ACK0 and ACK1 differ in one bit)
+      expect(peer, @enq)
+      DNCPeer.send_raw(peer, @ack1)
       expect(peer, @enq)
       DNCPeer.send_raw(peer, @ack1)
       expect(peer, text("N10\n"))
@@ -158,6 +161,33 @@ defmodule Vws.Links.DNCTest do
       expect(peer, @sns_bytes)
       DNCPeer.send_raw(peer, @ack0)
       expect(peer, @enq)
+      DNCPeer.send_raw(peer, @ack1)
+      # heard once in answer to an ENQ: asked again
+      expect(peer, @enq)
+      DNCPeer.send_raw(peer, @ack1)
+      expect(peer, @eot)
+      assert Task.await(task) == {:ok, []}
+    end
+
+    # One flipped bit turns ACK0 into ACK1: the answer to an ENQ that says "the block you sent
+    # arrived" counts only when it comes twice; a second answer that differs means it did not.
+    test "an acknowledgement answering our ENQ counts only when it comes twice", ctx do
+      {link, peer} = connected(ctx, reply_timeout: 500)
+      task = request(link, @sns, ["N10\n", "N20\n"])
+      expect(peer, @enq)
+      DNCPeer.send_raw(peer, @ack0)
+      expect(peer, @sns_bytes)
+      DNCPeer.send_raw(peer, @ack1)
+      expect(peer, text("N10\n"))
+      # N10 "lost"; the receiver's true answer (ACK1, the command block's) arrives flipped to ACK0
+      expect(peer, @enq)
+      DNCPeer.send_raw(peer, @ack0)
+      expect(peer, @enq)
+      DNCPeer.send_raw(peer, @ack1)
+      # the two answers differ: the second, ACK1, repeats the last one — N10 goes again
+      expect(peer, text("N10\n"))
+      DNCPeer.send_raw(peer, @ack0)
+      expect(peer, text("N20\n"))
       DNCPeer.send_raw(peer, @ack1)
       expect(peer, @eot)
       assert Task.await(task) == {:ok, []}
@@ -409,7 +439,9 @@ defmodule Vws.Links.DNCTest do
       expect(peer, text("STATE=ACTIVE;"))
       DNCPeer.send_raw(peer, @ack1)
       expect(peer, text("PROG=000001;ALARM=0"))
-      # a lost reply: the GE asks again (ENQ DEL, as it pads)
+      # a lost reply: the GE asks again (ENQ DEL, as it pads), and once more to be sure
+      expect(peer, @enq_del)
+      DNCPeer.send_raw(peer, @ack0)
       expect(peer, @enq_del)
       DNCPeer.send_raw(peer, @ack0)
       expect(peer, @eot_del)

@@ -299,6 +299,16 @@ defmodule Vws.Links.DNC.Session do
     block = tx.acked + 1
 
     cond do
+      # The answer to our ENQ says the block arrived. ACK0 and ACK1 differ in one bit and carry
+      # no check, so one flip turns "the last block again" into "this one": heard once, the
+      # sender would skip a block the receiver never took, and every block after it would
+      # alternate right. Such an answer is asked for again, and counts only when the same
+      # acknowledgement comes twice (bench/property_seeds.exs found the single flip). After a
+      # WACK the block has arrived (WACK is a positive acknowledgement), so no second answer is
+      # needed there.
+      ack == expected_ack(block) and tx.polled and not tx.wacked and tx.confirm != ack ->
+        confirm(s, ack, now)
+
       ack == expected_ack(block) ->
         text = tx.text_acked + elem(tx.sizes, block - 1)
         sent = tx.bytes_acked + IO.iodata_length(elem(tx.frames, block - 1))
@@ -311,14 +321,16 @@ defmodule Vws.Links.DNC.Session do
             naks: 0,
             enqs: 0,
             wacks: 0,
-            polled: false
+            polled: false,
+            confirm: nil,
+            wacked: false
         }
 
         send_next(%{s | tx: tx}, now)
 
       tx.polled ->
         # the reply to our ENQ repeats the previous acknowledgement: the block never arrived
-        retransmit(s, now)
+        retransmit(%{s | tx: %{tx | confirm: nil}}, now)
 
       true ->
         # wrong parity out of the blue: a lost reply; ask for it again
@@ -341,7 +353,7 @@ defmodule Vws.Links.DNC.Session do
       s = send_control(s, :eot)
       %{fail(s, :wack_limit, tx.acked + 1, wacks, now) | state: :idle}
     else
-      s = %{s | tx: %{s.tx | wacks: wacks}}
+      s = %{s | tx: %{s.tx | wacks: wacks, wacked: true}}
       state_timeout(s, s.limits.wack_delay, :poll_after_wack)
     end
   end
@@ -470,6 +482,8 @@ defmodule Vws.Links.DNC.Session do
       enqs: 0,
       wacks: 0,
       polled: false,
+      confirm: nil,
+      wacked: false,
       retries: 0,
       started: now,
       text_acked: 0,
@@ -546,6 +560,11 @@ defmodule Vws.Links.DNC.Session do
     else
       transmit_block(%{s | tx: %{tx | naks: naks, polled: false}}, true)
     end
+  end
+
+  # an acknowledgement heard once in answer to our ENQ: ENQ again, and take it when it comes again
+  defp confirm(%{tx: tx} = s, ack, now) do
+    poll(%{s | tx: %{tx | confirm: ack}}, :confirm_ack, now)
   end
 
   defp poll(%{tx: tx} = s, why, now) do
