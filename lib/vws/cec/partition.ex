@@ -57,6 +57,7 @@ defmodule Vws.CEC.Partition do
 
   alias Vws.CEC.{Events, Mailbox}
   alias Vws.CEC.Interlock.Rules
+  alias Vws.Codecs.WC.Words
 
   @type ctx :: %{
           workstation: term,
@@ -382,18 +383,33 @@ defmodule Vws.CEC.Partition do
   defp safe(fun) do
     case fun.() do
       :ok -> :ok
-      {:error, why} when is_binary(why) -> {:error, why}
-      other -> {:error, "BAD RESULT #{inspect(other, limit: 5)}"}
+      {:error, why} when is_binary(why) -> {:error, Words.of(why)}
+      other -> {:error, bad_result(other)}
     end
   rescue
-    e -> {:error, Exception.message(e)}
+    e -> {:error, Words.of(e)}
   catch
-    kind, reason -> {:error, "#{kind} #{inspect(reason, limit: 5)}"}
+    kind, reason ->
+      Logger.error("clean-up #{kind}: #{inspect(reason, limit: 20)}")
+      {:error, Words.of(kind)}
   end
 
+  # What a module returns is what the WC reads after ERROR: words and numbers, never a term
+  # (Vws.Codecs.WC.Words); an unexpected result is logged whole and shown in words.
   defp normalise(:done), do: :done
-  defp normalise({:error, reason}) when is_binary(reason), do: {:error, reason}
-  defp normalise(other), do: {:error, "BAD RESULT #{inspect(other, limit: 5)}"}
+
+  defp normalise({:error, reason}) when is_binary(reason) do
+    if reason != "" and Words.text?(reason),
+      do: {:error, reason},
+      else: {:error, Words.of(reason)}
+  end
+
+  defp normalise(other), do: {:error, bad_result(other)}
+
+  defp bad_result(other) do
+    Logger.error("a command ended with an unexpected result: #{inspect(other, limit: 20)}")
+    "BAD RESULT " <> Words.of(other)
+  end
 
   defp finish(ws, partition, number, status, duration) do
     Mailbox.finish(ws, partition, number, status)
@@ -406,8 +422,6 @@ defmodule Vws.CEC.Partition do
     })
   end
 
-  defp exit_reason({%{__exception__: true} = e, _stack}),
-    do: Exception.message(e) |> String.upcase()
-
-  defp exit_reason(reason), do: inspect(reason, limit: 5) |> String.upcase()
+  defp exit_reason({%{__exception__: true} = e, _stack}), do: Words.of(e)
+  defp exit_reason(reason), do: Words.of(reason)
 end

@@ -217,7 +217,10 @@ defmodule Vws.Ops.LibraryCLI do
   defp reason_text(:damaged), do: "its file is damaged (size, CRC or SHA-256 not as stored)"
   defp reason_text(:not_released), do: "no released version (every one came from the machine)"
   defp reason_text(:no_program_number), do: "no program number (O word); give --name"
-  defp reason_text(:too_large), do: "larger than #{Library.max_bytes()} bytes"
+
+  defp reason_text(:too_large),
+    do: "larger than #{Library.max_bytes()} bytes, the most the GE-2000's directory can say"
+
   defp reason_text(:enoent), do: "no such file"
   defp reason_text(reason), do: inspect(reason)
 

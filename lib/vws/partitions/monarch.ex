@@ -124,6 +124,8 @@ defmodule Vws.Partitions.Monarch do
 
   def execute(:download_ge, ctx) do
     with {:ok, file, text} <- nc_file_program(ctx.workstation),
+         # no larger than the machine can store: refused before a byte is sent
+         :ok <- Program.check_size(text),
          :ok <- send_program(ctx, :part_program, "", text, "DOWNLOAD OF #{file} FAILED"),
          :ok <- verify_directory(ctx, file, text),
          do: :done
@@ -131,6 +133,7 @@ defmodule Vws.Partitions.Monarch do
 
   def execute({:download_ge, file, which}, ctx) do
     with {:ok, text} <- library_program(ctx.workstation, file, which),
+         :ok <- Program.check_size(text),
          :ok <- if(Program.complete?(text), do: :ok, else: {:error, "#{file} HAS NO CLOSING %"}),
          :ok <-
            if(Program.sendable?(text),
@@ -403,8 +406,12 @@ defmodule Vws.Partitions.Monarch do
         for row <- result.programs do
           read_back? = wanted == true or (is_list(wanted) and row.name in wanted)
 
+          # read back what the directory cannot tell: versions sharing size and CRC, a line
+          # that could not be read (and, when asked, every program the directory calls the same)
           case row.on_machine do
-            {state, _} when (state == :same and read_back?) or state == :ambiguous ->
+            on
+            when on == :unreadable or (is_tuple(on) and elem(on, 0) == :ambiguous) or
+                   (is_tuple(on) and elem(on, 0) == :same and read_back?) ->
               case read_back(ctx, row.name, row.versions) do
                 {:same, n} ->
                   %{row | on_machine: {:same, n}} |> Map.put(:read_back, :same)
@@ -461,6 +468,7 @@ defmodule Vws.Partitions.Monarch do
 
     result =
       cond do
+        Program.check_size(text) != :ok -> Program.check_size(text)
         not Program.complete?(text) -> {:error, "PROGRAM INCOMPLETE"}
         Program.check_lines(lines) != :ok -> {:error, "PROGRAM HOLDS A CONTROL CHARACTER"}
         true -> store.(ws, name, lines)
@@ -476,7 +484,7 @@ defmodule Vws.Partitions.Monarch do
     case result do
       :ok -> :ok
       {:error, reason} when is_binary(reason) -> {:error, reason}
-      {:error, reason} -> {:error, "NOT STORED #{inspect(reason)}"}
+      {:error, reason} -> {:error, "NOT STORED #{Vws.Codecs.WC.Words.of(reason)}"}
     end
   end
 
@@ -631,7 +639,7 @@ defmodule Vws.Partitions.Monarch do
   end
 
   defp reason_text(reason) when is_binary(reason), do: String.upcase(reason)
-  defp reason_text(reason), do: reason |> inspect() |> String.upcase()
+  defp reason_text(reason), do: Vws.Codecs.WC.Words.of(reason)
 
   defp now, do: System.monotonic_time(:millisecond)
 end

@@ -206,7 +206,7 @@ defmodule Vws.Partitions.Robot do
   defp val({:error, {:bad_response, _}}), do: {:error, "VAL II BAD RESPONSE"}
   defp val({:error, {:bad_command, _}}), do: {:error, "VAL II COMMAND TOO LONG"}
   defp val({:error, {:async_error, text}}), do: {:error, "VAL II ERROR " <> text}
-  defp val({:error, other}), do: {:error, "VAL II " <> String.upcase(inspect(other))}
+  defp val({:error, other}), do: {:error, "VAL II " <> Vws.Codecs.WC.Words.of(other)}
 
   defp timeout(ctx, :command), do: Keyword.get(ctx.options, :command_timeout, 10_000)
   defp timeout(ctx, :motion), do: Keyword.get(ctx.options, :motion_timeout, 120_000)

@@ -47,7 +47,7 @@ defmodule Vws.Partitions.TableConditions do
       {"ACTIVE", age} -> {:error, "MACHINE STATUS STALE (#{age} MS OLD)"}
       {nil, _} -> {:error, "MACHINE STATUS NO DATA"}
       {other, _} when is_binary(other) -> {:error, "MACHINE STATUS " <> other}
-      {other, _} -> {:error, "MACHINE STATUS " <> inspect(other)}
+      {other, _} -> {:error, "MACHINE STATUS " <> Vws.Codecs.WC.Words.of(other)}
     end
   end
 

@@ -453,7 +453,7 @@ defmodule Vws.Partitions.VwsStatus do
   def handle_call({:actuate, actions}, from, s) do
     case DAQ.actuation(s.daq, actions) do
       {:error, {:unknown_actuator, who}} ->
-        {:reply, {:error, "UNKNOWN ACTUATOR #{inspect(who)}"}, s}
+        {:reply, {:error, "UNKNOWN ACTUATOR #{Vws.Codecs.WC.Words.of(who)}"}, s}
 
       {:ok, [], []} ->
         {:reply, :ok, s}
@@ -469,7 +469,7 @@ defmodule Vws.Partitions.VwsStatus do
   def handle_call({:push, relay, pulse_ms}, from, s) do
     case DAQ.actuation(s.daq, [{relay, :close}]) do
       {:error, {:unknown_actuator, who}} ->
-        {:reply, {:error, "UNKNOWN ACTUATOR #{inspect(who)}"}, s}
+        {:reply, {:error, "UNKNOWN ACTUATOR #{Vws.Codecs.WC.Words.of(who)}"}, s}
 
       {:ok, commands, expected} ->
         # this press is let go at its own time: an earlier release must not cut it short

@@ -212,6 +212,46 @@ defmodule Vws.Partitions.MonarchTest do
     assert Mailbox.nc_up(ws) == ["KEEP"]
   end
 
+  # PROTOCOLS.md §2 "Program size limit": the directory's size has six digits. A 1.33 MB program
+  # ended VERIFY FAILED … BAD DIRECTORY and broke every later DOWNLOAD_GE and COMPARE_GE.
+  describe "a program larger than the directory can say (999,999 bytes)" do
+    test "DOWNLOAD_HP refuses it at its end and keeps the NC file; a small DOWNLOAD_GE works after",
+         ctx do
+      small = ["%", "O4712", "N10 G00 X0", "M30", "%"]
+      assert download_hp(ctx.peer, 1, small) == "0001DONE"
+      big = program(1_000_000)
+      size = byte_size(Program.to_text(big))
+
+      assert download_hp(ctx.peer, 2, big) ==
+               "0002ERROR PROGRAM TOO LARGE #{size} BYTES (LIMIT 999999)"
+
+      assert Mailbox.nc_file(ctx.ws) == small
+      assert monarch(ctx.peer, 3, "DOWNLOAD_GE") == "0003DONE"
+      assert GE2000.program(ctx.sim, "004712.PRO") == Program.to_text(small)
+    end
+
+    test "DOWNLOAD_GE refuses it before a byte is sent; a directory line it cannot read makes only that file unknown",
+         ctx do
+      big = program(1_000_000)
+      :ok = Mailbox.put_nc_file(ctx.ws, big)
+      sent = DNC.info(ctx.link).counters.blocks_sent
+      size = byte_size(Program.to_text(big))
+
+      assert monarch(ctx.peer, 1, "DOWNLOAD_GE") ==
+               "0001ERROR PROGRAM TOO LARGE #{size} BYTES (LIMIT 999999)"
+
+      assert DNC.info(ctx.link).counters.blocks_sent == sent
+
+      # the machine holds one anyway (put there by hand): its 7-digit directory line is unknown,
+      # every other file and command works
+      :ok = GE2000.put_program(ctx.sim, "004711.PRO", Program.to_text(big))
+      small = ["%", "O4713", "N10 G00 X0", "M30", "%"]
+      :ok = Mailbox.put_nc_file(ctx.ws, small)
+      assert monarch(ctx.peer, 2, "DOWNLOAD_GE") == "0002DONE"
+      assert monarch(ctx.peer, 3, "COMPARE_GE") == "0003DONE"
+    end
+  end
+
   test "DOWNLOAD_GE refuses an empty NC file and one without a program number", ctx do
     assert monarch(ctx.peer, 1, "DOWNLOAD_GE") == "0001ERROR NO NC FILE"
     assert download_hp(ctx.peer, 2, ["%", "N10 G00", "%"]) == "0002DONE"

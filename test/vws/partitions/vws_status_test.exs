@@ -249,7 +249,7 @@ defmodule Vws.Partitions.VwsStatusTest do
       refute {:daq1, 207} in Plant.snapshot(plant).relays
 
       assert VwsStatus.actuate(ws, table_park: :close) ==
-               {:error, "UNKNOWN ACTUATOR :table_park"}
+               {:error, "UNKNOWN ACTUATOR TABLE PARK"}
 
       assert VwsStatus.stats(ws).actuations == 2
     end

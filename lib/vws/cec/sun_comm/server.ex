@@ -706,8 +706,10 @@ defmodule Vws.CEC.SunComm.Server do
       String.trim(text) == "%" and d.count > 1 ->
         lines = Enum.reverse(d.lines)
 
-        # into the program library first (issue 18), when the workstation has one
+        # no larger than the GE-2000 can store (its directory's six digits); then into the
+        # program library first (issue 18), when the workstation has one
         case with(
+               :ok <- Vws.Links.DNC.Program.check_size(d.bytes),
                :ok <- Vws.Links.DNC.Library.store_download(data.workstation, lines),
                do: Mailbox.put_nc_file(data.workstation, lines)
              ) do
@@ -719,9 +721,17 @@ defmodule Vws.CEC.SunComm.Server do
             data = end_transfer(data, d.number, :done)
             {:command, %{data | last_closing: {line, answer}}, []}
 
+          {:error, "PROGRAM TOO LARGE" <> _ = why} ->
+            # the closing line came intact (answered as every line is); the program is refused
+            data = reply(data, {:line_ack, rem(d.count, 10_000)})
+            telemetry(data, :string_rejected, %{bytes: 0}, %{reason: :program_too_large})
+            Logger.warning("DOWNLOAD_HP #{d.number}: #{why}; the NC file is kept as it was")
+            {:command, end_transfer(data, d.number, {:error, why}), []}
+
           {:error, reason} ->
             data = reject(data, :journal_unavailable)
-            why = "NC FILE NOT STORED #{inspect(reason)}"
+            Logger.error("DOWNLOAD_HP #{d.number}: NC file not stored: #{inspect(reason)}")
+            why = "NC FILE NOT STORED #{Vws.Codecs.WC.Words.of(reason)}"
             {:command, end_transfer(data, d.number, {:error, why}), []}
         end
 

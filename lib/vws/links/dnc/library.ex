@@ -72,7 +72,9 @@ defmodule Vws.Links.DNC.Library do
 
   require Logger
 
-  @max_bytes 16 * 1024 * 1024
+  # what the GE-2000 can store (Vws.Links.DNC.Program.check_size/1): a larger program could never
+  # be sent to it, so it is not kept either
+  @max_bytes Vws.Links.DNC.Program.max_stored_bytes()
   @machine "MACHINE.DIR"
   @tmp_prefix ".tmp-"
   @numbers ".v"
@@ -95,7 +97,12 @@ defmodule Vws.Links.DNC.Library do
         }
 
   @type on_machine ::
-          :unknown | :absent | :differs | {:same, pos_integer} | {:ambiguous, [pos_integer]}
+          :unknown
+          | :unreadable
+          | :absent
+          | :differs
+          | {:same, pos_integer}
+          | {:ambiguous, [pos_integer]}
 
   # the source of a program the operator sent from the machine: its version is not released
   @from_machine "from the machine"
@@ -575,14 +582,7 @@ defmodule Vws.Links.DNC.Library do
         DateTime.to_iso8601(DateTime.truncate(at, :millisecond)),
         ?\n,
         for {name, e} <- Enum.sort(entries) do
-          [
-            name,
-            ?\s,
-            pad(e.size, 6),
-            ?\s,
-            String.pad_leading(Integer.to_string(e.crc, 16), 4, "0"),
-            ?\n
-          ]
+          directory_line(name, e)
         end
       ]
 
@@ -600,6 +600,20 @@ defmodule Vws.Links.DNC.Library do
       end
     end
   end
+
+  # what the machine's directory said of one file, as it is recorded (and read back by
+  # Report.parse_directory/1): a line it could not read stays unreadable
+  defp directory_line(name, :unreadable), do: [name, " UNREADABLE\n"]
+
+  defp directory_line(name, e),
+    do: [
+      name,
+      ?\s,
+      pad(e.size, 6),
+      ?\s,
+      String.pad_leading(Integer.to_string(e.crc, 16), 4, "0"),
+      ?\n
+    ]
 
   @doc "The machine's directory as last recorded: `{:ok, %{read_at, entries}}`, `:none`, or an error."
   @spec machine(lib) ::
@@ -647,6 +661,8 @@ defmodule Vws.Links.DNC.Library do
   """
   @spec on_machine([map], map | nil | :unknown) :: on_machine
   def on_machine(_versions, :unknown), do: :unknown
+  # its directory line could not be read: only reading the program back can tell
+  def on_machine(_versions, :unreadable), do: :unreadable
   def on_machine(_versions, nil), do: :absent
 
   def on_machine(versions, %{size: size, crc: crc}) do
@@ -755,6 +771,7 @@ defmodule Vws.Links.DNC.Library do
   def on_machine_text(:differs, _, _), do: "differs"
   def on_machine_text(:absent, _, _), do: "absent"
   def on_machine_text(:unknown, _, _), do: "unknown (directory not read yet)"
+  def on_machine_text(:unreadable, _, _), do: "unknown (its directory line could not be read)"
 
   @doc """
   What a version is, in words, for listings: `"released"` or `"from the machine, not

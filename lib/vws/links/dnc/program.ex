@@ -20,6 +20,33 @@ defmodule Vws.Links.DNC.Program do
       true
   """
 
+  # the largest size the GE-2000's directory can say (six digits): PROTOCOLS.md §2
+  @max_stored_bytes 999_999
+
+  @doc """
+  The largest program the GE-2000 can store and its directory describe: 999,999 bytes, the
+  six-digit size field (PROTOCOLS.md §2 "Program size limit"). The one home of that limit.
+  """
+  @spec max_stored_bytes() :: pos_integer
+  def max_stored_bytes, do: @max_stored_bytes
+
+  @doc """
+  Whether a program (its text, or its size in bytes) may be stored — at the end of DOWNLOAD_HP,
+  in the program library, by DOWNLOAD_GE, as a program the GE-2000 sends — with the error every
+  door answers. A drip feed stores nothing and is not limited.
+
+      iex> Vws.Links.DNC.Program.check_size("%\\nO1\\n%\\n")
+      :ok
+      iex> Vws.Links.DNC.Program.check_size(1_330_000)
+      {:error, "PROGRAM TOO LARGE 1330000 BYTES (LIMIT 999999)"}
+  """
+  @spec check_size(binary | non_neg_integer) :: :ok | {:error, String.t()}
+  def check_size(text) when is_binary(text), do: check_size(byte_size(text))
+  def check_size(bytes) when is_integer(bytes) and bytes <= @max_stored_bytes, do: :ok
+
+  def check_size(bytes) when is_integer(bytes),
+    do: {:error, "PROGRAM TOO LARGE #{bytes} BYTES (LIMIT #{@max_stored_bytes})"}
+
   # X3.28 transmission controls: never in the non-transparent text of the DNC link (see
   # Vws.Links.DNC.Frame's moduledoc), plus CR and LF, which cannot be inside one of the CEC's lines.
   @not_in_text [0x01, 0x02, 0x03, 0x04, 0x05, 0x06, 0x10, 0x15, 0x16, 0x17]

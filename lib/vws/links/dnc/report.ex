@@ -79,24 +79,49 @@ defmodule Vws.Links.DNC.Report do
     do: %{name: name, size: byte_size(bytes), crc: Vws.Codecs.CRC16.compute(bytes)}
 
   @doc """
-  Reads a directory into `%{name => entry}`; blank lines are skipped, any other line that is not
-  `nnnnnn.PRO|GSU bbbbbb cccc` is an error.
+  Reads a directory into `%{name => entry}`; blank lines are skipped. A line that is not
+  `nnnnnn.PRO|GSU bbbbbb cccc` but begins with a file name makes that one file `:unreadable`
+  (a size over six digits, a damaged CRC): it never fails what is said of the others
+  (PROTOCOLS.md §2 "Program size limit"). A line that names no file is passed over; a
+  directory none of whose lines names a file is an error.
 
       iex> Vws.Links.DNC.Report.parse_directory("001234.PRO 000009 BB3D\\n")
       {:ok, %{"001234.PRO" => %{name: "001234.PRO", size: 9, crc: 0xBB3D}}}
+      iex> Vws.Links.DNC.Report.parse_directory("001234.PRO 000009 BB3D\\n007777.PRO 1330000 0A1B\\n")
+      {:ok, %{"001234.PRO" => %{name: "001234.PRO", size: 9, crc: 0xBB3D}, "007777.PRO" => :unreadable}}
   """
-  @spec parse_directory(binary) :: {:ok, %{binary => entry}} | {:error, {:bad_line, binary}}
+  @spec parse_directory(binary) ::
+          {:ok, %{binary => entry | :unreadable}} | {:error, {:bad_line, binary}}
   def parse_directory(text) do
-    text
-    |> String.split(["\r\n", "\n"])
-    |> Enum.reject(&(String.trim(&1) == ""))
-    |> Enum.reduce_while({:ok, %{}}, fn line, {:ok, acc} ->
-      case directory_line(line) do
-        {:ok, entry} -> {:cont, {:ok, Map.put(acc, entry.name, entry)}}
-        :error -> {:halt, {:error, {:bad_line, line}}}
-      end
-    end)
+    lines = text |> String.split(["\r\n", "\n"]) |> Enum.reject(&(String.trim(&1) == ""))
+
+    entries =
+      Enum.reduce(lines, %{}, fn line, acc ->
+        case directory_line(line) do
+          {:ok, entry} ->
+            Map.put(acc, entry.name, entry)
+
+          :error ->
+            case line_name(line) do
+              {:ok, name} -> Map.put(acc, name, :unreadable)
+              :error -> acc
+            end
+        end
+      end)
+
+    if entries == %{} and lines != [],
+      do: {:error, {:bad_line, hd(lines)}},
+      else: {:ok, entries}
   end
+
+  defp line_name(<<number::binary-6, ".", ext::binary-3, rest::binary>>)
+       when ext in ["PRO", "GSU"] do
+    if all?(number, &(&1 in ?0..?9)) and (rest == "" or binary_part(rest, 0, 1) == " "),
+      do: {:ok, number <> "." <> ext},
+      else: :error
+  end
+
+  defp line_name(_line), do: :error
 
   # `nnnnnn.PRO|GSU bbbbbb cccc` by binary matching, not a regular expression: the program
   # library reads directories of 10,000 lines (bench/library.exs)

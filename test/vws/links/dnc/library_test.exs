@@ -67,6 +67,10 @@ defmodule Vws.Links.DNC.LibraryTest do
     assert Library.store(lib, "1", @prog, source: "a~b") == {:error, :bad_source}
     big = :binary.copy("N1\n", div(Library.max_bytes(), 3) + 1)
     assert Library.store(lib, "1", big) == {:error, :too_large}
+
+    # the GE-2000's directory says at most 999,999 bytes (PROTOCOLS.md §2): the library keeps no more
+    assert Library.max_bytes() == 999_999
+    assert Library.store(lib, "1", :binary.copy("N", 1_000_000)) == {:error, :too_large}
     assert Library.list(lib) == {:ok, []}
     refute File.exists?(Path.join(Path.dirname(dir), "x"))
     assert Library.store(:no_such_workstation, "1", @prog) == {:error, :no_library}

@@ -1,0 +1,104 @@
+defmodule Vws.Codecs.WC.WordsTest do
+  # Issue 24 C: no WC status ever carries an Elixir term — every ERROR text is upper-case words
+  # and numbers. Over any term (Words.of/1, the one home), over whatever a partition module
+  # returns or raises (Vws.CEC.Partition.run/2), and over every DNC link error MONARCH maps.
+  use ExUnit.Case, async: true
+  use Vws.PropCase
+
+  alias Vws.Codecs.WC.Words
+  alias Vws.Links.DNC.LinkError
+
+  doctest Words
+
+  # a partition module that ends its command with whatever the test put in the command's text
+  defmodule AnyResult do
+    @behaviour Vws.CEC.Partition
+    def device, do: "TEST DEVICE"
+    def parse(_text), do: {:ok, :on}
+    def execute(_command, ctx), do: ctx.options[:result]
+  end
+
+  # printable text, lower case and punctuation included ("VAL II error: bad", "{:ok, 1}")
+  defp text do
+    :proper_types.bind(
+      :proper_types.list(:proper_types.range(32, 126)),
+      &List.to_string/1,
+      false
+    )
+  end
+
+  defp term do
+    :proper_types.oneof([
+      :proper_types.any(),
+      :proper_types.binary(),
+      text(),
+      :proper_types.atom(),
+      {:error, :proper_types.any()},
+      {:error, text()},
+      :proper_types.list(:proper_types.any())
+    ])
+  end
+
+  test "property: any term in words is a status text" do
+    property =
+      :proper.forall(term(), fn t ->
+        words = Words.of(t)
+        Words.text?(words) and words != "" and String.length(words) <= 80
+      end)
+
+    assert_property(property, 2_000)
+  end
+
+  test "property: whatever a partition's module returns, the command ends DONE or ERROR in words" do
+    ws = "words-#{System.unique_integer([:positive])}"
+    {:ok, _} = Vws.CEC.Mailbox.Owner.start_link(workstation: ws)
+
+    property =
+      :proper.forall(term(), fn result ->
+        ctx = %{
+          workstation: ws,
+          partition: :vacuum,
+          number: 1,
+          text: "ON",
+          link: :test,
+          interlocks: :off,
+          options: [result: result]
+        }
+
+        ExUnit.CaptureLog.capture_log(fn ->
+          send(self(), {:result, Vws.CEC.Partition.run(AnyResult, ctx)})
+        end)
+
+        assert_received {:result, ended}
+
+        case ended do
+          :done -> result == :done
+          {:error, text} -> Words.text?(text) and text != ""
+        end
+      end)
+
+    assert_property(property, 1_000)
+  end
+
+  test "every DNC link error MONARCH can report is in words" do
+    reasons = [
+      :link_down,
+      :no_answer_to_bid,
+      :contention,
+      :nak_limit,
+      :no_reply,
+      :wack_limit,
+      :aborted,
+      :no_response,
+      :receive_timeout,
+      :too_large,
+      :timeout,
+      :invalid_text
+    ]
+
+    for reason <- reasons, block <- [nil, 0, 7], count <- [nil, 3] do
+      text = LinkError.status_text(%LinkError{reason: reason, block: block, count: count})
+      assert Words.text?(text), "#{reason}: #{text}"
+    end
+  end
+end
