@@ -118,6 +118,10 @@ defmodule Vws.Ops.LibraryCLI do
         IO.puts("stored #{v.name} v#{v.version}  #{line(v)}")
         0
 
+      {:same, v} ->
+        IO.puts("#{path}: same as #{v.name} v#{v.version}, nothing stored")
+        0
+
       error ->
         result(error, path)
     end
@@ -219,6 +223,8 @@ defmodule Vws.Ops.LibraryCLI do
   defp reason_text(:no_program_number), do: "no program number (O word); give --name"
   defp reason_text(:too_large), do: "larger than #{Library.max_bytes()} bytes"
   defp reason_text(:enoent), do: "no such file"
+  defp reason_text({:not_a_program, why}), do: Library.program_refusal(why)
+  defp reason_text({:not_a_file, type}), do: "not a regular file (#{type})"
   defp reason_text(reason), do: inspect(reason)
 
   defp usage_error(message) do
