@@ -41,7 +41,7 @@ defmodule Vws.Acceptance.ServeCycleTest do
     {status, Acceptance.output(cli)}
   end
 
-  test "mix vws.wc --script priv/sims/machining_cycle.vws against mix vws.serve: exit status 0" do
+  test "mix vws.wc --script priv/sims/machining_cycle.vws (then table1.vws, recover.vws) against mix vws.serve: exit status 0" do
     %{proc: proc, wc: port} = serve()
     assert Acceptance.output(proc) =~ "a blank in tray #1"
 
@@ -49,5 +49,13 @@ defmodule Vws.Acceptance.ServeCycleTest do
     assert status == 0, output
     assert output =~ ~r/result: +COMPLETED/, output
     assert output =~ ~r/steps done: +(\d+) of \1\b/, output
+
+    # the part is back in tray #1: Table 1's script runs next, then the recovery script (which
+    # finds nothing held), each to its end
+    for script <- ["priv/sims/table1.vws", "priv/sims/recover.vws"] do
+      {status, output} = wc(port, ["--script", script])
+      assert status == 0, output
+      assert output =~ ~r/result: +COMPLETED/, output
+    end
   end
 end
