@@ -2,9 +2,11 @@ defmodule Mix.Tasks.Vws.Serve do
   @shortdoc "Starts a VWS workstation and waits for a workstation controller"
   @moduledoc """
   Starts one workstation (VWS_CONTROL, the mailboxes, the partitions and SUN_COMM) and waits for a
-  workstation controller. The simulated plant, DAQ #1, DAQ #2 and the hydraulic controller on it
-  (`Vws.Sim.Floor`) start first and the workstation is connected to them, unless `--daq1` points
-  at a real instrument and `--hydraulic` at a hydraulic controller running elsewhere.
+  workstation controller. The simulated floor starts first, as the demo's (`Vws.Sim.Floor.start_stocked/1`:
+  the plant, DAQ #1, DAQ #2 and the hydraulic controller on it, the GE-2000, the VAL II, the
+  material-handling system, a blank in tray #1), without the simulator of each device given an
+  endpoint (`--daq1`, `--hydraulic`, `--ge2000`, `--robot`), and the workstation is connected to
+  it: `mix vws.wc --script priv/sims/machining_cycle.vws` runs the shipped cycle against it.
 
       mix vws.serve                       # WC on tcp://127.0.0.1:7070
       mix vws.serve --wc-port 7071 --bind 0.0.0.0 --wc-allow 10.0.0.5   # only the WC at 10.0.0.5
