@@ -55,9 +55,9 @@ defmodule Vws.CycleScriptsTest do
        %{tmp_dir: tmp} do
     text = File.read!("priv/sims/table1.vws")
     [before, rest] = String.split(text, "# --- Set-up", parts: 2)
-    [_setup, seed_steps] = String.split(rest, "# --- The seed's steps", parts: 2)
+    [_setup, task] = String.split(rest, "# --- Table 1's task goes on", parts: 2)
     path = Path.join(tmp, "table1-no-setup.vws")
-    File.write!(path, before <> "# --- The seed's steps" <> seed_steps)
+    File.write!(path, before <> "# --- Table 1's task goes on" <> task)
 
     id = "cycle-#{System.unique_integer([:positive])}"
     summary = demo(id, path)
