@@ -2,9 +2,11 @@ defmodule Mix.Tasks.Vws.Serve do
   @shortdoc "Starts a VWS workstation and waits for a workstation controller"
   @moduledoc """
   Starts one workstation (VWS_CONTROL, the mailboxes, the partitions and SUN_COMM) and waits for a
-  workstation controller. The simulated plant, DAQ #1, DAQ #2 and the hydraulic controller on it
-  (`Vws.Sim.Floor`) start first and the workstation is connected to them, unless `--daq1` points
-  at a real instrument and `--hydraulic` at a hydraulic controller running elsewhere.
+  workstation controller. The simulated floor starts first, as the demo's (`Vws.Sim.Floor.start_stocked/1`:
+  the plant, DAQ #1, DAQ #2 and the hydraulic controller on it, the GE-2000, the VAL II, the
+  material-handling system, a blank in tray #1), without the simulator of each device given an
+  endpoint (`--daq1`, `--hydraulic`, `--ge2000`, `--robot`), and the workstation is connected to
+  it: `mix vws.wc --script priv/sims/machining_cycle.vws` runs the shipped cycle against it.
 
       mix vws.serve                       # WC on tcp://127.0.0.1:7070
       mix vws.serve --wc-port 7071 --bind 0.0.0.0 --wc-allow 10.0.0.5   # only the WC at 10.0.0.5
@@ -128,9 +130,10 @@ defmodule Mix.Tasks.Vws.Serve do
     with {:error, reason} <- Vws.Application.check_wc_port(wc),
          do: Mix.raise("workstation #{id} did not start: #{Vws.Ops.StartError.describe(reason)}")
 
+    floor = floor_devices(id, opts)
     robot = robot(id, opts)
     {ge2000, monarch} = ge2000(id, opts)
-    devices = [ge2000: ge2000, robot: robot] ++ floor_devices(id, opts)
+    devices = [ge2000: ge2000, robot: robot] ++ floor
 
     # a simulated GE-2000's own button is MONARCH's cycle start; else the DAQ #1 relay is
     case Vws.CEC.Workstation.start(
@@ -178,27 +181,36 @@ defmodule Mix.Tasks.Vws.Serve do
     end
   end
 
-  # DAQ #1 and the hydraulic controller: the real ones given with --daq1 / --hydraulic, or the
-  # simulated floor (plant, DAQ #1, DAQ #2, the hydraulic controller on it), started here.
+  # The simulated floor, as the demo's (Vws.Sim.Floor.start_stocked/1: the plant, material
+  # handling, a blank in tray #1) with a simulator for each device not given (--daq1,
+  # --hydraulic, --ge2000, --robot): the robot's motions and the machine's cycle reach the plant,
+  # so priv/sims/machining_cycle.vws runs against it. DAQ #1 and the hydraulic controller's
+  # endpoints are returned; robot/2 and ge2000/2 say theirs. The floor runs under the
+  # application's equipment supervisor, not linked to this task's process: under `iex -S mix
+  # vws.serve` that process ends once the task has run (and took the floor with it), and the
+  # application stops it in order — after the workstation, before the registry it is named in.
   defp floor_devices(id, opts) do
     sim_daq1 = opts[:daq1] == nil
     sim_hydraulic = opts[:hydraulic] == nil
 
-    if sim_daq1 or sim_hydraulic do
+    if sim_daq1 or sim_hydraulic or opts[:robot] == nil or opts[:ge2000] == nil do
       scale = opts[:time_scale] || 1.0
-      daq1 = sim_daq1 && "tcp://127.0.0.1:#{opts[:daq1_port] || 0}"
 
       {:ok, _} =
-        start_equipment(
-          {Vws.Sim.Floor,
-           workstation: id,
-           time_scale: scale,
-           daq1: daq1,
-           daq2: sim_hydraulic && "tcp://127.0.0.1:0",
-           hydraulic: sim_hydraulic}
+        Vws.Sim.Floor.start_stocked(
+          supervisor: Vws.EquipmentSupervisor,
+          workstation: id,
+          time_scale: scale,
+          daq1: sim_daq1 && "tcp://127.0.0.1:#{opts[:daq1_port] || 0}",
+          daq2: sim_hydraulic && "tcp://127.0.0.1:0",
+          hydraulic: sim_hydraulic,
+          robot: opts[:robot] == nil && [time_scale: opts[:robot_time_scale] || 1.0],
+          ge2000: opts[:ge2000] == nil && [pace: opts[:ge2000_baud] || false]
         )
 
-      Mix.shell().info("simulated plant (time scale ×#{scale})")
+      Mix.shell().info(
+        "simulated plant (time scale ×#{scale}), material handling, a blank in tray #1"
+      )
     end
 
     daq1 =
@@ -213,12 +225,6 @@ defmodule Mix.Tasks.Vws.Serve do
 
     hydraulic =
       if sim_hydraulic do
-        :ok =
-          Vws.Peers.HydraulicController.await_ready(
-            Vws.Sim.Floor.hydraulic_controller(id),
-            10_000
-          )
-
         endpoint = Vws.Sim.Floor.hydraulic_endpoint(id)
 
         Mix.shell().info(
@@ -234,16 +240,11 @@ defmodule Mix.Tasks.Vws.Serve do
     [daq1: daq1, hydraulic: hydraulic]
   end
 
-  # the real VAL II, or a simulated one started here (outside the workstation: it is equipment)
+  # the real VAL II, or the floor's simulated one (equipment: outside the workstation)
   defp robot(id, opts) do
     case opts[:robot] do
       nil ->
-        name = Vws.Sim.Floor.robot(id)
-
-        {:ok, _} =
-          start_equipment({Vws.Sim.VAL2, name: name, time_scale: opts[:robot_time_scale] || 1.0})
-
-        endpoint = Vws.Sim.VAL2.endpoint(name)
+        endpoint = Vws.Sim.VAL2.endpoint(Vws.Sim.Floor.robot(id))
         Mix.shell().info("Simulated VAL II robot controller on #{endpoint}")
         endpoint
 
@@ -253,12 +254,11 @@ defmodule Mix.Tasks.Vws.Serve do
     end
   end
 
-  # The real machine's endpoint, or a simulator started here (its button stands in for the relay).
+  # The real machine's endpoint, or the floor's simulator (its button stands in for the relay).
   defp ge2000(id, opts) do
     case opts[:ge2000] do
       nil ->
         sim = Vws.Sim.Floor.ge2000(id)
-        {:ok, _} = start_equipment({Vws.Sim.GE2000, name: sim, pace: opts[:ge2000_baud] || false})
         Mix.shell().info("Simulated GE-2000 on #{Vws.Sim.GE2000.endpoint(sim)}")
         {Vws.Sim.GE2000.endpoint(sim), [cycle_start: fn -> Vws.Sim.GE2000.cycle_start(sim) end]}
 
@@ -266,13 +266,6 @@ defmodule Mix.Tasks.Vws.Serve do
         {endpoint, []}
     end
   end
-
-  # Simulators run under the application's equipment supervisor, not linked to this task's
-  # process: under `iex -S mix vws.serve` that process ends once the task has run (and took the
-  # floor with it), and the application stops them in order — after the workstation, before
-  # the registry they are named in.
-  defp start_equipment(child_spec),
-    do: DynamicSupervisor.start_child(Vws.EquipmentSupervisor, child_spec)
 
   defp journal_choice(opts) do
     Vws.Ops.DataDir.choice(opts)

@@ -24,6 +24,12 @@ defmodule Vws.Ops.LibraryCLI do
   it again, as its WC: it sends the Monarch command `COMPARE_GE` to `--endpoint` (default
   `tcp://127.0.0.1:7070`; `Vws.Peers.WC.CLI`).
 
+  `import` takes only an NC program (`Vws.Links.DNC.Library.check_program/1`: `%` first and
+  last, the O word after the first `%`, text, at most 999,999 bytes) and says why it refuses
+  anything else (`tool.py: not an NC program: its first line is not %`, exit status 1); a file
+  holding exactly the latest version is not stored again (`same as 001234.PRO v2, nothing
+  stored`, exit status 0).
+
   Exit status: 0 done; 1 not found, not stored, or different (`diff` of two different versions
   exits 0); 2 a usage error.
   """
@@ -116,6 +122,10 @@ defmodule Vws.Ops.LibraryCLI do
     case Library.import_file(lib, path, store_opts) do
       {:ok, v} ->
         IO.puts("stored #{v.name} v#{v.version}  #{line(v)}")
+        0
+
+      {:same, v} ->
+        IO.puts("#{path}: same as #{v.name} v#{v.version}, nothing stored")
         0
 
       error ->
@@ -222,6 +232,8 @@ defmodule Vws.Ops.LibraryCLI do
     do: "larger than #{Library.max_bytes()} bytes, the most the GE-2000's directory can say"
 
   defp reason_text(:enoent), do: "no such file"
+  defp reason_text({:not_a_program, why}), do: Library.program_refusal(why)
+  defp reason_text({:not_a_file, type}), do: "not a regular file (#{type})"
   defp reason_text(reason), do: inspect(reason)
 
   defp usage_error(message) do

@@ -31,8 +31,9 @@ defmodule Vws.Sim.Floor do
     * the MHS moves the trays (`Vws.Sim.Plant.move_tray/3`) under the workstation's interlock.
 
   `Vws.Ops.Demo` starts the whole floor before the workstation and gives the workstation
-  `devices: devices(ws)`; `mix vws.serve` starts the plant, the DAQs and the hydraulic
-  controller here (and the GE-2000 and VAL II simulators on their own). Pointing a device at
+  `devices: devices(ws)`; `mix vws.serve` starts the same floor, without the simulators of the
+  devices it is pointed at (`--daq1`, `--hydraulic`, `--ge2000`, `--robot`). Both start it with
+  `start_stocked/1`: the material handling on, a blank in tray #1. Pointing a device at
   real equipment instead needs no simulator for it.
 
       iex> {:ok, _floor} = Vws.Sim.Floor.start_link(workstation: "floor-doc", time_scale: 100)
@@ -175,9 +176,51 @@ defmodule Vws.Sim.Floor do
   defp running?(name), do: GenServer.whereis(name) != nil
 
   @doc """
-  For `Vws.Ops.Demo`'s shop floor: starts the whole floor (linked to the caller, or under the
-  `DynamicSupervisor` given as `:supervisor`) with the demo's `:workstation` and `:time_scale`
-  — hydraulic controller, GE-2000, VAL II, material handling —
+  Starts the floor as `mix vws.demo` and `mix vws.serve` both have it — linked to the caller, or
+  under the `DynamicSupervisor` given as `:supervisor` — and stocks it (`stock/1`): the
+  equipment options as `start_link/1` takes them, with the material-handling system on unless
+  `mhs: false`. It returns once the hydraulic controller (when on the floor) is ready and a
+  blank lies in tray #1, so that `priv/sims/machining_cycle.vws` runs against either.
+  """
+  @spec start_stocked(keyword) :: {:ok, pid} | {:error, term}
+  def start_stocked(opts) do
+    ws = Keyword.fetch!(opts, :workstation)
+    {supervisor, floor} = Keyword.pop(opts, :supervisor)
+    floor = Keyword.put_new(floor, :mhs, true)
+
+    started =
+      case supervisor do
+        nil -> start_link(floor)
+        supervisor -> DynamicSupervisor.start_child(supervisor, {__MODULE__, floor})
+      end
+
+    with {:ok, pid} <- started,
+         :ok <- await_hydraulic(ws, floor[:hydraulic]),
+         :ok <- stock(ws) do
+      {:ok, pid}
+    end
+  end
+
+  defp await_hydraulic(_ws, falsy) when falsy in [nil, false], do: :ok
+
+  defp await_hydraulic(ws, _) do
+    case HydraulicController.await_ready(hydraulic_controller(ws), 10_000) do
+      :ok -> :ok
+      :timeout -> {:error, :hydraulic_controller_not_ready}
+    end
+  end
+
+  @doc """
+  The parts a floor starts with (the demo's and `mix vws.serve`'s): one blank in tray #1, the
+  vise, the gripper and tray #2 empty.
+  """
+  @spec stock(term) :: :ok | {:error, term}
+  def stock(ws), do: Plant.set_part(plant(ws), :tray1, true)
+
+  @doc """
+  For `Vws.Ops.Demo`'s shop floor: starts the whole floor (`start_stocked/1`: linked to the
+  caller, or under the `DynamicSupervisor` given as `:supervisor`) with the demo's
+  `:workstation` and `:time_scale` — hydraulic controller, GE-2000, VAL II, material handling —
   and a blank in tray #1, and returns the workstation links and partition options that reach
   it (`Vws.CEC.Workstation.device_links/3`).
   """
@@ -188,18 +231,10 @@ defmodule Vws.Sim.Floor do
     ws = Keyword.fetch!(opts, :workstation)
 
     floor =
-      Keyword.take(opts, [:workstation, :time_scale, :seed, :lines]) ++
+      Keyword.take(opts, [:workstation, :time_scale, :seed, :lines, :supervisor]) ++
         [hydraulic: true, ge2000: true, robot: true, mhs: true]
 
-    started =
-      case opts[:supervisor] do
-        nil -> start_link(floor)
-        supervisor -> DynamicSupervisor.start_child(supervisor, {__MODULE__, floor})
-      end
-
-    with {:ok, _pid} <- started,
-         :ok <- HydraulicController.await_ready(hydraulic_controller(ws), 10_000),
-         :ok <- Plant.set_part(plant(ws), :tray1, true) do
+    with {:ok, _pid} <- start_stocked(floor) do
       {links, partitions} = Vws.CEC.Workstation.device_links(ws, devices(ws), [])
 
       {:ok,
@@ -209,9 +244,6 @@ defmodule Vws.Sim.Floor do
          links: links,
          partitions: partitions
        }}
-    else
-      :timeout -> {:error, :hydraulic_controller_not_ready}
-      {:error, _} = error -> error
     end
   end
 

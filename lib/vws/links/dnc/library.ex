@@ -367,21 +367,154 @@ defmodule Vws.Links.DNC.Library do
   end
 
   @doc """
-  Stores the file at `path` as the next version (`store/4`): the program name is `opts[:name]`,
-  else the program number of its text (`O1234` → `001234.PRO`). Source default `"cli"`.
+  Stores the file at `path` as the next version (`store/4`) when it is an NC program
+  (`check_program/1`): the program name is `opts[:name]`, else the program number of its text
+  (`O1234` → `001234.PRO`). Source default `"cli"`.
+
+  `{:ok, version}` when stored; `{:same, version}` when the latest released version already holds
+  exactly these bytes (nothing stored); `{:error, {:not_a_program, why}}` (`program_refusal/1`
+  says it in words), `{:error, {:not_a_file, type}}` or another `store/4` error, nothing stored.
   """
-  @spec import_file(lib, Path.t(), keyword) :: {:ok, version} | {:error, term}
+  @spec import_file(lib, Path.t(), keyword) ::
+          {:ok, version} | {:same, version} | {:error, term}
   def import_file(lib, path, opts \\ []) do
     with {:ok, %{size: size, type: :regular}} <- File.stat(path),
-         :ok <- if(size <= @max_bytes, do: :ok, else: {:error, :too_large}),
+         :ok <- check_size(size),
          {:ok, bytes} <- File.read(path),
+         :ok <- check_program(bytes),
          {:ok, name} <- import_name(opts[:name], bytes) do
-      store(lib, name, bytes, Keyword.put_new(opts, :source, "cli"))
+      case existing(lib, name, digest(bytes), :latest) do
+        {:ok, v} -> {:same, v}
+        _ -> store(lib, name, bytes, Keyword.put_new(opts, :source, "cli"))
+      end
     else
       {:ok, %{type: type}} -> {:error, {:not_a_file, type}}
       error -> error
     end
   end
+
+  # PROTOCOLS.md §2 "Program size limit": what the GE-2000's six-digit size field can say
+  @program_limit 999_999
+
+  defp check_size(size) when size > @program_limit,
+    do: {:error, {:not_a_program, {:too_large, size}}}
+
+  defp check_size(_size), do: :ok
+
+  @doc """
+  Whether `bytes` are an NC program the library may keep and the links can carry: `:ok`, or
+  `{:error, {:not_a_program, why}}` with `why` one of `{:too_large, bytes}` (over 999,999 bytes,
+  PROTOCOLS.md §2 "Program size limit"), `{:binary, offset}` (a NUL byte, or not text),
+  `{:control, byte, line}` (a control character other than TAB, CR and LF), `:no_start`
+  (the first line is not `%`), `:no_end` (the last line is not `%`, or it has no LF:
+  `Vws.Links.DNC.Program.complete?/1`), `:no_program_number` (the first line after `%` is not an
+  `O` word, or `:` in EIA) or `:bad_program_number` (more than six digits).
+
+      iex> Vws.Links.DNC.Library.check_program("%\\nO1234\\nN10 G00 X0\\nM30\\n%\\n")
+      :ok
+      iex> Vws.Links.DNC.Library.check_program("import os\\nprint(os.getcwd())\\n")
+      {:error, {:not_a_program, :no_start}}
+      iex> Vws.Links.DNC.Library.check_program("%\\nN10 G00\\n%\\n")
+      {:error, {:not_a_program, :no_program_number}}
+  """
+  @spec check_program(binary) :: :ok | {:error, {:not_a_program, term}}
+  def check_program(bytes) when is_binary(bytes) do
+    lines = Vws.Links.DNC.Program.from_text(bytes)
+
+    cond do
+      byte_size(bytes) > @program_limit ->
+        {:error, {:not_a_program, {:too_large, byte_size(bytes)}}}
+
+      offset = binary_at(bytes) ->
+        {:error, {:not_a_program, {:binary, offset}}}
+
+      control = control_at(lines) ->
+        {:error, {:not_a_program, control}}
+
+      String.trim(List.first(lines, "")) != "%" ->
+        {:error, {:not_a_program, :no_start}}
+
+      not Vws.Links.DNC.Program.complete?(bytes) or length(lines) < 2 ->
+        {:error, {:not_a_program, :no_end}}
+
+      true ->
+        program_number(lines)
+    end
+  end
+
+  # a NUL byte, or bytes that are not UTF-8 text: the offset of the first
+  defp binary_at(bytes) do
+    case :binary.match(bytes, <<0>>) do
+      {offset, _} ->
+        offset
+
+      :nomatch ->
+        case :unicode.characters_to_binary(bytes) do
+          {:error, good, _rest} -> byte_size(good)
+          {:incomplete, good, _rest} -> byte_size(good)
+          _ -> nil
+        end
+    end
+  end
+
+  # a control character but TAB, CR, LF (the X3.28 transmission controls among them, which
+  # `Vws.Links.DNC.Program.sendable?/1` refuses on the DNC link): {:control, byte, line}
+  defp control_at(lines) do
+    lines
+    |> Enum.with_index(1)
+    |> Enum.find_value(fn {line, i} ->
+      for(<<c <- line>>, c < 0x20 and c not in [?\t, ?\r], do: c)
+      |> Enum.concat(for <<c <- line>>, c == 0x7F, do: c)
+      |> case do
+        [c | _] -> {:control, c, i}
+        [] -> nil
+      end
+    end)
+  end
+
+  # the program number on the first line after the opening %, comments and blank lines skipped
+  defp program_number([_percent | lines]) do
+    first =
+      Enum.find(lines, fn line ->
+        String.replace(line, ~r/\([^)]*\)?/, "") |> String.trim() != ""
+      end)
+
+    stripped = first |> to_string() |> String.replace(~r/\([^)]*\)?/, "") |> String.trim()
+
+    if String.match?(stripped, ~r/^[Oo:]\s*\d/) do
+      case Vws.Links.DNC.Program.number([stripped]) do
+        {:ok, _} -> :ok
+        {:error, reason} -> {:error, {:not_a_program, reason}}
+      end
+    else
+      {:error, {:not_a_program, :no_program_number}}
+    end
+  end
+
+  @doc """
+  Why `check_program/1` refused a file, in words (for `mix vws.library import`).
+
+      iex> Vws.Links.DNC.Library.program_refusal(:no_start)
+      "not an NC program: its first line is not %"
+  """
+  @spec program_refusal(term) :: String.t()
+  def program_refusal(why), do: "not an NC program: " <> refusal(why)
+
+  defp refusal({:too_large, size}),
+    do: "#{size} bytes, more than the #{@program_limit} bytes a program may have"
+
+  defp refusal({:binary, offset}), do: "a binary file (not text at byte #{offset})"
+
+  defp refusal({:control, byte, line}),
+    do: "control character 0x#{Base.encode16(<<byte>>)} on line #{line}"
+
+  defp refusal(:no_start), do: "its first line is not %"
+  defp refusal(:no_end), do: "its last line is not % (ending with a line feed)"
+
+  defp refusal(:no_program_number),
+    do: "no program number (an O word, or : in EIA) on the line after the opening %"
+
+  defp refusal(:bad_program_number), do: "its program number has more than six digits"
 
   defp import_name(nil, bytes) do
     case Vws.Links.DNC.Program.file_name(bytes) do

@@ -163,7 +163,67 @@ defmodule Vws.Links.DNC.LibraryTest do
     assert Library.format_diff(same) == []
 
     File.write!(src, "N10 G00\n")
-    assert Library.import_file(lib, src) == {:error, :no_program_number}
+    assert Library.import_file(lib, src) == {:error, {:not_a_program, :no_start}}
+  end
+
+  test "import refuses what is not an NC program, with the reason, and stores nothing",
+       %{lib: lib, dir: dir} do
+    src = dir <> "-bad.nc"
+    on_exit(fn -> File.rm(src) end)
+
+    refused = fn bytes ->
+      File.write!(src, bytes)
+      assert {:error, {:not_a_program, why}} = Library.import_file(lib, src, name: "1234")
+      assert Library.program_refusal(why) =~ ~r/^not an NC program: [a-z0-9]/
+      why
+    end
+
+    python = "#!/usr/bin/env python3\nimport os\nx = {'a':1}\nprint(os.getcwd())\n"
+    assert refused.(python) == :no_start
+    assert refused.("%\nO1234\nN10 G00\n") == :no_end
+    assert refused.("%\nO1234\nN10 G00\n%") == :no_end
+    assert refused.("%\n%\n") == :no_program_number
+    assert refused.("%\nN10 G00 (O1234)\nO1234\n%\n") == :no_program_number
+    assert refused.("%\nO1234567\nN10\n%\n") == :bad_program_number
+    assert refused.("%\nO1234\nN10 G00" <> <<2>> <> "X1\n%\n") == {:control, 2, 3}
+    assert refused.("%\nO1234\nN10\e[31m\n%\n") == {:control, 0x1B, 3}
+    assert refused.("%\nO1234\n" <> <<0, 1, 2, 255>> <> "\n%\n") == {:binary, 8}
+    assert refused.("%\nO1234\n" <> <<0xFF, 0xFE>> <> "\n%\n") == {:binary, 8}
+
+    big = "%\nO1234\n" <> String.duplicate("N10 G01 X1.0 Y2.0 F300\n", 43_479) <> "%\n"
+    assert byte_size(big) > 999_999
+    assert refused.(big) == {:too_large, byte_size(big)}
+    assert Library.list(lib) == {:ok, []}
+
+    # what the shop writes is still taken: EIA, comments before the O word, CR LF, tabs
+    for {text, name} <- [
+          {"%\n:77\nN10 G00\n%\n", "000077.PRO"},
+          {"%\n(BRACKET)\n\nO0042 (ROUGH)\nN10\tG00\n%\n", "000042.PRO"},
+          {"%\r\nO43\r\nN10 G00\r\n%\r\n", "000043.PRO"},
+          {"%\nO44\n" <> String.duplicate("N10 G01 X1.0 Y2.0 F300\n", 43_000) <> "%\n",
+           "000044.PRO"}
+        ] do
+      File.write!(src, text)
+      assert {:ok, %{name: ^name, version: 1}} = Library.import_file(lib, src)
+    end
+  end
+
+  test "import: a copy of the latest version is not stored again", %{lib: lib, dir: dir} do
+    src = dir <> "-dup.nc"
+    on_exit(fn -> File.rm(src) end)
+    File.write!(src, @prog)
+    assert {:ok, %{version: 1}} = Library.import_file(lib, src)
+    assert {:same, %{version: 1}} = Library.import_file(lib, src)
+
+    File.write!(src, String.replace(@prog, "X0", "X5"))
+    assert {:ok, %{version: 2}} = Library.import_file(lib, src)
+    assert {:same, %{version: 2}} = Library.import_file(lib, src, name: "1234")
+
+    # version 1 again is a new version: it is not the latest
+    File.write!(src, @prog)
+    assert {:ok, %{version: 3}} = Library.import_file(lib, src)
+    assert {:ok, versions} = Library.versions(lib, "1234")
+    assert length(versions) == 3
   end
 
   test "compare: same (which version), differs, absent, unknown, and files only on the machine",
