@@ -7,8 +7,10 @@ defmodule Vws.Ops.Web.Clients do
   # A public ETS table holds one row per open connection, `{pid, client, state, since}`, where
   # `state` is `:idle` (waiting for a request's head: a new connection, a kept-alive one between
   # requests, and one that trickles its head), `:busy` (a request being answered) or `:stream`,
-  # and `since` (ms, monotonic) when it entered that state; each connection sets its own row
-  # (`mark/2`). A new connection is admitted when the client holds fewer than
+  # and `since` (µs, monotonic) when it entered that state; each connection sets its own row
+  # (`mark/2`). A second table, ordered, indexes the idle ones by `{since, pid}`, so the one idle
+  # the longest — of all, or of one client — is found without a scan: admission stays cheap
+  # while the server is full and hostile clients come and go (every such newcomer closes one). A new connection is admitted when the client holds fewer than
   # `max_client_connections` and the server fewer than `max_connections`; otherwise room is made
   # by closing, in this order:
   #
@@ -19,6 +21,11 @@ defmodule Vws.Ops.Web.Clients do
   #
   # and only when none can be closed is the newcomer refused (503). A closed connection's process
   # is killed, which closes its socket; its row goes at once.
+  #
+  # Before all that, while the server holds half its connections or more, each client may open at
+  # most `max_client_connect_rate` connections a second (with a burst of two seconds' worth):
+  # beyond it a newcomer is refused at once, closing nobody. A client that reconnects as fast as it is closed — idle sockets coming back — so
+  # costs the server a bounded amount of work, and cannot close the others' connections faster.
   #
   # Each client also has its own request pace (`pace/1`): an :atomics cell holding the time from
   # which its next request may be served. It outlives the client's connections until that time
@@ -32,24 +39,42 @@ defmodule Vws.Ops.Web.Clients do
 
   @doc false
   # Admits a connection from `client` and starts its process with `start` (a function answering
-  # `{:ok, pid}` or an error): `{:ok, pid, pace}` (`pace`: the client's pace cell), or
-  # `{:refuse, why}` (`:client` at its share, `:full`), or `{:error, reason}` from `start`.
+  # `{:ok, pid}` or an error): `{:ok, pid, pace, idle_key}` (`pace`: the client's pace cell; `idle_key`: its entry in the idle index, for `adopt/1`), or
+  # `{:refuse, why}` (`:client` at its share, `:rate` opening too fast, `:full`), or `{:error, reason}` from `start`.
   def admit(clients, client, start), do: GenServer.call(clients, {:admit, client, start}, 30_000)
 
   @doc false
-  # The table of connections (for `mark/2` and `count/1`).
-  def table(clients), do: GenServer.call(clients, :table)
+  # The tables of connections and of idle ones (for `mark/3`).
+  def tables(clients), do: GenServer.call(clients, :tables)
 
   @doc false
   # How many connections are open: all, and per client.
   def count(clients), do: GenServer.call(clients, :count)
 
   @doc false
-  # The calling connection is now `state` (:idle, :busy, :stream).
-  def mark(table, state) do
-    :ets.update_element(table, self(), [{3, state}, {4, now()}])
+  # The calling connection is now `state` (:idle, :busy, :stream). Its idle index key, if any, is
+  # kept in its process dictionary.
+  def mark({table, idle}, state) do
+    t = now()
+
+    case Process.delete(:vws_web_idle) do
+      nil -> :ok
+      key -> :ets.delete(idle, key)
+    end
+
+    with true <- :ets.update_element(table, self(), [{3, state}, {4, t}]),
+         :idle <- state,
+         [{_, client, _, _}] <- :ets.lookup(table, self()) do
+      :ets.insert(idle, {{t, self()}, client})
+      Process.put(:vws_web_idle, {t, self()})
+    end
+
     :ok
   end
+
+  @doc false
+  # A new connection's own idle key (set by `admit/3`), for `mark/3` to delete.
+  def adopt(key), do: Process.put(:vws_web_idle, key)
 
   @doc false
   # The client of a peer address: an IPv4 address itself, an IPv6 address by its /64 (a host is
@@ -60,12 +85,13 @@ defmodule Vws.Ops.Web.Clients do
 
   @doc false
   # Takes the next free slot of a pace cell (1/rate s apart) and waits for it; `:busy` when it is
-  # more than `max_wait` ms away (then nothing is taken).
-  def pace(ref, rate, max_wait \\ 10_000) do
+  # more than `max_wait` ms away (then nothing is taken). `burst`: how many slots a client that
+  # was quiet may take at once (the cell's time may lag that far behind now).
+  def pace(ref, rate, max_wait \\ 10_000, burst \\ 0) do
     interval = div(1_000_000, rate)
     now = System.monotonic_time(:microsecond)
     next = :atomics.get(ref, 1)
-    slot = max(next, now)
+    slot = max(next, now - burst * interval)
 
     cond do
       slot - now > max_wait * 1000 ->
@@ -77,7 +103,7 @@ defmodule Vws.Ops.Web.Clients do
         :ok
 
       true ->
-        pace(ref, rate, max_wait)
+        pace(ref, rate, max_wait, burst)
     end
   end
 
@@ -92,31 +118,66 @@ defmodule Vws.Ops.Web.Clients do
   @impl true
   def init(limits) do
     table = :ets.new(__MODULE__, [:set, :public, write_concurrency: true, read_concurrency: true])
+    idle = :ets.new(__MODULE__, [:ordered_set, :public, write_concurrency: true])
     Process.send_after(self(), :sweep, @sweep)
 
     {:ok,
      %{
        table: table,
+       idle: idle,
        max: limits.max_connections,
        per_client: limits.max_client_connections,
+       connect_interval: div(1_000_000, limits.max_client_connect_rate),
        total: 0,
-       # client => %{count: n, pace: atomics}
+       # client => %{count: n, pace: atomics, connect: µs from which it may open the next}
        clients: %{}
      }}
   end
 
   @impl true
   def handle_call({:admit, client, start}, _from, s) do
-    entry = Map.get_lazy(s.clients, client, fn -> %{count: 0, pace: pace_cell()} end)
-    s = %{s | clients: Map.put(s.clients, client, entry)}
+    now_us = System.monotonic_time(:microsecond)
+    # (monotonic time may be negative: a new client starts with its full burst, from now)
+    entry =
+      Map.get_lazy(s.clients, client, fn ->
+        %{count: 0, pace: pace_cell(), connect: now_us - 2_000_000}
+      end)
 
+    # two seconds' worth of connections at once, then one per interval
+    slot = max(entry.connect, now_us - 2 * 1_000_000)
+
+    cond do
+      slot <= now_us ->
+        entry = %{entry | connect: slot + s.connect_interval}
+        admit(%{s | clients: Map.put(s.clients, client, entry)}, client, entry, start)
+
+      # only while the server holds half its connections or more: until then, reconnecting
+      # costs nobody anything
+      s.total * 2 >= s.max ->
+        {:reply, {:refuse, :rate}, %{s | clients: Map.put(s.clients, client, entry)}}
+
+      true ->
+        admit(%{s | clients: Map.put(s.clients, client, entry)}, client, entry, start)
+    end
+  end
+
+  def handle_call(:tables, _from, s), do: {:reply, {s.table, s.idle}, s}
+
+  def handle_call(:count, _from, s) do
+    per = for {c, %{count: n}} <- s.clients, n > 0, into: %{}, do: {c, n}
+    {:reply, {s.total, per}, s}
+  end
+
+  defp admit(s, client, entry, start) do
     case make_room(s, client, entry.count) do
       {:ok, s} ->
         case start.() do
           {:ok, pid} ->
             Process.monitor(pid)
-            :ets.insert(s.table, {pid, client, :idle, now()})
-            {:reply, {:ok, pid, entry.pace}, add(s, client, 1)}
+            t = now()
+            :ets.insert(s.table, {pid, client, :idle, t})
+            :ets.insert(s.idle, {{t, pid}, client})
+            {:reply, {:ok, pid, entry.pace, {t, pid}}, add(s, client, 1)}
 
           {:error, _} = error ->
             {:reply, error, s}
@@ -127,18 +188,15 @@ defmodule Vws.Ops.Web.Clients do
     end
   end
 
-  def handle_call(:table, _from, s), do: {:reply, s.table, s}
-
-  def handle_call(:count, _from, s) do
-    per = for {c, %{count: n}} <- s.clients, n > 0, into: %{}, do: {c, n}
-    {:reply, {s.total, per}, s}
-  end
-
   @impl true
   def handle_info({:DOWN, _ref, :process, pid, _reason}, s) do
     case :ets.take(s.table, pid) do
-      [{^pid, client, _, _}] -> {:noreply, add(s, client, -1)}
-      [] -> {:noreply, s}
+      [{^pid, client, state, since}] ->
+        if state == :idle, do: :ets.delete(s.idle, {since, pid})
+        {:noreply, add(s, client, -1)}
+
+      [] ->
+        {:noreply, s}
     end
   end
 
@@ -148,7 +206,9 @@ defmodule Vws.Ops.Web.Clients do
 
     clients =
       s.clients
-      |> Enum.reject(fn {_c, e} -> e.count == 0 and :atomics.get(e.pace, 1) <= now_us end)
+      |> Enum.reject(fn {_c, e} ->
+        e.count == 0 and :atomics.get(e.pace, 1) <= now_us and e.connect <= now_us
+      end)
       |> Map.new()
 
     {:noreply, %{s | clients: clients}}
@@ -165,13 +225,13 @@ defmodule Vws.Ops.Web.Clients do
   defp make_room(s, client, held) do
     cond do
       held >= s.per_client ->
-        case oldest(s.table, client, :idle) do
+        case oldest_idle(s, client) do
           nil -> {:refuse, :client}
           victim -> {:ok, shed(s, victim)}
         end
 
       s.total >= s.max ->
-        with nil <- oldest(s.table, :_, :idle),
+        with nil <- oldest_idle(s, :_),
              nil <- heaviest_stream(s, held) do
           {:refuse, :full}
         else
@@ -183,7 +243,26 @@ defmodule Vws.Ops.Web.Clients do
     end
   end
 
-  # The connection of `client` (:_ for any) in `state` the longest.
+  # The connection of `client` (:_ for any) idle the longest: the first of the ordered index that
+  # is still idle (an entry may be stale: a connection that just left idle, or died).
+  defp oldest_idle(s, client) do
+    case :ets.select(s.idle, [{{:"$1", client}, [], [:"$1"]}], 1) do
+      {[{since, pid} = key], _} ->
+        case :ets.lookup(s.table, pid) do
+          [{^pid, _, :idle, ^since}] ->
+            pid
+
+          _ ->
+            :ets.delete(s.idle, key)
+            oldest_idle(s, client)
+        end
+
+      _ ->
+        nil
+    end
+  end
+
+  # The connection of `client` in `state` the longest.
   defp oldest(table, client, state) do
     table
     |> :ets.select([{{:"$1", client, state, :"$2"}, [], [{{:"$2", :"$1"}}]}])
@@ -206,10 +285,14 @@ defmodule Vws.Ops.Web.Clients do
     Process.exit(pid, :kill)
 
     case :ets.take(s.table, pid) do
-      [{^pid, client, _, _}] -> add(s, client, -1)
-      [] -> s
+      [{^pid, client, state, since}] ->
+        if state == :idle, do: :ets.delete(s.idle, {since, pid})
+        add(s, client, -1)
+
+      [] ->
+        s
     end
   end
 
-  defp now, do: System.monotonic_time(:millisecond)
+  defp now, do: System.monotonic_time(:microsecond)
 end

@@ -29,15 +29,15 @@ defmodule Vws.Ops.Web.Conn do
   # to make room for another client); from the head on it is busy.
   defp loop(socket, conf, n, wait, buffer) do
     deadline = now() + wait
-    if n > 1, do: Clients.mark(conf.table, :idle)
+    if n > 1, do: Clients.mark(conf.tables, :idle)
 
     case read_head(socket, buffer, conf.limits, deadline) do
       {:ok, request, buffer} ->
-        Clients.mark(conf.table, :busy)
+        Clients.mark(conf.tables, :busy)
 
         case answer(socket, request, buffer, conf) do
           {:keep, {:stream, _type, _first, _more} = stream, _rest} ->
-            Clients.mark(conf.table, :stream)
+            Clients.mark(conf.tables, :stream)
             watch_stream(socket, stream, conf, request)
 
           {:keep, response, rest} ->
@@ -193,7 +193,9 @@ defmodule Vws.Ops.Web.Conn do
   # flooding so waits behind its own requests, and takes at most its own rate of the server's.
   # A stream's parts are paced the same way, each as one request.
   defp pace(conf) do
-    with :ok <- Clients.pace(conf.client_pace, conf.limits.max_client_rate) do
+    rate = conf.limits.max_client_rate
+
+    with :ok <- Clients.pace(conf.client_pace, rate, 10_000, rate) do
       Clients.pace(conf.pace, conf.limits.max_rate)
     end
   end

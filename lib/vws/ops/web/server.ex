@@ -29,10 +29,14 @@ defmodule Vws.Ops.Web.Server do
       else the oldest stream of the client holding the most connections, if it holds more than
       the newcomer would. Only when nothing can be closed is the newcomer answered 503 at once
       and closed (it never waits in a queue);
+    * while the server holds half its connections or more, at most `:max_client_connect_rate` new
+      connections a second from one client [10, and 20 at once after a quiet while]: one more is
+      answered 503 at once and closes nobody — a client
+      reconnecting as fast as it is closed costs a bounded amount of work;
     * at most `:max_requests` requests per kept-alive connection [100]; an answer that the client
       does not read within `:send_timeout` ms [10 000] closes the connection;
-    * at most `:max_client_rate` requests a second from one client [50; the dashboard asks 2.5 a
-      second per open page], and `:max_rate` in all [500]: a request beyond them waits its turn
+    * at most `:max_client_rate` requests a second from one client [50, and 50 at once after a
+      quiet second; the dashboard asks 2.5 a second per open page], and `:max_rate` in all [500]: a request beyond them waits its turn
       (the client is held, not sent away to come straight back), and one that would wait more
       than 10 s is answered 503. One client flooding waits behind its own requests and takes at
       most its own rate of the server's. Each part of a stream counts as a request;
@@ -69,6 +73,7 @@ defmodule Vws.Ops.Web.Server do
     body_timeout: 10_000,
     max_connections: 1024,
     max_client_connections: 64,
+    max_client_connect_rate: 10,
     max_requests: 100,
     send_timeout: 10_000,
     max_rate: 500,
@@ -127,7 +132,7 @@ defmodule Vws.Ops.Web.Server do
         limits: limits,
         connections: Keyword.fetch!(opts, :connections),
         clients: clients,
-        table: Vws.Ops.Web.Clients.table(clients),
+        tables: Vws.Ops.Web.Clients.tables(clients),
         # the time (µs, monotonic) from which the next request may be served, all clients
         # together (each client has its own too: Vws.Ops.Web.Clients)
         pace: Vws.Ops.Web.Clients.pace_cell()
@@ -232,20 +237,33 @@ defmodule Vws.Ops.Web.Server do
     start = fn ->
       Task.Supervisor.start_child(
         conf.connections,
-        fn -> receive(do: ({:socket, s, pace} -> Vws.Ops.Web.Conn.serve(s, pace, conf))) end,
+        fn ->
+          receive do
+            {:socket, s, pace, idle_key} ->
+              Clients.adopt(idle_key)
+              Vws.Ops.Web.Conn.serve(s, pace, conf)
+          end
+        end,
         shutdown: :brutal_kill
       )
     end
 
     with {:ok, {ip, _port}} <- :inet.peername(socket),
-         {:ok, pid, pace} <- Clients.admit(conf.clients, Clients.client(ip), start) do
+         {:ok, pid, pace, idle_key} <- Clients.admit(conf.clients, Clients.client(ip), start) do
       case :gen_tcp.controlling_process(socket, pid) do
-        :ok -> send(pid, {:socket, socket, pace})
+        :ok -> send(pid, {:socket, socket, pace, idle_key})
         {:error, _} -> Process.exit(pid, :kill) && :gen_tcp.close(socket)
       end
     else
       {:refuse, :client} ->
         Vws.Ops.Web.Conn.refuse_busy(socket, "busy: too many connections from your address", conf)
+
+      {:refuse, :rate} ->
+        Vws.Ops.Web.Conn.refuse_busy(
+          socket,
+          "busy: too many new connections from your address",
+          conf
+        )
 
       {:refuse, :full} ->
         Vws.Ops.Web.Conn.refuse_busy(socket, "busy: too many connections", conf)
