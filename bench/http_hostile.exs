@@ -347,8 +347,6 @@ honest_summary = fn label, results ->
   statuses = Enum.frequencies(Enum.map(results, &elem(&1, 0)))
   over = Enum.count(ms, &(&1 > 1_000))
 
-  IO.puts()
-
   :io_lib.format(
     "  ~-34s p50 ~8.1f ms   p99 ~8.1f ms   max ~9.1f ms   ~B answers ~s, ~B over 1 s",
     [
