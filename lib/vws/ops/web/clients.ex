@@ -108,10 +108,11 @@ defmodule Vws.Ops.Web.Clients do
   end
 
   @doc false
-  # A pace cell whose next slot is now (monotonic time may be negative: it starts at now, not 0).
-  def pace_cell do
+  # A pace cell whose next slot is now, plus `offset` µs (monotonic time may be negative: it
+  # starts at now, not 0).
+  def pace_cell(offset \\ 0) do
     ref = :atomics.new(1, signed: true)
-    :atomics.put(ref, 1, System.monotonic_time(:microsecond))
+    :atomics.put(ref, 1, System.monotonic_time(:microsecond) + offset)
     ref
   end
 
@@ -140,7 +141,8 @@ defmodule Vws.Ops.Web.Clients do
     # (monotonic time may be negative: a new client starts with its full burst, from now)
     entry =
       Map.get_lazy(s.clients, client, fn ->
-        %{count: 0, pace: pace_cell(), connect: now_us - 2_000_000}
+        # a new client starts with its full bursts: a second's requests, two seconds' connections
+        %{count: 0, pace: pace_cell(-1_000_000), connect: now_us - 2_000_000}
       end)
 
     # two seconds' worth of connections at once, then one per interval
