@@ -284,7 +284,7 @@ spawn_link(fn ->
 
   results =
     Stream.repeatedly(fn ->
-      r = for path <- ["/current", "/api/state"], do: honest_get.(path)
+      r = for path <- ["/current", "/api/state"], do: Tuple.append(honest_get.(path), path)
       Process.sleep(250)
       r
     end)
@@ -370,6 +370,8 @@ Hostile HTTP clients, an honest one and the WC link (bench/http_hostile.exs)
   server         connections open during the window: max #{Enum.max(connections)}, p50 #{Bench.pct(connections, 0.5)}; #{left} left 2 s after the hostile process ended
 #{honest_summary.("honest GET, HTTP idle", honest_idle)}
 #{honest_summary.("honest GET, #{hostile} hostile", honest)}
+#{honest_summary.("  of which /current", Enum.filter(honest, &(elem(&1, 2) == "/current")))}
+#{honest_summary.("  of which /api/state", Enum.filter(honest, &(elem(&1, 2) == "/api/state")))}
 #{wc_summary.("WC status, HTTP idle", idle)}
 #{wc_summary.("WC status, #{hostile} hostile", loaded)}
 """)
