@@ -32,7 +32,7 @@ defmodule Vws.Ops.Web do
     * `:bind` — address to listen on (default `"127.0.0.1"`)
     * `:token` — the token control actions need (default none: read-only)
     * `:read_token` — the token every read needs (default none: reads open)
-    * `:max_connections`, `:max_body`, `:max_line`, `:max_headers`, `:max_head`,
+    * `:max_connections`, `:max_client_connections`, `:max_client_connect_rate`, `:max_rate`, `:max_client_rate`, `:max_body`, `:max_line`, `:max_headers`, `:max_head`,
       `:head_timeout`, `:idle_timeout`, `:body_timeout`, `:max_requests`, `:send_timeout` — the
       server's limits (`Vws.Ops.Web.Server`)
     * `:state_max_age` — ms the `/api/state` answer is reused for (`Vws.Ops.Web.Snapshot`, 200)
@@ -111,7 +111,10 @@ defmodule Vws.Ops.Web do
            :node_timeout,
            :workstations
          ])},
-      {Task.Supervisor, name: connections, max_children: max},
+      # the connections are counted and bounded by the server's admission (Vws.Ops.Web.Clients),
+      # which closes idle ones to make room: a closed one may not be reaped yet when the next
+      # starts, hence the margin; this bound is only a backstop
+      {Task.Supervisor, name: connections, max_children: 2 * max},
       {Vws.Ops.Web.Server,
        [ref: ref, agent: agent, snapshot: snapshot, connections: connections] ++ opts},
       # last: were it to fail, the listener (and its port) stays as it is
@@ -126,6 +129,13 @@ defmodule Vws.Ops.Web do
   @doc "The TCP port the server listens on."
   @spec port(Supervisor.supervisor()) :: :inet.port_number()
   def port(web), do: web |> server() |> Vws.Ops.Web.Server.port()
+
+  @doc """
+  The HTTP connections open: `{total, %{client => count}}` (a client is a peer address, an IPv6
+  one by its /64).
+  """
+  @spec connections(Supervisor.supervisor()) :: {non_neg_integer, map}
+  def connections(web), do: web |> server() |> Vws.Ops.Web.Server.connections()
 
   @doc "The dashboard's URL (`http://ADDR:PORT/`)."
   @spec url(Supervisor.supervisor()) :: String.t()

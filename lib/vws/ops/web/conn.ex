@@ -7,32 +7,38 @@ defmodule Vws.Ops.Web.Conn do
   # wants it and the limits allow. A request line or a header line longer than `max_line` is
   # answered 414 or 431 and the connection closed. See `Vws.Ops.Web.Server` for the limits.
 
-  alias Vws.Ops.Web.Handler
+  alias Vws.Ops.Web.{Clients, Handler}
 
   @doc false
-  def serve(socket, conf) do
+  # `pace`: the client's own request pace (Vws.Ops.Web.Clients)
+  def serve(socket, pace, conf) do
     Process.flag(:priority, :low)
-    loop(socket, conf, 1, conf.limits.head_timeout, "")
+    loop(socket, Map.put(conf, :client_pace, pace), 1, conf.limits.head_timeout, "")
   end
 
   @doc false
   # The connection limit is reached: say so and close, without reading anything.
-  def refuse_busy(socket, conf) do
-    _ = respond(socket, {503, "text/plain", "busy: too many connections"}, false, conf, nil)
+  def refuse_busy(socket, why, conf) do
+    _ = respond(socket, {503, "text/plain", why}, false, conf, nil)
     :gen_tcp.close(socket)
   end
 
   # `buffer`: bytes read from the socket but not used yet — the start of the next request when the
   # client sent it along with the previous one (pipelining).
+  # While it waits for a request's head the connection is idle (Vws.Ops.Web.Clients may close it
+  # to make room for another client); from the head on it is busy.
   defp loop(socket, conf, n, wait, buffer) do
     deadline = now() + wait
+    if n > 1, do: Clients.mark(conf.tables, :idle)
 
     case read_head(socket, buffer, conf.limits, deadline) do
       {:ok, request, buffer} ->
+        Clients.mark(conf.tables, :busy)
+
         case answer(socket, request, buffer, conf) do
           {:keep, {:stream, _type, _first, _more} = stream, _rest} ->
-            _ = stream(socket, stream, conf, request)
-            :gen_tcp.close(socket)
+            Clients.mark(conf.tables, :stream)
+            watch_stream(socket, stream, conf, request)
 
           {:keep, response, rest} ->
             keep = n < conf.limits.max_requests and keep_alive?(request)
@@ -180,26 +186,17 @@ defmodule Vws.Ops.Web.Conn do
     end
   end
 
-  # The server-wide request rate: each request takes the next free slot (1/max_rate s apart)
-  # and waits for it (a sleeping process: cheap; the client is held, not sent away to come back
-  # at once); a slot more than 10 s away is not taken.
-  defp pace(%{pace: ref, limits: %{max_rate: rate}}) do
-    interval = div(1_000_000, rate)
-    now = System.monotonic_time(:microsecond)
-    next = :atomics.get(ref, 1)
-    slot = max(next, now)
+  # The request rate: first the client's own (`max_client_rate`), then the server's, all clients
+  # together (`max_rate`). Each request takes the next free slot of each (1/rate s apart) and
+  # waits for it (a sleeping process: cheap; the client is held, not sent away to come back at
+  # once); a slot more than 10 s away is not taken and the request is answered 503. One client
+  # flooding so waits behind its own requests, and takes at most its own rate of the server's.
+  # A stream's parts are paced the same way, each as one request.
+  defp pace(conf) do
+    rate = conf.limits.max_client_rate
 
-    cond do
-      slot - now > 10_000_000 ->
-        :busy
-
-      :atomics.compare_exchange(ref, 1, next, slot + interval) == :ok ->
-        wait = div(slot - now, 1000)
-        if wait > 0, do: Process.sleep(wait)
-        :ok
-
-      true ->
-        pace(%{pace: ref, limits: %{max_rate: rate}})
+    with :ok <- Clients.pace(conf.client_pace, rate, 10_000, rate) do
+      Clients.pace(conf.pace, conf.limits.max_rate)
     end
   end
 
@@ -308,9 +305,47 @@ defmodule Vws.Ops.Web.Conn do
     :gen_tcp.send(socket, [head, sent])
   end
 
+  # A stream runs in a process of its own, linked, while this one — the socket's owner — watches
+  # the socket (`active: :once`): when the client closes it or resets it, the stream is killed at
+  # once, whatever it is waiting for (the next `interval`, new observations), and the socket
+  # closed; no connection is left in CLOSE-WAIT until the stream's next write. What the client
+  # sends meanwhile is read and dropped, up to `max_head` bytes in all, then the stream ends.
+  defp watch_stream(socket, stream, conf, request) do
+    pid = spawn_link(fn -> stream(socket, stream, conf, request) end)
+    ref = Process.monitor(pid)
+    :ok = :inet.setopts(socket, active: :once)
+    watch(socket, pid, ref, conf.limits.max_head)
+  end
+
+  defp watch(socket, pid, ref, left) do
+    receive do
+      {:DOWN, ^ref, :process, ^pid, _} ->
+        :gen_tcp.close(socket)
+
+      {:tcp, ^socket, data} when byte_size(data) < left ->
+        _ = :inet.setopts(socket, active: :once)
+        watch(socket, pid, ref, left - byte_size(data))
+
+      {tag, ^socket, _} when tag in [:tcp, :tcp_error] ->
+        end_stream(socket, pid)
+
+      {:tcp_closed, ^socket} ->
+        end_stream(socket, pid)
+    end
+  end
+
+  defp end_stream(socket, pid) do
+    Process.unlink(pid)
+    Process.exit(pid, :kill)
+    :gen_tcp.close(socket)
+  end
+
   # A stream (MTConnect `interval=`): `multipart/x-mixed-replace` in HTTP/1.1 chunks, one part
-  # per document, until the client goes away (a send fails) or `more` says `:done`.
+  # per document, until the client goes away (a send fails) or `more` says `:done`. Each part
+  # after the first is paced as a request (pace/1).
   defp stream(socket, {:stream, type, first, more}, conf, request) do
+    Process.flag(:priority, :low)
+
     boundary = Base.encode16(:rand.bytes(16), case: :lower)
 
     head = [
@@ -345,8 +380,12 @@ defmodule Vws.Ops.Web.Conn do
       :gen_tcp.send(socket, [Integer.to_string(size, 16), "\r\n", data, "\r\n"])
     end
 
+    paced = fn doc ->
+      with :ok <- pace(conf), do: part.(doc)
+    end
+
     with :ok <- :gen_tcp.send(socket, head), :ok <- part.(first) do
-      result = more.(part)
+      result = more.(paced)
       _ = :gen_tcp.send(socket, "0\r\n\r\n")
       result
     end

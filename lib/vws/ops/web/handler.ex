@@ -101,8 +101,11 @@ defmodule Vws.Ops.Web.Handler do
 
   @read ["GET", "HEAD"]
   @mtconnect ~w(probe current sample assets)
-  # the reference agent's limit (a C int) for times in ms
-  @max_ms 2_147_483_646
+  # A stream's `interval` and `heartbeat` (ms) at most 10 s — the standard's default heartbeat —
+  # where the reference agent takes any C int: a stream then says something at least every 10 s
+  # (plus `interval`), and an interval of 24.8 days cannot hold a connection silent. Beyond it the
+  # request is refused OUT_OF_RANGE, as the reference agent refuses what is beyond its range.
+  @max_ms 10_000
 
   defp route(m, [], _q, _r, _s) when m in @read,
     do: {200, "text/html; charset=utf-8", Vws.Ops.Web.Page.html()}

@@ -21,19 +21,35 @@ defmodule Vws.Ops.Web.Server do
       answers 411), read within `:body_timeout` ms [10 000] — and read only **after** the
       request has been authorized (`Vws.Ops.Web.Handler.authorize/2`): a refused request is answered
       at once and the connection closed, its body never read;
-    * at most `:max_connections` open connections [1024]; one more is answered 503 at once and
-      closed (it never waits in a queue);
+    * at most `:max_connections` open connections [1024], and at most `:max_client_connections`
+      [64] from one client (a peer address; an IPv6 client by its /64). Before a newcomer is
+      refused, room is made (`Vws.Ops.Web.Clients`): a client at its share loses its own
+      connection idle the longest; a full server closes the connection idle the longest of any
+      client (waiting for a head: kept-alive between requests, never sent one, or trickling it),
+      else the oldest stream of the client holding the most connections, if it holds more than
+      the newcomer would. Only when nothing can be closed is the newcomer answered 503 at once
+      and closed (it never waits in a queue);
+    * while the server holds half its connections or more, at most `:max_client_connect_rate` new
+      connections a second from one client [10, and 20 at once after a quiet while]: one more is
+      answered 503 at once and closes nobody — a client
+      reconnecting as fast as it is closed costs a bounded amount of work;
     * at most `:max_requests` requests per kept-alive connection [100]; an answer that the client
       does not read within `:send_timeout` ms [10 000] closes the connection;
-    * at most `:max_rate` requests a second are served, all connections together [500; the
-      dashboard asks 2.5 a second per open page]: a request beyond it waits its turn (the client
-      is held, not sent away to come straight back), and one that would wait more than 10 s is
-      answered 503. HTTP load is so bounded in CPU and
+    * at most `:max_client_rate` requests a second from one client [50, and 50 at once after a
+      quiet second; the dashboard asks 2.5 a second per open page], and `:max_rate` in all [500]: a request beyond them waits its turn
+      (the client is held, not sent away to come straight back), and one that would wait more
+      than 10 s is answered 503. One client flooding waits behind its own requests and takes at
+      most its own rate of the server's. Each part of a stream counts as a request;
+    * an MTConnect stream (`interval=`) runs beside its connection's process, which watches the
+      socket (`active: :once`): when the client closes or resets it the stream ends at once,
+      whatever it was waiting for, and the socket is closed (no connection is left in CLOSE-WAIT
+      until the next part). `interval` and `heartbeat` are at most 10 s (`Vws.Ops.Web.Handler`).
+      HTTP load is so bounded in CPU and
       socket work whatever the number of clients, which is what keeps the WC's answers on time
       (`bench/http_load.exs`).
 
-  Each connection is a process of its own (under a `Task.Supervisor` whose `max_children` is the
-  connection limit) reading passively with timeouts from a raw socket; the head is parsed line by
+  Each connection is a process of its own (under a `Task.Supervisor`; admitted and counted by
+  `Vws.Ops.Web.Clients`) reading passively with timeouts from a raw socket; the head is parsed line by
   line by OTP's HTTP parser (`:erlang.decode_packet/3`, the one of `packet: :http_bin`) from a
   buffer that never holds more than `:max_line` bytes and one read of the socket, and the bytes
   after it — a body, or the next request of a client that pipelines — are kept for what follows
@@ -43,6 +59,7 @@ defmodule Vws.Ops.Web.Server do
   """
   use GenServer
   require Logger
+  alias Vws.Ops.Web.Clients
 
   @acceptors 4
 
@@ -55,9 +72,12 @@ defmodule Vws.Ops.Web.Server do
     max_body: 65_536,
     body_timeout: 10_000,
     max_connections: 1024,
+    max_client_connections: 64,
+    max_client_connect_rate: 10,
     max_requests: 100,
     send_timeout: 10_000,
-    max_rate: 500
+    max_rate: 500,
+    max_client_rate: 50
   ]
 
   @doc "The limits and timeouts the server applies unless told otherwise."
@@ -73,6 +93,13 @@ defmodule Vws.Ops.Web.Server do
   @doc "The port the server listens on."
   @spec port(pid) :: :inet.port_number()
   def port(server), do: GenServer.call(server, :port)
+
+  @doc """
+  The connections open: `{total, %{client => count}}` (a client is a peer address; an IPv6
+  client is its /64).
+  """
+  @spec connections(pid) :: {non_neg_integer, %{tuple => pos_integer}}
+  def connections(server), do: server |> GenServer.call(:clients) |> Clients.count()
 
   @doc "The dashboard's URL."
   @spec url(pid) :: String.t()
@@ -97,12 +124,18 @@ defmodule Vws.Ops.Web.Server do
         port: port
       }
 
+      limits = Map.new(limits)
+      {:ok, clients} = Vws.Ops.Web.Clients.start_link(limits)
+
       conf = %{
         settings: settings,
-        limits: Map.new(limits),
+        limits: limits,
         connections: Keyword.fetch!(opts, :connections),
-        # the time (µs, monotonic) from which the next request may be served: see pace/1
-        pace: pace_counter()
+        clients: clients,
+        tables: Vws.Ops.Web.Clients.tables(clients),
+        # the time (µs, monotonic) from which the next request may be served, all clients
+        # together (each client has its own too: Vws.Ops.Web.Clients)
+        pace: Vws.Ops.Web.Clients.pace_cell()
       }
 
       acceptors = for _ <- 1..@acceptors, do: spawn_link(fn -> accept_loop(socket, conf) end)
@@ -111,17 +144,10 @@ defmodule Vws.Ops.Web.Server do
         "VWS web server on #{url} (#{mode(settings)}; at most #{limits[:max_connections]} connections)"
       )
 
-      {:ok, %{socket: socket, port: port, url: url, acceptors: acceptors}}
+      {:ok, %{socket: socket, port: port, url: url, acceptors: acceptors, clients: clients}}
     else
       {:error, reason} -> {:stop, {:cannot_listen, bind, opts[:port], reason}}
     end
-  end
-
-  # monotonic time may be negative: the counter starts at now, not 0
-  defp pace_counter do
-    ref = :atomics.new(1, signed: true)
-    :atomics.put(ref, 1, System.monotonic_time(:microsecond))
-    ref
   end
 
   defp mode(%{token: nil, read_token: nil}), do: "read-only, reads open"
@@ -162,12 +188,15 @@ defmodule Vws.Ops.Web.Server do
   @impl true
   def handle_call(:port, _from, s), do: {:reply, s.port, s}
   def handle_call(:url, _from, s), do: {:reply, s.url, s}
+  def handle_call(:clients, _from, s), do: {:reply, s.clients, s}
 
   @impl true
   def handle_info({:EXIT, pid, reason}, s) do
-    if pid in s.acceptors,
-      do: {:stop, {:acceptor_down, reason}, s},
-      else: {:noreply, s}
+    cond do
+      pid in s.acceptors -> {:stop, {:acceptor_down, reason}, s}
+      pid == s.clients -> {:stop, {:clients_down, reason}, s}
+      true -> {:noreply, s}
+    end
   end
 
   def handle_info(_msg, s), do: {:noreply, s}
@@ -202,20 +231,42 @@ defmodule Vws.Ops.Web.Server do
     end
   end
 
+  # Admission (Vws.Ops.Web.Clients): the connection's process is started only if its client
+  # (peer address) and the server have room, made by closing idle connections if need be.
   defp hand_over(socket, conf) do
-    case Task.Supervisor.start_child(
-           conf.connections,
-           fn -> receive(do: ({:socket, s} -> Vws.Ops.Web.Conn.serve(s, conf))) end,
-           shutdown: :brutal_kill
-         ) do
-      {:ok, pid} ->
-        case :gen_tcp.controlling_process(socket, pid) do
-          :ok -> send(pid, {:socket, socket})
-          {:error, _} -> Process.exit(pid, :kill) && :gen_tcp.close(socket)
-        end
+    start = fn ->
+      Task.Supervisor.start_child(
+        conf.connections,
+        fn ->
+          receive do
+            {:socket, s, pace, idle_key} ->
+              Clients.adopt(idle_key)
+              Vws.Ops.Web.Conn.serve(s, pace, conf)
+          end
+        end,
+        shutdown: :brutal_kill
+      )
+    end
 
-      {:error, :max_children} ->
-        Vws.Ops.Web.Conn.refuse_busy(socket, conf)
+    with {:ok, {ip, _port}} <- :inet.peername(socket),
+         {:ok, pid, pace, idle_key} <- Clients.admit(conf.clients, Clients.client(ip), start) do
+      case :gen_tcp.controlling_process(socket, pid) do
+        :ok -> send(pid, {:socket, socket, pace, idle_key})
+        {:error, _} -> Process.exit(pid, :kill) && :gen_tcp.close(socket)
+      end
+    else
+      {:refuse, :client} ->
+        Vws.Ops.Web.Conn.refuse_busy(socket, "busy: too many connections from your address", conf)
+
+      {:refuse, :rate} ->
+        Vws.Ops.Web.Conn.refuse_busy(
+          socket,
+          "busy: too many new connections from your address",
+          conf
+        )
+
+      {:refuse, :full} ->
+        Vws.Ops.Web.Conn.refuse_busy(socket, "busy: too many connections", conf)
 
       {:error, _} ->
         :gen_tcp.close(socket)
