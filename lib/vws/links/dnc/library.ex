@@ -393,10 +393,8 @@ defmodule Vws.Links.DNC.Library do
     end
   end
 
-  # PROTOCOLS.md §2 "Program size limit": what the GE-2000's six-digit size field can say
-  @program_limit 999_999
-
-  defp check_size(size) when size > @program_limit,
+  # PROTOCOLS.md §2 "Program size limit" (Vws.Links.DNC.Program.check_size/1, @max_bytes)
+  defp check_size(size) when size > @max_bytes,
     do: {:error, {:not_a_program, {:too_large, size}}}
 
   defp check_size(_size), do: :ok
@@ -422,7 +420,7 @@ defmodule Vws.Links.DNC.Library do
     lines = Vws.Links.DNC.Program.from_text(bytes)
 
     cond do
-      byte_size(bytes) > @program_limit ->
+      byte_size(bytes) > @max_bytes ->
         {:error, {:not_a_program, {:too_large, byte_size(bytes)}}}
 
       offset = binary_at(bytes) ->
