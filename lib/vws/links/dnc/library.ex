@@ -499,7 +499,7 @@ defmodule Vws.Links.DNC.Library do
   def program_refusal(why), do: "not an NC program: " <> refusal(why)
 
   defp refusal({:too_large, size}),
-    do: "#{size} bytes, more than the #{@program_limit} bytes a program may have"
+    do: "#{size} bytes, more than the #{@max_bytes} bytes a program may have"
 
   defp refusal({:binary, offset}), do: "a binary file (not text at byte #{offset})"
 
