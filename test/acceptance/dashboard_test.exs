@@ -59,12 +59,13 @@ defmodule Vws.Acceptance.DashboardTest do
     assert page =~ ~r/DOWNLOAD_HP 0001 WC .* 12 lines, \d+ bytes \d+ B\/s unknown/
     screenshot(url, "dashboard-download.png")
 
-    # the closing % is answered with the number of lines stored
+    # the closing % is answered with the number of lines stored and the program's CRC
     total = length(program)
+    crc = Vws.Codecs.WC.ProgramCRC.compute(program)
 
     for {line, n} <- Enum.with_index(rest, length(first) + 1) do
-      expected = if n == total, do: total, else: n
-      assert {:ok, {:line_ack, ^expected}} = Reply.decode(request(socket, nc_line(n, line)))
+      expected = if n == total, do: {:line_ack, total, crc}, else: {:line_ack, n}
+      assert {:ok, ^expected} = Reply.decode(request(socket, nc_line(n, line)))
     end
 
     :gen_tcp.close(socket)

@@ -58,6 +58,11 @@ defmodule Vws.Codecs.WC.Generators do
     oneof([
       exactly(:nak),
       bind(range(0, 9999), &exactly({:line_ack, &1}), false),
+      bind(
+        tuple([range(0, 9999), range(0, 0xFFFF)]),
+        fn {n, crc} -> exactly({:line_ack, n, crc}) end,
+        false
+      ),
       bind(range(0, 9999), &exactly({:ack, &1}), false),
       bind(
         tuple([range(0, 9999), status_text()]),

@@ -70,6 +70,39 @@ defmodule Vws.Test.WCPeer do
 
   def close(peer), do: GenServer.stop(peer)
 
+  @doc """
+  The answer SUN_COMM gives to line `n` (1-based) of a downloaded program `lines` when it stores
+  it: `{:line_ack, n}`, and for the closing `%` `{:line_ack, n, crc}`, the CRC of the whole
+  program (PROTOCOLS.md §1 "Whole-program check").
+  """
+  def download_answer(lines, n) do
+    if n == length(lines),
+      do: {:line_ack, rem(n, 10_000), Vws.Codecs.WC.ProgramCRC.compute(lines)},
+      else: {:line_ack, rem(n, 10_000)}
+  end
+
+  @doc """
+  Whether the text of an UPLOAD_SUN line, after the lines `received` so far (newest first), ends
+  the program: `{:closing, lines}` — its closing `%/cccc`, the CRC checked (it raises when the
+  CRC is not the program's) — or `:more`.
+  """
+  def upload_closing(text, received) do
+    case Vws.Codecs.WC.ProgramCRC.split_closing(text) do
+      {:ok, last, crc} when received != [] ->
+        if String.trim(last) == "%" do
+          lines = Enum.reverse([last | received])
+          ours = Vws.Codecs.WC.ProgramCRC.compute(lines)
+          crc == ours || raise "UPLOAD_SUN closing CRC #{crc}, the program's is #{ours}"
+          {:closing, lines}
+        else
+          :more
+        end
+
+      _ ->
+        :more
+    end
+  end
+
   @impl true
   def init({endpoint, opts}) do
     case connect_retrying(endpoint, Keyword.get(opts, :connect_timeout, 5_000)) do

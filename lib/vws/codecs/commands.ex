@@ -21,7 +21,8 @@ defmodule Vws.Codecs.Commands do
       `{:do, :depart | :departs, dist}`, `{:disable_tray, 1 | 2}`, `{:release_tray, 1 | 2}`,
       `:disable_table`, `:release_table`, `{:execute, name}`; a location `loc` is a name or
       `{:trans, name, [x, y, z, 90.0, -90.0, t]}`
-    * monarch: `:cycle_start`, `:release_table`, `:status`, `:download_hp`, `:download_ge`,
+    * monarch: `:cycle_start`, `:release_table`, `:status`, `:download_hp`,
+      `{:download_hp, crc}` (ours, issue 24: the whole-program check), `:download_ge`,
       `{:download_ge, "NNNNNN.PRO" | "NNNNNN.GSU", :latest | version}`, `:compare_ge`,
       `{:compare_ge, "NNNNNN.PRO" | "NNNNNN.GSU"}` (the last three ours, issue 18: the library),
       `{:upload_ge, "NNNNNN.PRO" | "NNNNNN.GSU"}`, `:upload_sun`, `{:table, [line]}`,
@@ -105,17 +106,49 @@ defmodule Vws.Codecs.Commands do
   end
 
   @doc """
-  The transfer a Monarch command's text asks SUN_COMM for — `:download_hp` or `:upload_sun` —
-  or nil for every other text. SUN_COMM recognises these two words and nothing else: every
-  other command is parsed once, by its partition.
+  The transfer a Monarch command's text asks SUN_COMM for, or nil for every other text.
+  SUN_COMM recognises these words and nothing else: every other command is parsed once, by its
+  partition.
 
-      iex> Vws.Codecs.Commands.transfer(" download_hp")
-      :download_hp
-      iex> Vws.Codecs.Commands.transfer("TABLE(1/2)")
-      nil
+    * `:upload_sun` — `UPLOAD_SUN`
+    * `:download_hp` — `DOWNLOAD_HP`, the seed's form: no whole-program check asked
+    * `{:download_hp, crc}` — `DOWNLOAD_HP(cccc)`: the WC names the program's CRC-16/ARC
+      (PROTOCOLS.md §1 "Whole-program check", `Vws.Codecs.WC.ProgramCRC`)
+    * `{:error, reason}` — `DOWNLOAD_HP` with an argument that is not four hex digits: still a
+      download (the WC sends its lines), which ends `ERROR <reason>` and stores nothing
+
+        iex> Vws.Codecs.Commands.transfer(" download_hp")
+        :download_hp
+        iex> Vws.Codecs.Commands.transfer("DOWNLOAD_HP(52D5)")
+        {:download_hp, 0x52D5}
+        iex> Vws.Codecs.Commands.transfer("DOWNLOAD_HP(52D)")
+        {:error, "BAD PROGRAM CRC 52D"}
+        iex> Vws.Codecs.Commands.transfer("TABLE(1/2)")
+        nil
   """
-  @spec transfer(String.t()) :: :download_hp | :upload_sun | nil
-  def transfer(text) when is_binary(text), do: Map.get(@transfers, normalise(text))
+  @spec transfer(String.t()) ::
+          :download_hp | {:download_hp, 0..0xFFFF} | :upload_sun | {:error, String.t()} | nil
+  def transfer(text) when is_binary(text) do
+    case normalise(text) do
+      "DOWNLOAD_HP" <> arg when arg != "" -> download_crc(arg)
+      text -> Map.get(@transfers, text)
+    end
+  end
+
+  # `(cccc)`, the program's CRC named by the WC; a text that is not parenthesised is another
+  # word (`DOWNLOAD_HPX`), not a transfer
+  defp download_crc(arg) do
+    case parenthesised(arg) do
+      {:ok, hex} ->
+        case Vws.Codecs.WC.ProgramCRC.parse(hex) do
+          {:ok, crc} -> {:download_hp, crc}
+          :error -> {:error, String.trim("BAD PROGRAM CRC #{hex}")}
+        end
+
+      {:error, :unknown} ->
+        nil
+    end
+  end
 
   defp normalise(text), do: text |> String.trim() |> String.upcase()
 
@@ -154,6 +187,15 @@ defmodule Vws.Codecs.Commands do
 
   defp do_parse(:monarch, text) when is_map_key(@transfers, text),
     do: {:ok, Map.fetch!(@transfers, text)}
+
+  # ours (issue 24): the WC names the program's CRC
+  defp do_parse(:monarch, "DOWNLOAD_HP" <> _ = text) do
+    case transfer(text) do
+      {:download_hp, crc} -> {:ok, {:download_hp, crc}}
+      {:error, _} = error -> error
+      nil -> {:error, :unknown}
+    end
+  end
 
   defp do_parse(:monarch, "DOWNLOAD_GE"), do: {:ok, :download_ge}
   defp do_parse(:monarch, "DRIP_FEED"), do: {:ok, :drip_feed}

@@ -122,6 +122,8 @@ defmodule Vws.Partitions.Monarch do
   def execute(command, _ctx) when command in [:download_hp, :upload_sun],
     do: {:error, "#{command |> to_string() |> String.upcase()} IS CARRIED OUT BY SUN_COMM"}
 
+  def execute({:download_hp, _crc}, ctx), do: execute(:download_hp, ctx)
+
   def execute(:download_ge, ctx) do
     with {:ok, file, text} <- nc_file_program(ctx.workstation),
          # no larger than the machine can store: refused before a byte is sent

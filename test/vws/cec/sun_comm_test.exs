@@ -2,6 +2,7 @@ defmodule Vws.CEC.SunCommTest do
   use ExUnit.Case, async: true
 
   alias Vws.CEC.{Mailbox, Events}
+  alias Vws.Codecs.WC.ProgramCRC
   alias Vws.Test.{WCPeer, Workstation}
   import Vws.Test.Eventually
 
@@ -12,6 +13,16 @@ defmodule Vws.CEC.SunCommTest do
 
   defp stored(n),
     do: IO.iodata_to_binary(Vws.Codecs.WC.Reply.encode({:line_ack, n})) |> String.trim()
+
+  # the answer to line `n` of `program`: the closing `%` names the count and the CRC
+  defp answer(program, n),
+    do:
+      IO.iodata_to_binary(Vws.Codecs.WC.Reply.encode(WCPeer.download_answer(program, n)))
+      |> String.trim()
+
+  # UPLOAD_SUN's closing line text: `%/cccc`
+  defp closing(program),
+    do: Vws.Codecs.WC.ProgramCRC.closing_line(List.last(program), ProgramCRC.compute(program))
 
   setup context do
     partitions = if context[:held], do: Workstation.held_robot(), else: []
@@ -240,15 +251,117 @@ defmodule Vws.CEC.SunCommTest do
 
       for {line, n} <- Enum.with_index(program, 1) do
         WCPeer.send_raw(peer, nc(n, line))
-        assert WCPeer.recv_line(peer) == stored(n)
+        assert WCPeer.recv_line(peer) == answer(program, n)
       end
 
+      assert answer(program, 5) == "A0005/52D5021"
       assert WCPeer.status(peer, 51, 35, "MONARCH_CMD") == "0001DONE"
       assert Mailbox.nc_file(ws) == program
 
       WCPeer.send_string(peer, 52, [{"M", 2, "UPLOAD_SUN"}])
       assert ack?(WCPeer.recv_line(peer), 52)
       assert WCPeer.status(peer, 53, 35, "MONARCH_CMD") == "0002ERROR NO UPLOADED PROGRAM"
+    end
+
+    test "DOWNLOAD_HP(cccc) with the program's CRC: stored, DONE; the closing answer names the CRC",
+         %{peer: peer, ws: ws} do
+      program = ["%", "O001234", "N10 G90 G00 X0 Y0", "N20 M30", "%"]
+      WCPeer.send_string(peer, 90, [{"M", 20, "DOWNLOAD_HP(52D5)"}])
+      assert ack?(WCPeer.recv_line(peer), 90)
+
+      for {line, n} <- Enum.with_index(program, 1) do
+        WCPeer.send_raw(peer, nc(n, line))
+        assert WCPeer.recv_line(peer) == answer(program, n)
+      end
+
+      assert WCPeer.status(peer, 91, 35, "MONARCH_CMD") == "0020DONE"
+      assert Mailbox.nc_file(ws) == program
+    end
+
+    test "DOWNLOAD_HP(cccc) with another CRC than what came: ERROR PROGRAM CRC, the NC file kept",
+         %{peer: peer, ws: ws} do
+      old = ["%", "O000001", "N10 M30", "%"]
+      :ok = Mailbox.put_nc_file(ws, old)
+      # what the WC sent: N10 G90 …; what arrived: two bits of line 3 flipped, its 8-bit sum
+      # (the BCC) the same — 'G' 0x47 → 'F' 0x46 and '0' 0x30 → '1' 0x31
+      sent = ["%", "O001234", "N10 G90 G00 X0 Y0", "N20 M30", "%"]
+      arrived = ["%", "O001234", "N10 F90 G01 X0 Y0", "N20 M30", "%"]
+
+      assert Vws.Codecs.WC.BCC.compute("0003" <> Enum.at(sent, 2)) ==
+               Vws.Codecs.WC.BCC.compute("0003" <> Enum.at(arrived, 2))
+
+      got = ProgramCRC.format(ProgramCRC.compute(arrived))
+      WCPeer.send_string(peer, 92, [{"M", 21, "DOWNLOAD_HP(52D5)"}])
+      assert ack?(WCPeer.recv_line(peer), 92)
+
+      for {line, n} <- Enum.with_index(arrived, 1) do
+        WCPeer.send_raw(peer, nc(n, line))
+        # every line stored as it came; the closing one answered with the CRC of what came
+        assert WCPeer.recv_line(peer) == answer(arrived, n)
+      end
+
+      # the closing line again (its answer lost): the same answer, nothing stored
+      WCPeer.send_raw(peer, nc(5, "%"))
+      assert WCPeer.recv_line(peer) == answer(arrived, 5)
+
+      assert WCPeer.status(peer, 93, 35, "MONARCH_CMD") ==
+               "0021ERROR PROGRAM CRC #{got} EXPECTED 52D5"
+
+      assert Mailbox.nc_file(ws) == old
+    end
+
+    test "DOWNLOAD_HP with a CRC that is not four hex digits: the lines are read, ERROR, nothing stored",
+         %{peer: peer, ws: ws} do
+      program = ["%", "O000002", "%"]
+      WCPeer.send_string(peer, 94, [{"M", 22, "DOWNLOAD_HP(52D)"}])
+      assert ack?(WCPeer.recv_line(peer), 94)
+
+      for {line, n} <- Enum.with_index(program, 1) do
+        WCPeer.send_raw(peer, nc(n, line))
+        assert WCPeer.recv_line(peer) == answer(program, n)
+      end
+
+      assert WCPeer.status(peer, 95, 35, "MONARCH_CMD") == "0022ERROR BAD PROGRAM CRC 52D"
+      assert Mailbox.nc_file(ws) == []
+    end
+
+    test "a program over 999,999 bytes ends ERROR PROGRAM TOO LARGE and is not stored; " <>
+           "one of 999,999 is stored",
+         %{peer: peer, ws: ws} do
+      old = ["%", "O000001", "N10 M30", "%"]
+      :ok = Mailbox.put_nc_file(ws, old)
+      # "%", a line of 994 + `extra` bytes, 999 lines of 999, "%" — each with its LF: a text of
+      # exactly 999,999 + `extra` bytes
+      program = fn extra ->
+        body = for i <- 1..999, do: String.pad_trailing("N#{i} G01 X", 999, "0")
+        ["%", "O000003 " <> String.duplicate("X", 994 + extra - 8)] ++ body ++ ["%"]
+      end
+
+      download = fn lines, seq, number ->
+        crc = ProgramCRC.format(ProgramCRC.compute(lines))
+        WCPeer.send_string(peer, seq, [{"M", number, "DOWNLOAD_HP(#{crc})"}])
+        assert ack?(WCPeer.recv_line(peer), seq)
+
+        for {line, n} <- Enum.with_index(lines, 1) do
+          WCPeer.send_raw(peer, nc(n, line))
+          assert WCPeer.recv_line(peer) == answer(lines, n)
+        end
+
+        WCPeer.status(peer, seq + 1, 35, "MONARCH_CMD")
+      end
+
+      big = program.(1)
+      assert byte_size(Vws.Links.DNC.Program.to_text(big)) == 1_000_000
+
+      assert download.(big, 96, 23) ==
+               "0023ERROR PROGRAM TOO LARGE 1000000 BYTES (LIMIT 999999)"
+
+      assert Mailbox.nc_file(ws) == old
+
+      limit = program.(0)
+      assert byte_size(Vws.Links.DNC.Program.to_text(limit)) == 999_999
+      assert download.(limit, 98, 24) == "0024DONE"
+      assert Mailbox.nc_file(ws) == limit
     end
 
     test "a program line with a bad BCC is answered E and can be sent again", %{
@@ -267,10 +380,10 @@ defmodule Vws.CEC.SunCommTest do
       WCPeer.send_raw(peer, nc(2, "N10 G00X0"))
       assert WCPeer.recv_line(peer) == stored(2)
       WCPeer.send_raw(peer, nc(3, "%"))
-      assert WCPeer.recv_line(peer) == stored(3)
+      assert WCPeer.recv_line(peer) == answer(["%", "N10 G00X0", "%"], 3)
       # and the closing line's answer too: answered again after the command ended
       WCPeer.send_raw(peer, nc(3, "%"))
-      assert WCPeer.recv_line(peer) == stored(3)
+      assert WCPeer.recv_line(peer) == answer(["%", "N10 G00X0", "%"], 3)
       assert WCPeer.status(peer, 61, 35, "MONARCH_CMD") == "0003DONE"
       assert Mailbox.nc_file(ws) == ["%", "N10 G00X0", "%"]
     end
@@ -309,7 +422,7 @@ defmodule Vws.CEC.SunCommTest do
       WCPeer.send_raw(peer, nc(2, "N10 G00X0"))
       assert WCPeer.recv_line(peer) == stored(2)
       WCPeer.send_raw(peer, nc(3, "%"))
-      assert WCPeer.recv_line(peer) == stored(3)
+      assert WCPeer.recv_line(peer) == answer(["%", "N10 G00X0", "%"], 3)
       assert WCPeer.status(peer, 63, 35, "MONARCH_CMD") == "0006DONE"
       assert Mailbox.nc_file(ws) == ["%", "N10 G00X0", "%"]
     end
@@ -325,7 +438,7 @@ defmodule Vws.CEC.SunCommTest do
 
       for {text, n} <- Enum.with_index(["%", "N10 G00X0", "%"], 1) do
         WCPeer.send_raw(peer, nc(n, text))
-        assert WCPeer.recv_line(peer) == stored(n)
+        assert WCPeer.recv_line(peer) == answer(["%", "N10 G00X0", "%"], n)
       end
 
       assert WCPeer.status(peer, 65, 35, "MONARCH_CMD") == "0007DONE"
@@ -411,7 +524,7 @@ defmodule Vws.CEC.SunCommTest do
           text
         end
 
-      assert received == program
+      assert received == List.replace_at(program, -1, closing(program))
       assert WCPeer.status(peer, 73, 35, "MONARCH_CMD") == "0009DONE"
     end
 
@@ -423,9 +536,12 @@ defmodule Vws.CEC.SunCommTest do
       Mailbox.put_nc_up(ws, program)
       WCPeer.send_string(peer, 70, [{"M", 4, "UPLOAD_SUN"}])
       assert ack?(WCPeer.recv_line(peer), 70)
+      # the closing line carries the program's CRC (PROTOCOLS.md §1 "Whole-program check")
+      sent = List.replace_at(program, -1, closing(program))
+      assert List.last(sent) == "%/084C"
 
       received =
-        for {expected, n} <- Enum.with_index(program, 1) do
+        for {expected, n} <- Enum.with_index(sent, 1) do
           line = WCPeer.recv_line(peer)
 
           case n do
@@ -448,7 +564,7 @@ defmodule Vws.CEC.SunCommTest do
           expected
         end
 
-      assert received == program
+      assert received == sent
       assert WCPeer.status(peer, 71, 35, "MONARCH_CMD") == "0004DONE"
     end
 
@@ -464,7 +580,8 @@ defmodule Vws.CEC.SunCommTest do
       end
 
       closing = WCPeer.recv_line(peer)
-      assert {:ok, {:line, 3, "%"}} = Vws.Codecs.WC.Reply.decode_line(closing)
+      text = closing(["%", "O000777", "%"])
+      assert {:ok, {:line, 3, ^text}} = Vws.Codecs.WC.Reply.decode_line(closing)
       # the WC has the program; its answer arrives damaged and it asks the command's status
       WCPeer.send_line(peer, "A0003005")
       assert WCPeer.recv_line(peer) == closing

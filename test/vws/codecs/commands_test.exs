@@ -1,5 +1,6 @@
 defmodule Vws.Codecs.CommandsTest do
   use ExUnit.Case, async: true
+  use Vws.PropCase
   doctest Vws.Codecs.Commands
 
   import Vws.Codecs.Commands, only: [parse: 2]
@@ -41,6 +42,63 @@ defmodule Vws.Codecs.CommandsTest do
     assert parse(:monarch, "TABLE(1/2/3/4/5/6/7/8/9)") == {:error, "AT MOST 8 TABLE LINES"}
     assert parse(:monarch, "TABLE(2/2)") == {:error, "TABLE LINES MUST BE ASCENDING"}
     assert parse(:monarch, "DOWNLOAD_HP") == {:ok, :download_hp}
+  end
+
+  test "DOWNLOAD_HP(cccc): the WC names the program's CRC (PROTOCOLS.md §1 Whole-program check)" do
+    alias Vws.Codecs.Commands
+
+    assert parse(:monarch, "DOWNLOAD_HP(52D5)") == {:ok, {:download_hp, 0x52D5}}
+    assert parse(:monarch, "DOWNLOAD_HP(0000)") == {:ok, {:download_hp, 0}}
+    assert parse(:monarch, " download_hp( ffff ) ") == {:ok, {:download_hp, 0xFFFF}}
+    assert parse(:monarch, "DOWNLOAD_HP(52D)") == {:error, "BAD PROGRAM CRC 52D"}
+    assert parse(:monarch, "DOWNLOAD_HP(52D5A)") == {:error, "BAD PROGRAM CRC 52D5A"}
+    assert parse(:monarch, "DOWNLOAD_HP(G2D5)") == {:error, "BAD PROGRAM CRC G2D5"}
+    assert parse(:monarch, "DOWNLOAD_HP()") == {:error, "BAD PROGRAM CRC"}
+    assert parse(:monarch, "DOWNLOAD_HPX") == {:error, :unknown}
+
+    # what SUN_COMM carries out itself, and nothing else
+    assert Commands.transfer("DOWNLOAD_HP") == :download_hp
+    assert Commands.transfer("DOWNLOAD_HP(52D5)") == {:download_hp, 0x52D5}
+    assert Commands.transfer("DOWNLOAD_HP(52D)") == {:error, "BAD PROGRAM CRC 52D"}
+    assert Commands.transfer("DOWNLOAD_HPX") == nil
+    assert Commands.transfer("DOWNLOAD_HP 52D5") == nil
+    assert Commands.transfer("UPLOAD_SUN") == :upload_sun
+    assert Commands.transfer("UPLOAD_SUN(52D5)") == nil
+    assert Commands.transfer("DOWNLOAD_GE(001234.PRO)") == nil
+  end
+
+  test "property: every CRC named is read back; DOWNLOAD_HP with anything else is not a CRC" do
+    alias Vws.Codecs.Commands
+
+    named =
+      :proper.forall(:proper_types.range(0, 0xFFFF), fn crc ->
+        text = "DOWNLOAD_HP(#{Vws.Codecs.WC.ProgramCRC.format(crc)})"
+
+        Commands.transfer(text) == {:download_hp, crc} and
+          parse(:monarch, text) == {:ok, {:download_hp, crc}}
+      end)
+
+    assert_property(named, 300)
+
+    other =
+      :proper.forall(:proper_types.list(:proper_types.range(0x20, 0x7E)), fn chars ->
+        arg = List.to_string(chars)
+        text = "DOWNLOAD_HP(" <> arg <> ")"
+
+        case Commands.transfer(text) do
+          {:download_hp, crc} ->
+            String.upcase(String.trim(arg)) == Vws.Codecs.WC.ProgramCRC.format(crc)
+
+          {:error, "BAD PROGRAM CRC" <> _} ->
+            true
+
+          # a ')' or '(' inside: not one parenthesised argument, so not DOWNLOAD_HP
+          nil ->
+            String.contains?(arg, ["(", ")"])
+        end
+      end)
+
+    assert_property(other, 300)
   end
 
   test "gripper, vise, vacuum and hydraulic sets" do

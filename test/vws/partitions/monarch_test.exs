@@ -85,7 +85,7 @@ defmodule Vws.Partitions.MonarchTest do
       WCPeer.send_raw(peer, Vws.Codecs.WC.Reply.encode({:line, rem(n, 10_000), line}))
 
       assert Vws.Codecs.WC.Reply.decode(WCPeer.recv_line(peer)) ==
-               {:ok, {:line_ack, rem(n, 10_000)}}
+               {:ok, WCPeer.download_answer(lines, n)}
     end
 
     finished(peer)
@@ -101,8 +101,11 @@ defmodule Vws.Partitions.MonarchTest do
     n = rem(length(acc) + 1, 10_000)
     {:ok, {:line, ^n, line}} = Vws.Codecs.WC.Reply.decode_line(WCPeer.recv_line(peer))
     WCPeer.send_raw(peer, Vws.Codecs.WC.Reply.encode({:line_ack, n}))
-    acc = [line | acc]
-    if line == "%" and length(acc) > 1, do: Enum.reverse(acc), else: receive_lines(peer, acc)
+
+    case WCPeer.upload_closing(line, acc) do
+      {:closing, lines} -> lines
+      :more -> receive_lines(peer, [line | acc])
+    end
   end
 
   defp status(peer, name), do: WCPeer.status(peer, seq(), 1, name)

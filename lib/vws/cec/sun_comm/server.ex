@@ -15,7 +15,7 @@ defmodule Vws.CEC.SunComm.Server do
 
   alias Vws.CEC.{Events, Mailbox}
   alias Vws.Links.Transport
-  alias Vws.Codecs.WC.{Command, CommandString, LineDecoder, Reply}
+  alias Vws.Codecs.WC.{Command, CommandString, LineDecoder, ProgramCRC, Reply}
 
   @dialogue_length 200
 
@@ -461,7 +461,7 @@ defmodule Vws.CEC.SunComm.Server do
 
     telemetry(data, :retransmission, %{count: 1}, %{sequence: cs.sequence})
     data = reply(%{data | counters: bump(data.counters, :retransmissions)}, {:ack, cs.sequence})
-    start_transfer({kind, data.transfer.number}, data)
+    start_transfer(again(kind, data.transfer), data)
   end
 
   defp reject(data, reason) do
@@ -499,7 +499,7 @@ defmodule Vws.CEC.SunComm.Server do
   end
 
   # The Parser's rules, then the commands dispatched. Returns the data and the transfer the
-  # string begins (`{:download | :upload, number}`), or nil.
+  # string begins (`{:download, number, expected}`, `{:upload, number}`), or nil.
   defp accept_string(cs, line, data) do
     ws = data.workstation
 
@@ -583,7 +583,8 @@ defmodule Vws.CEC.SunComm.Server do
   end
 
   # One command to its partition (CMD_IN + CAUSE EVENT), or — DOWNLOAD_HP, UPLOAD_SUN — the
-  # transfer SUN_COMM carries out itself: `{data, nil | {:download | :upload, number}}`.
+  # transfer SUN_COMM carries out itself: `{data, nil | {:download, number, expected} |
+  # {:upload, number}}`.
   defp dispatch(%{set: :ack} = command, data) do
     Logger.debug("acknowledgement command #{command.number} #{command.text}")
     {data, nil}
@@ -613,8 +614,16 @@ defmodule Vws.CEC.SunComm.Server do
         # the two transfers SUN_COMM carries out are recognised here; every other command is
         # parsed once, by its partition
         case set == :monarch && Vws.Codecs.Commands.transfer(text) do
+          # the WC names the program's CRC, or not (the seed's form), or names it badly: the
+          # program's lines follow in every case, and the check is made at its end
           :download_hp ->
-            {data, {:download, number}}
+            {data, {:download, number, nil}}
+
+          {:download_hp, crc} ->
+            {data, {:download, number, crc}}
+
+          {:error, why} ->
+            {data, {:download, number, {:error, why}}}
 
           :upload_sun ->
             {data, {:upload, number}}
@@ -628,9 +637,22 @@ defmodule Vws.CEC.SunComm.Server do
 
   ## Transfers
 
-  defp start_transfer({:download, number}, data) do
+  # `expected`: the program's CRC the WC named, nil (none named) or `{:error, why}` (named
+  # badly); `crc` the CRC of the lines stored so far (PROTOCOLS.md §1 "Whole-program check")
+  defp start_transfer({:download, number, expected}, data) do
     Logger.info("DOWNLOAD_HP #{number}: reading program lines from the WC")
-    d = %{kind: :download, number: number, lines: [], count: 0, bytes: 0, started: now_ms()}
+
+    d = %{
+      kind: :download,
+      number: number,
+      expected: expected,
+      lines: [],
+      count: 0,
+      bytes: 0,
+      crc: 0,
+      started: now_ms()
+    }
+
     {:download, %{data | transfer: d}, [download_timer(data)]}
   end
 
@@ -652,12 +674,17 @@ defmodule Vws.CEC.SunComm.Server do
           started: now_ms(),
           total: length(lines),
           bytes: 0,
-          total_bytes: Enum.reduce(lines, 0, &(byte_size(&1) + 1 + &2))
+          total_bytes: Enum.reduce(lines, 0, &(byte_size(&1) + 1 + &2)),
+          crc: ProgramCRC.compute(lines)
         }
 
         send_upload_line(%{data | transfer: u})
     end
   end
+
+  # the transfer a resent string begins again
+  defp again(:download, d), do: {:download, d.number, d.expected}
+  defp again(:upload, u), do: {:upload, u.number}
 
   defp download_timer(data), do: {:state_timeout, data.download_timeout, :no_line}
 
@@ -694,7 +721,8 @@ defmodule Vws.CEC.SunComm.Server do
       d
       | lines: [text | d.lines],
         count: d.count + 1,
-        bytes: d.bytes + byte_size(text) + 1
+        bytes: d.bytes + byte_size(text) + 1,
+        crc: ProgramCRC.add_line(d.crc, text)
     }
 
     cond do
@@ -704,36 +732,7 @@ defmodule Vws.CEC.SunComm.Server do
         {:command, end_transfer(data, d.number, {:error, why}), []}
 
       String.trim(text) == "%" and d.count > 1 ->
-        lines = Enum.reverse(d.lines)
-
-        # no larger than the GE-2000 can store (its directory's six digits); then into the
-        # program library first (issue 18), when the workstation has one
-        case with(
-               :ok <- Vws.Links.DNC.Program.check_size(d.bytes),
-               :ok <- Vws.Links.DNC.Library.store_download(data.workstation, lines),
-               do: Mailbox.put_nc_file(data.workstation, lines)
-             ) do
-          :ok ->
-            # the closing line's answer: the number of lines stored, so both ends agree
-            answer = {:line_ack, rem(d.count, 10_000)}
-            data = reply(data, answer)
-            Logger.info("DOWNLOAD_HP #{d.number}: #{d.count} lines stored as the NC file")
-            data = end_transfer(data, d.number, :done)
-            {:command, %{data | last_closing: {line, answer}}, []}
-
-          {:error, "PROGRAM TOO LARGE" <> _ = why} ->
-            # the closing line came intact (answered as every line is); the program is refused
-            data = reply(data, {:line_ack, rem(d.count, 10_000)})
-            telemetry(data, :string_rejected, %{bytes: 0}, %{reason: :program_too_large})
-            Logger.warning("DOWNLOAD_HP #{d.number}: #{why}; the NC file is kept as it was")
-            {:command, end_transfer(data, d.number, {:error, why}), []}
-
-          {:error, reason} ->
-            data = reject(data, :journal_unavailable)
-            Logger.error("DOWNLOAD_HP #{d.number}: NC file not stored: #{inspect(reason)}")
-            why = "NC FILE NOT STORED #{Vws.Codecs.WC.Words.of(reason)}"
-            {:command, end_transfer(data, d.number, {:error, why}), []}
-        end
+        close_download(line, d, data)
 
       true ->
         data = reply(%{data | transfer: d}, {:line_ack, rem(d.count, 10_000)})
@@ -741,11 +740,72 @@ defmodule Vws.CEC.SunComm.Server do
     end
   end
 
+  # The closing `%`: answered `A` + the number of lines + `/` + the CRC of what came, whatever
+  # follows, so the WC can compare the whole program too (and a resend of the closing line
+  # gets the same answer). The program is stored only if it is the one the WC named (when it
+  # named one) and not larger than a program may be (PROTOCOLS.md §2 "Program size limit");
+  # otherwise the command ends ERROR and the NC file and the library keep what they had.
+  defp close_download(line, d, data) do
+    lines = Enum.reverse(d.lines)
+    answer = {:line_ack, rem(d.count, 10_000), d.crc}
+
+    # d.bytes: the size of the program's text, every line with its LF
+    refused =
+      with :ok <- program_crc(d.expected, d.crc),
+           do: Vws.Links.DNC.Program.check_size(d.bytes)
+
+    case refused do
+      :ok ->
+        store_download(line, lines, answer, d, data)
+
+      {:error, why} ->
+        Logger.warning(
+          "DOWNLOAD_HP #{d.number}: #{d.count} lines received, not stored: #{why}; " <>
+            "the NC file is kept as it was"
+        )
+
+        telemetry(data, :string_rejected, %{bytes: 0}, %{reason: refusal(why)})
+        data = reply(data, answer)
+        data = end_transfer(data, d.number, {:error, why})
+        {:command, %{data | last_closing: {line, answer}}, []}
+    end
+  end
+
+  defp refusal("PROGRAM TOO LARGE" <> _), do: :program_too_large
+  defp refusal(_why), do: :program_crc
+
+  defp program_crc(nil, _crc), do: :ok
+  defp program_crc({:error, why}, _crc), do: {:error, why}
+  defp program_crc(crc, crc), do: :ok
+
+  defp program_crc(expected, crc),
+    do: {:error, "PROGRAM CRC #{ProgramCRC.format(crc)} EXPECTED #{ProgramCRC.format(expected)}"}
+
+  defp store_download(line, lines, answer, d, data) do
+    # into the program library first (issue 18), when the workstation has one
+    case with(
+           :ok <- Vws.Links.DNC.Library.store_download(data.workstation, lines),
+           do: Mailbox.put_nc_file(data.workstation, lines)
+         ) do
+      :ok ->
+        data = reply(data, answer)
+        Logger.info("DOWNLOAD_HP #{d.number}: #{d.count} lines stored as the NC file")
+        data = end_transfer(data, d.number, :done)
+        {:command, %{data | last_closing: {line, answer}}, []}
+
+      {:error, reason} ->
+        data = reject(data, :journal_unavailable)
+        Logger.error("DOWNLOAD_HP #{d.number}: NC file not stored: #{inspect(reason)}")
+        why = "NC FILE NOT STORED #{Vws.Codecs.WC.Words.of(reason)}"
+        {:command, end_transfer(data, d.number, {:error, why}), []}
+    end
+  end
+
   ## NC upload (CEC → WC)
 
-  defp send_upload_line(%{transfer: %{lines: [line | _]} = u} = data) do
+  defp send_upload_line(%{transfer: %{lines: [line | rest]} = u} = data) do
     telemetry(data, :nc_line, %{bytes: byte_size(line)}, %{direction: :out})
-    data = reply(data, {:line, rem(u.sent + 1, 10_000), line})
+    data = reply(data, {:line, rem(u.sent + 1, 10_000), upload_text(line, rest, u)})
 
     {:upload, %{data | counters: bump(data.counters, :lines_out)},
      [{:state_timeout, data.upload_timeout, :no_answer}]}
@@ -790,6 +850,16 @@ defmodule Vws.CEC.SunComm.Server do
         resend_upload_line(data)
     end
   end
+
+  # The closing `%` carries the program's CRC as `%/cccc` (PROTOCOLS.md §1 "Whole-program
+  # check"): the `%` stays first, so a WC that looks only for `%` still ends there.
+  defp upload_text(line, [], u) do
+    if String.trim(line) == "%" and u.total > 1,
+      do: ProgramCRC.closing_line(line, u.crc),
+      else: line
+  end
+
+  defp upload_text(line, _rest, _u), do: line
 
   defp resend_upload_line(%{transfer: u} = data) do
     if u.retries >= data.upload_retries do

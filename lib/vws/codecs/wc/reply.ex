@@ -8,6 +8,7 @@ defmodule Vws.Codecs.WC.Reply do
   |-------------------------|--------------------------------------|------------------------------|
   | `:nak`                  | `E`                                  | the receiver of a bad line   |
   | `{:line_ack, n}`        | `A` `nnnn` BBB                       | the receiver of NC line `n`, stored |
+  | `{:line_ack, n, crc}`   | `A` `nnnn` `/` `cccc` BBB            | CEC, the closing `%` of a download: `n` lines stored, `cccc` their CRC |
   | `{:ack, seq}`           | `05A` `SSSS` BBB                     | CEC, string received intact  |
   | `{:status, n, text}`    | `NN` `S` `nnnn` text BBB             | CEC, answer to status command `n` |
   | `{:line, n, text}`      | `nnnn` text BBB                      | NC download/upload, either way |
@@ -16,6 +17,10 @@ defmodule Vws.Codecs.WC.Reply do
   line stored, with a BCC, so a damaged answer is seen as damaged and a resent line is recognised
   by its number (PROTOCOLS.md §1 "NC download"): one bit turns `A` into `E` (0x41/0x45), so an
   unchecked one-letter answer could make a line be stored twice or skipped.
+
+  The answer to a download's closing `%` also names the CRC-16/ARC of the program stored
+  (`Vws.Codecs.WC.ProgramCRC`, PROTOCOLS.md §1 "Whole-program check"), so the two ends agree on
+  the whole program, not only on each line.
 
   `NN` is the two-digit length of `S` + `nnnn` + text, so a status text has at most
   94 characters (`truncate_status_text/1`). Texts are printable ASCII (0x20–0x7E).
@@ -30,11 +35,12 @@ defmodule Vws.Codecs.WC.Reply do
       {:ok, {:ack, 54}}
   """
 
-  alias Vws.Codecs.WC.{BCC, Command, Error}
+  alias Vws.Codecs.WC.{BCC, Command, Error, ProgramCRC}
 
   @type t ::
           :nak
           | {:line_ack, 0..9999}
+          | {:line_ack, 0..9999, ProgramCRC.crc()}
           | {:ack, 0..9999}
           | {:status, 0..9999, String.t()}
           | {:line, 0..9999, String.t()}
@@ -42,6 +48,7 @@ defmodule Vws.Codecs.WC.Reply do
   @nak "E"
   @line_ack "A"
   @line_ack_length 8
+  @closing_ack_length 13
   @ack_length "05"
   @ack "A"
   @status "S"
@@ -69,6 +76,10 @@ defmodule Vws.Codecs.WC.Reply do
 
   defp body(:nak, _mode), do: @nak
   defp body({:line_ack, n}, mode), do: with_bcc([@line_ack, Command.pad4(n)], mode)
+
+  defp body({:line_ack, n, crc}, mode),
+    do: with_bcc([@line_ack, Command.pad4(n), "/", ProgramCRC.format(crc)], mode)
+
   defp body({:ack, seq}, mode), do: with_bcc([@ack_length, @ack, Command.pad4(seq)], mode)
 
   defp body({:status, number, text}, mode) do
@@ -91,6 +102,11 @@ defmodule Vws.Codecs.WC.Reply do
   def validate(reply)
   def validate(:nak), do: :ok
   def validate({:line_ack, n}) when is_integer(n) and n in 0..9999, do: :ok
+
+  def validate({:line_ack, n, crc})
+      when is_integer(n) and n in 0..9999 and is_integer(crc) and crc in 0..0xFFFF,
+      do: :ok
+
   def validate({:ack, seq}) when is_integer(seq) and seq in 0..9999, do: :ok
   def validate({:ack, seq}), do: {:error, %Error{reason: :bad_sequence, data: seq}}
 
@@ -130,13 +146,21 @@ defmodule Vws.Codecs.WC.Reply do
 
   @doc """
   Decodes a reply the WC receives after sending a command string (one line, no CR LF):
-  `:nak`, `{:line_ack, n}`, `{:ack, seq}` or `{:status, number, text}`. Option `bcc:`.
+  `:nak`, `{:line_ack, n}`, `{:line_ack, n, crc}`, `{:ack, seq}` or `{:status, number, text}`.
+  Option `bcc:`.
 
       iex> Vws.Codecs.WC.Reply.decode("A0007008")
       {:ok, {:line_ack, 7}}
+      iex> Vws.Codecs.WC.Reply.decode("A0005/52D5021")
+      {:ok, {:line_ack, 5, 0x52D5}}
   """
   @spec decode(binary, keyword) ::
-          {:ok, :nak | {:line_ack, 0..9999} | {:ack, 0..9999} | {:status, 0..9999, String.t()}}
+          {:ok,
+           :nak
+           | {:line_ack, 0..9999}
+           | {:line_ack, 0..9999, ProgramCRC.crc()}
+           | {:ack, 0..9999}
+           | {:status, 0..9999, String.t()}}
           | {:error, Error.t()}
   def decode(line, opts \\ [])
   def decode(@nak, _opts), do: {:ok, :nak}
@@ -145,6 +169,19 @@ defmodule Vws.Codecs.WC.Reply do
     with {:ok, <<@line_ack, field::binary-size(4)>>} <- checked(line, BCC.mode(opts)),
          {:ok, n} <- Command.digits(field) do
       {:ok, {:line_ack, n}}
+    else
+      {:error, %Error{}} = error -> error
+      _ -> malformed(line)
+    end
+  end
+
+  def decode(<<@line_ack, _::binary>> = line, opts) when byte_size(line) == @closing_ack_length do
+    with {:ok, <<@line_ack, field::binary-size(4), ?/, hex::binary-size(4)>>} <-
+           checked(line, BCC.mode(opts)),
+         {:ok, n} <- Command.digits(field),
+         true <- hex == String.upcase(hex),
+         {:ok, crc} <- ProgramCRC.parse(hex) do
+      {:ok, {:line_ack, n, crc}}
     else
       {:error, %Error{}} = error -> error
       _ -> malformed(line)

@@ -32,15 +32,21 @@ defmodule Vws.Peers.WC.Client do
 
   ## NC programs
 
-  `download_program/2` sends `M…DOWNLOAD_HP` and then the program, one numbered line + BCC at a
-  time (`nnnn` + text + BBB, PROTOCOLS.md §1). Only `A` + that number + a good BCC counts as
-  stored; `E`, a damaged answer, another number or silence sends the same line again (at most
-  `:max_resends` times) — the CEC recognises the resend of a line it stored by its number and does
-  not store it twice. `upload_program/1` sends `M…UPLOAD_SUN` and receives NC_UP the same way,
-  answering `A` + the line's number, or `E` to a damaged line, and answering a resend of the line
-  just stored again without keeping it twice. A transfer that breaks off cannot be resumed on the
-  wire, so the client closes and reopens the link: SUN_COMM then ends the Monarch command `ERROR`,
-  as it must.
+  `download_program/2` sends `M…DOWNLOAD_HP(cccc)`, naming the program's CRC-16/ARC
+  (`Vws.Codecs.WC.ProgramCRC`, PROTOCOLS.md §1 "Whole-program check"), and then the program, one
+  numbered line + BCC at a time (`nnnn` + text + BBB, PROTOCOLS.md §1). Only `A` + that number + a
+  good BCC counts as stored; `E`, a damaged answer, another number or silence sends the same line
+  again (at most `:max_resends` times) — the CEC recognises the resend of a line it stored by its
+  number and does not store it twice. The closing `%` is answered `A` + the number of lines +
+  `/` + the CRC of what the CEC took: another CRC than the program's fails the request
+  (`:program_crc`; the CEC, which was told the CRC, keeps its old NC file and ends the command
+  `ERROR PROGRAM CRC …`). `upload_program/1` sends `M…UPLOAD_SUN` and receives NC_UP the same
+  way, answering `A` + the line's number, or `E` to a damaged line, and answering a resend of the
+  line just stored again without keeping it twice; the closing line `%/cccc` carries the
+  program's CRC, and a program received with another CRC fails the request (`:program_crc`).
+  The 8-bit-sum BCC of each line lets about one two-bit error in 27 through; the CRC sees it.
+  A transfer that breaks off cannot be resumed on the wire, so the client closes and reopens
+  the link: SUN_COMM then ends the Monarch command `ERROR`, as it must.
 
   ## The event log
 
@@ -219,8 +225,9 @@ defmodule Vws.Peers.WC.Client do
   def command_status_name(letter), do: Map.fetch!(@command_status_names, letter)
 
   @doc """
-  Downloads an NC program to the CEC (`M…DOWNLOAD_HP`). Returns the Monarch command once every
-  line is acknowledged; poll it with `await_command/5` to learn that the CEC stored it.
+  Downloads an NC program to the CEC (`M…DOWNLOAD_HP(cccc)`, the program's CRC named). Returns
+  the Monarch command once every line is acknowledged and the CEC's CRC of the whole program is
+  the program's; poll it with `await_command/5` to learn that the CEC stored it.
   """
   @spec download_program(client, [String.t()]) ::
           {:ok, {letter, 0..9999}} | {:error, ClientError.t()}
@@ -232,8 +239,10 @@ defmodule Vws.Peers.WC.Client do
   end
 
   @doc """
-  Uploads NC_UP from the CEC (`M…UPLOAD_SUN`): the Monarch command and the program's lines. When
-  the CEC has nothing to send, the command's `ERROR NO UPLOADED PROGRAM` is returned.
+  Uploads NC_UP from the CEC (`M…UPLOAD_SUN`): the Monarch command and the program's lines,
+  whose CRC is the one the CEC sent with the closing `%/cccc` (a program received otherwise is
+  `{:error, %ClientError{reason: :program_crc}}`). When the CEC has nothing to send, the
+  command's `ERROR NO UPLOADED PROGRAM` is returned.
   """
   @spec upload_program(client) ::
           {:ok, {letter, 0..9999}, [String.t()]} | {:error, ClientError.t()}

@@ -20,6 +20,12 @@ defmodule Vws.Peers.WC.ClientError do
     * `:transfer_failed` — an NC program transfer broke off; `data` is
       `%{direction: :download | :upload, line: n, why: text}`. The client then drops and reopens
       the link so that SUN_COMM abandons the transfer (its Monarch command ends `ERROR`).
+    * `:program_crc` — every line of an NC program transfer was answered, but the whole
+      program is not the same at both ends (PROTOCOLS.md §1 "Whole-program check"): the CRC
+      of the program as its sender has it (`sent`) is not the CRC of what its receiver took
+      (`stored`); `data` is `%{direction: :download | :upload, number: n, sent: crc, stored:
+      crc}`. After a download the CEC keeps its old NC file (its command ends
+      `ERROR PROGRAM CRC …`); after an upload the lines received are not returned.
 
       iex> Exception.message(%Vws.Peers.WC.ClientError{reason: :command_failed,
       ...>   data: %{set: "ROBOT", number: 9, status: "ERROR NO LINK TO VAL II"}})
@@ -37,6 +43,7 @@ defmodule Vws.Peers.WC.ClientError do
           | :command_timeout
           | :bad_status
           | :transfer_failed
+          | :program_crc
 
   @type t :: %__MODULE__{reason: reason, data: term}
 
@@ -65,9 +72,21 @@ defmodule Vws.Peers.WC.ClientError do
   def message(%__MODULE__{reason: :transfer_failed, data: %{direction: dir, line: n, why: why}}),
     do: "NC program #{dir} broke off at line #{n}: #{why}"
 
+  def message(%__MODULE__{reason: :program_crc, data: %{direction: :download} = d}),
+    do:
+      "NC program download (MONARCH command #{number(d.number)}): the CEC took a program " <>
+        "with CRC #{crc(d.stored)}, not the one sent (CRC #{crc(d.sent)}); it is not stored"
+
+  def message(%__MODULE__{reason: :program_crc, data: %{direction: :upload} = d}),
+    do:
+      "NC program upload (MONARCH command #{number(d.number)}): the program received has " <>
+        "CRC #{crc(d.stored)}, the CEC sent one with CRC #{crc(d.sent)}; it is not kept"
+
   def message(%__MODULE__{reason: reason, data: data}),
     do: "WC client error #{inspect(reason)}: #{inspect(data)}"
 
   defp number(n) when is_integer(n), do: Vws.Codecs.WC.Command.pad4(n)
   defp number(n), do: inspect(n)
+
+  defp crc(c), do: Vws.Codecs.WC.ProgramCRC.format(c)
 end

@@ -16,8 +16,9 @@ defmodule Vws.Peers.WC.Runner do
       readings follow a command by a scan or two
     * `:poll_interval` — ms between status queries (default 100)
     * `:transfer_retries` — how many times a program transfer (`DOWNLOAD`, `UPLOAD`) that broke
-      off on the link is made again, from the start and as a new command (default 2): the CEC
-      ends the broken one `ERROR` and keeps nothing of it, and a transfer moves nothing
+      off on the link, or whose whole program did not arrive as sent (its CRC), is made again,
+      from the start and as a new command (default 2): the CEC ends the broken one `ERROR` and
+      keeps nothing of it, and a transfer moves nothing
 
       summary = Vws.Peers.WC.Runner.run(client, script)
       summary.result     #=> :completed | :stopped
@@ -130,13 +131,15 @@ defmodule Vws.Peers.WC.Runner do
 
   defp run_step({:timeout, ms}, _client, set), do: {:ok, %{set | timeout: ms}}
 
-  # A program transfer that broke off on the link (the CEC ended its command ERROR and kept
-  # nothing of it) is made again from the start, as a new command, at most `transfer_retries`
-  # times. A transfer stores or sends a program and moves nothing, so this re-runs nothing
-  # physical.
+  # A program transfer that broke off on the link, or whose program arrived other than it was
+  # sent (the CRC of the whole program: the CEC ended a download ERROR and kept its old NC file,
+  # or the lines an upload brought are not the CEC's), is made again from the start, as a new
+  # command, at most `transfer_retries` times. A transfer stores or sends a program and moves
+  # nothing, so this re-runs nothing physical.
   defp transfer(client, set, fun, try \\ 1) do
     case fun.() do
-      {:error, %ClientError{reason: :transfer_failed} = error} when try <= set.transfer_retries ->
+      {:error, %ClientError{reason: reason} = error}
+      when reason in [:transfer_failed, :program_crc] and try <= set.transfer_retries ->
         :ok = Client.note(client, "#{Exception.message(error)}: the transfer is made again")
         transfer(client, set, fun, try + 1)
 

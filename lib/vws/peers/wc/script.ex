@@ -17,7 +17,7 @@ defmodule Vws.Peers.WC.Script do
   | `EXPECT VISE VISE IS UNLOCKED`     | verifies a device: its status must begin with the text (upper case, blanks collapsed); asked again for a short grace, then the script stops |
   | `EXPECT GRIPPER ~ APART\\b`        | the same, with a regular expression after `~`             |
   | `WAIT MONARCH IDLE`                | polls a status until it begins with the text (or matches `~ regex`), for following a machining cycle |
-  | `DOWNLOAD programs/001234.nc`      | `M DOWNLOAD_HP` and the program's lines (path relative to the script), then polls the Monarch command |
+  | `DOWNLOAD programs/001234.nc`      | `M DOWNLOAD_HP(cccc)` (the program's CRC) and the program's lines (path relative to the script), then polls the Monarch command |
   | `UPLOAD`                           | `M UPLOAD_SUN`, receives the program lines, then polls the Monarch command |
   | `TIMEOUT 90`                       | from here on, a command or a WAIT may take this many seconds |
 
@@ -204,8 +204,11 @@ defmodule Vws.Peers.WC.Script do
          {letter, text, "holds a '*' or a character the WC link cannot carry"}}
 
       :ok ->
+        # DOWNLOAD_HP, DOWNLOAD_HP(cccc), UPLOAD_SUN: transfers, written DOWNLOAD and UPLOAD
+        transfer = set == :monarch and Vws.Codecs.Commands.transfer(text) != nil
+
         case Vws.Codecs.Commands.parse(set, text) do
-          {:ok, transfer} when transfer in [:download_hp, :upload_sun] ->
+          _ when transfer ->
             {:error, :transfer_command, text}
 
           {:ok, _} ->

@@ -13,8 +13,9 @@ defmodule Vws.Peers.WC.ScriptError do
     * `:repeated_set` — one string names a command set twice (seed §2.3.2 rule 1).
     * `:bad_command` — the text is not a command of its set (seed App. I), or holds a `*` or a
       character that cannot be sent.
-    * `:transfer_command` — `M DOWNLOAD_HP` or `M UPLOAD_SUN` written as a plain command: they
-      carry program lines and are written `DOWNLOAD <file>` and `UPLOAD`.
+    * `:transfer_command` — `M DOWNLOAD_HP` (with or without its CRC) or `M UPLOAD_SUN` written
+      as a plain command: they carry program lines and are written `DOWNLOAD <file>` and
+      `UPLOAD`.
     * `:unknown_status` — a status name SUN_COMM does not answer.
     * `:missing_argument` — a keyword without what it needs (a status name, a text, a file).
     * `:bad_regex` — the pattern after `~` does not compile.

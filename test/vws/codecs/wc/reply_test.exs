@@ -59,6 +59,22 @@ defmodule Vws.Codecs.WC.ReplyTest do
     assert {:error, %Error{reason: :bad_bcc}} = Reply.decode("A0007009")
   end
 
+  test "golden: the answer to a download's closing % names the count and the program's CRC" do
+    # PROTOCOLS.md §1 "Whole-program check": A + count + / + CRC-16/ARC (four upper-case hex
+    # digits) + BBB; the program ["%", "O001234", "N10 G90 G00 X0 Y0", "N20 M30", "%"] has
+    # CRC 52D5 (computed apart from this code base)
+    assert wire({:line_ack, 5, 0x52D5}) == "A0005/52D5021\r\n"
+    assert wire({:line_ack, 5, 0x52D5}, bcc: :xor) == "A0005/52D5029\r\n"
+    assert wire({:line_ack, 0, 0xFFFF}) == "A0000/FFFF072\r\n"
+    assert Reply.decode("A0005/52D5021") == {:ok, {:line_ack, 5, 0x52D5}}
+    assert Reply.decode("A0005/52D5029", bcc: :xor) == {:ok, {:line_ack, 5, 0x52D5}}
+    assert {:error, %Error{reason: :bad_bcc}} = Reply.decode("A0005/52D5022")
+    # lower-case hex is not what the CEC sends: damaged
+    assert {:error, %Error{}} = Reply.decode("A0005/52d5053")
+    assert {:error, %Error{reason: :malformed}} = Reply.decode("A0005-52D5019")
+    assert {:error, %Error{}} = Reply.validate({:line_ack, 5, 0x10000})
+  end
+
   test "decode refuses everything else, with a reason" do
     cases = [
       {"", :malformed},
@@ -188,6 +204,11 @@ defmodule Vws.Codecs.WC.ReplyTest do
           :proper_types.bind(
             :proper_types.range(0, 9999),
             &:proper_types.exactly({:line_ack, &1}),
+            false
+          ),
+          :proper_types.bind(
+            :proper_types.tuple([:proper_types.range(0, 9999), :proper_types.range(0, 0xFFFF)]),
+            fn {n, crc} -> :proper_types.exactly({:line_ack, n, crc}) end,
             false
           )
         ])

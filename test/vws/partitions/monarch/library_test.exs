@@ -56,7 +56,9 @@ defmodule Vws.Partitions.Monarch.LibraryTest do
 
     for {line, n} <- Enum.with_index(lines, 1) do
       WCPeer.send_raw(peer, Vws.Codecs.WC.Reply.encode({:line, n, line}))
-      assert Vws.Codecs.WC.Reply.decode(WCPeer.recv_line(peer)) == {:ok, {:line_ack, n}}
+
+      assert Vws.Codecs.WC.Reply.decode(WCPeer.recv_line(peer)) ==
+               {:ok, WCPeer.download_answer(lines, n)}
     end
 
     finished(peer)
@@ -197,8 +199,11 @@ defmodule Vws.Partitions.Monarch.LibraryTest do
     n = rem(length(acc) + 1, 10_000)
     {:ok, {:line, ^n, line}} = Vws.Codecs.WC.Reply.decode_line(WCPeer.recv_line(peer))
     WCPeer.send_raw(peer, Vws.Codecs.WC.Reply.encode({:line_ack, n}))
-    acc = [line | acc]
-    if line == "%" and length(acc) > 1, do: Enum.reverse(acc), else: receive_lines(peer, acc)
+
+    case WCPeer.upload_closing(line, acc) do
+      {:closing, lines} -> lines
+      :more -> receive_lines(peer, [line | acc])
+    end
   end
 
   test "a program the operator sends from the machine is a library version from the machine, " <>

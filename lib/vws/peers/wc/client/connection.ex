@@ -4,10 +4,12 @@ defmodule Vws.Peers.WC.Client.Connection do
   #
   #   :idle           nothing on the link; a request starts here
   #   :awaiting_reply a string (commands or a status query) is out; waiting for 05A / NN S / E
-  #   :downloading    DOWNLOAD_HP acknowledged; sending numbered program lines, each answered
-  #                   Annnn+BCC (stored) — anything else, or nothing, sends the same line again
+  #   :downloading    DOWNLOAD_HP(cccc) acknowledged; sending numbered program lines, each
+  #                   answered Annnn+BCC (stored) — the closing % Annnn/cccc+BCC, the CRC of
+  #                   what the CEC stored — anything else, or nothing, sends the same line again
   #   :uploading      UPLOAD_SUN acknowledged; receiving numbered program lines, answering
-  #                   Annnn+BCC or E; a resend of the line just stored is answered again
+  #                   Annnn+BCC or E; a resend of the line just stored is answered again; the
+  #                   closing line %/cccc carries the program's CRC, compared with ours
   #   :disconnected   the link closed; the next request opens it again
   #
   # Requests arriving while a request is under way are postponed, so one exchange is on the link
@@ -18,7 +20,7 @@ defmodule Vws.Peers.WC.Client.Connection do
 
   alias Vws.Links.Transport
   alias Vws.Peers.WC.ClientError
-  alias Vws.Codecs.WC.{Command, CommandString, LineDecoder, Reply}
+  alias Vws.Codecs.WC.{Command, CommandString, LineDecoder, ProgramCRC, Reply}
   alias Vws.Peers.WC.Client.Event
 
   import Vws.Codecs.WC.Command, only: [pad4: 1]
@@ -138,18 +140,27 @@ defmodule Vws.Peers.WC.Client.Connection do
 
   def downloading(:internal, {:line, line}, %{req: req} = data) do
     n = line_number(req.sent + 1)
+    closing? = tl(req.lines) == []
 
     case Reply.decode(line, bcc: data.bcc) do
-      {:ok, {:line_ack, ^n}} ->
+      {:ok, {:line_ack, ^n}} when not closing? ->
         data = emit(data, :received, :line_ack, line, "A#{pad4(n)}: program line #{n} stored")
+        rest = tl(req.lines)
+        send_program_line(%{data | req: %{req | lines: rest, sent: req.sent + 1, tries: 1}})
 
-        case tl(req.lines) do
-          [] ->
-            :gen_statem.reply(req.from, {:ok, {"M", req.number}})
-            {:next_state, :idle, %{data | req: nil}}
+      {:ok, {:line_ack, ^n, crc}} when closing? ->
+        # the CEC's count and CRC of the whole program it took (PROTOCOLS.md §1
+        # "Whole-program check"); with the CRC named in the command, it stores only a program
+        # whose CRC is the one named
+        stored = "A#{pad4(n)}/#{ProgramCRC.format(crc)}: #{n} lines"
 
-          rest ->
-            send_program_line(%{data | req: %{req | lines: rest, sent: req.sent + 1, tries: 1}})
+        if crc == req.crc do
+          data = emit(data, :received, :line_ack, line, "#{stored}, the program's CRC: stored")
+          :gen_statem.reply(req.from, {:ok, {"M", req.number}})
+          {:next_state, :idle, %{data | req: nil}}
+        else
+          data = emit(data, :received, :line_ack, line, "#{stored}, not the program's CRC")
+          program_crc_failed(data, :download, req.crc, crc)
         end
 
       {:ok, :nak} ->
@@ -200,14 +211,16 @@ defmodule Vws.Peers.WC.Client.Connection do
 
         answer = answer_line(data, n, "A#{pad4(n)}: line #{n} stored")
         data = answer.data
-        received = [text | req.received]
 
-        if String.trim(text) == "%" and count + 1 > 1 do
-          :gen_statem.reply(req.from, {:ok, {"M", req.number}, Enum.reverse(received)})
-          {:next_state, :idle, %{data | req: nil, last_closing: {line, answer.bytes}}}
-        else
-          {:keep_state, %{data | req: %{req | received: received}},
-           [{:state_timeout, data.line_timeout, :no_line}]}
+        case closing_line(text, count + 1) do
+          {:closing, stored, crc} ->
+            lines = Enum.reverse([stored | req.received])
+            data = %{data | last_closing: {line, answer.bytes}}
+            upload_closed(data, lines, crc)
+
+          :not_closing ->
+            {:keep_state, %{data | req: %{req | received: [text | req.received]}},
+             [{:state_timeout, data.line_timeout, :no_line}]}
         end
 
       {:ok, {:line, ^last, _text}} ->
@@ -259,13 +272,17 @@ defmodule Vws.Peers.WC.Client.Connection do
   defp start({:commands, commands}, from, data),
     do: start_string(commands, %{from: from, kind: :commands, then: nil}, data)
 
-  defp start({:download, lines}, from, data),
-    do:
-      start_string(
-        [{"M", "DOWNLOAD_HP"}],
-        %{from: from, kind: :commands, then: {:download, lines}},
-        data
-      )
+  # the command names the program's CRC: the CEC stores only that program (PROTOCOLS.md §1
+  # "Whole-program check")
+  defp start({:download, lines}, from, data) do
+    crc = ProgramCRC.compute(lines)
+
+    start_string(
+      [{"M", "DOWNLOAD_HP(#{ProgramCRC.format(crc)})"}],
+      %{from: from, kind: :commands, then: {:download, lines, crc}},
+      data
+    )
+  end
 
   defp start(:upload, from, data),
     do: start_string([{"M", "UPLOAD_SUN"}], %{from: from, kind: :commands, then: :upload}, data)
@@ -343,12 +360,13 @@ defmodule Vws.Peers.WC.Client.Connection do
         :gen_statem.reply(req.from, {:ok, req.numbered})
         {:next_state, :idle, %{data | req: nil}}
 
-      {:download, lines} ->
+      {:download, lines, crc} ->
         [{"M", number}] = req.numbered
 
         req = %{
           from: req.from,
           number: number,
+          crc: crc,
           lines: lines,
           total: length(lines),
           sent: 0,
@@ -403,6 +421,54 @@ defmodule Vws.Peers.WC.Client.Connection do
   end
 
   ## Program lines
+
+  # The line ending the program: `%` (not as the first line) with the program's CRC, `%/cccc`
+  # (PROTOCOLS.md §1 "Whole-program check"), or without it as the seed's CEC sends it.
+  defp closing_line(text, n) when n > 1 do
+    case ProgramCRC.split_closing(text) do
+      {:ok, stored, crc} ->
+        if String.trim(stored) == "%", do: {:closing, stored, crc}, else: :not_closing
+
+      :error ->
+        if String.trim(text) == "%", do: {:closing, text, nil}, else: :not_closing
+    end
+  end
+
+  defp closing_line(_text, _n), do: :not_closing
+
+  defp upload_closed(%{req: req} = data, lines, crc) do
+    ours = ProgramCRC.compute(lines)
+
+    cond do
+      crc == nil ->
+        data = emit(data, :note, :note, nil, "the closing line named no CRC: not compared")
+        :gen_statem.reply(req.from, {:ok, {"M", req.number}, lines})
+        {:next_state, :idle, %{data | req: nil}}
+
+      crc == ours ->
+        text = "the program's CRC #{ProgramCRC.format(crc)} is the CEC's"
+        data = emit(data, :note, :note, nil, text)
+        :gen_statem.reply(req.from, {:ok, {"M", req.number}, lines})
+        {:next_state, :idle, %{data | req: nil}}
+
+      true ->
+        program_crc_failed(data, :upload, crc, ours)
+    end
+  end
+
+  # The whole program is not the one the other end has (`sent`: the CRC of the program as its
+  # sender has it, `stored` of what its receiver took): the request fails here, whatever the
+  # CEC's command says. The transfer itself is over, so the link stays.
+  defp program_crc_failed(%{req: req} = data, direction, sent, stored) do
+    error = %ClientError{
+      reason: :program_crc,
+      data: %{direction: direction, number: req.number, sent: sent, stored: stored}
+    }
+
+    :gen_statem.reply(req.from, {:error, error})
+    data = emit(bump(data, :transfers_broken), :note, :note, nil, Exception.message(error))
+    {:next_state, :idle, %{data | req: nil}}
+  end
 
   defp resend_program_line(%{req: req} = data, why) do
     n = req.sent + 1
