@@ -1,7 +1,8 @@
 defmodule Vws.Test.LineRelay do
   @moduledoc """
   A line relay between a WC and SUN_COMM that can damage or drop chosen lines, to show what the
-  client does with a bad line: `arm(relay, :to_cec | :to_wc, :corrupt | :drop, pred, times)`.
+  client does with a bad line: `arm(relay, :to_cec | :to_wc, :corrupt | :drop | {:replace,
+  fun}, pred, times)` — `{:replace, fun}` sends `fun.(line)` instead (a damage the BCC cannot see).
   """
   use GenServer
 
@@ -82,6 +83,7 @@ defmodule Vws.Test.LineRelay do
         case action do
           :drop -> :ok
           :corrupt -> Transport.send(dst, [corrupt(line), "\r\n"])
+          {:replace, fun} -> Transport.send(dst, [fun.(line), "\r\n"])
           :pass -> Transport.send(dst, [line, "\r\n"])
         end
 

@@ -15,6 +15,28 @@ defmodule Vws.Codecs.WC.ClientTest do
   defp received(client),
     do: for(%Event{direction: :received, line: l} <- Client.log(client), do: l)
 
+  # A wire line (`nnnn` + text + BBB) with two bits of its text flipped so that its 8-bit sum,
+  # the BCC, stays the same: bit 0 set in one byte and cleared in another (printable both).
+  defp sum_keeping_flip(line) do
+    size = byte_size(line) - 3
+    <<body::binary-size(size), bcc::binary>> = line
+    <<number::binary-4, text::binary>> = body
+    bytes = :binary.bin_to_list(text)
+    indexed = Enum.with_index(bytes)
+    {_, one} = Enum.find(indexed, fn {b, _} -> Bitwise.band(b, 1) == 1 end)
+    {_, zero} = Enum.find(indexed, fn {b, _} -> Bitwise.band(b, 1) == 0 and b != ?~ end)
+
+    flipped =
+      bytes
+      |> List.update_at(one, &Bitwise.bxor(&1, 1))
+      |> List.update_at(zero, &Bitwise.bxor(&1, 1))
+
+    damaged = number <> :binary.list_to_bin(flipped)
+    # the damage the BCC cannot see
+    true = Vws.Codecs.WC.BCC.compute(damaged) == Vws.Codecs.WC.BCC.compute(body)
+    damaged <> bcc
+  end
+
   defp relay(wc) do
     name = "relay-#{System.unique_integer([:positive])}"
     {:ok, relay} = LineRelay.start_link(wc, name)
@@ -313,6 +335,76 @@ defmodule Vws.Codecs.WC.ClientTest do
       assert {:ok, {"M", 1}, @program} = Client.upload_program(client)
       assert :done = Client.await_command(client, "M", 1, 5_000)
       assert %{lines_received: 6, naks_sent: 1} = Client.info(client).counters
+    end
+
+    test "DOWNLOAD_HP names the program's CRC; the closing % is answered with the count and it",
+         %{ws: ws, client: client} do
+      crc = Vws.Codecs.WC.ProgramCRC.compute(@program)
+      hex = Vws.Codecs.WC.ProgramCRC.format(crc)
+      assert {:ok, {"M", 1}} = Client.download_program(client, @program)
+      assert :done = Client.await_command(client, "M", 1, 5_000)
+      assert Mailbox.nc_file(ws) == @program
+      assert Enum.any?(sent(client), &(&1 =~ "*M0001DOWNLOAD_HP(#{hex})*"))
+      assert Enum.any?(received(client), &String.starts_with?(&1, "A0006/#{hex}"))
+    end
+
+    test "a program line damaged so that its BCC still holds: the CRC sees it, the CEC keeps " <>
+           "its old NC file, the download fails at the client",
+         %{ws: ws, client: client, relay: relay} do
+      old = ["%", "O000001", "N10 M30", "%"]
+      :ok = Mailbox.put_nc_file(ws, old)
+      :ok = LineRelay.arm(relay, :to_cec, {:replace, &sum_keeping_flip/1}, &(&1 =~ "N10 G90"))
+
+      assert {:error, %ClientError{reason: :program_crc, data: data} = e} =
+               Client.download_program(client, @program)
+
+      assert %{direction: :download, number: 1} = data
+      assert data.sent == Vws.Codecs.WC.ProgramCRC.compute(@program)
+      assert data.stored != data.sent
+      assert Exception.message(e) =~ ~r/^NC program download \(MONARCH command 0001\): the CEC/
+
+      assert {:error, %ClientError{reason: :command_failed, data: %{status: status}}} =
+               Client.await_command(client, "M", 1, 5_000)
+
+      assert status =~ ~r/^ERROR PROGRAM CRC [0-9A-F]{4} EXPECTED [0-9A-F]{4}$/
+      assert Mailbox.nc_file(ws) == old
+
+      # sent again (the runner does so), it arrives whole
+      assert {:ok, {"M", 2}} = Client.download_program(client, @program)
+      assert :done = Client.await_command(client, "M", 2, 5_000)
+      assert Mailbox.nc_file(ws) == @program
+    end
+
+    test "UPLOAD_SUN: a line damaged so that its BCC still holds fails at the client (%/cccc)",
+         %{ws: ws, client: client, relay: relay} do
+      Mailbox.put_nc_up(ws, @program)
+      :ok = LineRelay.arm(relay, :to_wc, {:replace, &sum_keeping_flip/1}, &(&1 =~ "N20 G01"))
+
+      assert {:error, %ClientError{reason: :program_crc, data: data} = e} =
+               Client.upload_program(client)
+
+      assert %{direction: :upload, number: 1} = data
+      assert data.sent == Vws.Codecs.WC.ProgramCRC.compute(@program)
+      assert Exception.message(e) =~ "the program received has CRC"
+      closing = "%/" <> Vws.Codecs.WC.ProgramCRC.format(data.sent)
+      assert Enum.any?(received(client), &(&1 =~ closing))
+
+      # undamaged, the program comes whole: the closing line is the program's `%` again
+      assert {:ok, {"M", 2}, @program} = Client.upload_program(client)
+    end
+
+    test "UPLOAD_SUN from a CEC that sends the seed's closing % (no CRC): taken, not compared",
+         %{ws: ws, client: client, relay: relay} do
+      Mailbox.put_nc_up(ws, @program)
+
+      plain = fn _line ->
+        IO.iodata_to_binary(Vws.Codecs.WC.Reply.encode({:line, 6, "%"})) |> String.trim()
+      end
+
+      :ok = LineRelay.arm(relay, :to_wc, {:replace, plain}, &String.starts_with?(&1, "0006%/"))
+      assert {:ok, {"M", 1}, @program} = Client.upload_program(client)
+
+      assert Enum.any?(Client.log(client), &(&1.meaning =~ "named no CRC"))
     end
 
     test "UPLOAD_SUN with nothing to send ends with the CEC's reason", %{client: client} do

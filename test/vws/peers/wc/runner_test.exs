@@ -126,6 +126,27 @@ defmodule Vws.Codecs.WC.RunnerTest do
     assert summary.stopped.reason =~ "broke off"
   end
 
+  @tag :tmp_dir
+  test "a program that arrived other than sent (its CRC) is sent again as a new command",
+       %{tmp_dir: dir} do
+    %{ws: ws, wc: wc} = Workstation.start()
+    name = "runner-relay-#{System.unique_integer([:positive])}"
+    {:ok, relay} = Vws.Test.LineRelay.start_link(wc, name)
+    {:ok, client} = Client.connect("loopback:" <> name)
+    File.write!(Path.join(dir, "p.nc"), "%\nO000042\nN10 G00 X0\n%\n")
+    # line 3 damaged once on its way so that its BCC still holds: 'G' 0x47 → 'F', '0' → '1'
+    damage = &String.replace(&1, "N10 G00 X0", "N10 F01 X0")
+    :ok = Vws.Test.LineRelay.arm(relay, :to_cec, {:replace, damage}, &(&1 =~ "N10 G00"))
+    summary = Runner.run(client, script!("DOWNLOAD p.nc\n", base_dir: dir), poll_interval: 5)
+
+    assert %Summary{result: :completed, transfers_broken: 1} = summary
+    assert Mailbox.nc_file(ws) == ["%", "O000042", "N10 G00 X0", "%"]
+    assert Mailbox.command_status(ws, :monarch) == {2, :done}
+
+    notes = for %{kind: :note, meaning: m} <- Client.log(client), do: m
+    assert Enum.any?(notes, &(&1 =~ "the transfer is made again"))
+  end
+
   test "a device that did not do it stops the script at its EXPECT" do
     %{wc: wc} = Workstation.start(partitions: ObedientPartition.partitions())
     {:ok, client} = Client.connect(wc)
