@@ -51,13 +51,18 @@ defmodule Vws.CEC.SunComm do
   0002, … until the closing `%` (a `%` as the very first line is the tape's leading rewind stop and
   is kept). A line carrying the number just stored is a resend after a damaged answer: answered
   again, not stored twice; any other number ends the command `ERROR PROGRAM LINE OUT OF ORDER`. The
-  closing `%` is answered `A` + the number of lines stored, the program is stored in the
+  closing `%` is answered `A` + the number of lines stored + `/` + their CRC-16/ARC
+  (`Vws.Codecs.WC.ProgramCRC`). When the WC named the program's CRC (`DOWNLOAD_HP(cccc)`,
+  PROTOCOLS.md §1 "Whole-program check") and it is not the CRC of what came, the command ends
+  `ERROR PROGRAM CRC <came> EXPECTED <named>`; a program over 999,999 bytes ends
+  `ERROR PROGRAM TOO LARGE <n> BYTES (LIMIT 999999)` (`Vws.Links.DNC.Program.check_size/1`); in
+  both cases nothing is stored. Otherwise the program is stored in the
   workstation's program library (`Vws.Links.DNC.Library.store_download/2`, when it has one) and
   journaled as the NC file, and the Monarch command ends `DONE`; a resend of that closing line after the command ended is
   answered the same again. After acknowledging `M…UPLOAD_SUN` it sends NC_UP line by line; a line
   answered `E`, with a damaged answer, with another number or not at all is sent again (at most
-  `:upload_retries` times); the command ends `DONE` when the WC has answered the closing `%` with
-  its number (`ERROR NO UPLOADED PROGRAM` when NC_UP is empty). A status query during an upload is
+  `:upload_retries` times); the closing line carries the program's CRC, `%/cccc`; the command
+  ends `DONE` when the WC has answered the closing `%` with its number (`ERROR NO UPLOADED PROGRAM` when NC_UP is empty). A status query during an upload is
   answered and the upload goes on (a WC that took the closing line asks its command's status
   while its answer reached us damaged: the closing line goes again, it answers again); any other
   string during a transfer means the WC left it. A transfer that stalls or loses the link ends
@@ -80,7 +85,8 @@ defmodule Vws.CEC.SunComm do
     * `:download_timeout` — ms without a program line before a download is abandoned (30 000)
     * `:upload_timeout` — ms to wait for the WC's `A`/`E` to an uploaded line (5 000)
     * `:upload_retries` — resends of one uploaded line before giving up (5)
-    * `:max_program_bytes` — largest NC program accepted (4 MiB)
+    * `:max_program_bytes` — the most SUN_COMM holds during a download (4 MiB): beyond it the
+      download ends at once; a program is stored only up to 999,999 bytes (PROTOCOLS.md §2)
     * `:tty_retry` — ms between attempts to (re)open a tty (1 000)
     * `:partial_line_timeout` — ms of silence after the start of a line before the unfinished
       line is dropped and answered `E` (500; decision: a CR LF damaged on the line would
