@@ -264,6 +264,66 @@ defmodule Vws.Reliability.WCProgramCRCTest do
     assert_property(property, 150)
   end
 
+  test "UPLOAD_SUN: the closing %/cccc is checked by the WC client — random damage on a random " <>
+         "line ends with the program exactly or a :program_crc error, never other lines",
+       ctx do
+    # the client over a relay that damages one chosen line on its way to the WC (it takes the
+    # WC link from the bare peer of the other tests)
+    WCPeer.close(ctx.peer)
+    name = "crc-relay-#{System.unique_integer([:positive])}"
+    {:ok, relay} = Vws.Test.LineRelay.start_link(await_listening(ctx.ws), name)
+    {:ok, client} = Vws.Peers.WC.Client.connect("loopback:" <> name, line_timeout: 300)
+    outcomes = :ets.new(:outcomes, [:public, :duplicate_bag])
+
+    property =
+      :proper.forall(
+        :proper_types.tuple([
+          program(),
+          :proper_types.range(0, 1_000_000),
+          :proper_types.elements([:none, :sum_keeping]),
+          :proper_types.range(0, 1_000_000),
+          :proper_types.range(0, 6)
+        ]),
+        fn {program, line_r, kind, r, bit} ->
+          :ok = Mailbox.put_nc_up(ctx.ws, program)
+          # a body line (the closing one carries the CRC and is checked by it alike)
+          n = rem(line_r, length(program) - 1) + 1
+          wire = wire(n, Enum.at(program, n - 1))
+          damaged = if kind == :sum_keeping, do: sum_keeping(wire, r, bit)
+
+          if damaged,
+            do:
+              :ok =
+                Vws.Test.LineRelay.arm(
+                  relay,
+                  :to_wc,
+                  {:replace, fn _ -> damaged end},
+                  &(&1 == wire)
+                )
+
+          result = Vws.Peers.WC.Client.upload_program(client)
+          :ets.insert(outcomes, {elem(result, 0), damaged != nil})
+
+          case result do
+            {:ok, _command, lines} ->
+              damaged == nil and lines == program
+
+            {:error, %Vws.Peers.WC.ClientError{reason: :program_crc, data: data}} ->
+              damaged != nil and data.direction == :upload and
+                data.sent == ProgramCRC.compute(program) and data.stored != data.sent
+
+            other ->
+              IO.puts("unexpected: #{inspect(other)}")
+              false
+          end
+        end
+      )
+
+    assert_property(property, 80)
+    assert :ets.match(outcomes, {:ok, false}) != []
+    assert :ets.match(outcomes, {:error, true}) != []
+  end
+
   test "why: without the CRC (the seed's DOWNLOAD_HP) the same damage ends DONE with other bytes",
        ctx do
     program = ["%", "O001234", "N10 G90 G00 X0 Y0", "N20 M30", "%"]
