@@ -142,13 +142,17 @@ defmodule Vws.Codecs.Commands do
       {:ok, hex} ->
         case Vws.Codecs.WC.ProgramCRC.parse(hex) do
           {:ok, crc} -> {:download_hp, crc}
-          :error -> {:error, String.trim("BAD PROGRAM CRC #{hex}")}
+          :error -> {:error, bad_crc(hex)}
         end
 
       {:error, :unknown} ->
         nil
     end
   end
+
+  # SUN_COMM shows it to the WC as it is: words, whatever the WC wrote (Vws.Codecs.WC.Words)
+  defp bad_crc(""), do: "BAD PROGRAM CRC"
+  defp bad_crc(hex), do: "BAD PROGRAM CRC " <> Vws.Codecs.WC.Words.of(hex)
 
   defp normalise(text), do: text |> String.trim() |> String.upcase()
 

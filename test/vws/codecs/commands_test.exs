@@ -54,6 +54,8 @@ defmodule Vws.Codecs.CommandsTest do
     assert parse(:monarch, "DOWNLOAD_HP(52D5A)") == {:error, "BAD PROGRAM CRC 52D5A"}
     assert parse(:monarch, "DOWNLOAD_HP(G2D5)") == {:error, "BAD PROGRAM CRC G2D5"}
     assert parse(:monarch, "DOWNLOAD_HP()") == {:error, "BAD PROGRAM CRC"}
+    # what the WC wrote is shown in words (an ERROR text, PROTOCOLS.md §1)
+    assert parse(:monarch, ~S|DOWNLOAD_HP("A")|) == {:error, "BAD PROGRAM CRC A"}
     assert parse(:monarch, "DOWNLOAD_HPX") == {:error, :unknown}
 
     # what SUN_COMM carries out itself, and nothing else
@@ -89,8 +91,8 @@ defmodule Vws.Codecs.CommandsTest do
           {:download_hp, crc} ->
             String.upcase(String.trim(arg)) == Vws.Codecs.WC.ProgramCRC.format(crc)
 
-          {:error, "BAD PROGRAM CRC" <> _} ->
-            true
+          {:error, "BAD PROGRAM CRC" <> _ = why} ->
+            Vws.Codecs.WC.Words.text?(why)
 
           # a ')' or '(' inside: not one parenthesised argument, so not DOWNLOAD_HP
           nil ->
