@@ -117,10 +117,13 @@ defmodule Vws.Acceptance.LibraryTest do
     tmp_dir: data
   } do
     lib_dir = Path.join(data, "lib")
-    big = String.duplicate("N10 G01 X1.0 Y2.0 F300\n", 100_000)
+
+    # about 970 KB: as large as a program may be (999,999 bytes, PROTOCOLS.md §2), so that the kill
+    # lands while one is being written
+    big = String.duplicate("N10 G01 X1.0 Y2.0 F300\n", 42_000)
 
     code = """
-    text = "%\\nO42\\n" <> String.duplicate("N10 G01 X1.0 Y2.0 F300\\n", 100_000) <> "%\\n"
+    text = "%\\nO42\\n" <> String.duplicate("N10 G01 X1.0 Y2.0 F300\\n", 42_000) <> "%\\n"
     for i <- Stream.iterate(1, &(&1 + 1)) do
       {:ok, v} = Vws.Links.DNC.Library.store({:dir, #{inspect(lib_dir)}}, "42", text, source: "cli")
       IO.puts("stored v\#{v.version}")

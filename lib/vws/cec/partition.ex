@@ -407,7 +407,10 @@ defmodule Vws.CEC.Partition do
   defp normalise(other), do: {:error, bad_result(other)}
 
   defp bad_result(other) do
-    Logger.error("a command ended with an unexpected result: #{inspect(other, limit: 20)}")
+    Logger.error(
+      "a command ended with an unexpected result: #{inspect(other, limit: 8, printable_limit: 80)}"
+    )
+
     "BAD RESULT " <> Words.of(other)
   end
 
