@@ -133,6 +133,91 @@ defmodule Vws.Acceptance.GuaranteesTest do
     assert Acceptance.await_exit(proc, 30_000) == 0
   end
 
+  test "a 1.2 MB program is refused in words and a small DOWNLOAD_GE works after; DOWNLOAD_HP(cccc) with the right CRC is DONE, a wrong one ends ERROR and keeps the NC file",
+       %{tmp_dir: tmp} do
+    %{wc: port} = serve(["--time-scale", "20"])
+
+    big =
+      ["%", "O7777"] ++
+        for(i <- 1..54_000, do: "N#{i} G01 X#{rem(i, 997)}.5 F300") ++ ["M30", "%"]
+
+    size = big |> Enum.map(&(byte_size(&1) + 1)) |> Enum.sum()
+    assert size > 1_200_000
+    File.write!(Path.join(tmp, "007777.nc"), Enum.join(big, "\n") <> "\n")
+    File.cp!("priv/sims/programs/001234.nc", Path.join(tmp, "001234.nc"))
+    script = Path.join(tmp, "big.vws")
+
+    File.write!(script, """
+    TIMEOUT 300
+    DOWNLOAD 007777.nc
+    """)
+
+    {status, output} = wc(port, ["--script", script], 300_000)
+    assert status != 0, output
+    assert output =~ "ERROR PROGRAM TOO LARGE #{size} BYTES (LIMIT 999999)", output
+
+    File.write!(script, """
+    DOWNLOAD 001234.nc
+    M DOWNLOAD_GE
+    M COMPARE_GE
+    """)
+
+    {status, output} = wc(port, ["--script", script])
+    assert status == 0, output
+
+    # DOWNLOAD_HP(cccc) by hand over the WC link: the right CRC, then a wrong one
+    program = ["%", "O4321", "N10 G00 X0", "M30", "%"]
+    crc = Vws.Codecs.CRC16.compute(Enum.map_join(program, &(&1 <> "\n")))
+    right = Vws.Codecs.WC.ProgramCRC.format(crc)
+    wrong = Vws.Codecs.WC.ProgramCRC.format(Bitwise.bxor(crc, 0x0100))
+
+    download = fn seq, number, command ->
+      {:ok, sock} =
+        :gen_tcp.connect({127, 0, 0, 1}, port, [:binary, active: false, packet: :line])
+
+      s = String.pad_leading("#{seq}", 4, "0")
+      n = String.pad_leading("#{number}", 4, "0")
+      :ok = :gen_tcp.send(sock, Acceptance.wc_frame("*#{s}*M#{n}#{command}*") <> "\r\n")
+      {:ok, ack} = :gen_tcp.recv(sock, 0, 10_000)
+      assert ack =~ ~r/^05A#{s}/
+
+      answers =
+        for {line, i} <- Enum.with_index(program, 1) do
+          :ok =
+            :gen_tcp.send(
+              sock,
+              Acceptance.wc_frame(String.pad_leading("#{i}", 4, "0") <> line) <> "\r\n"
+            )
+
+          {:ok, answer} = :gen_tcp.recv(sock, 0, 10_000)
+          String.trim(answer)
+        end
+
+      :gen_tcp.close(sock)
+
+      {answers,
+       Acceptance.await_command(
+         port,
+         "MONARCH_CMD",
+         seq + 1,
+         number,
+         System.monotonic_time(:millisecond) + 30_000
+       )}
+    end
+
+    {answers, done} = download.(500, 50, "DOWNLOAD_HP(#{right})")
+    assert List.last(answers) =~ ~r/^A0005\/#{right}\d{3}$/
+    assert done =~ ~r/0050DONE/
+
+    {answers, refused} = download.(600, 60, "DOWNLOAD_HP(#{wrong})")
+    assert List.last(answers) =~ ~r/^A0005\/#{right}\d{3}$/
+    assert refused =~ ~r/0060ERROR PROGRAM CRC #{right} EXPECTED #{wrong}/
+
+    # the NC file is the right program still: DOWNLOAD_GE sends it, the machine files 004321.PRO
+    {0, out} = wc(port, ["--command", "M DOWNLOAD_GE"])
+    assert out =~ ~r/DOWNLOAD_GE: DONE/, out
+  end
+
   defp wc(port, args, timeout \\ 120_000) do
     cli =
       Acceptance.start(
