@@ -106,9 +106,9 @@ bench = self()
 
 Vws.Telemetry.attach_many(
   "drip-bench",
-  [[:vws, :dnc, :retry], [:vws, :dnc, :block_sent]],
+  [[:vws, :dnc, :pause], [:vws, :dnc, :block_sent]],
   fn
-    [:vws, :dnc, :retry], _, %{kind: :wack_received, role: :cec}, _ ->
+    [:vws, :dnc, :pause], _, %{kind: :wack_received, role: :cec}, _ ->
       send(bench, {:wack, System.monotonic_time()})
 
     [:vws, :dnc, :block_sent], _, %{role: :cec}, _ ->

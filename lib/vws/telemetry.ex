@@ -81,10 +81,12 @@ defmodule Vws.Telemetry do
      "a DNC block received"},
     {[:vws, :dnc, :retry], [:count], [:link, :workstation, :role, :kind, :block],
      "a DNC block or bid tried again"},
+    {[:vws, :dnc, :pause], [:count], [:link, :workstation, :role, :kind, :block],
+     "the DNC receiver asked the sender to wait (WACK: flow control, not a fault)"},
     {[:vws, :dnc, :transmission], [:duration, :blocks, :bytes],
      [:link, :workstation, :role, :direction, :kind, :result],
      "a whole DNC transmission ended (`kind` on `:out`)"},
-    {[:vws, :dnc, :progress], [:blocks, :bytes, :program_bytes, :chars_per_s, :retries],
+    {[:vws, :dnc, :progress], [:blocks, :bytes, :program_bytes, :chars_per_s, :retries, :pauses],
      [
        :link,
        :workstation,

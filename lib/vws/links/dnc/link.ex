@@ -365,14 +365,15 @@ defmodule Vws.Links.DNC.Link do
       chars_per_s: p.chars_per_s,
       eta_s: p.eta_s,
       retries: p.retries,
+      pauses: p.pauses,
       ended: ended
     }
 
     emit(
       data,
       :progress,
-      Map.drop(payload, [:link, :blocks, :bytes, :program_bytes, :chars_per_s, :retries]),
-      Map.take(payload, [:blocks, :bytes, :program_bytes, :chars_per_s, :retries])
+      Map.drop(payload, [:link, :blocks, :bytes, :program_bytes, :chars_per_s, :retries, :pauses]),
+      Map.take(payload, [:blocks, :bytes, :program_bytes, :chars_per_s, :retries, :pauses])
     )
 
     # the link's owner (in a workstation, MONARCH's monitor) publishes it on the workstation's

@@ -9,7 +9,8 @@ defmodule Vws.Links.DNC.Progress do
     * `blocks`, `total_blocks` — blocks acknowledged so far and in all; `bytes`, `total_bytes` —
       their bytes on the line (a reception: its text); `program_bytes`, `total_program_bytes` —
       the program's text bytes (the totals of a reception are nil: not known before its end)
-    * `retries` — NAKs, ENQs, WACKs and copies in this transfer so far
+    * `retries` — NAKs, ENQs and copies in this transfer so far; `pauses` — WACKs, the receiver
+      asking the sender to wait (flow control, not a fault)
     * `started_ms` (monotonic ms), `elapsed_ms`, `chars_per_s` (bytes a second so far) and
       `eta_s` (seconds left at that rate; nil when the total or the rate is unknown)
 
@@ -53,6 +54,7 @@ defmodule Vws.Links.DNC.Progress do
       program_bytes: t.program_bytes,
       total_program_bytes: t.total_program_bytes,
       retries: t.retries,
+      pauses: Map.get(t, :pauses, 0),
       started_ms: started_ms,
       elapsed_ms: elapsed,
       chars_per_s: round(rate),

@@ -226,7 +226,8 @@ defmodule Vws.Links.DNC.Session do
   @doc """
   The transmission under way: direction, command, blocks and bytes (on the line, blocks
   whole) done and in all, the program's text bytes done and in all (a reception's totals are
-  not known before its end), retries, and its start (`now` units).
+  not known before its end), retries, pauses (WACKs: the receiver asked us to wait) and its
+  start (`now` units).
   """
   @spec transfer(t) :: map | nil
   def transfer(%{tx: %{frames: frames} = tx} = s) do
@@ -242,6 +243,7 @@ defmodule Vws.Links.DNC.Session do
       program_bytes: tx.text_acked,
       total_program_bytes: tx.text_bytes,
       retries: tx.retries,
+      pauses: tx.pauses,
       started: tx.started
     }
   end
@@ -257,6 +259,7 @@ defmodule Vws.Links.DNC.Session do
       program_bytes: rx.bytes,
       total_program_bytes: nil,
       retries: rx.retries,
+      pauses: 0,
       started: rx.started
     }
   end
@@ -347,7 +350,9 @@ defmodule Vws.Links.DNC.Session do
   defp frame(:sending, :wack, %{tx: tx} = s, now) do
     s = bump(s, :wacks_received)
     wacks = tx.wacks + 1
-    s = retry(s, :wack_received, tx.acked + 1)
+    # the receiver took the block and asks us to wait: a pause, not a retry (issue 25)
+    s = %{s | tx: %{s.tx | pauses: s.tx.pauses + 1}}
+    s = telemetry(s, :pause, %{kind: :wack_received, block: tx.acked + 1})
 
     if wacks > s.limits.max_wacks and not drip_feed?(s) do
       s = send_control(s, :eot)
@@ -485,6 +490,7 @@ defmodule Vws.Links.DNC.Session do
       confirm: nil,
       wacked: false,
       retries: 0,
+      pauses: 0,
       started: now,
       text_acked: 0,
       text_bytes: Enum.sum(sizes),

@@ -446,6 +446,9 @@ defmodule Vws.Ops.MTConnect.Model do
       iex> Vws.Ops.MTConnect.Model.transfer_text(%{program: "000007.PRO", operation: :download_execute,
       ...>   direction: :out, bytes: 300, total_bytes: 900, retries: 4, ended: :link_down})
       "DRIP FEED 000007.PRO FAILED AT 300/900 BYTES (LINK_DOWN), 4 RETRIES"
+      iex> Vws.Ops.MTConnect.Model.transfer_text(%{program: "000007.PRO", operation: :download_execute,
+      ...>   direction: :out, bytes: 600, total_bytes: 900, retries: 0, pauses: 3, ended: false})
+      "DRIP FEED 000007.PRO 600/900 BYTES, 3 PAUSES"
   """
   @spec transfer_text(map) :: String.t()
   def transfer_text(p) do
@@ -468,6 +471,14 @@ defmodule Vws.Ops.MTConnect.Model do
         0 -> ""
         1 -> ", 1 RETRY"
         n -> ", #{n} RETRIES"
+      end
+
+    # WACKs: the machine asked the CEC to wait (a drip feed's flow control), not a fault
+    retries =
+      case p[:pauses] || 0 do
+        0 -> retries
+        1 -> retries <> ", 1 PAUSE"
+        n -> retries <> ", #{n} PAUSES"
       end
 
     # the seed's DOWNLOAD_GE names no program on the line: the NC file

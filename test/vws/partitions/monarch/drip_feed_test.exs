@@ -97,9 +97,18 @@ defmodule Vws.Partitions.Monarch.DripFeedTest do
   test "a machine slower than the line pauses the CEC with WACK; nothing skipped or repeated",
        ctx do
     text = with_nc_file(ctx, 4 * @memory)
+    :ok = Vws.CEC.Events.subscribe(ctx.ws, :dnc_progress)
     assert monarch(ctx.peer, 1, "DRIP_FEED") == "0001DONE"
     assert_fed_exactly(ctx.sim, text)
-    assert DNC.info(ctx.link).counters.wacks_received > 0
+    wacks = DNC.info(ctx.link).counters.wacks_received
+    assert wacks > 0
+    # the WACKs are pauses, not retries: on this clean line the progress counts no retry
+    # (issue 25: they were counted as retries), and progress kept flowing through them
+    [last | _] = progress = collect_progress([])
+    assert last.ended == :ok
+    assert last.pauses == wacks
+    assert last.retries == 0
+    assert length(progress) > 10
   end
 
   @tag baud: 9_600, feed_rate: 300
