@@ -9,7 +9,11 @@ defmodule Vws.Test.DNCWire do
     * `:damage` — `fn direction, bytes, rand -> {bytes | :lost, rand}`: what the line does to a
       chunk going `:a_to_b` or `:b_to_a` (default: nothing)
     * `:seed` — for the damage's `:rand` state
-    * `:answer` — the text blocks `:b` answers an R command with
+    * `:answer` — the text blocks `:b` answers an R command with, or a function of what `:b`'s
+      owner was handed so far and the blocks it ran, `fn received, ran -> blocks end` (a
+      machine's status report)
+    * `:then` — a second request `:a` makes as soon as the first has its reply (MONARCH's status
+      report after a transmission); its result is `then_reply`
     * `:receive_buffer` — `:b`'s credit for an `E` reception; `:feed` — bytes a second `:b` runs of
       it (its buffer drains at that rate, giving credit back), default unlimited
     * `:latency_ms` — time a chunk takes on the line (1)
@@ -49,6 +53,8 @@ defmodule Vws.Test.DNCWire do
       rand: :rand.seed_s(:exsss, {Keyword.get(opts, :seed, 1), 2, 3}),
       damage: Keyword.get(opts, :damage, fn _dir, bytes, rand -> {bytes, rand} end),
       answer: Keyword.get(opts, :answer, []),
+      then: Keyword.get(opts, :then),
+      then_reply: nil,
       latency: Keyword.get(opts, :latency_ms, 1),
       char_us: if(baud = opts[:baud], do: div(10 * 1_000_000, baud)),
       feed: Keyword.get(opts, :feed),
@@ -68,6 +74,7 @@ defmodule Vws.Test.DNCWire do
 
     %{
       reply: w.reply,
+      then_reply: w.then_reply,
       received: Enum.reverse(w.received),
       blocks: Enum.reverse(w.ran),
       time_ms: w.now,
@@ -174,10 +181,22 @@ defmodule Vws.Test.DNCWire do
   end
 
   defp event(w, who, {:state_timeout, ms, tag}), do: put_in(w.ends[who].timer, {w.now + ms, tag})
-  defp event(w, :a, {:reply, result}), do: %{w | reply: result}
+  defp event(%{reply: nil, then: nil} = w, :a, {:reply, result}), do: %{w | reply: result}
+
+  defp event(%{reply: nil} = w, :a, {:reply, result}) do
+    w = %{w | reply: result}
+    apply_result(w, :a, Session.request(w.ends.a.s, w.then, [], native(w.now)))
+  end
+
+  defp event(w, :a, {:reply, result}), do: %{w | then_reply: result}
 
   defp event(w, :b, {:notify, {:request, ref, _command, _blocks}}) do
-    result = Session.answer(w.ends.b.s, ref, w.answer, native(w.now))
+    answer =
+      if is_function(w.answer, 2),
+        do: w.answer.(Enum.reverse(w.received), Enum.reverse(w.ran)),
+        else: w.answer
+
+    result = Session.answer(w.ends.b.s, ref, answer, native(w.now))
     apply_result(w, :b, result)
   end
 

@@ -565,7 +565,7 @@ defmodule Vws.CEC.Mailbox do
     do: Vws.Links.DAQ.DeviceStatus.no_data(why)
 
   def device_text(%Vws.Links.DAQ.Readings{} = r), do: Vws.Links.DAQ.Readings.describe(r)
-  def device_text(other), do: "UNKNOWN VALUE " <> inspect(other, limit: 10)
+  def device_text(other), do: "UNKNOWN VALUE " <> Vws.Codecs.WC.Words.of(other)
 
   defp now, do: System.monotonic_time(:millisecond)
 end

@@ -47,6 +47,12 @@ defmodule Vws.Partitions.Monarch do
   damaged into EOT looks like a normal end) ends `ERROR PROGRAM INCOMPLETE` and NC_UP keeps the
   old program. (`verify: false` skips the directory too.)
 
+  **Program size limit** (PROTOCOLS.md §2): the directory's size field has six digits, so
+  DOWNLOAD_GE, DOWNLOAD_GE(nnnnnn.PRO[/v]), UPLOAD_GE and a program the machine sends unasked are
+  refused over 999,999 bytes, before a byte is sent or stored: `ERROR PROGRAM TOO LARGE <bytes>
+  BYTES (LIMIT 999999)` (`Vws.Links.DNC.Program.check_size/1`, the one home of the limit).
+  DRIP_FEED stores nothing and has no limit.
+
   **Table interlock** (seed App. I A, §2.3.8 rules 1b and 3b), decided for every command by the
   one interlock table, `Vws.CEC.Interlock.Rules`: CYCLE_START and DRIP_FEED — both set the
   machine moving — first take the table's work volume for the machine (holder `:monarch`,
@@ -157,14 +163,14 @@ defmodule Vws.Partitions.Monarch do
   end
 
   def execute(:compare_ge, ctx) do
-    with {:ok, _entries} <- read_directory(ctx), do: :done
+    with {:ok, _entries} <- directory(ctx), do: :done
   end
 
   # The directory (size, CRC-16) finds the versions the machine may hold; the read-back's
   # SHA-256 digest says which one it holds, if any.
   def execute({:compare_ge, file}, ctx) do
     with {:ok, versions} <- library_versions(ctx.workstation, file),
-         {:ok, entries} <- read_directory(ctx) do
+         {:ok, entries} <- directory(ctx) do
       case Vws.Links.DNC.Library.on_machine(versions, Map.get(entries, file)) do
         :absent ->
           {:error, "PROGRAM ABSENT #{file}"}
@@ -186,6 +192,7 @@ defmodule Vws.Partitions.Monarch do
     with {:ok, blocks} <- request(ctx, :receive, :part_program, file, []),
          text = IO.iodata_to_binary(blocks),
          :ok <- if(text == "", do: {:error, "GE-2000 SENT NO PROGRAM #{file}"}, else: :ok),
+         :ok <- Program.check_size(text),
          :ok <- if(Program.complete?(text), do: :ok, else: {:error, "PROGRAM INCOMPLETE"}),
          lines = Program.from_text(text),
          :ok <- uploadable(lines, file) do
@@ -303,6 +310,14 @@ defmodule Vws.Partitions.Monarch do
   end
 
   # RNF → the directory, recorded in the program library (when the workstation has one).
+  # the directory for a command's own use: one none of whose lines names a file said in words
+  defp directory(ctx) do
+    case read_directory(ctx) do
+      {:error, :bad_directory} -> {:error, "BAD DIRECTORY FROM GE-2000"}
+      other -> other
+    end
+  end
+
   defp read_directory(ctx) do
     with {:ok, blocks} <- request(ctx, :receive, :directory, "", []) do
       case Report.parse_directory(IO.iodata_to_binary(blocks)) do

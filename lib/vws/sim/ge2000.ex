@@ -21,7 +21,9 @@ defmodule Vws.Sim.GE2000 do
   The alarm number (decision, for the simulator) is the outcome of the last DNC command or
   cycle start: 0 none, 1 no such file, 2 program without program number, 3 refused while the
   machine is active, 4 cycle start without a selected program, 5 operation not supported,
-  6 bad file name, 7 program incomplete (no closing `%`: the transmission was cut short).
+  6 bad file name, 7 program incomplete (no closing `%`: the transmission was cut short),
+  8 program too large (over 999,999 bytes, PROTOCOLS.md §2 "Program size limit": the
+  directory's six-digit size field could not say its size; the old file stays).
 
   The cycle-start button (`cycle_start/1`; `cycle_start_input/2` is the input the DAQ #1 relay
   drives, as on the real machine) runs the
@@ -62,7 +64,7 @@ defmodule Vws.Sim.GE2000 do
   `Vws.Sim.GE2000.Faults`), `:bid_contention` (at the CEC's next bid the GE-2000 bids at the same
   moment, wins, and sends its status report unsolicited), `{:file_as, fun}` (a program received
   whole is filed as `fun.(text)`: a machine that keeps other bytes than it was sent, as a damage
-  the block check missed would leave; `:none` ends it too) and `:none`.
+  the block check missed would leave; `:none` ends it too)) and `:none`.
 
       iex> {:ok, sim} = Vws.Sim.GE2000.start_link(programs: %{"000001.PRO" => "O1\\nM30\\n"})
       iex> Vws.Sim.GE2000.endpoint(sim) =~ ~r/^tcp:\\/\\/127.0.0.1:\\d+$/
@@ -90,7 +92,8 @@ defmodule Vws.Sim.GE2000 do
     nothing_selected: 4,
     unsupported: 5,
     bad_name: 6,
-    incomplete: 7
+    incomplete: 7,
+    too_large: 8
   }
 
   @doc false
@@ -194,7 +197,11 @@ defmodule Vws.Sim.GE2000 do
   @spec program(GenServer.server(), String.t()) :: binary | nil
   def program(sim, name), do: GenServer.call(sim, {:program, name})
 
-  @doc "Stores a file in the directory, as if loaded at the control panel."
+  @doc """
+  Stores a file in the directory, as if loaded at the control panel — whatever its size (a
+  machine holding one over 999,999 bytes, that its directory cannot describe, is what the CEC's
+  reading of a directory line it cannot read is tested with); over DNC it refuses one (alarm 8).
+  """
   @spec put_program(GenServer.server(), String.t(), binary) :: :ok
   def put_program(sim, name, text), do: GenServer.call(sim, {:put_program, name, text})
 
@@ -550,9 +557,18 @@ defmodule Vws.Sim.GE2000 do
     store(%{s | file_as: nil}, name, fun.(text)) |> Map.put(:file_as, fun)
   end
 
+  # the directory's size field has six digits: a program it cannot describe is not stored
+  # (it would poison every later directory read), the old file stays
   defp store(s, name, text) do
-    Logger.info("GE-2000 simulator stored #{name} (#{byte_size(text)} bytes)")
-    %{alarm(s, :none) | programs: Map.put(s.programs, name, text), downloads: s.downloads + 1}
+    case Program.check_size(text) do
+      :ok ->
+        Logger.info("GE-2000 simulator stored #{name} (#{byte_size(text)} bytes)")
+        %{alarm(s, :none) | programs: Map.put(s.programs, name, text), downloads: s.downloads + 1}
+
+      {:error, why} ->
+        Logger.warning("GE-2000 simulator refused #{name}: #{why}, the old file stays")
+        alarm(s, :too_large)
+    end
   end
 
   # R commands: the text to send back.
@@ -694,8 +710,11 @@ defmodule Vws.Sim.GE2000 do
 
   defp drip_end(%{drip: drip} = s, :broken), do: finish_drip(s, fed(drip), :broken)
 
+  # Whole: the last block ends with the % line, and it is not the tape's leading rewind stop
+  # alone (a transmission cut after a first block of just "%" LF ran nothing of the program).
   defp drip_end(%{drip: drip} = s, :arrived) do
-    if String.ends_with?(drip.tail, "%\n") or String.ends_with?(drip.tail, "%") do
+    if (String.ends_with?(drip.tail, "%\n") or String.ends_with?(drip.tail, "%")) and
+         drip.received > byte_size("%\n") do
       %{s | drip: %{fed(drip) | state: :draining}}
     else
       Logger.warning("GE-2000 simulator: drip feed ended without the closing %: stopped")

@@ -65,6 +65,26 @@ defmodule Vws.Sim.GE2000Test do
     assert GE2000.state(ctx.sim).downloads == 1
   end
 
+  # issue 24 item 3: a 1.33 MB program once went into the directory with a seven-digit size,
+  # and every directory read after it failed
+  test "a program over 999,999 bytes sent over DNC is not stored (alarm 8): the directory stays readable",
+       ctx do
+    assert DNC.request(ctx.cec, s(:part_program), ["%\nO77\nM30\n%\n"]) == {:ok, []}
+    big = "%\nO77\n" <> :binary.copy("N10 G01 X1\n", 90_910) <> "%\n"
+    assert byte_size(big) == 1_000_018
+    blocks = Vws.Links.DNC.Frame.split_text(big, 256)
+    assert DNC.request(ctx.cec, s(:part_program), blocks, 120_000) == {:ok, []}
+    assert report(ctx.cec).alarm == 8
+    assert GE2000.program(ctx.sim, "000077.PRO") == "%\nO77\nM30\n%\n"
+
+    assert {:ok, dir} = DNC.request(ctx.cec, r(:directory), [])
+
+    assert {:ok, %{"000077.PRO" => %{size: 12}}} =
+             Report.parse_directory(IO.iodata_to_binary(dir))
+
+    assert GE2000.directory(ctx.sim) == ["000077.PRO", "000100.PRO"]
+  end
+
   test "select, cycle start, the plant told, delete refused while it runs", ctx do
     assert report(ctx.cec) == %{state: :idle, program: "000000", alarm: 0}
     GE2000.cycle_start(ctx.sim)

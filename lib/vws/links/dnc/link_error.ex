@@ -99,7 +99,18 @@ defmodule Vws.Links.DNC.LinkError do
       :too_large -> "DNC ANSWER OVER #{n} BYTES"
       :timeout -> "DNC REQUEST TIMEOUT"
       :invalid_text -> "DNC TEXT NOT SENDABLE"
-      other -> "DNC #{other |> to_string() |> String.upcase()}"
+      other -> "DNC " <> unknown_reason(other)
     end
   end
+
+  # a reason this module does not know, in upper-case words (never an Elixir term)
+  defp unknown_reason(reason) when is_atom(reason) do
+    case reason |> Atom.to_string() |> String.upcase() |> String.replace(~r/[^A-Z0-9]+/, " ") do
+      " " -> "LINK ERROR"
+      "" -> "LINK ERROR"
+      words -> String.trim(words)
+    end
+  end
+
+  defp unknown_reason(_reason), do: "LINK ERROR"
 end

@@ -297,6 +297,23 @@ defmodule Vws.Links.DNC.Session do
     end
   end
 
+  # An answer to our bid other than ACK0 — the acknowledgement of a block, or WACK — comes from
+  # a peer still receiving: our last transmission's closing EOT was lost on the line, and it
+  # waits for it (X3.28 has no acknowledgement of EOT). The EOT is sent again, which ends that
+  # reception as it would have ended, and we bid again. (An ACK0 damaged into ACK1 ends the
+  # peer's empty reception, which hands nothing on.)
+  defp frame(:bidding, reply, %{tx: tx} = s, now) when reply in [:ack1, :wack] do
+    if tx.bids > s.limits.max_enqs do
+      s = send_control(s, :eot)
+      %{fail(s, :no_answer_to_bid, nil, tx.bids, now) | state: :idle}
+    else
+      s = log(s, :info, "DNC: the peer answered our bid #{reply}: it still receives; EOT again")
+      s = retry(s, :eot_again, nil)
+      s = send_control(s, :eot)
+      bid(s)
+    end
+  end
+
   # :sending — a block sent, waiting for its acknowledgement
   defp frame(:sending, ack, %{tx: tx} = s, now) when ack in [:ack0, :ack1] do
     block = tx.acked + 1
@@ -620,8 +637,11 @@ defmodule Vws.Links.DNC.Session do
 
   defp start_receiving(s, kind, now) do
     s = send_control(s, :ack0)
+    receive_timer(%{s | rx: new_rx(kind, now), state: :receiving, credit: :infinity})
+  end
 
-    rx = %{
+  defp new_rx(kind, now) do
+    %{
       kind: kind,
       command: nil,
       blocks: [],
@@ -637,8 +657,6 @@ defmodule Vws.Links.DNC.Session do
       ref: nil,
       started: now
     }
-
-    receive_timer(%{s | rx: rx, state: :receiving, credit: :infinity})
   end
 
   defp receive_timer(s), do: state_timeout(s, s.limits.receive_timeout, :receive)
@@ -701,6 +719,18 @@ defmodule Vws.Links.DNC.Session do
 
   defp take_block(%Command{} = command, %{rx: %{command: nil, count: 0}} = s, _now),
     do: accept_block(s, command, 0)
+
+  # A command block in a transmission that has had one is a new transmission: the sender has
+  # bid again (our last acknowledgement answering its ENQ), so the EOT that ended the one before
+  # was lost on the line. That one ends here as the EOT would have ended it (whole after an
+  # acknowledgement, given up after a NAK or WACK), and the new one begins with this block.
+  # Blocks are checked (LRC or CRC), and a sender sends a command block only first, after ACK0.
+  defp take_block(%Command{} = command, %{rx: %{kind: :slave}, tx: nil} = s, now) do
+    s = log(s, :info, "DNC: a new command block while receiving: the peer's last EOT was lost")
+    s = end_reception(s, now)
+    s = %{s | rx: new_rx(:slave, now), state: :receiving, credit: :infinity}
+    accept_block(s, command, 0)
+  end
 
   defp take_block(%Command{}, s, _now) do
     s = log(s, :warning, "DNC: a second command block in one transmission; answered NAK")
@@ -770,6 +800,9 @@ defmodule Vws.Links.DNC.Session do
         after_slave(%{s | rx: nil})
     end
   end
+
+  # a bid answered and then EOT: nothing was sent (our ACK0 the peer misread, see :bidding)
+  defp end_reception(%{rx: %{kind: :slave, count: 0}} = s, _now), do: after_slave(%{s | rx: nil})
 
   defp end_reception(%{rx: rx} = s, now) do
     s = transfer_end(s, :ok)

@@ -12,6 +12,9 @@ defmodule Vws.Sim.GE2000.Faults do
     * `:silent` — nothing goes out, and what comes in is ignored (a dead peer)
     * `{:bid_contention, blocks}` — at the peer's next bid, bid at the same moment (the peer's
       ENQ is taken for our own bid meeting it) and send `blocks` unsolicited
+    * `{:enq_as_eot, n}` — the acknowledgement of received block `n` is lost, and the ENQ the
+      peer then asks with arrives as EOT (one bit: 0x05 → 0x04), once — X3.28 cannot tell that
+      from the end of the transmission (docs/dnc-drip-feed.md "DONE means done")
   """
 
   @type fault ::
@@ -21,6 +24,7 @@ defmodule Vws.Sim.GE2000.Faults do
           | :corrupt
           | :silent
           | {:bid_contention, [binary]}
+          | {:enq_as_eot, pos_integer}
 
   @ack0 <<0x10, ?0>>
   @ack1 <<0x10, ?1>>
@@ -54,6 +58,10 @@ defmodule Vws.Sim.GE2000.Faults do
     end
   end
 
+  def outgoing(%{fault: {:enq_as_eot, n}} = st, bytes, %{direction: :in, blocks: n})
+      when bytes in [@ack0, @ack1],
+      do: {%{st | fault: :armed_enq_as_eot}, []}
+
   def outgoing(%{fault: {:wack, n}} = st, bytes, %{direction: :in, blocks: b})
       when bytes in [@ack0, @ack1] and n > 0 and b > 0,
       do: {%{st | fault: {:wack, n - 1}}, @wack}
@@ -72,6 +80,9 @@ defmodule Vws.Sim.GE2000.Faults do
 
   def incoming(%{fault: {:bid_contention, blocks}} = st, <<0x05, rest::binary>>, :idle),
     do: {%{st | fault: :none}, rest, [{:transmit, blocks}]}
+
+  def incoming(%{fault: :armed_enq_as_eot} = st, <<0x05, rest::binary>>, _state),
+    do: {%{st | fault: :none}, <<0x04, rest::binary>>, []}
 
   def incoming(st, bytes, _state), do: {st, bytes, []}
 end

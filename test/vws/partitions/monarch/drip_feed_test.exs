@@ -29,7 +29,7 @@ defmodule Vws.Partitions.Monarch.DripFeedTest do
     %{ws: ws, wc: wc} =
       Vws.Test.Workstation.start(
         devices: [ge2000: [endpoint: GE2000.endpoint(sim)] ++ @link_opts],
-        partitions: [monarch: [options: []]],
+        partitions: [monarch: [options: Map.get(context, :monarch, [])]],
         # (the auto-receive tests': programs from the machine go to the library)
         library: context[:tmp_dir]
       )
@@ -37,7 +37,7 @@ defmodule Vws.Partitions.Monarch.DripFeedTest do
     link = Workstation.whereis(ws, :ge2000)
     assert eventually(fn -> DNC.info(link).state == :idle end)
     {:ok, peer} = WCPeer.connect(wc)
-    %{ws: ws, peer: peer, sim: sim, link: link}
+    %{ws: ws, peer: peer, sim: sim, link: link, monarch: Map.get(context, :monarch, [])}
   end
 
   defp seq, do: rem(System.unique_integer([:positive]), 10_000)
@@ -152,6 +152,30 @@ defmodule Vws.Partitions.Monarch.DripFeedTest do
     refute_received {:request_again, :download_execute}
     :ok = GE2000.set_fault(ctx.sim, :none)
     assert eventually(fn -> GE2000.drip(ctx.sim).state == :broken end, 30_000)
+  end
+
+  # Issue 24 item 4 (docs/dnc-drip-feed.md "DONE means done"): an ENQ damaged into EOT looks
+  # like the end of the transmission to the machine, which stops (no closing %). The rest of the
+  # program reaches it as text without a command: with CRC blocks (MONARCH's default) it reads
+  # them with the LRC of a command-less transmission, refuses them and the link ends ERROR; with
+  # LRC blocks it takes them as unsolicited text and the link ends DONE — and the machine's
+  # status report, read after every transmission, says it stopped.
+  for check <- [:crc, :lrc] do
+    @tag monarch: [check: check]
+    test "an ENQ damaged into EOT mid-feed (#{check}): the machine stops and DRIP_FEED ends ERROR",
+         ctx do
+      with_nc_file(ctx, 3 * @memory)
+      :ok = GE2000.set_fault(ctx.sim, {:enq_as_eot, 3})
+
+      expected =
+        if ctx.monarch[:check] == :lrc,
+          do: ~r/^0001ERROR DRIP FEED OF 004711.PRO FAILED GE-2000 ALARM 7$/,
+          else: ~r/^0001ERROR DNC /
+
+      assert monarch(ctx.peer, 1, "DRIP_FEED") =~ expected
+      assert GE2000.drip(ctx.sim).state == :broken
+      assert GE2000.state(ctx.sim).alarm == 7
+    end
   end
 
   # Issue 25: while the GE-2000 ran a drip-fed program, MONARCH said IDLE (the monitor's status
