@@ -48,6 +48,7 @@ file_of = fn module, output ->
 end
 
 started = System.monotonic_time(:millisecond)
+logs = Path.join(System.tmp_dir!(), "vws-property-seeds-#{System.os_time(:second)}")
 
 results =
   for seed <- from..(from + seeds - 1) do
@@ -72,6 +73,14 @@ results =
 
     for {module, name} <- failed do
       IO.puts("  FAILED #{module}: #{name}")
+    end
+
+    # a failed run's whole output, to tell a wrong answer from a run starved of time
+    if failed != [] or status != 0 do
+      File.mkdir_p!(logs)
+      path = Path.join(logs, "seed-#{seed}.log")
+      File.write!(path, output)
+      IO.puts("  output: #{path}")
     end
 
     # a run that failed without naming a test (a crash, a timeout of the whole run) counts too
