@@ -102,6 +102,8 @@ defmodule Vws.Ops.Web do
     max = Keyword.get(opts, :max_connections, Vws.Ops.Web.Server.defaults()[:max_connections])
 
     children = [
+      # the node's recent events for the page (one per node: a second server shares it)
+      Vws.Ops.Web.History,
       {Vws.Ops.MTConnect.Agent,
        [name: agent] ++
          Keyword.take(opts, [
