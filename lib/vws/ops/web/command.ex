@@ -57,6 +57,7 @@ defmodule Vws.Ops.Web.Command do
          text = String.trim(text),
          true <- allowed?(set, text) || {:refused, set, text},
          {:ok, ws} <- workstation(ws_label) do
+      :ok = Vws.Ops.Web.History.watch(ws)
       number = next_number()
 
       case Vws.CEC.SunComm.local_command(ws, set, number, text) do

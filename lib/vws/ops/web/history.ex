@@ -10,7 +10,7 @@ defmodule Vws.Ops.Web.History do
       carry the system time of the write): `R 0007 EXECUTING ROBOT_PICK(…)`, `F 9001 DONE`, …;
     * every control action of the dashboard (`Vws.Ops.Web.Command`): sent, or refused and why.
 
-  One process per node (named `#{inspect(__MODULE__)}`, started with the web server); it
+  One process per node (named `#{inspect(__MODULE__)}`, started with the first web server); it
   subscribes to the workstations it finds (looked for again every second). An event is
   `%{time: "2026-11-26T22:53:17.123Z", where: "ROBOT", text: "0007 DONE", severity: "ok"}`.
   """
@@ -25,6 +25,19 @@ defmodule Vws.Ops.Web.History do
 
   def child_spec(opts),
     do: %{id: __MODULE__, start: {__MODULE__, :start_link, [opts]}, restart: :permanent}
+
+  @doc """
+  Starts the node's history under the application's `Vws.WebSupervisor` unless it runs already:
+  it outlives any one web server, so a server stopped (a test's) takes no history with it.
+  """
+  @spec ensure_started() :: :ok
+  def ensure_started do
+    case DynamicSupervisor.start_child(Vws.WebSupervisor, __MODULE__) do
+      {:ok, _} -> :ok
+      :ignore -> :ok
+      {:error, {:already_started, _}} -> :ok
+    end
+  end
 
   @doc "Starts the node's history, unless it runs already (then `:ignore`)."
   def start_link(_opts \\ []) do
@@ -58,11 +71,30 @@ defmodule Vws.Ops.Web.History do
     :ok
   end
 
+  @doc "Makes sure the workstation's events are recorded from now on (they are within a second anyway)."
+  @spec watch(term) :: :ok
+  def watch(ws) do
+    if Process.whereis(__MODULE__), do: GenServer.call(__MODULE__, {:watch, ws}, 5_000)
+    :ok
+  catch
+    :exit, _ -> :ok
+  end
+
   @impl true
   def init(nil) do
     :ets.new(__MODULE__, [:ordered_set, :protected, :named_table, read_concurrency: true])
     send(self(), :look)
     {:ok, %{watched: MapSet.new(), seq: 0, counts: %{}}}
+  end
+
+  @impl true
+  def handle_call({:watch, ws}, _from, s) do
+    if MapSet.member?(s.watched, ws) do
+      {:reply, :ok, s}
+    else
+      :ok = Vws.CEC.Events.subscribe(ws, :mailbox)
+      {:reply, :ok, %{s | watched: MapSet.put(s.watched, ws)}}
+    end
   end
 
   @impl true
