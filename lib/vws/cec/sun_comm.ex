@@ -254,4 +254,15 @@ defmodule Vws.CEC.SunComm do
   @doc "The most recent lines of the WC dialogue, oldest first: `{monotonic_ms, :in | :out, line}`."
   @spec dialogue(term) :: [{integer, :in | :out, binary}]
   def dialogue(ws), do: :gen_statem.call(name(ws), :dialogue)
+
+  @doc """
+  Runs one command of this node's operator (the dashboard's control actions) through the same
+  path as a WC string's command — the Parser's rules, the journal, the partition's dispatch and
+  interlocks — without the WC link: `:ok` (dispatched; its status location tells how it ends) or
+  `{:error, words}`. `number` should be one the WC does not use (`Vws.Ops.Web.Command` takes them
+  from 9000 up).
+  """
+  @spec local_command(term, String.t(), 0..9999, String.t()) :: :ok | {:error, String.t()}
+  def local_command(ws, letter, number, text),
+    do: :gen_statem.call(name(ws), {:local_command, letter, number, text}, 10_000)
 end

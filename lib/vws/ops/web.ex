@@ -101,6 +101,10 @@ defmodule Vws.Ops.Web do
     control = opts[:token] not in [nil, ""]
     max = Keyword.get(opts, :max_connections, Vws.Ops.Web.Server.defaults()[:max_connections])
 
+    # the node's recent events for the page: one per node, outliving any one server. Started
+    # aside: this may run inside Vws.WebSupervisor's own start_child (Web.start/1)
+    unless Process.whereis(Vws.Ops.Web.History), do: spawn(&Vws.Ops.Web.History.ensure_started/0)
+
     children = [
       {Vws.Ops.MTConnect.Agent,
        [name: agent] ++

@@ -60,6 +60,10 @@ defmodule Vws.Partitions.Fixture do
   @rest_mm 0.5
   @rest_n 25.0
 
+  @doc "The noise bands within which two readings count as the same (mm, N): what the views deadband by."
+  @spec noise_bands() :: %{mm: float, n: float}
+  def noise_bands, do: %{mm: @rest_mm, n: @rest_n}
+
   @impl true
   def device, do: "DAQ #1"
 

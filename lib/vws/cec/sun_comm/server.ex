@@ -179,6 +179,34 @@ defmodule Vws.CEC.SunComm.Server do
     {:keep_state_and_data, [{:reply, from, info}]}
   end
 
+  # A command from this node's operator (`Vws.Ops.Web.Command`), not from the WC: the same rules
+  # of the Parser for one command, the same dispatch (interlocks in its partition, the journal
+  # in Mailbox.dispatch/4) as a WC string's command. Nothing goes on the WC link, and the WC's
+  # last string (rule 4) is untouched. Transfers with the WC (DOWNLOAD_HP, UPLOAD_SUN) are not
+  # for it. Answers :ok (dispatched; the status tells the rest) or {:error, words}.
+  defp common({:call, from}, {:local_command, letter, number, text}, state, data) do
+    set = Command.set_for_letter(letter)
+
+    {data, answer} =
+      cond do
+        state == :waiting_to_proceed ->
+          {data, {:error, "NOT READY (WAITING FOR OK TO PROCEED)"}}
+
+        set not in Mailbox.partitions() ->
+          {data, {:error, "UNKNOWN COMMAND SET #{letter}"}}
+
+        set == :monarch and Vws.Codecs.Commands.transfer(text) in [:download_hp, :upload_sun] ->
+          {data, {:error, "TRANSFER WITH THE WC ONLY"}}
+
+        true ->
+          Logger.info("operator command #{letter}#{Command.pad4(number)} #{text}")
+          {data, nil} = dispatch(%{set: set, number: number, text: text}, data)
+          {%{data | counters: Map.update(data.counters, :operator_commands, 1, &(&1 + 1))}, :ok}
+      end
+
+    {:keep_state, data, [{:reply, from, answer}]}
+  end
+
   defp common({:call, from}, :dialogue, _state, data),
     do: {:keep_state_and_data, [{:reply, from, :queue.to_list(data.dialogue)}]}
 

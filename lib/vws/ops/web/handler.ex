@@ -10,7 +10,8 @@ defmodule Vws.Ops.Web.Handler do
 
   ## Tokens
 
-    * the **control token** (`:token`): `POST /api/status` needs it in the `x-vws-token` header;
+    * the **control token** (`:token`): `POST /api/status` and `POST /api/command`
+      (`Vws.Ops.Web.Command`) need it in the `x-vws-token` header;
       without a control token configured every control request is refused 403;
     * the **read token** (`:read_token`, optional): when set, every other path needs it (or the
       control token) — as the password of HTTP Basic authentication (any user name; a browser
@@ -24,6 +25,7 @@ defmodule Vws.Ops.Web.Handler do
   alias Vws.Ops.MTConnect.Agent
 
   @control ["api", "status"]
+  @command ["api", "command"]
 
   @doc """
   Whether a request may go on, judged on its head alone: `:ok`, or `{:deny, answer}` (401 for a
@@ -32,10 +34,15 @@ defmodule Vws.Ops.Web.Handler do
   @spec authorize(map, map) :: :ok | {:deny, tuple}
   def authorize(%{method: method, path: path, headers: headers}, settings) do
     cond do
-      method == "POST" and segments(path) == @control -> authorize_control(headers, settings)
+      method == "POST" and segments(path) in [@control, @command] ->
+        authorize_control(headers, settings)
+
       # a health probe has no secret: /health is open, and says the reasons only to a reader
-      method in ["GET", "HEAD"] and segments(path) == ["health"] -> :ok
-      true -> authorize_read(headers, settings)
+      method in ["GET", "HEAD"] and segments(path) == ["health"] ->
+        :ok
+
+      true ->
+        authorize_read(headers, settings)
     end
   end
 
@@ -120,6 +127,12 @@ defmodule Vws.Ops.Web.Handler do
   end
 
   defp route("POST", @control, q, _r, _s), do: status_query(q)
+
+  # an operator's command through SUN_COMM's command path (Vws.Ops.Web.Command)
+  defp route("POST", @command, _q, r, _s) do
+    {status, answer} = Vws.Ops.Web.Command.run(Map.get(r, :body) || "")
+    {status, "application/json", Vws.Ops.Web.JSON.encode(answer)}
+  end
 
   defp route(m, [request], q, r, s) when m in @read and request in @mtconnect,
     do: mtconnect(request, nil, q, r, s)

@@ -8,13 +8,22 @@ defmodule Vws.Ops.Web.Page do
   150 polls); the device statuses as the WC reads them; every link (the WC link, DAQ #1,
   the hydraulic controller, the GE-2000, the VAL II) with its state, counters, retries and last
   error; the interlock leases; NC transfers under way with their progress, rate and ETA; the
-  recent WC dialogue and the command status changes it saw. Below them the equipment on this
+  recent WC dialogue and the node's recent events (`Vws.Ops.Web.History`: command status changes
+  and operator actions, each with the node's time, so a reload keeps them). Below them the equipment on this
   node outside any workstation (the hydraulic controller with its link to DAQ #2), and, on a
   node of a cell, the cell: every workstation of every connected node with its state.
 
   Text from the equipment is only ever put into the page with `textContent`, never as HTML.
+  Colours come from the server's severity (`Vws.Ops.Web.State.severity/1`): red only for errors,
+  grey for what is not read yet. Sensor numbers are shown as the CEC judges them (deadbanded);
+  `?raw=1` or the "raw values" box shows them as read.
+
   The control form (a status query) appears only when the server has a control token, and
-  sends the token the user types in the `x-vws-token` header.
+  sends the token the user types in the `x-vws-token` header. Once a token is typed, the
+  operator commands (`Vws.Ops.Web.Command`) appear: a set, a command text (presets fill it) and
+  Send; the answer line follows the command's status until it ends DONE or ERROR. A link may
+  carry `#token=…&ws=…&set=M&text=DRIP_FEED` in its fragment: the page fills the form and
+  sends it, as a click on Send does.
   """
 
   @poll_ms 400
@@ -46,7 +55,8 @@ defmodule Vws.Ops.Web.Page do
   td.nowrap, th { white-space: nowrap; } td.num { text-align: right; font-variant-numeric: tabular-nums; white-space: nowrap; }
   th { color: #4a5468; font-weight: 600; }
   .done { color: #1b7a2f; } .executing { color: #b36b00; font-weight: 600; } .error { color: #c62828; font-weight: 600; }
-  .bad, .down, .not_answering, .restarting, .unreadable, .nodata { color: #c62828; } .running { color: #b36b00; }
+  .bad, .down, .not_answering, .unreadable { color: #c62828; } .running, .restarting, .connecting { color: #b36b00; }
+  .warning { color: #b36b00; font-weight: 600; } .neutral { color: #7a8394; } .ok { color: inherit; }
   .alerts { border: 1px solid #f2b8b5; background: #fdecea; border-radius: 4px; padding: 4px 8px; font-size: 13px; }
   .alerts div.new { font-weight: 700; }
   .alerts .none { color: #1b7a2f; }
@@ -75,11 +85,21 @@ defmodule Vws.Ops.Web.Page do
   <h2>Control</h2>
   <form id="control-form">
   <label>workstation <select id="control-ws"></select></label>
-  <label>status command <input id="control-name" value="ROBOT_CMD" size="14"></label>
   <label>token <input id="control-token" type="password" size="16"></label>
+  <label>status command <input id="control-name" value="ROBOT_CMD" size="14"></label>
   <button type="submit">Ask</button>
   <span id="control-answer"></span>
   </form>
+  <div id="actions" hidden>
+  <h3>Operator commands (through SUN_COMM, as a WC's)</h3>
+  <form id="command-form">
+  <label>set <select id="command-set"><option value="M">M (MONARCH)</option><option value="R">R (ROBOT)</option><option value="F">F (FIXTURE)</option></select></label>
+  <label>command <input id="command-text" size="28" placeholder="DOWNLOAD_GE(001234.PRO/2)"></label>
+  <button type="submit" id="command-send">Send</button>
+  </form>
+  <div id="command-presets"></div>
+  <div id="command-answer"></div>
+  </div>
   </section>
   </main>
   <script>
@@ -87,8 +107,6 @@ defmodule Vws.Ops.Web.Page do
   const POLL_MS = #{@poll_ms};
   const HISTORY = #{@history};
   let updates = 0;
-  const seen = {};     // "ws/partition" -> "0007 EXECUTING", as last drawn
-  const changes = {};  // ws -> the command status changes seen by this page, newest first
   const history = {};  // "ws/key" -> the last HISTORY values of a sensor quantity (null: no reading)
   const errors = {};   // ws -> recent errors seen by this page: {first, last, where, text}, newest first
 
@@ -96,26 +114,17 @@ defmodule Vws.Ops.Web.Page do
     const now = state.time.substring(11, 23);
     const t = Date.parse(state.time);
     state.workstations.forEach(ws => {
-      ws.partitions.forEach(p => {
-        const key = ws.id + "/" + p.name;
-        const shown = (p.number || "----") + " " + p.status;
-        if (seen[key] !== undefined && seen[key] !== shown) {
-          (changes[ws.id] = changes[ws.id] || []).unshift(now + "  " + p.name + ": " + seen[key] + " → " + shown);
-          changes[ws.id].length = Math.min(changes[ws.id].length, 20);
-        }
-        seen[key] = shown;
-      });
       const qs = (ws.sensors && ws.sensors.quantities) || [];
       qs.forEach(q => {
         const h = history[ws.id + "/" + q.key] = history[ws.id + "/" + q.key] || [];
-        h.push(q.value);
+        h.push(raw ? q.raw : q.value);
         if (h.length > HISTORY) h.shift();
       });
       const log = errors[ws.id] = errors[ws.id] || [];
       (ws.alerts || []).slice().reverse().forEach(a => {
         const found = log.find(e => e.where === a.where && e.text === a.text);
         if (found) { found.last = t; found.lastText = now; }
-        else log.unshift({first: t, firstText: now, last: t, lastText: now, where: a.where, text: a.text});
+        else log.unshift({first: t, firstText: now, last: t, lastText: now, where: a.where, text: a.text, severity: a.severity});
       });
       log.length = Math.min(log.length, 30);
     });
@@ -188,9 +197,13 @@ defmodule Vws.Ops.Web.Page do
     return svg;
   }
 
+  // as the CEC judges it (deadbanded by the server), or as read with ?raw=1 or the toggle
+  const RAW = new URLSearchParams(location.search).get("raw") === "1";
+  let raw = RAW;
   function value(q) {
-    if (q.value === null || q.value === undefined) return {text: "no reading" + (q.note ? " (" + q.note + ")" : ""), cls: "num nodata"};
-    const v = Math.abs(q.value) < 0.05 ? 0 : q.value;  // never "-0.0"
+    if (q.value === null || q.value === undefined) return {text: "no reading" + (q.note ? " (" + q.note + ")" : ""), cls: "num neutral"};
+    if (raw) return {text: q.raw + " " + q.unit + " (raw)", cls: "num"};
+    const v = q.value === 0 ? 0 : q.value;  // never "-0.0"
     return {text: (q.unit === "N" ? Math.round(v) : v.toFixed(1)) + " " + q.unit, cls: "num"};
   }
 
@@ -198,9 +211,14 @@ defmodule Vws.Ops.Web.Page do
     const s = ws.sensors;
     const d = el("div");
     d.appendChild(el("div", s.poll !== null ? "DAQ #1 poll " + s.poll + ", " + age(s.age_ms) + " ago" :
-      (s.note || "no readings"), s.poll !== null ? "muted" : "nodata"));
+      (s.note || "no readings"), "muted"));
     d.appendChild(table(["quantity", "value", "trend", "from"],
       s.quantities.map(q => [q.name, value(q), spark(history[ws.id + "/" + q.key] || []), q.source]), "sensors-" + ws.id));
+    const t = el("label", null, "muted");
+    const box = el("input"); box.type = "checkbox"; box.checked = raw; box.className = "raw-toggle";
+    box.addEventListener("change", () => { raw = box.checked; });
+    t.appendChild(box); t.appendChild(document.createTextNode(" raw values"));
+    d.appendChild(t);
     const sw = el("div", null, "switches");
     s.switches.forEach(x => sw.appendChild(el("span", x.name + ": " + x.state)));
     d.appendChild(sw);
@@ -221,8 +239,8 @@ defmodule Vws.Ops.Web.Page do
   }
 
   function linkRow(l) {
-    return [l.id, {text: l.state, cls: l.state_class}, {text: l.retries, cls: "num"},
-      {text: l.last_error || "", cls: l.last_error ? "error" : ""},
+    return [l.id, {text: l.state, cls: l.severity || l.state_class}, {text: l.retries, cls: "num"},
+      {text: l.last_error || "", cls: l.last_error ? (l.severity === "error" ? "error" : "warning") : ""},
       {text: counters(l.counters), cls: "counters"}, l.details];
   }
 
@@ -264,12 +282,17 @@ defmodule Vws.Ops.Web.Page do
     const now = Date.now();
     const current = new Set((ws.alerts || []).map(a => a.where + "|" + a.text));
     if (log.length === 0) return el("div", "no errors seen", "ok-box");
+    if (!log.some(e => e.severity === "error")) {
+      const w = el("div", null, "ok-box"); w.id = "alerts-" + ws.id;
+      log.forEach(e => w.appendChild(el("div", e.firstText + "  " + e.where + ": " + e.text, current.has(e.where + "|" + e.text) ? "warning" : "muted")));
+      return w;
+    }
     const d = el("div", null, "alerts");
     d.id = "alerts-" + ws.id;
     log.forEach(e => {
       const still = current.has(e.where + "|" + e.text);
       const line = el("div", e.firstText + "  " + e.where + ": " + e.text + (still ? "  (now)" : "  (until " + e.lastText + ")"),
-        now - e.first < 15000 ? "error new" : (still ? "error" : "muted"));
+        (still ? (e.severity || "error") : "muted") + (now - e.first < 15000 ? " new" : ""));
       d.appendChild(line);
     });
     return d;
@@ -288,23 +311,25 @@ defmodule Vws.Ops.Web.Page do
     g.appendChild(box("Partitions", table(
       ["partition", "state", "command", "status", "running", "done", "errors", "restarts", "link"],
       ws.partitions.map(p => [p.name, {text: p.state, cls: p.state}, p.number || "----",
-        {text: p.status, cls: p.status_class},
+        {text: p.status, cls: p.severity === "ok" ? p.status_class : p.severity},
         p.current ? p.current + " (" + p.running_ms + " ms)" : "",
         p.done, p.errors, p.restarts, p.link]), "partitions-" + ws.id)));
     g.appendChild(box("Sensors (numbers as read, with their trend)", sensors(ws)));
     g.appendChild(box("Device status (as the WC reads it)", table(
       ["loc", "device", "status", "age"],
-      ws.devices.map(d => [d.location, d.name, {text: d.value === null ? "(never written)" : d.value, cls: d.no_data ? "nodata" : ""},
+      ws.devices.map(d => [d.location, d.name, {text: d.value === null ? "(never written)" : d.value, cls: d.severity}, 
         {text: age(d.age_ms), cls: "nowrap"}]), "devices-" + ws.id)));
     const right = el("div");
     right.appendChild(box("NC transfers", transfers(ws)));
     right.appendChild(box("Program library", library(ws)));
     right.appendChild(box("Interlock leases", ws.interlocks.length === 0 ? el("p", "none held", "muted") :
       table(["volume", "holder", "for", "held"], ws.interlocks.map(i => [i.what, i.holder, i.reasons, age(i.age_ms)]), "interlocks-" + ws.id)));
-    const log = changes[ws.id] || [];
-    right.appendChild(box("Command status changes (seen by this page)", log.length === 0 ?
+    const hist = (ws.history || []).slice().reverse();
+    right.appendChild(box("Recent events (the node's time, UTC)", hist.length === 0 ?
       el("p", "none yet", "muted") : (() => { const d = el("div", null, "dialogue");
-        d.classList.add("changes"); log.forEach(l => d.appendChild(el("div", l))); return d; })()));
+        d.classList.add("changes"); d.id = "history-" + ws.id;
+        hist.forEach(e => d.appendChild(el("div", e.time.replace("T", " ").replace("Z", "") + "  " + e.where + ": " + e.text,
+          e.severity === "ok" ? "" : e.severity))); return d; })()));
     g.appendChild(right);
     s.appendChild(g);
     s.appendChild(box("Links", table(LINK_HEAD, linkRows(ws), "links-" + ws.id)));
@@ -362,6 +387,7 @@ defmodule Vws.Ops.Web.Page do
     if (Array.from(sel.options).map(o => o.value).join(",") !== ids.join(",")) {
       sel.replaceChildren(...ids.map(id => { const o = el("option", id); o.value = id; return o; }));
     }
+    showPending(state);
     updates += 1;
     document.getElementById("updated").textContent = state.time.replace("T", " ").replace("Z", " UTC");
     document.getElementById("updates").textContent = updates;
@@ -391,6 +417,77 @@ defmodule Vws.Ops.Web.Page do
     const body = await r.json();
     out.textContent = r.ok ? name + ": " + body.answer : "refused: " + body.error;
   });
+
+  // Operator commands: sent with the token to /api/command; the answer line follows the
+  // command's status location (from /api/state) until it ends DONE or ERROR.
+  const PARTITION = {M: "MONARCH", R: "ROBOT", F: "FIXTURE"};
+  const PRESETS = [["M", "DOWNLOAD_GE(000000.PRO/1)"], ["M", "COMPARE_GE(000000.PRO)"], ["M", "UPLOAD_GE(000000.PRO)"],
+    ["M", "DRIP_FEED"], ["R", "RELEASE_TABLE"], ["F", "RELEASE_TABLE"], ["M", "RELEASE_TABLE"], ["R", "RELEASE_TRAY1"], ["R", "RELEASE_TRAY2"]];
+  let pending = null;  // {ws, set, number, text, status}
+
+  function showPending(state) {
+    const tokenGiven = document.getElementById("control-token").value !== "";
+    document.getElementById("actions").hidden = !(state.control && tokenGiven);
+    if (!pending || pending.ended) return;
+    const ws = state.workstations.find(w => w.id === pending.ws);
+    const p = ws && ws.partitions.find(x => x.name === PARTITION[pending.set]);
+    if (!p) return;
+    if (p.number === pending.number) pending.status = p.status;
+    else if (p.number !== pending.number && pending.status === "EXECUTING") pending.status = "(status location now " + p.number + ")";
+    pending.ended = /^(DONE|ERROR)/.test(pending.status);
+    drawPending();
+  }
+
+  function drawPending() {
+    const out = document.getElementById("command-answer");
+    const cls = /^ERROR/.test(pending.status) ? "error" : (pending.status === "DONE" ? "done" : "executing");
+    out.replaceChildren(el("span", pending.set + pending.number + " " + pending.text + ": " + pending.status, cls));
+    out.firstChild.id = "command-status";
+  }
+
+  const presets = document.getElementById("command-presets");
+  PRESETS.forEach(([set, text]) => {
+    const b = el("button", set + " " + text); b.type = "button";
+    b.addEventListener("click", () => { document.getElementById("command-set").value = set; document.getElementById("command-text").value = text; });
+    presets.appendChild(b);
+  });
+
+  document.getElementById("control-token").addEventListener("input", () => {
+    document.getElementById("actions").hidden = document.getElementById("control-token").value === "" || document.getElementById("control").hidden;
+  });
+
+  document.getElementById("command-form").addEventListener("submit", async ev => {
+    ev.preventDefault();
+    const body = {workstation: document.getElementById("control-ws").value, set: document.getElementById("command-set").value,
+      text: document.getElementById("command-text").value};
+    const out = document.getElementById("command-answer");
+    const r = await fetch("/api/command", {method: "POST", body: JSON.stringify(body),
+      headers: {"x-vws-token": document.getElementById("control-token").value, "content-type": "application/json"}});
+    const a = await r.json();
+    if (!r.ok) { pending = null; out.replaceChildren(el("span", "refused: " + a.error, "error")); out.firstChild.id = "command-status"; return; }
+    pending = {ws: a.workstation, set: a.set, number: a.number, text: a.text, status: a.status, ended: false};
+    pending.ended = /^(DONE|ERROR)/.test(pending.status);
+    drawPending();
+  });
+
+  // A link may carry the token and one command in its fragment (never sent to the server):
+  // #token=…&set=M&text=DRIP_FEED fills the form and sends it, as a click on Send does.
+  (function fromFragment() {
+    const f = new URLSearchParams(location.hash.substring(1));
+    if (!f.get("token")) return;
+    document.getElementById("control-token").value = f.get("token");
+    if (!f.get("text")) return;
+    const go = () => {
+      const sel = document.getElementById("control-ws");
+      const want = f.get("ws") || (sel.options[0] && sel.options[0].value);
+      if (!want || !Array.from(sel.options).some(o => o.value === want)) { setTimeout(go, 100); return; }
+      sel.value = want;
+      document.getElementById("command-set").value = f.get("set") || "M";
+      document.getElementById("command-text").value = f.get("text");
+      document.getElementById("command-send").click();
+    };
+    setTimeout(go, 500);
+  })();
 
   poll();
   </script>

@@ -136,9 +136,10 @@ defmodule Vws.Ops.Web.State do
       wc: wc(%{info: :not_answering, dialogue: []}),
       transfers: [],
       library: nil,
-      alerts: [%{where: label(ws), text: "could not be read"}],
+      alerts: [%{where: label(ws), text: "could not be read", severity: "error"}],
       last_sequence: nil,
-      events: []
+      events: [],
+      history: Vws.Ops.Web.History.recent(ws)
     }
   end
 
@@ -156,12 +157,13 @@ defmodule Vws.Ops.Web.State do
     devices = devices(snapshot.mailboxes.devices)
     links = Enum.map(snapshot.links, &link/1)
     wc = wc(snapshot.wc)
+    sensors = sensors(snapshot.mailboxes.devices, Mailbox.readings(ws))
 
     %{
       id: label(ws),
       partitions: partitions,
       devices: devices,
-      sensors: sensors(snapshot.mailboxes.devices, Mailbox.readings(ws)),
+      sensors: sensors,
       interlocks:
         for i <- snapshot.interlocks do
           %{
@@ -175,9 +177,10 @@ defmodule Vws.Ops.Web.State do
       wc: wc,
       transfers: transfers(snapshot, now),
       library: library(ws, cache),
-      alerts: alerts(partitions, devices, links, wc),
+      alerts: alerts(partitions, devices, links, wc, sensors),
       last_sequence: number(snapshot.mailboxes.last_sequence),
-      events: for({e, n} <- snapshot.mailboxes.events, do: %{event: Inspect.words(e), count: n})
+      events: for({e, n} <- snapshot.mailboxes.events, do: %{event: Inspect.words(e), count: n}),
+      history: Vws.Ops.Web.History.recent(ws)
     }
   end
 
@@ -283,6 +286,7 @@ defmodule Vws.Ops.Web.State do
       number: number(r.number),
       status: status,
       status_class: status |> String.split(" ") |> hd() |> String.downcase(),
+      severity: severity(status),
       in_flight: number(r.in_flight),
       cmd_in: r.cmd_in,
       current: r.current && "#{number(r.current.number)} #{r.current.text}",
@@ -303,7 +307,8 @@ defmodule Vws.Ops.Web.State do
         name: d.name,
         value: text,
         age_ms: if(d.value == nil, do: nil, else: d.age_ms),
-        no_data: text == nil or String.starts_with?(text, "NO DATA")
+        no_data: text == nil or String.starts_with?(text, "NO DATA"),
+        severity: severity(text)
       }
     end
   end
@@ -322,7 +327,8 @@ defmodule Vws.Ops.Web.State do
               %{
                 key: "daq1." <> to_string(q.signal),
                 name: q.name,
-                value: q.value && Float.round(q.value / 1, 2),
+                value: q.value && deadband(q.value, q.unit),
+                raw: q.value && Float.round(q.value / 1, 3),
                 unit: q.unit,
                 source: "DAQ #1",
                 note: if(q.open_circuit, do: "open circuit")
@@ -354,6 +360,23 @@ defmodule Vws.Ops.Web.State do
     }
   end
 
+  @doc """
+  A value as the CEC judges it: within the partitions' noise band of zero
+  (`Vws.Partitions.Fixture.noise_bands/0`: 0.5 mm, 25 N) it is 0, and it is written as the
+  device statuses write it (mm with one decimal, N whole) — `-0.1 mm` is `0.0 mm`, `-25 N` is `0 N`.
+  Other units: rounded to two decimals.
+  """
+  @spec deadband(number, String.t()) :: float | integer
+  def deadband(v, "mm") do
+    if abs(v) <= Vws.Partitions.Fixture.noise_bands().mm, do: 0.0, else: Float.round(v / 1, 1)
+  end
+
+  def deadband(v, "N") do
+    if abs(v) <= Vws.Partitions.Fixture.noise_bands().n, do: 0, else: round(v)
+  end
+
+  def deadband(v, _unit), do: Float.round(v / 1, 2)
+
   # the hydraulic controller reports 9.9e37 N for a force it cannot read
   @overload_at 1.0e30
 
@@ -365,7 +388,8 @@ defmodule Vws.Ops.Web.State do
         %{
           key: "pallet.force#{n}_n",
           name: "pallet clamp force #{n}",
-          value: if(is_number(f) and not over, do: Float.round(f / 1, 1)),
+          value: if(is_number(f) and not over, do: deadband(f, "N")),
+          raw: if(is_number(f) and not over, do: Float.round(f / 1, 1)),
           unit: "N",
           source: "hydraulic controller",
           note: if(over, do: "overload")
@@ -406,14 +430,16 @@ defmodule Vws.Ops.Web.State do
       |> Enum.find(&(&1 != nil))
 
     state = Inspect.words(r.state)
+    last_error = last_error && Inspect.words(last_error)
 
     %{
       id: r.name,
       state: state,
       state_class: if(state in @bad_states, do: "bad", else: "ok"),
+      severity: link_severity(state, last_error),
       counters: counters,
       retries: retries,
-      last_error: last_error && Inspect.words(last_error),
+      last_error: last_error,
       details:
         info
         |> Map.drop([:state, :last_error, :error, :fault, :line, :transfer, :device, :link])
@@ -573,29 +599,84 @@ defmodule Vws.Ops.Web.State do
     }
   end
 
-  defp alerts(partitions, devices, links, wc) do
+  # a DAQ #1 poll older than this is stale: the numbers shown are not the equipment's now
+  @stale_ms 30_000
+
+  # What is wrong now (severity error) and what deserves a look (warning); never what is only
+  # not read yet. Each with its severity.
+  defp alerts(partitions, devices, links, wc, sensors) do
     for(
       p <- partitions,
-      p.status_class == "error",
-      do: %{where: p.name, text: "#{p.number} #{p.status}"}
+      p.severity in ["error", "warning"],
+      do: %{where: p.name, text: "#{p.number} #{p.status}", severity: p.severity}
     ) ++
       for(
         d <- devices,
-        d.no_data and d.value != nil,
-        do: %{where: d.name, text: d.value}
+        d.value != nil and d.severity in ["error", "warning"],
+        do: %{where: d.name, text: d.value, severity: d.severity}
       ) ++
       for(
         l <- links,
-        l.state_class == "bad" or l.last_error != nil,
+        l.severity in ["error", "warning"],
         do: %{
           where: l.id,
-          text: Enum.join(Enum.reject([l.state, l.last_error], &is_nil/1), ": last error ")
+          text: Enum.join(Enum.reject([l.state, l.last_error], &is_nil/1), ": last error "),
+          severity: l.severity
         }
+      ) ++
+      if(sensors.poll != nil and is_integer(sensors.age_ms) and sensors.age_ms > @stale_ms,
+        do: [
+          %{
+            where: "DAQ #1",
+            text: "STALE READING (#{div(sensors.age_ms, 1000)} S OLD)",
+            severity: "error"
+          }
+        ],
+        else: []
       ) ++
       if(wc.state in ["waiting", "connected"],
         do: [],
-        else: [%{where: "WC link", text: "SUN_COMM #{wc.state}"}]
+        else: [%{where: "WC link", text: "SUN_COMM #{wc.state}", severity: "error"}]
       )
+  end
+
+  @doc """
+  How bad a status or device text is, for the page's colour — the one place that decides it:
+
+    * `"error"` — an `ERROR …` status; `NO DATA` for a reason other than not read yet;
+    * `"neutral"` — nothing to say yet: `NONE`, no text, `NO DATA (… NOT READ YET)`, `… NO COMMAND YET`;
+    * `"warning"` — `NO DATA` while a link is being (re)connected;
+    * `"ok"` — anything else (`DONE`, `EXECUTING`, a device's reading).
+  """
+  @spec severity(String.t() | nil) :: String.t()
+  def severity(nil), do: "neutral"
+  def severity("NONE"), do: "neutral"
+  def severity("ERROR" <> _), do: "error"
+
+  def severity("NO DATA" <> why) do
+    cond do
+      why =~ ~r/NOT READ YET|NO COMMAND YET|NOT YET/ -> "neutral"
+      why =~ ~r/CONNECTING|RECONNECTING|STARTING/ -> "warning"
+      true -> "error"
+    end
+  end
+
+  def severity(text) when is_binary(text) do
+    if text =~ ~r/NOT READ YET|NO COMMAND YET/, do: "neutral", else: "ok"
+  end
+
+  # a link that cannot be used is an error; one (re)connecting within its backoff, or working
+  # with a last error to look at, a warning
+  @link_errors ~w(down not_answering unreadable disconnected halted)
+  @link_warnings ~w(connecting restarting)
+
+  defp link_severity(state, last_error) do
+    cond do
+      state in @link_errors -> "error"
+      state in @link_warnings -> "warning"
+      last_error != nil -> "warning"
+      true -> "ok"
+    end
   end
 
   @doc false

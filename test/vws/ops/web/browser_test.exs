@@ -68,7 +68,11 @@ defmodule Vws.Ops.Web.BrowserTest do
 
     # the command the test caused: EXECUTING when the page first drew it, then DONE, live
     assert row(page, "ROBOT") =~ ~r/ROBOT idle 0007 DONE/
-    assert page =~ "ROBOT: 0007 EXECUTING → 0007 DONE"
+    # the node's history, each event with the node's time of the write
+    assert page =~
+             ~r/\d{4}-\d\d-\d\d \d\d:\d\d:\d\d\.\d{3}\s+ROBOT: 0007 EXECUTING HOLD AT TRAY 1/
+
+    assert page =~ ~r/\d\d:\d\d:\d\d\.\d{3}\s+ROBOT: 0007 DONE/
     assert row(page, "GRIPPER") =~ "0008 ERROR NO LINK TO DAQ #1"
 
     # device status, interlocks, links

@@ -25,13 +25,19 @@ defmodule Vws.Ops.Web.StateTest do
 
     by_key = Map.new(s.quantities, &{&1.key, &1})
 
-    assert %{name: "vise jaw width", value: 49.96, unit: "mm", source: "DAQ #1"} =
+    # shown as the CEC judges them (mm with one decimal, N whole), the raw value beside
+    assert %{name: "vise jaw width", value: 50.0, raw: 49.96, unit: "mm", source: "DAQ #1"} =
              by_key["daq1.vise_jaw_mm"]
 
-    assert %{name: "vise clamp force", value: 1998.7, unit: "N"} = by_key["daq1.vise_force_n"]
+    assert %{name: "vise clamp force", value: 1999, raw: 1998.7, unit: "N"} =
+             by_key["daq1.vise_force_n"]
+
     # a cut wire is no number, and says so
     assert %{value: nil, note: "open circuit"} = by_key["daq1.gripper_finger_mm"]
-    assert %{name: "pallet clamp force 1", value: 5000.0, unit: "N"} = by_key["pallet.force1_n"]
+
+    assert %{name: "pallet clamp force 1", value: 5000, raw: 5000.0, unit: "N"} =
+             by_key["pallet.force1_n"]
+
     assert %{value: nil, note: "overload"} = by_key["pallet.force2_n"]
 
     assert %{name: "table park", state: "closed"} in s.switches
@@ -160,5 +166,31 @@ defmodule Vws.Ops.Web.StateTest do
     json = IO.iodata_to_binary(Vws.Ops.Web.JSON.encode(State.build()))
     assert json =~ ~s("workstations":)
     refute json =~ "#PID"
+  end
+
+  test "deadband: noise around zero within the partitions' bands is zero, never negative" do
+    assert State.deadband(-0.1, "mm") === 0.0
+    assert State.deadband(0.5, "mm") === 0.0
+    assert State.deadband(-0.5, "mm") === 0.0
+    assert State.deadband(0.6, "mm") === 0.6
+    assert State.deadband(-25.0, "N") === 0
+    assert State.deadband(24.9, "N") === 0
+    assert State.deadband(26.2, "N") === 26
+    assert State.deadband(1.234, "V") === 1.23
+    # the same bands the fixture partition judges rest by
+    assert %{mm: 0.5, n: 25.0} = Vws.Partitions.Fixture.noise_bands()
+  end
+
+  test "severity: not read yet is neutral, errors are errors" do
+    assert State.severity("NO DATA (GE-2000 NOT READ YET)") == "neutral"
+    assert State.severity("NO DATA (DAQ #1 NOT READ YET)") == "neutral"
+    assert State.severity("NO DATA (VAL II NOT READ YET)") == "neutral"
+    assert State.severity("NONE") == "neutral"
+    assert State.severity(nil) == "neutral"
+    assert State.severity("ERROR NO LINK TO DAQ #1") == "error"
+    assert State.severity("NO DATA (NO LINK TO DAQ #1)") == "error"
+    assert State.severity("DONE") == "ok"
+    assert State.severity("EXECUTING") == "ok"
+    assert State.severity("JAWS OPEN 50.0 MM") == "ok"
   end
 end
