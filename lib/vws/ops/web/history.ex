@@ -83,6 +83,9 @@ defmodule Vws.Ops.Web.History do
   @impl true
   def init(nil) do
     :ets.new(__MODULE__, [:ordered_set, :protected, :named_table, read_concurrency: true])
+    # told as soon as a workstation joins the cell, so its first commands are not missed (a
+    # look every second finds any the cell did not tell of)
+    _ = :pg.monitor_scope(Vws.CEC.Cell.scope())
     send(self(), :look)
     {:ok, %{watched: MapSet.new(), seq: 0, counts: %{}}}
   end
@@ -113,12 +116,20 @@ defmodule Vws.Ops.Web.History do
     word = Vws.CEC.Mailbox.status_word(status)
     shown = Enum.join(Enum.reject([Vws.Codecs.WC.Command.pad4(n), word, text], &is_nil/1), " ")
 
-    {:noreply,
-     put(s, ws, at, String.upcase(to_string(p)), shown, Vws.Ops.Web.State.severity(word))}
+    {:noreply, put(s, ws, at, String.upcase(to_string(p)), shown, Vws.Ops.Web.Severity.of(word))}
   end
 
   def handle_info({:record, ws, at, where, text, severity}, s),
     do: {:noreply, put(s, ws, at, where, text, severity)}
+
+  def handle_info({_ref, :join, {:workstation, ws}, _pids}, s) do
+    if MapSet.member?(s.watched, ws) do
+      {:noreply, s}
+    else
+      :ok = Vws.CEC.Events.subscribe(ws, :mailbox)
+      {:noreply, %{s | watched: MapSet.put(s.watched, ws)}}
+    end
+  end
 
   def handle_info(_other, s), do: {:noreply, s}
 

@@ -640,30 +640,9 @@ defmodule Vws.Ops.Web.State do
       )
   end
 
-  @doc """
-  How bad a status or device text is, for the page's colour — the one place that decides it:
-
-    * `"error"` — an `ERROR …` status; `NO DATA` for a reason other than not read yet;
-    * `"neutral"` — nothing to say yet: `NONE`, no text, `NO DATA (… NOT READ YET)`, `… NO COMMAND YET`;
-    * `"warning"` — `NO DATA` while a link is being (re)connected;
-    * `"ok"` — anything else (`DONE`, `EXECUTING`, a device's reading).
-  """
+  @doc "How bad a status or device text is: `Vws.Ops.Web.Severity.of/1`, the one place that decides it."
   @spec severity(String.t() | nil) :: String.t()
-  def severity(nil), do: "neutral"
-  def severity("NONE"), do: "neutral"
-  def severity("ERROR" <> _), do: "error"
-
-  def severity("NO DATA" <> why) do
-    cond do
-      why =~ ~r/NOT READ YET|NO COMMAND YET|NOT YET/ -> "neutral"
-      why =~ ~r/CONNECTING|RECONNECTING|STARTING/ -> "warning"
-      true -> "error"
-    end
-  end
-
-  def severity(text) when is_binary(text) do
-    if text =~ ~r/NOT READ YET|NO COMMAND YET/, do: "neutral", else: "ok"
-  end
+  defdelegate severity(text), to: Vws.Ops.Web.Severity, as: :of
 
   # a link that cannot be used is an error; one (re)connecting within its backoff, or working
   # with a last error to look at, a warning
