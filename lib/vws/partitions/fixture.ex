@@ -120,14 +120,7 @@ defmodule Vws.Partitions.Fixture do
 
   @doc "The conditions of rule 3a for the table (`Vws.Partitions.TableConditions`)."
   @impl true
-  def conditions(:table, ctx) do
-    Vws.Partitions.TableConditions.check(
-      ctx.workstation,
-      Keyword.get(ctx.options, :interlock, [])
-    )
-  end
-
-  def conditions(_volume, _ctx), do: fn -> :ok end
+  defdelegate conditions(volume, ctx), to: Vws.Partitions.TableConditions
 
   # Two fresh readings that agree.
   defp at_rest(ctx) do

@@ -240,14 +240,7 @@ defmodule Vws.Partitions.Robot do
 
   @doc "The conditions of rule 1a for the table (`Vws.Partitions.TableConditions`); none elsewhere."
   @impl true
-  def conditions(:table, ctx) do
-    Vws.Partitions.TableConditions.check(
-      ctx.workstation,
-      Keyword.get(ctx.options, :interlock, [])
-    )
-  end
-
-  def conditions(_volume, _ctx), do: fn -> :ok end
+  defdelegate conditions(volume, ctx), to: Vws.Partitions.TableConditions
 
   # The motion completed: the arm is in `target` (or where it was, for :here) and has left
   # every other volume.

@@ -16,6 +16,17 @@ defmodule Vws.Partitions.TableConditions do
   @monarch_location 8
 
   @doc """
+  The conditions of a work volume for the interlock table (`Vws.CEC.Interlock.Rules`, through
+  ROBOT's and FIXTURE's `conditions/2`): the table's are `check/2` with the partition's
+  `interlock:` options; the other volumes have none.
+  """
+  @spec conditions(atom, map) :: (() -> :ok | {:error, String.t()})
+  def conditions(:table, ctx),
+    do: check(ctx.workstation, Keyword.get(ctx.options, :interlock, []))
+
+  def conditions(_volume, _ctx), do: fn -> :ok end
+
+  @doc """
   The conditions of rules 1a and 3a — the machine tool idle and its table at park —
   as a `:check` for `acquire/5`. What cannot be read denies:
 

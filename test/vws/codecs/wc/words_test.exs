@@ -1,12 +1,11 @@
 defmodule Vws.Codecs.WC.WordsTest do
   # Issue 24 C: no WC status ever carries an Elixir term — every ERROR text is upper-case words
   # and numbers. Over any term (Words.of/1, the one home), over whatever a partition module
-  # returns or raises (Vws.CEC.Partition.run/2), and over every DNC link error MONARCH maps.
+  # returns or raises (Vws.CEC.Partition.run/2); MONARCH's link errors: error_paths_test.exs.
   use ExUnit.Case, async: true
   use Vws.PropCase
 
   alias Vws.Codecs.WC.Words
-  alias Vws.Links.DNC.LinkError
 
   doctest Words
 
@@ -80,25 +79,5 @@ defmodule Vws.Codecs.WC.WordsTest do
     assert_property(property, 1_000)
   end
 
-  test "every DNC link error MONARCH can report is in words" do
-    reasons = [
-      :link_down,
-      :no_answer_to_bid,
-      :contention,
-      :nak_limit,
-      :no_reply,
-      :wack_limit,
-      :aborted,
-      :no_response,
-      :receive_timeout,
-      :too_large,
-      :timeout,
-      :invalid_text
-    ]
-
-    for reason <- reasons, block <- [nil, 0, 7], count <- [nil, 3] do
-      text = LinkError.status_text(%LinkError{reason: reason, block: block, count: count})
-      assert Words.text?(text), "#{reason}: #{text}"
-    end
-  end
+  # every DNC link error MONARCH reports: test/vws/cec/error_paths_test.exs
 end
