@@ -13,7 +13,7 @@ defmodule Vws.Acceptance.GuaranteesTest do
     Acceptance.prebuild("dev")
   end
 
-  defp serve(extra \\ []) do
+  defp serve(extra) do
     wc = Acceptance.free_port()
     http = Acceptance.free_port()
 
