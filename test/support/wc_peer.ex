@@ -5,6 +5,8 @@ defmodule Vws.Test.WCPeer do
   """
   use GenServer
 
+  alias Vws.Codecs.WC.Reply
+
   alias Vws.Links.Transport
   alias Vws.Codecs.WC.{CommandString, LineDecoder}
 
@@ -100,6 +102,21 @@ defmodule Vws.Test.WCPeer do
 
       _ ->
         :more
+    end
+  end
+
+  @doc """
+  The lines of an UPLOAD_SUN, each answered `A nnnn`, until its closing `%/cccc`
+  (`upload_closing/2`): the program as stored.
+  """
+  def upload_lines(peer, received \\ []) do
+    n = rem(length(received) + 1, 10_000)
+    {:ok, {:line, ^n, line}} = Reply.decode_line(recv_line(peer))
+    send_raw(peer, Reply.encode({:line_ack, n}))
+
+    case upload_closing(line, received) do
+      {:closing, lines} -> lines
+      :more -> upload_lines(peer, [line | received])
     end
   end
 

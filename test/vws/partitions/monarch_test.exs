@@ -93,19 +93,8 @@ defmodule Vws.Partitions.MonarchTest do
 
   defp upload_sun(peer, number) do
     send_monarch(peer, number, "UPLOAD_SUN")
-    lines = receive_lines(peer, [])
+    lines = WCPeer.upload_lines(peer)
     {lines, finished(peer)}
-  end
-
-  defp receive_lines(peer, acc) do
-    n = rem(length(acc) + 1, 10_000)
-    {:ok, {:line, ^n, line}} = Vws.Codecs.WC.Reply.decode_line(WCPeer.recv_line(peer))
-    WCPeer.send_raw(peer, Vws.Codecs.WC.Reply.encode({:line_ack, n}))
-
-    case WCPeer.upload_closing(line, acc) do
-      {:closing, lines} -> lines
-      :more -> receive_lines(peer, [line | acc])
-    end
   end
 
   defp status(peer, name), do: WCPeer.status(peer, seq(), 1, name)

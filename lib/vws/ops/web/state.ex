@@ -549,12 +549,10 @@ defmodule Vws.Ops.Web.State do
 
   # the seed's DOWNLOAD_GE names no program on the line: the NC file's own (its first O word)
   defp nc_file_program(ws) do
-    Enum.find_value(Mailbox.nc_file(ws), fn line ->
-      case Regex.run(~r/^\s*[O:](\d{1,6})/, line) do
-        [_, n] -> String.pad_leading(n, 6, "0") <> ".PRO"
-        nil -> nil
-      end
-    end)
+    case Vws.Links.DNC.Program.file_name(Mailbox.nc_file(ws)) do
+      {:ok, file} -> file
+      {:error, _} -> nil
+    end
   end
 
   defp dnc_kind(%{direction: :out, command: %{direction: :send, operation: :part_program}}),

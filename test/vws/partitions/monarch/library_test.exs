@@ -191,19 +191,8 @@ defmodule Vws.Partitions.Monarch.LibraryTest do
     s = seq()
     WCPeer.send_string(peer, s, [{"M", number, "UPLOAD_SUN"}])
     assert Vws.Codecs.WC.Reply.decode(WCPeer.recv_line(peer)) == {:ok, {:ack, s}}
-    lines = receive_lines(peer, [])
+    lines = WCPeer.upload_lines(peer)
     {lines, finished(peer)}
-  end
-
-  defp receive_lines(peer, acc) do
-    n = rem(length(acc) + 1, 10_000)
-    {:ok, {:line, ^n, line}} = Vws.Codecs.WC.Reply.decode_line(WCPeer.recv_line(peer))
-    WCPeer.send_raw(peer, Vws.Codecs.WC.Reply.encode({:line_ack, n}))
-
-    case WCPeer.upload_closing(line, acc) do
-      {:closing, lines} -> lines
-      :more -> receive_lines(peer, [line | acc])
-    end
   end
 
   test "a program the operator sends from the machine is a library version from the machine, " <>
