@@ -228,13 +228,17 @@ defmodule Vws.ReleaseTest do
     read_all =
       ~S|for p <- File.ls!("/proc"), p =~ ~r/^\d+$/, | <>
         ~S|{:ok, c} <- [File.read("/proc/#{p}/cmdline")], c != "", | <>
-        ~S|do: IO.puts(p <> " " <> String.replace(c, <<0>>, " "))|
+        ~S|do: IO.puts(p <> " " <> String.replace(c, [<<0>>, "\n", "\r"], " "))|
 
     assert {out, 0} = bin(root, id, ["rpc", read_all])
 
+    # a command line may hold newlines (a shell's -c script): the rpc turns them into spaces, and
+    # a line that is not "<pid> <command line>" (output of the rpc itself) is left out
     seen =
       for line <- String.split(out, "\n", trim: true),
-          do: List.to_tuple(String.split(line, " ", parts: 2))
+          [pid, command] <- [String.split(line, " ", parts: 2)],
+          pid =~ ~r/^\d+$/,
+          do: {pid, command}
 
     assert Enum.any?(seen, fn {_, line} -> line =~ "rpc-" and line =~ "--rpc-eval" end), out
     assert List.keymember?(seen, os_pid, 0)
