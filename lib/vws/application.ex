@@ -15,10 +15,11 @@ defmodule Vws.Application do
 
     # the log in rotating files too, where configured (VWS_LOG_DIR)
     :ok = Vws.Ops.LogFile.start_configured()
-    # a crashing :gen_statem (SUN_COMM, the links) is logged as a crashing GenServer is. Added
-    # once (add_translator replaces an equal one) and never removed: removing it in stop/1 waits
-    # on the application controller, which is busy stopping this application (a deadlock)
-    :ok = Logger.add_translator({Vws.Ops.CrashLog, :translate})
+    # a crashing :gen_statem (SUN_COMM, the links) is logged as a crashing GenServer is, and a
+    # killed child once by its supervisor's report. Added once (add_translator replaces an equal
+    # one) and never removed: removing it in stop/1 waits on the application controller, which
+    # is busy stopping this application (a deadlock)
+    :ok = Vws.Ops.CrashLog.install()
 
     children =
       [

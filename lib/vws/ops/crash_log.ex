@@ -15,7 +15,66 @@ defmodule Vws.Ops.CrashLog do
 
   It never raises (a translator that raises would cost the log its handler): anything it cannot
   read it leaves to the translators after it.
+
+  A process killed from outside (`Process.exit(pid, :kill)`, an operator's `:erlang.exit/2`, the
+  OOM-guard of a supervisor's `max_heap_size`) writes no report of its own: it has no chance to.
+  The only trace is its supervisor's `child_terminated` report, again in the `[:otp, :sasl]`
+  domain that Logger drops. `install/0` therefore also adds a `:logger` handler of its own that
+  reads supervisor reports and writes one error line for a child that ended `:killed` — only that
+  reason, since every other abnormal end was already reported by the process itself, and
+  logging those too would say each crash twice.
   """
+
+  require Logger
+
+  @handler :vws_killed_children
+
+  @doc """
+  Adds the translator and the killed-children handler. Idempotent: a second call (a test that
+  restarts the application) replaces nothing and adds nothing twice.
+  """
+  @spec install() :: :ok
+  def install do
+    :ok = Logger.add_translator({__MODULE__, :translate})
+
+    case :logger.add_handler(@handler, __MODULE__, %{level: :error}) do
+      :ok -> :ok
+      {:error, {:already_exist, @handler}} -> :ok
+    end
+  end
+
+  @doc false
+  # :logger handler callback: a supervisor's report of a child that was killed
+  def log(%{msg: {:report, %{label: {:supervisor, :child_terminated}, report: report}}}, _config) do
+    with :killed <- Keyword.get(report, :reason),
+         offender when is_list(offender) <- Keyword.get(report, :offender) do
+      Logger.error(
+        [
+          "process ",
+          inspect(Keyword.get(offender, :pid)),
+          " (child ",
+          inspect(Keyword.get(offender, :id)),
+          " of ",
+          supervisor_name(Keyword.get(report, :supervisor)),
+          ") was killed; it could write no report of its own"
+        ],
+        crash_reason: {:killed, []}
+      )
+    end
+
+    :ok
+  rescue
+    _ -> :ok
+  end
+
+  def log(_event, _config), do: :ok
+
+  # a supervisor as its report names it: {:local, name}, {:global, name}, {pid, module}
+  defp supervisor_name({:local, name}), do: inspect(name)
+  defp supervisor_name({:global, name}), do: inspect({:global, name})
+  defp supervisor_name({:via, _, name}), do: inspect(name)
+  defp supervisor_name({pid, module}) when is_pid(pid), do: [inspect(pid), " ", inspect(module)]
+  defp supervisor_name(other), do: inspect(other)
 
   @doc false
   # Logger translator: {:ok, chardata, metadata} | :skip | :none

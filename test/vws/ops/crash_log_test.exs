@@ -83,4 +83,55 @@ defmodule Vws.Ops.CrashLogTest do
     assert line =~ ~r/^.*:gen_statem .* \(Vws\.CEC\.SunComm\.Server\) terminating$/
     assert log =~ "** (KeyError) key :dialogue not found"
   end
+
+  # a process killed from outside writes nothing itself: its supervisor's report is the trace
+  defp killed_lines(log), do: Regex.scan(~r/^.*was killed.*$/m, log) |> List.flatten()
+
+  test "a supervised process killed from outside is logged once, by its supervisor's report" do
+    log =
+      capture_log(fn ->
+        {:ok, sup} = Supervisor.start_link([{Agent, fn -> :state end}], strategy: :one_for_one)
+        [{Agent, pid, _, _}] = Supervisor.which_children(sup)
+        ref = Process.monitor(pid)
+        Process.exit(pid, :kill)
+        assert_receive {:DOWN, ^ref, :process, ^pid, :killed}
+        # the supervisor restarted it: its report was written before
+        assert Vws.Test.Eventually.eventually(fn ->
+                 match?(
+                   [{Agent, new, _, _}] when is_pid(new) and new != pid,
+                   Supervisor.which_children(sup)
+                 )
+               end)
+
+        Logger.flush()
+        send(self(), {:pid, pid, sup})
+        Supervisor.stop(sup)
+      end)
+
+    assert_received {:pid, pid, sup}
+    assert [line] = killed_lines(log), log
+
+    assert line =~
+             "process #{inspect(pid)} (child Agent of #{inspect(sup)} Supervisor.Default) was killed"
+  end
+
+  test "a supervised GenServer that crashes is logged once: by itself, not again as killed" do
+    log =
+      capture_log(fn ->
+        {:ok, sup} =
+          Supervisor.start_link([%{id: :server, start: {GenServer, :start_link, [Server, %{}]}}],
+            strategy: :one_for_one
+          )
+
+        [{:server, pid, _, _}] = Supervisor.which_children(sup)
+        ref = Process.monitor(pid)
+        catch_exit(GenServer.call(pid, :boom))
+        assert_receive {:DOWN, ^ref, :process, ^pid, _}
+        Logger.flush()
+        Supervisor.stop(sup)
+      end)
+
+    assert [_line] = crash_lines(log), log
+    assert killed_lines(log) == [], log
+  end
 end
