@@ -1,3 +1,12 @@
+# Every test run has a temporary directory of its own (TMPDIR, inherited by the OS processes the
+# tests start): paths made from System.unique_integer/1 repeat from one VM to the next, and two
+# runs on one host (two clones, a developer and CI) removed each other's release and files.
+run_tmp = Path.join(System.tmp_dir!(), "vws-test-run-#{System.pid()}")
+File.rm_rf!(run_tmp)
+File.mkdir_p!(run_tmp)
+System.put_env("TMPDIR", run_tmp)
+ExUnit.after_suite(fn _ -> File.rm_rf(run_tmp) end)
+
 # assert_receive waits up to 2 s by default: a loaded CI machine must not fail a correct test.
 #
 # max_cases: the suite waits far more than it computes — about 900 s of test time for about 120 s
