@@ -224,10 +224,10 @@ defmodule Vws.Ops.Inspect do
       {bus, address} = Vws.Peers.HydraulicController.daq2_device(name)
 
       daq2 =
-        case Registry.lookup(Vws.Registry, {bus, {:hpib, address}}) do
-          [{pid, _}] -> link_row({{Vws.Links.HPIB, bus, address}, pid, :worker, [Vws.Links.HPIB]})
-          [] -> link_row({{Vws.Links.HPIB, bus, address}, :undefined, :worker, [Vws.Links.HPIB]})
-        end
+        link_row(
+          {{Vws.Links.HPIB, bus, address}, Vws.Links.HPIB.whereis({bus, address}) || :undefined,
+           :worker, [Vws.Links.HPIB]}
+        )
 
       %{
         name: "hydraulic controller #{words(name)}",
@@ -244,11 +244,16 @@ defmodule Vws.Ops.Inspect do
   """
   @spec link_ref(term) :: String.t()
   def link_ref(nil), do: "none"
-  def link_ref({:via, Registry, {Vws.Registry, {_ws, :val}}}), do: "VAL II"
-  def link_ref({:via, Registry, {Vws.Registry, {_ws, :ge2000}}}), do: "GE-2000"
-  def link_ref({:via, Registry, {Vws.Registry, {_ws, role}}}), do: words(role)
   def link_ref({_bus, address}) when is_integer(address), do: "HPIB #{address}"
-  def link_ref(other), do: words(other)
+
+  def link_ref(name) do
+    case Vws.Names.role_of(name) do
+      :val -> "VAL II"
+      :ge2000 -> "GE-2000"
+      nil -> words(name)
+      role -> words(role)
+    end
+  end
 
   @doc """
   What a link is, for people: `"DAQ #1 (HPIB 9)"`, `"GE-2000 (DNC)"`, `"VAL II (DDCMP)"`, … —
