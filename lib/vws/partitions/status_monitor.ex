@@ -12,7 +12,7 @@ defmodule Vws.Partitions.StatusMonitor do
   the first read that succeeds again says so.
 
   Options: `:workstation`, `:link`, `:interval` (ms, default 1000; `nil`: no reads, only the
-  `:tick`), and the device's parts:
+  `:tick`); the device's parts are what `parts.(workstation, link)` gives:
 
     * `:read` — `fn -> {:ok, term} | {:error, why}` (run only while the workstation has
       mailboxes; without them the read fails with `NO MAILBOXES`);
@@ -30,15 +30,26 @@ defmodule Vws.Partitions.StatusMonitor do
   def child_spec(module, opts),
     do: %{id: Keyword.get(opts, :id, module), start: {module, :start_link, [opts]}}
 
-  @doc "Starts a monitor; its first read is taken at once. See the moduledoc for `opts`."
-  @spec start_link(keyword) :: GenServer.on_start()
-  def start_link(opts), do: GenServer.start_link(__MODULE__, opts)
+  @doc """
+  Starts a monitor of a device, whose parts `parts.(workstation, link)` gives (see the
+  moduledoc); its first read is taken at once.
+  """
+  @spec start_link(keyword, (term, term -> keyword)) :: GenServer.on_start()
+  def start_link(opts, parts) do
+    ws = Keyword.fetch!(opts, :workstation)
+
+    GenServer.start_link(
+      __MODULE__,
+      [workstation: ws, interval: Keyword.get(opts, :interval, 1_000)] ++
+        parts.(ws, Keyword.fetch!(opts, :link))
+    )
+  end
 
   @impl true
   def init(opts) do
     s = %{
       workstation: Keyword.fetch!(opts, :workstation),
-      interval: Keyword.get(opts, :interval, 1_000),
+      interval: Keyword.fetch!(opts, :interval),
       read: Keyword.fetch!(opts, :read),
       failed: Keyword.fetch!(opts, :failed),
       recovered: Keyword.fetch!(opts, :recovered),

@@ -74,12 +74,8 @@ defmodule Vws.Ops.MTConnect.Agent do
   the cell), `:sender` (default the host name).
   """
   @spec start_link(keyword) :: GenServer.on_start()
-  def start_link(opts \\ []) do
-    case Keyword.get(opts, :name) do
-      nil -> GenServer.start_link(__MODULE__, opts)
-      name -> GenServer.start_link(__MODULE__, opts, name: name)
-    end
-  end
+  def start_link(opts \\ []),
+    do: GenServer.start_link(__MODULE__, opts, Keyword.take(opts, [:name]))
 
   @doc "The probe document (for one device, by name, or all). Options: `format:`."
   @spec probe(agent, String.t() | nil, keyword) :: answer

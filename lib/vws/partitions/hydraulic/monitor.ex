@@ -24,23 +24,21 @@ defmodule Vws.Partitions.Hydraulic.Monitor do
   @doc false
   def child_spec(opts), do: StatusMonitor.child_spec(__MODULE__, opts)
 
-  @doc "Starts the monitor (a `Vws.Partitions.StatusMonitor`); its first reading is taken at once."
+  @doc "Starts the PALLET reader (a `Vws.Partitions.StatusMonitor`): its first read at once."
   @spec start_link(keyword) :: GenServer.on_start()
   def start_link(opts) do
-    ws = Keyword.fetch!(opts, :workstation)
-    link = Keyword.fetch!(opts, :link)
     timeout = Keyword.get(opts, :timeout, 1_000)
 
-    StatusMonitor.start_link(
-      workstation: ws,
-      interval: Keyword.get(opts, :interval, 1_000),
-      init: fn ->
-        if Mailbox.exists?(ws),
-          do: Mailbox.put_device(ws, 10, "NO DATA (HYDRAULIC CONTROLLER NOT READ YET)")
-      end,
-      read: fn -> Hydraulic.refresh_pallet(ws, link, timeout) end,
-      failed: &"HYDRAULIC cannot read the pallet: #{&1}",
-      recovered: "HYDRAULIC: the hydraulic controller answers again"
-    )
+    StatusMonitor.start_link(opts, fn ws, link ->
+      [
+        init: fn ->
+          if Mailbox.exists?(ws),
+            do: Mailbox.put_device(ws, 10, "NO DATA (HYDRAULIC CONTROLLER NOT READ YET)")
+        end,
+        read: fn -> Hydraulic.refresh_pallet(ws, link, timeout) end,
+        failed: &"HYDRAULIC cannot read the pallet: #{&1}",
+        recovered: "HYDRAULIC: the hydraulic controller answers again"
+      ]
+    end)
   end
 end

@@ -33,30 +33,28 @@ defmodule Vws.Partitions.Monarch.Monitor do
   @doc false
   def child_spec(opts), do: StatusMonitor.child_spec(__MODULE__, opts)
 
-  @doc "Starts the monitor (a `Vws.Partitions.StatusMonitor`); its first reading is taken at once."
+  @doc "Starts the MONARCH reader (a `Vws.Partitions.StatusMonitor`): its first read at once."
   @spec start_link(keyword) :: GenServer.on_start()
   def start_link(opts) do
-    ws = Keyword.fetch!(opts, :workstation)
-    link = Keyword.fetch!(opts, :link)
     options = Keyword.take(opts, [:check])
     store = Keyword.get(opts, :store, &Monarch.store_from_machine/3)
 
-    StatusMonitor.start_link(
-      workstation: ws,
-      interval: Keyword.get(opts, :interval, 1_000),
-      # the read waits for the line while a transfer holds it; the monitor meanwhile takes that
-      # transfer's progress (and a drip feed's ACTIVE, see machine_runs/2) as it comes
-      read: fn -> Monarch.refresh_status(ws, link, options) end,
-      failed: &"MONARCH cannot read the GE-2000's status: #{&1}",
-      recovered: "MONARCH: the GE-2000's status reads again",
-      # the link process this monitor owns (a restarted link is owned again)
-      ext: %{link: link, owner: nil},
-      tick: &own_link/1,
-      handle: fn message, ext ->
-        dnc(message, ws, store)
-        ext
-      end
-    )
+    StatusMonitor.start_link(opts, fn ws, link ->
+      [
+        # the read waits for the line while a transfer holds it; the monitor meanwhile takes that
+        # transfer's progress (and a drip feed's ACTIVE, see machine_runs/2) as it comes
+        read: fn -> Monarch.refresh_status(ws, link, options) end,
+        failed: &"MONARCH cannot read the GE-2000's status: #{&1}",
+        recovered: "MONARCH: the GE-2000's status reads again",
+        # the link process this monitor owns (a restarted link is owned again)
+        ext: %{link: link, owner: nil},
+        tick: &own_link/1,
+        handle: fn message, ext ->
+          dnc(message, ws, store)
+          ext
+        end
+      ]
+    end)
   end
 
   # Programs the operator sends from the machine, unasked (auto-receive): handed to MONARCH.
