@@ -31,6 +31,18 @@ defmodule Vws.Names do
   def id_of({:via, Registry, {Vws.Registry, {id, _role}}}), do: id
   def id_of(_name), do: nil
 
+  @doc """
+  The role inside a name made by `via/2`, or nil for any other name.
+
+      iex> Vws.Names.role_of(Vws.Names.via("VWS-1", :ge2000))
+      :ge2000
+      iex> Vws.Names.role_of({"VWS-1", 9})
+      nil
+  """
+  @spec role_of(term) :: term | nil
+  def role_of({:via, Registry, {Vws.Registry, {_id, role}}}), do: role
+  def role_of(_name), do: nil
+
   @doc "The pid of a workstation's supervisor or one of its parts, or nil."
   @spec whereis(term, term) :: pid | nil
   def whereis(id, role \\ :workstation) do

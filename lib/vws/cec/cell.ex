@@ -13,8 +13,8 @@ defmodule Vws.CEC.Cell do
   ## The cell view
 
   `workstations/0` lists every workstation of the cell, each with its node and its state,
-  asking each node once (`:erpc`) about its own workstations; `print/0` shows it from iex, the
-  dashboard (`Vws.Ops.Web`) shows it too, and the MTConnect agent (`Vws.Ops.MTConnect.Agent`) serves
+  asking each node once (`:erpc`) about its own workstations; `Vws.Ops.Inspect.cell/0` prints it
+  in iex, the dashboard (`Vws.Ops.Web`) shows it too, and the MTConnect agent (`Vws.Ops.MTConnect.Agent`) serves
   every workstation of the cell (`locations/0`) as a device:
 
       iex> {:ok, _} = Vws.CEC.Workstation.start(id: "doc-cell", wc: "loopback:doc-cell")
@@ -259,56 +259,6 @@ defmodule Vws.CEC.Cell do
       if listening, do: {:ok, n, listening}, else: {:error, :not_listening}
     end
   end
-
-  @doc "The cell view as text: one line per workstation (see `workstations/0`)."
-  @spec format([workstation]) :: String.t()
-  def format(workstations \\ workstations()) do
-    header = ["ID", "NODE", "STATE", "WC", "COMMANDS IN FLIGHT"]
-
-    rows =
-      for ws <- workstations do
-        wc =
-          case ws do
-            %{wc: nil} -> "-"
-            %{wc: wc, wc_connected: true} -> "#{wc} (WC on)"
-            %{wc: wc} -> wc
-            _ -> "?"
-          end
-
-        [to_text(ws.id), to_string(ws.node), to_string(ws.state), wc, in_flight(ws)]
-      end
-
-    widths =
-      Enum.reduce(rows, Enum.map(header, &String.length/1), fn row, widths ->
-        Enum.zip_with(row, widths, &max(String.length(&1), &2))
-      end)
-
-    line = fn row ->
-      row
-      |> Enum.zip(widths)
-      |> Enum.map_join("  ", fn {cell, w} -> String.pad_trailing(cell, w) end)
-      |> String.trim_trailing()
-    end
-
-    Enum.map_join([header | rows], "\n", line) <>
-      "\n#{length(rows)} workstation(s) on #{workstations |> Enum.uniq_by(& &1.node) |> length()} node(s)"
-  end
-
-  @doc "Prints the cell view (`format/1`)."
-  @spec print() :: :ok
-  def print, do: IO.puts(format())
-
-  defp in_flight(%{commands: commands}) do
-    case for({p, {n, :executing}} <- commands, do: "#{p} #{Vws.Codecs.WC.Command.pad4(n)}") do
-      [] -> "-"
-      list -> Enum.join(list, ", ")
-    end
-  end
-
-  defp in_flight(_), do: "?"
-
-  defp to_text(id) when is_binary(id), do: id
-  defp to_text(id), do: inspect(id)
 
   defp group(id), do: {:workstation, id}
 end

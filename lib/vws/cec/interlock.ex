@@ -372,22 +372,6 @@ defmodule Vws.CEC.Interlock do
     |> Enum.map(&elem(&1, 1))
   end
 
-  @doc "The leases as one line of text: `TABLE=ROBOT,FIXTURE TRAY1=MHS` (`NONE` when free)."
-  @spec format(Mailbox.workstation()) :: String.t()
-  def format(ws) do
-    case held(ws) do
-      [] ->
-        "NONE"
-
-      leases ->
-        leases
-        |> Enum.chunk_by(& &1.volume)
-        |> Enum.map_join(" ", fn [%{volume: v} | _] = group ->
-          "#{name(v)}=" <> Enum.map_join(group, ",", &name(&1.holder))
-        end)
-    end
-  end
-
   ## Helpers
 
   @doc "The name of a volume or holder as an error text shows it: `:tray1` → `TRAY1`."

@@ -144,7 +144,7 @@ defmodule Vws.CEC.Mailbox do
   @doc "Runs `fun.(table)` inside the owner, serialised with every other `locked/2` (LOCK/UNLOCK)."
   @spec locked(workstation, (:ets.tid() -> result)) :: result when result: var
   def locked(ws, fun) do
-    GenServer.call({:via, Registry, {Vws.Registry, {ws, :mailbox_owner}}}, {:locked, fun})
+    GenServer.call(Vws.Names.via(ws, :mailbox_owner), {:locked, fun})
   end
 
   ## Device status (locations 1–14)

@@ -100,16 +100,11 @@ defmodule Vws.CEC.Partition do
   end
 
   @doc "The registered name of a workstation's partition."
-  def via(ws, partition), do: {:via, Registry, {Vws.Registry, {ws, partition}}}
+  def via(ws, partition), do: Vws.Names.via(ws, partition)
 
   @doc "The pid of a workstation's partition, or nil."
   @spec whereis(term, Mailbox.partition()) :: pid | nil
-  def whereis(ws, partition) do
-    case Registry.lookup(Vws.Registry, {ws, partition}) do
-      [{pid, _}] -> pid
-      [] -> nil
-    end
-  end
+  def whereis(ws, partition), do: Vws.Names.whereis(ws, partition)
 
   @doc """
   What a partition is doing: `%{partition, current: nil | %{number, text, running_ms}, done,

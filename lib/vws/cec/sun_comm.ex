@@ -206,7 +206,7 @@ defmodule Vws.CEC.SunComm do
   defp check_listen(nil, _allow), do: :ok
   defp check_listen(wc, allow), do: Vws.Links.Transport.Policy.check_listen(wc, allow)
 
-  defp name(ws), do: {:via, Registry, {Vws.Registry, {ws, :sun_comm}}}
+  defp name(ws), do: Vws.Names.via(ws, :sun_comm)
 
   @doc """
   SUN_COMM's state for inspection: endpoint, where it listens, the WC peer, the mode (`:command`,

@@ -58,6 +58,13 @@ defmodule Vws.CEC.Workstation do
     hydraulic: Vws.Partitions.Hydraulic
   ]
 
+  @doc """
+  The command partitions of a workstation and the module each runs by default (a stand-in may
+  be given as a partition's `:module`), in the order they start.
+  """
+  @spec partition_modules() :: [{Vws.CEC.Mailbox.partition(), module}]
+  def partition_modules, do: @partition_modules
+
   @doc false
   def child_spec(opts) do
     %{

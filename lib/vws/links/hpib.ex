@@ -106,16 +106,11 @@ defmodule Vws.Links.HPIB do
 
   @doc "The registered name of a device process."
   @spec name(bus, address) :: GenServer.name()
-  def name(bus, address), do: {:via, Registry, {Vws.Registry, {bus, {:hpib, address}}}}
+  def name(bus, address), do: Vws.Names.via(bus, {:hpib, address})
 
   @doc "The pid of a device process, or nil."
   @spec whereis(device) :: pid | nil
-  def whereis({bus, address}) do
-    case Registry.lookup(Vws.Registry, {bus, {:hpib, address}}) do
-      [{pid, _}] -> pid
-      [] -> nil
-    end
-  end
+  def whereis({bus, address}), do: Vws.Names.whereis(bus, {:hpib, address})
 
   @doc "Sends one query and returns its decoded response."
   @spec query(device, Vws.Codecs.SCPI.command(), timeout | nil) ::

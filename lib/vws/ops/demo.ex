@@ -36,15 +36,6 @@ defmodule Vws.Ops.Demo do
   # issues that build the simulators.
   @simulators [Vws.Sim.Floor]
 
-  @partition_devices [
-    robot: Vws.Partitions.Robot,
-    monarch: Vws.Partitions.Monarch,
-    gripper: Vws.Partitions.Gripper,
-    fixture: Vws.Partitions.Fixture,
-    vacuum: Vws.Partitions.Vacuum,
-    hydraulic: Vws.Partitions.Hydraulic
-  ]
-
   @type shop_floor :: %{
           workstation: term,
           wc: String.t(),
@@ -90,7 +81,7 @@ defmodule Vws.Ops.Demo do
          {:ok, listening} <- wait_listening(id, 2_000),
          {:ok, wc} <- wc_line(id, to_string(listening), lines, opts[:supervisor]) do
       unlinked =
-        for {partition, module} <- @partition_devices,
+        for {partition, module} <- Vws.CEC.Workstation.partition_modules(),
             Vws.CEC.Partition.info(id, partition).link == nil,
             do: {partition, module.device()}
 

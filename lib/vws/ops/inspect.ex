@@ -224,10 +224,10 @@ defmodule Vws.Ops.Inspect do
       {bus, address} = Vws.Peers.HydraulicController.daq2_device(name)
 
       daq2 =
-        case Registry.lookup(Vws.Registry, {bus, {:hpib, address}}) do
-          [{pid, _}] -> link_row({{Vws.Links.HPIB, bus, address}, pid, :worker, [Vws.Links.HPIB]})
-          [] -> link_row({{Vws.Links.HPIB, bus, address}, :undefined, :worker, [Vws.Links.HPIB]})
-        end
+        link_row(
+          {{Vws.Links.HPIB, bus, address}, Vws.Links.HPIB.whereis({bus, address}) || :undefined,
+           :worker, [Vws.Links.HPIB]}
+        )
 
       %{
         name: "hydraulic controller #{words(name)}",
@@ -244,11 +244,16 @@ defmodule Vws.Ops.Inspect do
   """
   @spec link_ref(term) :: String.t()
   def link_ref(nil), do: "none"
-  def link_ref({:via, Registry, {Vws.Registry, {_ws, :val}}}), do: "VAL II"
-  def link_ref({:via, Registry, {Vws.Registry, {_ws, :ge2000}}}), do: "GE-2000"
-  def link_ref({:via, Registry, {Vws.Registry, {_ws, role}}}), do: words(role)
   def link_ref({_bus, address}) when is_integer(address), do: "HPIB #{address}"
-  def link_ref(other), do: words(other)
+
+  def link_ref(name) do
+    case Vws.Names.role_of(name) do
+      :val -> "VAL II"
+      :ge2000 -> "GE-2000"
+      nil -> words(name)
+      role -> words(role)
+    end
+  end
 
   @doc """
   What a link is, for people: `"DAQ #1 (HPIB 9)"`, `"GE-2000 (DNC)"`, `"VAL II (DDCMP)"`, … —
@@ -341,7 +346,7 @@ defmodule Vws.Ops.Inspect do
       Enum.map(command_rows, &Enum.join/1),
       "",
       "NC file: #{length(s.nc_file)} lines   NC_UP: #{length(s.nc_up)} lines",
-      "INTERLOCKS: " <> Vws.CEC.Interlock.format(ws),
+      "INTERLOCKS: " <> format_leases(s.interlocks),
       "EVENTS: " <> Enum.map_join(s.events, "  ", fn {e, n} -> "#{e}=#{n}" end)
     ]
     |> List.flatten()
@@ -354,6 +359,60 @@ defmodule Vws.Ops.Inspect do
   defp device_age(%{age_ms: ms}), do: "#{div(ms, 1000)}s"
   defp device_value(nil), do: "(no data)"
   defp device_value(v), do: Mailbox.device_text(v)
+
+  @doc """
+  The interlock leases (`Vws.CEC.Interlock.held/1`) as one line of text:
+  `TABLE=ROBOT,FIXTURE TRAY1=MHS` (`NONE` when free).
+  """
+  @spec format_leases([Vws.CEC.Interlock.lease()]) :: String.t()
+  def format_leases([]), do: "NONE"
+
+  def format_leases(leases) do
+    leases
+    |> Enum.chunk_by(& &1.volume)
+    |> Enum.map_join(" ", fn [%{volume: v} | _] = group ->
+      "#{Vws.CEC.Interlock.name(v)}=" <>
+        Enum.map_join(group, ",", &Vws.CEC.Interlock.name(&1.holder))
+    end)
+  end
+
+  @doc "Prints the cell view: every workstation of the cell (`Vws.CEC.Cell.workstations/0`)."
+  @spec cell() :: :ok
+  def cell, do: IO.puts(format_cell(Vws.CEC.Cell.workstations()))
+
+  @doc "The cell view `cell/0` prints: one line per workstation, then how many on how many nodes."
+  @spec format_cell([Vws.CEC.Cell.workstation()]) :: String.t()
+  def format_cell(workstations) do
+    rows =
+      for ws <- workstations do
+        wc =
+          case ws do
+            %{wc: nil} -> "-"
+            %{wc: wc, wc_connected: true} -> "#{wc} (WC on)"
+            %{wc: wc} -> wc
+            _ -> "?"
+          end
+
+        [cell_id(ws.id), to_string(ws.node), to_string(ws.state), wc, in_flight(ws)]
+      end
+
+    nodes = workstations |> Enum.uniq_by(& &1.node) |> length()
+
+    Vws.Ops.TextTable.render(["ID", "NODE", "STATE", "WC", "COMMANDS IN FLIGHT"], rows) <>
+      "\n#{length(rows)} workstation(s) on #{nodes} node(s)"
+  end
+
+  defp in_flight(%{commands: commands}) do
+    case for({p, {n, :executing}} <- commands, do: "#{p} #{number(n)}") do
+      [] -> "-"
+      list -> Enum.join(list, ", ")
+    end
+  end
+
+  defp in_flight(_), do: "?"
+
+  defp cell_id(id) when is_binary(id), do: id
+  defp cell_id(id), do: inspect(id)
 
   @doc "Prints the partitions table."
   @spec partitions(workstation) :: :ok
@@ -673,21 +732,7 @@ defmodule Vws.Ops.Inspect do
       info: nil
     }
 
-  defp table(title, header, rows) do
-    widths =
-      Enum.reduce([header | rows], List.duplicate(0, length(header)), fn row, acc ->
-        Enum.zip_with(row, acc, &max(String.length(&1), &2))
-      end)
-
-    line = fn row ->
-      row
-      |> Enum.zip(widths)
-      |> Enum.map_join("  ", fn {cell, w} -> String.pad_trailing(cell, w) end)
-      |> String.trim_trailing()
-    end
-
-    Enum.join([title, line.(header) | Enum.map(rows, line)], "\n")
-  end
+  defp table(title, header, rows), do: title <> "\n" <> Vws.Ops.TextTable.render(header, rows)
 
   @doc false
   # A short human label for an id, state or interlock name: :table -> "table", {:tray, 1} -> "tray 1".

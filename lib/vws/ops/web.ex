@@ -95,9 +95,9 @@ defmodule Vws.Ops.Web do
 
   @impl true
   def init({ref, opts}) do
-    agent = {:via, Registry, {Vws.Registry, {__MODULE__, ref, :agent}}}
-    connections = {:via, Registry, {Vws.Registry, {__MODULE__, ref, :connections}}}
-    snapshot = {:via, Registry, {Vws.Registry, {__MODULE__, ref, :snapshot}}}
+    agent = Vws.Names.via({__MODULE__, ref}, :agent)
+    connections = Vws.Names.via({__MODULE__, ref}, :connections)
+    snapshot = Vws.Names.via({__MODULE__, ref}, :snapshot)
     control = opts[:token] not in [nil, ""]
     max = Keyword.get(opts, :max_connections, Vws.Ops.Web.Server.defaults()[:max_connections])
 

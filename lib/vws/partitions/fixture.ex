@@ -127,7 +127,8 @@ defmodule Vws.Partitions.Fixture do
     since = System.monotonic_time(:microsecond)
 
     VwsStatus.await(ctx.workstation, since, timeout(ctx), fn r, prev ->
-      with {:ok, [jaw, force]} <- VwsStatus.values(r, [:vise_jaw_mm, :vise_force_n], "VISE") do
+      with {:ok, [jaw, force]} <-
+             VwsStatus.Sensors.values(r, [:vise_jaw_mm, :vise_force_n], "VISE") do
         if rest?(prev, jaw, force),
           do: :ok,
           else: {:wait, "JAWS #{mm(jaw)} MM APART, FORCE #{n(force)} N"}
@@ -138,7 +139,7 @@ defmodule Vws.Partitions.Fixture do
   defp rest?(nil, _jaw, _force), do: false
 
   defp rest?(prev, jaw, force) do
-    case VwsStatus.values(prev, [:vise_jaw_mm, :vise_force_n], "VISE") do
+    case VwsStatus.Sensors.values(prev, [:vise_jaw_mm, :vise_force_n], "VISE") do
       {:ok, [jaw0, force0]} -> abs(jaw - jaw0) <= @rest_mm and abs(force - force0) <= @rest_n
       _ -> false
     end
@@ -149,7 +150,7 @@ defmodule Vws.Partitions.Fixture do
 
     VwsStatus.operate(ctx.workstation, actions, timeout(ctx), fn r ->
       with {:ok, [open, jaw, force]} <-
-             VwsStatus.values(r, [:vise_fully_open, :vise_jaw_mm, :vise_force_n], "VISE") do
+             VwsStatus.Sensors.values(r, [:vise_fully_open, :vise_jaw_mm, :vise_force_n], "VISE") do
         if open,
           do: :ok,
           else: {:wait, "VISE DID NOT OPEN (JAWS #{mm(jaw)} MM APART, FORCE #{n(force)} N)"}
@@ -163,7 +164,7 @@ defmodule Vws.Partitions.Fixture do
     signals = [:vise_part_present, :vise_fully_open, :vise_jaw_mm, :vise_force_n]
 
     VwsStatus.operate(ctx.workstation, actions, timeout(ctx), fn r, prev ->
-      with {:ok, [part, open, jaw, force]} <- VwsStatus.values(r, signals, "VISE") do
+      with {:ok, [part, open, jaw, force]} <- VwsStatus.Sensors.values(r, signals, "VISE") do
         cond do
           part and force >= min and rest?(prev, jaw, force) ->
             :ok

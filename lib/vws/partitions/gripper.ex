@@ -40,7 +40,7 @@ defmodule Vws.Partitions.Gripper do
 
     VwsStatus.operate(ctx.workstation, actions, timeout(ctx, 3_000), fn r ->
       with {:ok, [open, mm]} <-
-             VwsStatus.values(r, [:gripper_fully_open, :gripper_finger_mm], "GRIPPER") do
+             VwsStatus.Sensors.values(r, [:gripper_fully_open, :gripper_finger_mm], "GRIPPER") do
         if open,
           do: :ok,
           else: {:wait, "GRIPPER DID NOT OPEN (FINGERS #{DeviceStatus.mm(mm)} MM APART)"}
@@ -53,7 +53,7 @@ defmodule Vws.Partitions.Gripper do
 
     VwsStatus.operate(ctx.workstation, actions, timeout(ctx, 3_000), fn r, prev ->
       with {:ok, [open, mm]} <-
-             VwsStatus.values(r, [:gripper_fully_open, :gripper_finger_mm], "GRIPPER") do
+             VwsStatus.Sensors.values(r, [:gripper_fully_open, :gripper_finger_mm], "GRIPPER") do
         still? =
           case prev && Readings.get(prev, :gripper_finger_mm) do
             before when is_float(before) -> abs(before - mm) <= @still_mm
@@ -78,7 +78,7 @@ defmodule Vws.Partitions.Gripper do
     switches = [:indexer_0, :indexer_90, :indexer_180, :indexer_270]
 
     VwsStatus.operate(ctx.workstation, actions, timeout(ctx, 6_000), fn r ->
-      with {:ok, _states} <- VwsStatus.values(r, switches, "GRIPPER") do
+      with {:ok, _states} <- VwsStatus.Sensors.values(r, switches, "GRIPPER") do
         case DeviceStatus.indexer(r) do
           {:ok, ^deg} -> :ok
           {:ok, other} -> {:wait, "INDEXER DID NOT REACH #{deg} DEG (AT #{other} DEG)"}

@@ -28,7 +28,7 @@ defmodule Vws.Partitions.Vacuum do
     timeout = Keyword.get(ctx.options, :timeout_ms, 3_000)
 
     VwsStatus.operate(ctx.workstation, [vacuum_motor: action], timeout, fn r ->
-      case VwsStatus.values(r, [:vacuum_on], "VACUUM") do
+      case VwsStatus.Sensors.values(r, [:vacuum_on], "VACUUM") do
         {:ok, [^on?]} -> :ok
         {:ok, [_]} when on? -> {:wait, "VACUUM DID NOT TURN ON (PRESSURE SWITCH OPEN)"}
         {:ok, [_]} -> {:wait, "VACUUM DID NOT TURN OFF (PRESSURE SWITCH CLOSED)"}

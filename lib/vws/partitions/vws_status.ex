@@ -64,6 +64,13 @@ defmodule Vws.Partitions.VwsStatus do
   node;
   `:daq` — `Vws.Links.DAQ.new/1` options (`:channel_map`, `:switches`).
 
+  ## Sensors
+
+  What it knows of DAQ #1's sensors and relays without a process — the locations and what they
+  hold without a fresh reading, how location 11 reads, the values of signals for a check
+  (`Vws.Partitions.VwsStatus.Sensors.values/3`, which GRIPPER, FIXTURE and VACUUM use), the
+  tray locks, how an HPIB answer reads as a command status — is `Vws.Partitions.VwsStatus.Sensors`.
+
   ## Telemetry
 
   `[:vws, :vws_status, :poll | :missed | :stale | :actuation_retry]`, with their measurements
@@ -76,22 +83,11 @@ defmodule Vws.Partitions.VwsStatus do
   alias Vws.Links.{DAQ, HPIB}
   alias Vws.CEC.Mailbox
   alias Vws.Links.DAQ.{DeviceStatus, Readings}
+  alias Vws.Partitions.VwsStatus.Sensors
 
   @device "DAQ #1"
-  # relays wired as push buttons: pressed briefly, never to stay closed
-  @buttons [:cycle_start_relay]
-  @daq_locations [1, 2, 3, 4, 5, 7, 11]
-  @text_locations [1, 2, 3, 4, 5, 7]
-  @sensors_location 11
   # how many times an actuation whose relays are not as commanded is sent again
   @actuation_retries 2
-  # Locations written by another partition: {location, its device, the `devices:` key of its link}
-  @other_locations [
-    {6, "GE-2000", :ge2000},
-    {8, "GE-2000", :ge2000},
-    {9, "VAL II", :robot},
-    {10, "HYDRAULIC CONTROLLER", :hydraulic}
-  ]
 
   @defaults [
     poll_ms: 20,
@@ -123,11 +119,8 @@ defmodule Vws.Partitions.VwsStatus do
   """
   @spec readings(workstation) :: {:ok, Readings.t()} | {:no_data, String.t()}
   def readings(ws) do
-    case Mailbox.get_device(ws, @sensors_location) do
-      {%Readings{} = r, _age} -> {:ok, r}
-      {{:no_data, why}, _age} -> {:no_data, why}
-      {_other, _age} -> {:no_data, "#{@device} NOT READ YET"}
-    end
+    {value, _age} = Mailbox.get_device(ws, Sensors.sensors_location())
+    Sensors.reading(value)
   end
 
   @doc """
@@ -244,33 +237,6 @@ defmodule Vws.Partitions.VwsStatus do
   end
 
   @doc """
-  The values of `signals` in one reading, for a `check` of `await/4`: `{:ok, values}`, or the
-  verdict when one cannot be read — `{:wait, "<DEVICE> SENSOR CH nnn OPEN CIRCUIT"}` (it may
-  come back), `{:fail, "<DEVICE> SENSOR <SIGNAL> NOT WIRED"}` (it never will).
-  """
-  @spec values(Readings.t(), [atom], String.t()) ::
-          {:ok, [Readings.value()]} | {:wait, String.t()} | {:fail, String.t()}
-  def values(r, signals, device) do
-    Enum.reduce_while(signals, {:ok, []}, fn signal, {:ok, acc} ->
-      case Readings.get(r, signal) do
-        :open_circuit ->
-          {:halt, {:wait, "#{device} SENSOR CH #{Readings.channel(r, signal)} OPEN CIRCUIT"}}
-
-        nil ->
-          {:halt,
-           {:fail, "#{device} SENSOR #{signal |> to_string() |> String.upcase()} NOT WIRED"}}
-
-        value ->
-          {:cont, {:ok, [value | acc]}}
-      end
-    end)
-    |> case do
-      {:ok, values} -> {:ok, Enum.reverse(values)}
-      verdict -> verdict
-    end
-  end
-
-  @doc """
   Presses a button wired to a relay: closes it, holds it `pulse_ms`, opens it. `:ok` only if both
   were confirmed.
   """
@@ -287,9 +253,6 @@ defmodule Vws.Partitions.VwsStatus do
     :exit, {:timeout, _} -> {:error, "#{@device} NOT ANSWERING (NO ANSWER IN #{timeout} MS)"}
     :exit, _ -> {:error, "VWS_STATUS NOT RUNNING"}
   end
-
-  defp relay_name(relay) when is_atom(relay), do: relay |> to_string() |> String.upcase()
-  defp relay_name(relay), do: to_string(relay)
 
   @doc """
   The function MONARCH's CYCLE_START calls (`ctx.options[:cycle_start]`): presses the
@@ -316,24 +279,11 @@ defmodule Vws.Partitions.VwsStatus do
   @doc "Locks or unlocks tray 1 or 2 and confirms it on its lock-pin switch."
   @spec tray_lock(workstation, 1 | 2, :lock | :release | :unlock, non_neg_integer) ::
           :ok | {:error, String.t()}
-  def tray_lock(ws, tray, how, timeout_ms)
-      when tray in [1, 2] and how in [:lock, :release, :unlock] do
-    relay = if tray == 1, do: :tray1_lock, else: :tray2_lock
-    switch = if tray == 1, do: :tray1_locked, else: :tray2_locked
-    locked? = how == :lock
+  def tray_lock(ws, tray, how, timeout_ms) do
+    {action, check} = Sensors.tray_lock(tray, how)
 
-    with :ok <- actuate(ws, [{relay, if(locked?, do: :close, else: :open)}]) do
-      since = System.monotonic_time(:microsecond)
-
-      await(ws, since, timeout_ms, fn r ->
-        case Readings.get(r, switch) do
-          ^locked? -> :ok
-          :open_circuit -> {:wait, "TRAY #{tray} LOCK SWITCH OPEN CIRCUIT"}
-          _ when locked? -> {:wait, "TRAY #{tray} LOCK PIN NOT ENGAGED"}
-          _ -> {:wait, "TRAY #{tray} LOCK PIN NOT RELEASED"}
-        end
-      end)
-    end
+    with :ok <- actuate(ws, [action]),
+         do: await(ws, System.monotonic_time(:microsecond), timeout_ms, check)
   end
 
   @doc """
@@ -391,11 +341,10 @@ defmodule Vws.Partitions.VwsStatus do
 
     configured = Keyword.get(opts, :devices, [])
 
-    for {loc, device, key} <- @other_locations, Mailbox.get_device(ws, loc) |> elem(0) == nil do
-      # a configured device has not been read yet; an unconfigured one has no link at all
-      why = if key in configured, do: "#{device} NOT READ YET", else: "NO LINK TO #{device}"
-      Mailbox.put_device(ws, loc, "NO DATA (#{why})")
-    end
+    # a configured device has not been read yet; an unconfigured one has no link at all
+    for {loc, text} <- Sensors.other_locations(configured),
+        Mailbox.get_device(ws, loc) |> elem(0) == nil,
+        do: Mailbox.put_device(ws, loc, text)
 
     if link == nil do
       write_no_data(ws, "NO LINK TO #{@device}")
@@ -423,7 +372,7 @@ defmodule Vws.Partitions.VwsStatus do
         actuations: [],
         # buttons whose release is not confirmed (a predecessor may have held one: all of
         # them at start), and how many releases are on their way
-        unreleased: buttons(Keyword.get(opts, :daq, [])),
+        unreleased: Sensors.buttons(Keyword.get(opts, :daq, [])),
         releasing: 0,
         seq: 0,
         last_good_at: now,
@@ -643,7 +592,7 @@ defmodule Vws.Partitions.VwsStatus do
   # No good poll for stale_after_ms: the texts must not go on showing the old values.
   defp check_stale(s, now_ms) do
     if now_ms - s.last_good_at > s.stale_after_ms do
-      why = stale_reason(s)
+      why = Sensors.stale_reason(s.stats.last_error, s.poll != nil, s.stale)
 
       if why != s.stale do
         # once per outage, not per reason it gives (NOT CONNECTED, NOT ANSWERING alternate at
@@ -665,25 +614,14 @@ defmodule Vws.Partitions.VwsStatus do
     end
   end
 
-  defp stale_reason(s) do
-    case s.stats.last_error do
-      _ when s.poll != nil -> "#{@device} NOT ANSWERING"
-      %HPIB.Error{reason: :timeout} -> "#{@device} NOT ANSWERING"
-      %HPIB.Error{reason: :not_connected, detail: :timeout} -> "#{@device} NOT ANSWERING"
-      %HPIB.Error{reason: :bad_response} -> "#{@device} BAD ANSWER"
-      %HPIB.Error{} -> "#{@device} NOT CONNECTED"
-      nil -> s.stale || "#{@device} NOT ANSWERING"
-    end
-  end
-
   defp write_no_data(ws, why) do
-    for loc <- @text_locations, do: Mailbox.put_device(ws, loc, DeviceStatus.no_data(why))
-    put_sensors(ws, {:no_data, why})
+    for {loc, value} <- Sensors.no_data(why), do: Mailbox.put_device(ws, loc, value)
+    Vws.CEC.Events.cause(ws, :sensors)
   end
 
   # Location 11, and the event that wakes whoever awaits a reading (await/4).
   defp put_sensors(ws, value) do
-    Mailbox.put_device(ws, @sensors_location, value)
+    Mailbox.put_device(ws, Sensors.sensors_location(), value)
     Vws.CEC.Events.cause(ws, :sensors)
   end
 
@@ -698,7 +636,7 @@ defmodule Vws.Partitions.VwsStatus do
     Enum.reduce_while(s.actuations, :no_reply, fn {req, _from, {_, expected, _}} = a, _ ->
       case HPIB.check_response(msg, req) do
         :no_reply -> {:cont, :no_reply}
-        result -> {:halt, {a, actuation_result(result, expected)}}
+        result -> {:halt, {a, Sensors.actuation_result(result, expected)}}
       end
     end)
     |> case do
@@ -772,12 +710,12 @@ defmodule Vws.Partitions.VwsStatus do
     case reply do
       :ok ->
         if caller, do: GenServer.reply(caller, :ok)
-        names = Enum.map_join(relays, ", ", &relay_name/1)
+        names = Enum.map_join(relays, ", ", &Sensors.relay_name/1)
         Vws.LogLimit.clear({:not_released, relays}, "VWS_STATUS: #{names} let go")
         %{s | unreleased: MapSet.difference(s.unreleased, MapSet.new(relays))}
 
       {:error, why} ->
-        names = Enum.map_join(relays, ", ", &relay_name/1)
+        names = Enum.map_join(relays, ", ", &Sensors.relay_name/1)
 
         # once until it is let go, not at every try
         Vws.LogLimit.warning(
@@ -785,7 +723,6 @@ defmodule Vws.Partitions.VwsStatus do
           "VWS_STATUS: #{names} not let go (#{why}); trying again until it is"
         )
 
-        names = Enum.map_join(relays, ", ", &relay_name/1)
         if caller, do: GenServer.reply(caller, {:error, "RELAY #{names} NOT RELEASED: " <> why})
         s
     end
@@ -795,32 +732,4 @@ defmodule Vws.Partitions.VwsStatus do
     GenServer.reply(from, reply)
     s
   end
-
-  # The buttons this DAQ's channel map has.
-  defp buttons(daq_opts) do
-    daq = DAQ.new(daq_opts)
-
-    for b <- @buttons,
-        match?({:ok, _, _}, DAQ.actuation(daq, [{b, :open}])),
-        into: MapSet.new(),
-        do: b
-  end
-
-  defp actuation_result({:ok, results}, expected) do
-    with {:error, why} <- DAQ.confirm_relays(expected, results, @device),
-         do: {:error, {:relays, why, results}}
-  end
-
-  defp actuation_result({:error, %HPIB.Error{reason: reason} = error}, _expected)
-       when reason in [:bad_response, :timeout],
-       do: {:error, {:damaged, hpib_reason(error)}}
-
-  defp actuation_result({:error, error}, _expected), do: {:error, hpib_reason(error)}
-
-  @doc false
-  # An HPIB error as a command status shows it.
-  def hpib_reason(%HPIB.Error{} = error), do: HPIB.Error.status_reason(error, @device)
-
-  @doc false
-  def daq_locations, do: @daq_locations
 end

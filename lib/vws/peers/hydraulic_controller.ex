@@ -178,5 +178,5 @@ defmodule Vws.Peers.HydraulicController do
   end
 
   defp via(name, role),
-    do: {:via, Registry, {Vws.Registry, {{:hydraulic_controller, name}, role}}}
+    do: Vws.Names.via({:hydraulic_controller, name}, role)
 end

@@ -132,7 +132,7 @@ defmodule Vws.Sim.Soak do
 
   # the floor's supervisor (its lines are its children), then the WC's line of Vws.Ops.Demo
   defp stop_floor(id) do
-    for name <- [{:via, Registry, {Vws.Registry, {id, :sim_floor}}}, Floor.line(id, :wc)],
+    for name <- [Vws.Names.via(id, :sim_floor), Floor.line(id, :wc)],
         pid = GenServer.whereis(name),
         do: GenServer.stop(pid)
   end

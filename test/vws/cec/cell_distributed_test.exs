@@ -110,7 +110,7 @@ defmodule Vws.CEC.CellDistributedTest do
     assert Enum.map(dashboard, &{&1.id, &1.node, &1.state, &1.wc_connected}) ==
              Enum.map(peers, &{&1.id, to_string(&1.node), "idle", true})
 
-    text = Cell.format(view)
+    text = Vws.Ops.Inspect.format_cell(view)
     for %{id: id, node: node} <- peers, do: assert(text =~ ~r/#{id}\s+#{node}\s+idle/)
 
     # a node that leaves takes its workstation out of the cell, and its WC hears the close

@@ -38,7 +38,7 @@ defmodule Vws.CEC.CellTest do
     assert_receive {:executing, pid, 1, "DO MOVE SAFE"}
 
     assert %{state: :busy, wc_connected: true, commands: %{robot: {1, :executing}}} = view.()
-    text = Cell.format(Enum.filter(Cell.workstations(), &(&1.id == ws)))
+    text = Vws.Ops.Inspect.format_cell(Enum.filter(Cell.workstations(), &(&1.id == ws)))
     assert text =~ ~r/#{ws}\s+#{node()}\s+busy\s+loopback:wc-#{ws} \(WC on\)\s+robot 0001/
     assert text =~ "1 workstation(s) on 1 node(s)"
 

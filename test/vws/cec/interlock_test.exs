@@ -18,7 +18,9 @@ defmodule Vws.CEC.InterlockTest do
     assert Interlock.acquire(ws, :tray1, :mhs, 0) == :ok
     assert Interlock.acquire(ws, :tray1, :robot, 0) == {:error, "INTERLOCK TRAY1 HELD BY MHS"}
     assert Interlock.acquire(ws, :tray2, :robot, 0) == :ok
-    assert Interlock.format(ws) == "TABLE=ROBOT,FIXTURE TRAY1=MHS TRAY2=ROBOT"
+
+    assert Vws.Ops.Inspect.format_leases(Interlock.held(ws)) ==
+             "TABLE=ROBOT,FIXTURE TRAY1=MHS TRAY2=ROBOT"
 
     :ok = Interlock.release(ws, :table, :robot)
     :ok = Interlock.release(ws, :table, :fixture)
@@ -75,7 +77,7 @@ defmodule Vws.CEC.InterlockTest do
     refute Interlock.holds?(ws, :table, :robot, :disabled)
     :ok = Interlock.release(ws, :table, :robot, :inside)
     assert Interlock.held(ws) == []
-    assert Interlock.format(ws) == "NONE"
+    assert Vws.Ops.Inspect.format_leases(Interlock.held(ws)) == "NONE"
     # releasing what is not held is fine
     assert Interlock.release(ws, :tray2, :robot) == :ok
   end

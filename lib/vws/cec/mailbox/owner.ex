@@ -17,9 +17,7 @@ defmodule Vws.CEC.Mailbox.Owner do
   def start_link(opts) do
     ws = Keyword.fetch!(opts, :workstation)
 
-    GenServer.start_link(__MODULE__, ws,
-      name: {:via, Registry, {Vws.Registry, {ws, :mailbox_owner}}}
-    )
+    GenServer.start_link(__MODULE__, ws, name: Vws.Names.via(ws, :mailbox_owner))
   end
 
   @impl true

@@ -152,21 +152,10 @@ defmodule Vws.Links.DAQ.DeviceStatus do
   def newtons(value), do: if(value > 0, do: round(value), else: 0) |> Integer.to_string()
 
   defp fetch(r, device, signals) do
-    Enum.reduce_while(signals, {:ok, []}, fn signal, {:ok, acc} ->
-      case Readings.get(r, signal) do
-        nil ->
-          {:halt, no_data("#{device} NOT WIRED TO DAQ #1")}
-
-        :open_circuit ->
-          {:halt, no_data("#{device} SENSOR CH #{Readings.channel(r, signal)} OPEN CIRCUIT")}
-
-        value ->
-          {:cont, {:ok, [value | acc]}}
-      end
-    end)
-    |> case do
-      {:ok, values} -> {:ok, Enum.reverse(values)}
-      text -> text
+    case Readings.fetch(r, signals) do
+      {:ok, values} -> {:ok, values}
+      {:not_wired, _signal} -> no_data("#{device} NOT WIRED TO DAQ #1")
+      {:open_circuit, ch} -> no_data("#{device} SENSOR CH #{ch} OPEN CIRCUIT")
     end
   end
 end

@@ -43,6 +43,36 @@ defmodule Vws.Links.DAQ.Readings do
   @spec get(t, atom) :: value | nil
   def get(%__MODULE__{values: values}, signal), do: Map.get(values, signal)
 
+  @doc """
+  The values of `signals` in this reading, in order: `{:ok, values}`, or why one cannot be had —
+  the first signal that reads the DMM's overload value (`{:open_circuit, channel}`) or is not
+  wired (`{:not_wired, signal}`). The device texts (`Vws.Links.DAQ.DeviceStatus`) and the
+  partitions' checks (`Vws.Partitions.VwsStatus.Sensors.values/3`) both read signals this way.
+
+      iex> r = %Vws.Links.DAQ.Readings{values: %{a: true, b: :open_circuit}, channels: %{b: 104}}
+      iex> Vws.Links.DAQ.Readings.fetch(r, [:a])
+      {:ok, [true]}
+      iex> Vws.Links.DAQ.Readings.fetch(r, [:a, :b, :c])
+      {:open_circuit, 104}
+      iex> Vws.Links.DAQ.Readings.fetch(r, [:c, :b])
+      {:not_wired, :c}
+  """
+  @spec fetch(t, [atom]) ::
+          {:ok, [value]} | {:open_circuit, pos_integer | nil} | {:not_wired, atom}
+  def fetch(%__MODULE__{} = r, signals) do
+    Enum.reduce_while(signals, {:ok, []}, fn signal, {:ok, acc} ->
+      case get(r, signal) do
+        nil -> {:halt, {:not_wired, signal}}
+        :open_circuit -> {:halt, {:open_circuit, channel(r, signal)}}
+        value -> {:cont, {:ok, [value | acc]}}
+      end
+    end)
+    |> case do
+      {:ok, values} -> {:ok, Enum.reverse(values)}
+      why -> why
+    end
+  end
+
   @doc "The channel a signal was read on (for messages), or nil."
   @spec channel(t, atom) :: pos_integer | nil
   def channel(%__MODULE__{channels: channels}, signal), do: Map.get(channels, signal)

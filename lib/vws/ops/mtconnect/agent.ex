@@ -31,7 +31,7 @@ defmodule Vws.Ops.MTConnect.Agent do
   a link process that dies is seen by its monitor, its connection `CLOSED` at once; a link seen
   for the first time (a restarted one's first word) has its workstation's links read again.
 
-  Workstations on other nodes: a forwarder process on each such node subscribes to their change
+  Workstations on other nodes: a forwarder process on each such node (`Vws.Ops.MTConnect.Forwarder`) subscribes to their change
   notices (and their GE-2000 links' transfer progress, and their links' connection changes,
   `Vws.Ops.MTConnect.LinkWatch`), reads their mailboxes once and sends the agent that snapshot
   and then every change, so their transitions are recorded as they happen too; before each
@@ -43,7 +43,7 @@ defmodule Vws.Ops.MTConnect.Agent do
 
   ## Buffer and checkpoints
 
-  As the reference agent: the buffer holds the last `:buffer_size` observations (default
+  As the reference agent (`Vws.Ops.MTConnect.Buffer`, plain data the agent holds): the buffer holds the last `:buffer_size` observations (default
   131 072, cppagent's `BufferSize = 17`), and every `:checkpoint_frequency` observations
   (default 1000, cppagent's `CheckpointFrequency`) the state of every data item is kept, so
   that `current?at=N` is built from the checkpoint before `N` and the observations after it;
@@ -56,7 +56,7 @@ defmodule Vws.Ops.MTConnect.Agent do
   use GenServer
 
   alias Vws.CEC.Mailbox
-  alias Vws.Ops.MTConnect.{LinkWatch, Model, Path, XML}
+  alias Vws.Ops.MTConnect.{Buffer, Forwarder, LinkWatch, Model, Path, XML}
 
   @default_buffer 131_072
   @default_checkpoint 1000
@@ -74,12 +74,8 @@ defmodule Vws.Ops.MTConnect.Agent do
   the cell), `:sender` (default the host name).
   """
   @spec start_link(keyword) :: GenServer.on_start()
-  def start_link(opts \\ []) do
-    case Keyword.get(opts, :name) do
-      nil -> GenServer.start_link(__MODULE__, opts)
-      name -> GenServer.start_link(__MODULE__, opts, name: name)
-    end
-  end
+  def start_link(opts \\ []),
+    do: GenServer.start_link(__MODULE__, opts, Keyword.take(opts, [:name]))
 
   @doc "The probe document (for one device, by name, or all). Options: `format:`."
   @spec probe(agent, String.t() | nil, keyword) :: answer
@@ -144,8 +140,6 @@ defmodule Vws.Ops.MTConnect.Agent do
     agent_device = Model.agent_device(sender)
 
     s = %{
-      buffer_size: Keyword.get(opts, :buffer_size, @default_buffer),
-      checkpoint_frequency: Keyword.get(opts, :checkpoint_frequency, @default_checkpoint),
       interval: Keyword.get(opts, :interval, 250),
       node_timeout: Keyword.get(opts, :node_timeout, 1_000),
       workstations: Keyword.get(opts, :workstations),
@@ -166,15 +160,14 @@ defmodule Vws.Ops.MTConnect.Agent do
       following: %{},
       followed: MapSet.new(),
       items: Map.new(Model.items(agent_device), &{&1.id, &1}),
-      buffer: :ets.new(:mtconnect_buffer, [:ordered_set, :private]),
-      current: %{},
-      first_checkpoint: %{},
-      checkpoints: %{},
+      buffer:
+        Buffer.new(
+          Keyword.get(opts, :buffer_size, @default_buffer),
+          Keyword.get(opts, :checkpoint_frequency, @default_checkpoint)
+        ),
       waiters: [],
       # this node's workstations' links, told as they change (LinkWatch)
-      link_watch: LinkWatch.new(),
-      first: 1,
-      next: 1
+      link_watch: LinkWatch.new()
     }
 
     [avail, added, removed] = Model.items(agent_device)
@@ -283,9 +276,8 @@ defmodule Vws.Ops.MTConnect.Agent do
   def handle_info(_other, s), do: {:noreply, s}
 
   @impl true
-  def terminate(_reason, s) do
+  def terminate(_reason, _s) do
     LinkWatch.detach()
-    :ets.delete(s.buffer)
   end
 
   @impl true
@@ -333,7 +325,7 @@ defmodule Vws.Ops.MTConnect.Agent do
     do: {:reply, render(fmt, :error, header(s), {code, text}), s}
 
   def handle_call({:await, seq, timeout}, from, s) do
-    if s.next > seq do
+    if Buffer.next(s.buffer) > seq do
       {:reply, :ok, s}
     else
       ref = make_ref()
@@ -344,7 +336,7 @@ defmodule Vws.Ops.MTConnect.Agent do
 
   def handle_call(:sequences, _from, s) do
     s = refresh(s)
-    {:reply, %{first: s.first, last: s.next - 1, next: s.next, size: s.buffer_size}, s}
+    {:reply, Buffer.sequences(s.buffer), s}
   end
 
   defp notice(s, ws, change, at) do
@@ -369,7 +361,7 @@ defmodule Vws.Ops.MTConnect.Agent do
     asked =
       for {n, pid} <- s.forwarders, n not in s.unresponsive do
         ref = make_ref()
-        send(pid, {:sync, self(), ref})
+        :ok = Forwarder.sync(pid, ref)
         ref
       end
 
@@ -398,10 +390,9 @@ defmodule Vws.Ops.MTConnect.Agent do
 
   defp current_answer(s, device, opts) do
     fmt = Keyword.get(opts, :format, :xml)
-    at = Keyword.get(opts, :at)
 
     with {:ok, filter} <- filter(s, device, Keyword.get(opts, :path), fmt),
-         {:ok, state} <- state_at(s, at, fmt) do
+         {:ok, state} <- state_at(s, Keyword.get(opts, :at), fmt) do
       obs =
         for {id, {seq, value, ts}} <- state,
             filter == :all or MapSet.member?(filter, id),
@@ -409,61 +400,25 @@ defmodule Vws.Ops.MTConnect.Agent do
             do: observation(item, seq, value, ts)
 
       obs = Enum.sort_by(obs, & &1.sequence)
-      {:ok, render(fmt, :streams, streams_header(s, s.next), obs)}
+      {:ok, render(fmt, :streams, streams_header(s, Buffer.next(s.buffer)), obs)}
     end
   end
 
   # the state of every data item after sequence `at` (nil: now)
-  defp state_at(s, nil, _fmt), do: {:ok, s.current}
+  defp state_at(s, nil, _fmt), do: {:ok, Buffer.current(s.buffer)}
 
   defp state_at(s, at, fmt) do
-    if at < s.first or at >= s.next do
-      range_error(s, fmt, "at", at, s.first, s.next - 1)
-    else
-      c = div(at, s.checkpoint_frequency) * s.checkpoint_frequency
-
-      {base, from} =
-        case s.checkpoints do
-          %{^c => checkpoint} when c >= s.first -> {checkpoint, c + 1}
-          _ -> {s.first_checkpoint, s.first}
-        end
-
-      state =
-        Enum.reduce(buffer_range(s, from, at), base, fn {seq, id, value, ts}, acc ->
-          Map.put(acc, id, {seq, value, ts})
-        end)
-
-      {:ok, state}
-    end
+    with {:error, why} <- Buffer.state_at(s.buffer, at), do: buffer_error(s, fmt, why)
   end
 
   defp sample_answer(s, from, count, device, opts) do
     fmt = Keyword.get(opts, :format, :xml)
-    to = Keyword.get(opts, :to)
-    count = count || @default_count
 
     with {:ok, filter} <- filter(s, device, Keyword.get(opts, :path), fmt),
-         :ok <- check_from(s, from, fmt),
-         :ok <- check_to(s, from, to, fmt),
-         :ok <- check_count(s, count, to, fmt) do
-      keep? = fn {_seq, id, _v, _ts} -> filter == :all or MapSet.member?(filter, id) end
-
-      {rows, next} =
-        cond do
-          to != nil ->
-            last = min(to, s.next - 1)
-            rows = s |> buffer_range(from || s.first, last) |> Enum.filter(keep?)
-            {Enum.take(rows, -count), min(to + 1, s.next)}
-
-          count > 0 ->
-            forward(s, from || s.first, count, keep?)
-
-          true ->
-            start = from || s.next - 1
-            rows = s |> buffer_range(s.first, start) |> Enum.filter(keep?) |> Enum.take(count)
-            {rows, s.next}
-        end
-
+         keep? = fn {_seq, id, _v, _ts} -> filter == :all or MapSet.member?(filter, id) end,
+         {:ok, rows, next} <-
+           Buffer.sample(s.buffer, from, count || @default_count, Keyword.get(opts, :to), keep?)
+           |> or_buffer_error(s, fmt) do
       obs =
         for {seq, id, value, ts} <- rows, do: observation(Map.fetch!(s.items, id), seq, value, ts)
 
@@ -472,73 +427,14 @@ defmodule Vws.Ops.MTConnect.Agent do
     end
   end
 
-  # up to `count` kept observations from `from`, and the sequence after the last one looked at
-  defp forward(s, from, count, keep?) do
-    walk = fn walk, key, acc, n ->
-      cond do
-        key == :"$end_of_table" ->
-          {Enum.reverse(acc), s.next}
+  defp or_buffer_error({:error, why}, s, fmt), do: buffer_error(s, fmt, why)
+  defp or_buffer_error(ok, _s, _fmt), do: ok
 
-        n == count ->
-          {Enum.reverse(acc), key}
+  defp buffer_error(s, fmt, :zero_count),
+    do: error(s, fmt, 400, "OUT_OF_RANGE", "'count' must not be zero(0)")
 
-        true ->
-          [row] = :ets.lookup(s.buffer, key)
-          {acc, n} = if keep?.(row), do: {[row | acc], n + 1}, else: {acc, n}
-          next_key = :ets.next(s.buffer, key)
-          if n == count, do: {Enum.reverse(acc), key + 1}, else: walk.(walk, next_key, acc, n)
-      end
-    end
-
-    start =
-      case :ets.lookup(s.buffer, from) do
-        [_] -> from
-        [] -> :ets.next(s.buffer, from)
-      end
-
-    walk.(walk, start, [], 0)
-  end
-
-  defp buffer_range(_s, from, to) when from > to, do: []
-
-  defp buffer_range(s, from, to),
-    do:
-      :ets.select(s.buffer, [
-        {{:"$1", :_, :_, :_}, [{:>=, :"$1", from}, {:"=<", :"$1", to}], [:"$_"]}
-      ])
-
-  defp check_from(_s, nil, _fmt), do: :ok
-
-  defp check_from(s, from, fmt) do
-    if from < s.first or from > s.next,
-      do: range_error(s, fmt, "from", from, s.first, s.next),
-      else: :ok
-  end
-
-  defp check_to(_s, _from, nil, _fmt), do: :ok
-
-  defp check_to(s, from, to, fmt) do
-    lower = from || s.first
-
-    if to <= lower or to > s.next,
-      do: range_error(s, fmt, "to", to, lower + 1, s.next),
-      else: :ok
-  end
-
-  defp check_count(s, count, to, fmt) do
-    lower = if to, do: 1, else: -s.buffer_size
-
-    cond do
-      count == 0 ->
-        error(s, fmt, 400, "OUT_OF_RANGE", "'count' must not be zero(0)")
-
-      count < lower or count > s.buffer_size ->
-        range_error(s, fmt, "count", count, lower, s.buffer_size)
-
-      true ->
-        :ok
-    end
-  end
+  defp buffer_error(s, fmt, {:out_of_range, param, value, min, max}),
+    do: range_error(s, fmt, param, value, min, max)
 
   defp range_error(s, fmt, param, value, min, max) do
     error(
@@ -605,16 +501,18 @@ defmodule Vws.Ops.MTConnect.Agent do
       creation_time: XML.timestamp(System.system_time(:microsecond)),
       sender: s.sender,
       instance_id: s.instance_id,
-      buffer_size: s.buffer_size,
+      buffer_size: Buffer.sequences(s.buffer).size,
       asset_buffer_size: @asset_buffer,
       model_change_time: s.model_change_time
     }
   end
 
   defp streams_header(s, next) do
+    %{first: first, last: last} = Buffer.sequences(s.buffer)
+
     Map.merge(header(s), %{
-      first_sequence: s.first,
-      last_sequence: max(s.next - 1, s.first),
+      first_sequence: first,
+      last_sequence: max(last, first),
       next_sequence: next
     })
   end
@@ -657,8 +555,7 @@ defmodule Vws.Ops.MTConnect.Agent do
           {pid, s}
 
         _ ->
-          pid = Node.spawn(n, __MODULE__, :forwarder, [self()])
-          Process.monitor(pid)
+          pid = Forwarder.start(n, self())
           {pid, %{s | forwarders: Map.put(s.forwarders, n, pid)}}
       end
 
@@ -667,82 +564,8 @@ defmodule Vws.Ops.MTConnect.Agent do
         s
 
       _ ->
-        send(pid, {:follow, ws})
+        :ok = Forwarder.follow(pid, ws)
         %{s | following: Map.put(s.following, ws, pid)}
-    end
-  end
-
-  @doc false
-  # The forwarder, on a workstation's node (see follow_remote/3). It ends with its agent.
-  def forwarder(agent) do
-    ref = Process.monitor(agent)
-    # this node's links tell their changes (LinkWatch), passed on for the workstations followed
-    :ok = LinkWatch.attach()
-    forward_notices(agent, ref, %{}, LinkWatch.new())
-  end
-
-  defp forward_notices(agent, ref, since, watch) do
-    receive do
-      {:follow, ws} ->
-        if not Map.has_key?(since, ws) do
-          :ok = Vws.CEC.Events.subscribe(ws, :mailbox)
-          :ok = Vws.CEC.Events.subscribe(ws, :dnc_progress)
-        end
-
-        t = System.system_time(:microsecond)
-        send(agent, {:mtc_snapshot, ws, read(ws)})
-        {watch, links, at} = LinkWatch.read(watch, ws)
-        send(agent, {:mtc_links, ws, links, at})
-        forward_notices(agent, ref, Map.put(since, ws, t), watch)
-
-      {:vws_event, ws, :mailbox, {_change, at}} = notice ->
-        # what was written before the snapshot was read is in it already
-        case since do
-          %{^ws => t} when at >= t -> send(agent, notice)
-          _ -> :ok
-        end
-
-        forward_notices(agent, ref, since, watch)
-
-      # a transfer's progress (the VMC's transfer message): told as it comes
-      {:vws_event, ws, :dnc_progress, _progress} = notice ->
-        if Map.has_key?(since, ws), do: send(agent, notice)
-        forward_notices(agent, ref, since, watch)
-
-      {:link_event, pid, event, meta, at} ->
-        case LinkWatch.event(watch, pid, event, meta, at) do
-          {:change, ws, key, state, at} ->
-            send(agent, {:mtc_link, ws, key, state, at})
-            forward_notices(agent, ref, since, watch)
-
-          {:read, ws} when is_map_key(since, ws) ->
-            {watch, links, at} = LinkWatch.read(watch, ws)
-            send(agent, {:mtc_links, ws, links, at})
-            forward_notices(agent, ref, since, watch)
-
-          _ ->
-            forward_notices(agent, ref, since, watch)
-        end
-
-      {:sync, from, sync_ref} ->
-        send(from, {:mtc_synced, sync_ref})
-        forward_notices(agent, ref, since, watch)
-
-      {:DOWN, ^ref, :process, _, _} ->
-        LinkWatch.detach()
-
-      {:DOWN, _, :process, pid, _} ->
-        case LinkWatch.down(watch, pid) do
-          {watch, {:change, ws, key, state, at}} ->
-            send(agent, {:mtc_link, ws, key, state, at})
-            forward_notices(agent, ref, since, watch)
-
-          {watch, :none} ->
-            forward_notices(agent, ref, since, watch)
-        end
-
-      _other ->
-        forward_notices(agent, ref, since, watch)
     end
   end
 
@@ -771,7 +594,7 @@ defmodule Vws.Ops.MTConnect.Agent do
     deadline = System.monotonic_time(:millisecond) + s.node_timeout
 
     requests =
-      for {n, ids} <- asked, do: {n, :erpc.send_request(n, __MODULE__, :read_local, [ids])}
+      for {n, ids} <- asked, do: {n, :erpc.send_request(n, Forwarder, :read_local, [ids])}
 
     here = Map.new(here, &{&1, if(Mailbox.exists?(&1), do: :local, else: :absent)})
     answered = for {n, req} <- requests, do: {n, receive_answer(req, deadline)}
@@ -804,35 +627,6 @@ defmodule Vws.Ops.MTConnect.Agent do
     _, _ -> :error
   end
 
-  @doc false
-  # Runs on the workstations' node: what the mailboxes of each of `ids` say, or :absent for one
-  # that does not run here (any more).
-  @spec read_local([term]) :: %{term => map | :absent}
-  def read_local(ids), do: Map.new(ids, &{&1, read(&1)})
-
-  defp read(ws) do
-    if Mailbox.exists?(ws) do
-      devices =
-        for loc <- 1..11, into: %{} do
-          {value, _age} = Mailbox.get_device(ws, loc)
-          {Mailbox.device_name(loc), value}
-        end
-
-      commands = for p <- Mailbox.partitions(), into: %{}, do: {p, Mailbox.command_status(ws, p)}
-      cmd_in = for p <- Mailbox.partitions(), into: %{}, do: {p, elem(Mailbox.cmd_in(ws, p), 1)}
-
-      readings =
-        for {source, {value, _age}} <- Mailbox.readings(ws), into: %{}, do: {source, value}
-
-      %{devices: devices, commands: commands, cmd_in: cmd_in, readings: readings}
-    else
-      :absent
-    end
-  rescue
-    # the workstation stopped while we read it
-    ArgumentError -> :absent
-  end
-
   # A workstation of this node: subscribed to its change notices, then read once; read again
   # whenever its mailboxes are new (it restarted between two ticks).
   defp follow_local(s, ws, now) do
@@ -856,7 +650,7 @@ defmodule Vws.Ops.MTConnect.Agent do
           :ok = Vws.CEC.Events.subscribe(ws, :dnc_progress)
         end
 
-        case read(ws) do
+        case Forwarder.read(ws) do
           :absent ->
             s
 
@@ -1019,49 +813,18 @@ defmodule Vws.Ops.MTConnect.Agent do
 
   ## The buffer
 
+  # an observation is recorded when the value changed (by at least a sample's deadband)
   defp record(s, item, value, now) do
-    last =
-      case s.current[item.id],
-        do:
-          (
-            {_seq, v, _ts} -> v
-            nil -> nil
-          )
-
-    if Model.changed?(item, last, value), do: append(s, item.id, value, now), else: s
-  end
-
-  defp append(s, id, value, ts) do
-    seq = s.next
-    :ets.insert(s.buffer, {seq, id, value, ts})
-    s = %{s | current: Map.put(s.current, id, {seq, value, ts}), next: seq + 1}
-
-    s =
-      if rem(seq, s.checkpoint_frequency) == 0,
-        do: %{s | checkpoints: Map.put(s.checkpoints, seq, s.current)},
-        else: s
-
-    s = if s.next - s.first > s.buffer_size, do: drop_first(s), else: s
-    wake(s)
-  end
-
-  # the oldest observation falls out; the first checkpoint keeps the state before the buffer
-  defp drop_first(s) do
-    [{seq, id, value, ts}] = :ets.lookup(s.buffer, s.first)
-    :ets.delete(s.buffer, seq)
-
-    %{
-      s
-      | first: seq + 1,
-        first_checkpoint: Map.put(s.first_checkpoint, id, {seq, value, ts}),
-        checkpoints: Map.delete(s.checkpoints, seq)
-    }
+    if Model.changed?(item, Buffer.latest(s.buffer, item.id), value),
+      do: wake(%{s | buffer: Buffer.append(s.buffer, item.id, value, now)}),
+      else: s
   end
 
   defp wake(%{waiters: []} = s), do: s
 
   defp wake(s) do
-    {ready, waiting} = Enum.split_with(s.waiters, fn {_from, seq, _ref} -> s.next > seq end)
+    next = Buffer.next(s.buffer)
+    {ready, waiting} = Enum.split_with(s.waiters, fn {_from, seq, _ref} -> next > seq end)
     for {from, _seq, _ref} <- ready, do: GenServer.reply(from, :ok)
     %{s | waiters: waiting}
   end

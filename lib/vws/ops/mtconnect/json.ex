@@ -83,24 +83,19 @@ defmodule Vws.Ops.MTConnect.JSON do
   @spec streams(map, [XML.observation()]) :: iodata
   def streams(header, observations) do
     device_streams =
-      observations
-      |> group(&{&1.item.device, &1.item.device_uuid})
-      |> Enum.map(fn {{name, uuid}, obs} ->
+      for {{name, uuid}, components} <- XML.stream_groups(observations) do
         %{
           "name" => name,
           "uuid" => uuid,
           "ComponentStream" =>
-            for {{type, id, cname}, cobs} <-
-                  group(obs, &{&1.item.component, &1.item.component_id, &1.item.component_name}) do
-              by = Enum.group_by(cobs, & &1.item.category)
-
+            for {{type, id, cname}, by} <- components do
               %{"component" => type, "componentId" => id, "name" => cname}
-              |> put_group("Samples", Map.get(by, :sample, []))
-              |> put_group("Events", Map.get(by, :event, []))
-              |> put_group("Condition", Map.get(by, :condition, []))
+              |> put_group("Samples", by.sample)
+              |> put_group("Events", by.event)
+              |> put_group("Condition", by.condition)
             end
         }
-      end)
+      end
 
     root("MTConnectStreams", %{
       "Header" =>
@@ -193,15 +188,4 @@ defmodule Vws.Ops.MTConnect.JSON do
 
   defp put_list(m, _k, []), do: m
   defp put_list(m, k, list), do: Map.put(m, k, list)
-
-  defp group(list, key_fun) do
-    {keys, groups} =
-      Enum.reduce(list, {[], %{}}, fn x, {keys, groups} ->
-        k = key_fun.(x)
-        keys = if Map.has_key?(groups, k), do: keys, else: [k | keys]
-        {keys, Map.update(groups, k, [x], &[x | &1])}
-      end)
-
-    for k <- Enum.reverse(keys), do: {k, Enum.reverse(Map.fetch!(groups, k))}
-  end
 end

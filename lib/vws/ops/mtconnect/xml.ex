@@ -148,8 +148,6 @@ defmodule Vws.Ops.MTConnect.XML do
   """
   @spec streams(header, [observation]) :: iodata
   def streams(header, observations) do
-    by_device = group(observations, &{&1.item.device, &1.item.device_uuid})
-
     document("MTConnectStreams", [
       header_tag(header, [
         {"deviceModelChangeTime", header.model_change_time},
@@ -161,23 +159,42 @@ defmodule Vws.Ops.MTConnect.XML do
       element(
         "Streams",
         [],
-        for {{name, uuid}, obs} <- by_device do
-          element("DeviceStream", [{"name", name}, {"uuid", uuid}], component_streams(obs))
+        for {{name, uuid}, components} <- stream_groups(observations) do
+          element("DeviceStream", [{"name", name}, {"uuid", uuid}], component_streams(components))
         end
       )
     ])
   end
 
-  defp component_streams(obs) do
-    for {{type, id, name}, cobs} <-
-          group(obs, &{&1.item.component, &1.item.component_id, &1.item.component_name}) do
-      by = Enum.group_by(cobs, & &1.item.category)
-
+  defp component_streams(components) do
+    for {{type, id, name}, by} <- components do
       element("ComponentStream", [{"component", type}, {"componentId", id}, {"name", name}], [
-        observations("Samples", Map.get(by, :sample, [])),
-        observations("Events", Map.get(by, :event, [])),
-        observations("Condition", Map.get(by, :condition, []))
+        observations("Samples", by.sample),
+        observations("Events", by.event),
+        observations("Condition", by.condition)
       ])
+    end
+  end
+
+  @doc """
+  The observations of a streams document as both formats nest them (`Vws.Ops.MTConnect.JSON`
+  too): by device (`{name, uuid}`), then by component (`{type, id, name}`), each in the order it
+  first appears, then by category (`%{sample, event, condition}`).
+  """
+  @spec stream_groups([observation]) :: [
+          {{String.t(), String.t()},
+           [{{String.t(), String.t(), String.t()}, %{atom => [observation]}}]}
+        ]
+  def stream_groups(observations) do
+    for {device, obs} <- group(observations, &{&1.item.device, &1.item.device_uuid}) do
+      components =
+        for {component, cobs} <-
+              group(obs, &{&1.item.component, &1.item.component_id, &1.item.component_name}) do
+          by = Enum.group_by(cobs, & &1.item.category)
+          {component, Map.new([:sample, :event, :condition], &{&1, Map.get(by, &1, [])})}
+        end
+
+      {device, components}
     end
   end
 

@@ -18,56 +18,27 @@ defmodule Vws.Partitions.Hydraulic.Monitor do
       iex> is_pid(pid)
       true
   """
-  use GenServer
-  require Logger
-
   alias Vws.CEC.Mailbox
-  alias Vws.Partitions.Hydraulic
+  alias Vws.Partitions.{Hydraulic, StatusMonitor}
 
   @doc false
-  def child_spec(opts) do
-    %{id: Keyword.get(opts, :id, __MODULE__), start: {__MODULE__, :start_link, [opts]}}
-  end
+  def child_spec(opts), do: StatusMonitor.child_spec(__MODULE__, opts)
 
-  @doc "Starts the monitor; its first reading is taken at once."
+  @doc "Starts the PALLET reader (a `Vws.Partitions.StatusMonitor`): its first read at once."
   @spec start_link(keyword) :: GenServer.on_start()
-  def start_link(opts), do: GenServer.start_link(__MODULE__, opts)
+  def start_link(opts) do
+    timeout = Keyword.get(opts, :timeout, 1_000)
 
-  @impl true
-  def init(opts) do
-    s = %{
-      workstation: Keyword.fetch!(opts, :workstation),
-      link: Keyword.fetch!(opts, :link),
-      interval: Keyword.get(opts, :interval, 1_000),
-      timeout: Keyword.get(opts, :timeout, 1_000),
-      failing: nil
-    }
-
-    if Mailbox.exists?(s.workstation),
-      do: Mailbox.put_device(s.workstation, 10, "NO DATA (HYDRAULIC CONTROLLER NOT READ YET)")
-
-    send(self(), :read)
-    {:ok, s}
-  end
-
-  @impl true
-  def handle_info(:read, s) do
-    result =
-      if Mailbox.exists?(s.workstation),
-        do: Hydraulic.refresh_pallet(s.workstation, s.link, s.timeout),
-        else: {:error, "NO MAILBOXES"}
-
-    Process.send_after(self(), :read, s.interval)
-
-    case result do
-      {:ok, _pallet} ->
-        if s.failing, do: Logger.info("HYDRAULIC: the hydraulic controller answers again")
-        {:noreply, %{s | failing: nil}}
-
-      {:error, why} ->
-        # said once per outage, not once a second
-        if s.failing != why, do: Logger.info("HYDRAULIC cannot read the pallet: #{why}")
-        {:noreply, %{s | failing: why}}
-    end
+    StatusMonitor.start_link(opts, fn ws, link ->
+      [
+        init: fn ->
+          if Mailbox.exists?(ws),
+            do: Mailbox.put_device(ws, 10, "NO DATA (HYDRAULIC CONTROLLER NOT READ YET)")
+        end,
+        read: fn -> Hydraulic.refresh_pallet(ws, link, timeout) end,
+        failed: &"HYDRAULIC cannot read the pallet: #{&1}",
+        recovered: "HYDRAULIC: the hydraulic controller answers again"
+      ]
+    end)
   end
 end

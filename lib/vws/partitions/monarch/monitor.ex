@@ -23,115 +23,66 @@ defmodule Vws.Partitions.Monarch.Monitor do
       iex> is_pid(pid)
       true
   """
-  use GenServer
   require Logger
+
+  alias Vws.Partitions.{Monarch, StatusMonitor}
 
   # the MONARCH device-status location
   @monarch_location 8
 
   @doc false
-  def child_spec(opts) do
-    %{id: Keyword.get(opts, :id, __MODULE__), start: {__MODULE__, :start_link, [opts]}}
-  end
+  def child_spec(opts), do: StatusMonitor.child_spec(__MODULE__, opts)
 
-  @doc "Starts the monitor; its first reading is taken at once."
+  @doc "Starts the MONARCH reader (a `Vws.Partitions.StatusMonitor`): its first read at once."
   @spec start_link(keyword) :: GenServer.on_start()
-  def start_link(opts), do: GenServer.start_link(__MODULE__, opts)
+  def start_link(opts) do
+    options = Keyword.take(opts, [:check])
+    store = Keyword.get(opts, :store, &Monarch.store_from_machine/3)
 
-  @impl true
-  def init(opts) do
-    s = %{
-      workstation: Keyword.fetch!(opts, :workstation),
-      link: Keyword.fetch!(opts, :link),
-      interval: Keyword.get(opts, :interval, 1_000),
-      options: Keyword.take(opts, [:check]),
-      store: Keyword.get(opts, :store, &Vws.Partitions.Monarch.store_from_machine/3),
-      # the link process this monitor owns (a restarted link is owned again)
-      owner: nil,
-      failing: false,
-      # the process reading the status report, while it waits or reads
-      reading: nil
-    }
-
-    send(self(), :read)
-    {:ok, s}
-  end
-
-  @impl true
-  def handle_info(:read, %{interval: nil} = s) do
-    Process.send_after(self(), :read, 1_000)
-    {:noreply, own_link(s)}
-  end
-
-  # The read runs in a process of its own: it waits for the line while a transfer holds it, and
-  # the monitor meanwhile takes that transfer's progress (and a drip feed's ACTIVE, see
-  # machine_runs/2) as it comes. One read at a time; the next is due `interval` after its end.
-  def handle_info(:read, %{reading: pid} = s) when is_pid(pid), do: {:noreply, s}
-
-  def handle_info(:read, s) do
-    s = own_link(s)
-    monitor = self()
-    %{workstation: ws, link: link, options: options} = s
-
-    pid =
-      spawn_link(fn ->
-        result =
-          if Vws.CEC.Mailbox.exists?(ws),
-            do: Vws.Partitions.Monarch.refresh_status(ws, link, options),
-            else: {:error, "NO MAILBOXES"}
-
-        send(monitor, {:read_done, self(), result})
-      end)
-
-    {:noreply, %{s | reading: pid}}
-  end
-
-  def handle_info({:read_done, pid, result}, %{reading: pid} = s) do
-    Process.send_after(self(), :read, s.interval)
-    s = %{s | reading: nil}
-
-    case result do
-      {:ok, _report} ->
-        {:noreply, %{s | failing: false}}
-
-      {:error, reason} ->
-        # said once per outage, not once a second
-        unless s.failing, do: Logger.info("MONARCH cannot read the GE-2000's status: #{reason}")
-        {:noreply, %{s | failing: true}}
-    end
+    StatusMonitor.start_link(opts, fn ws, link ->
+      [
+        # the read waits for the line while a transfer holds it; the monitor meanwhile takes that
+        # transfer's progress (and a drip feed's ACTIVE, see machine_runs/2) as it comes
+        read: fn -> Monarch.refresh_status(ws, link, options) end,
+        failed: &"MONARCH cannot read the GE-2000's status: #{&1}",
+        recovered: "MONARCH: the GE-2000's status reads again",
+        # the link process this monitor owns (a restarted link is owned again)
+        ext: %{link: link, owner: nil},
+        tick: &own_link/1,
+        handle: fn message, ext ->
+          dnc(message, ws, store)
+          ext
+        end
+      ]
+    end)
   end
 
   # Programs the operator sends from the machine, unasked (auto-receive): handed to MONARCH.
-  def handle_info({:dnc, _link, {:received, %{operation: :part_program} = command, blocks}}, s) do
+  defp dnc({:dnc, _link, {:received, %{operation: :part_program} = command, blocks}}, ws, store) do
     name = String.trim(command.text)
     text = IO.iodata_to_binary(blocks)
 
-    case Vws.Partitions.Monarch.received_program(s.workstation, name, text, s.store) do
+    case Monarch.received_program(ws, name, text, store) do
       :ok -> :ok
       {:error, reason} -> Logger.warning("MONARCH: program #{name} from the machine: #{reason}")
     end
-
-    {:noreply, s}
   end
 
   # A transfer's progress, told by the link: the workstation's event :dnc_progress
   # ({:vws_event, ws, :dnc_progress, payload}, payload as documented in Vws.Links.DNC).
-  def handle_info({:dnc, _link, {:progress, payload}}, s) do
-    ws = s.workstation
+  defp dnc({:dnc, _link, {:progress, payload}}, ws, _store) do
     machine_runs(ws, payload)
 
     with {:error, :no_such_event} <- Vws.CEC.Events.cause(ws, :dnc_progress, payload) do
       :ok = Vws.CEC.Events.create(ws, :dnc_progress)
       Vws.CEC.Events.cause(ws, :dnc_progress, payload)
     end
-
-    {:noreply, s}
   rescue
     # the workstation's mailboxes are gone (it is stopping): nobody to tell
-    ArgumentError -> {:noreply, s}
+    ArgumentError -> :ok
   end
 
-  def handle_info({:dnc, _link, _event}, s), do: {:noreply, s}
+  defp dnc(_other, _ws, _store), do: :ok
 
   # A drip-fed program (operation E) runs from its first block until it ends, while the
   # half-duplex line carries it and no status report can be read: each block that reaches the

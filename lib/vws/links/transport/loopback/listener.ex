@@ -22,14 +22,9 @@ defmodule Vws.Links.Transport.Loopback.Listener do
   end
 
   @spec whereis(term()) :: pid() | nil
-  def whereis(name) do
-    case Registry.lookup(Vws.Registry, {:loopback, name}) do
-      [{pid, _}] -> pid
-      [] -> nil
-    end
-  end
+  def whereis(name), do: Vws.Names.whereis(:loopback, name)
 
-  defp via(name), do: {:via, Registry, {Vws.Registry, {:loopback, name}}}
+  defp via(name), do: Vws.Names.via(:loopback, name)
 
   @impl true
   def init({name, owner, backlog}) do
