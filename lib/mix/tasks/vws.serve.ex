@@ -33,7 +33,7 @@ defmodule Mix.Tasks.Vws.Serve do
       `$VWS_JOURNAL_DIR`, else `journal/<id>` of the data directory (`$VWS_DATA_DIR`, else
       `$XDG_STATE_HOME/vws`, else `~/.local/state/vws`; see `Vws.Ops.DataDir`)
     * `--no-journal` — no journal: a restart forgets every command
-    * `--library DIR` — the program library (`Vws.Links.DNC.Library`: every program DOWNLOAD_HP brought,
+    * `--library DIR` — the program library (`Vws.CEC.Library`: every program DOWNLOAD_HP brought,
       with its versions; `mix vws.library`) in DIR. By default `$VWS_LIBRARY_DIR`, else
       `library/<id>` of the data directory
     * `--no-library` — no program library
