@@ -23,13 +23,11 @@ defmodule Vws.Ops.Demo do
 
   ## The printed dialogue
 
-  One row per line on the link: the time since the WC connected, `→` for WC to CEC or `←` for
-  CEC to WC, the line as on the wire, and its meaning. Script steps are announced on rows of
-  their own (`──`). A status query answered exactly as the previous one is not printed again;
-  a row `… asked N more times` says how often it was repeated.
+  As `Vws.Peers.WC.Printer` prints it (as `mix vws.wc --script` does): one row per line on the
+  link, script steps on rows of their own, a status query answered as the previous one folded.
   """
 
-  alias Vws.Peers.WC.{Client, Runner, Script}
+  alias Vws.Peers.WC.{Client, Printer, Runner, Script}
   alias Vws.Peers.WC.Runner.Summary
 
   # Modules that put a simulated device on the shop floor (see the moduledoc). Filled in by the
@@ -172,7 +170,7 @@ defmodule Vws.Ops.Demo do
          {:client, {:ok, client}} <- {:client, Client.connect(floor.wc, subscribe: self())} do
       print_floor(floor, path, script)
       summary = run_printing(client, script, opts)
-      Enum.each(Summary.format(summary), &IO.puts(readable(&1)))
+      Enum.each(Summary.format(summary), &IO.puts(Printer.readable(&1)))
       {:ok, summary, floor, client}
     else
       {:script, {:error, error}} -> {:error, Exception.message(error)}
@@ -212,148 +210,34 @@ defmodule Vws.Ops.Demo do
 
   defp run_printing(client, script, opts) do
     task = Task.async(fn -> Runner.run(client, script, opts) end)
-    printer = print_until(task, client, new_printer())
+    {printer, summary} = print_until(task, client, Printer.new())
     # every event the client sent before answering this call is already in our mailbox
     _ = Client.info(client)
     printer = drain(client, printer)
-    flush(printer)
+    Printer.flush(printer)
     IO.puts("")
-    printer.summary
+    summary
   end
 
   defp print_until(%Task{ref: ref} = task, client, printer) do
     receive do
       {:wc_client, ^client, event} ->
-        print_until(task, client, print_event(event, printer))
+        print_until(task, client, Printer.print_event(event, printer))
 
       {^ref, summary} ->
         Process.demonitor(ref, [:flush])
-        %{printer | summary: summary}
+        {printer, summary}
     end
   end
 
   defp drain(client, printer) do
     receive do
-      {:wc_client, ^client, event} -> drain(client, print_event(event, printer))
+      {:wc_client, ^client, event} -> drain(client, Printer.print_event(event, printer))
     after
       0 -> printer
     end
   end
 
-  ## Printing, with repeated status polls folded
-
-  @doc false
-  def new_printer, do: %{held: nil, last: nil, repeats: 0, since: nil, until: nil, summary: nil}
-
-  @doc false
-  # Prints one event (or holds a status query until its answer shows whether it repeats).
-  def print_event(%{kind: :status_query} = event, printer) do
-    printer = release(printer)
-    %{printer | held: event}
-  end
-
-  def print_event(%{kind: :status} = answer, %{held: query} = printer) when query != nil do
-    pair = {query.meaning, answer.meaning}
-
-    if pair == printer.last do
-      %{
-        printer
-        | held: nil,
-          repeats: printer.repeats + 1,
-          since: printer.since || query.at,
-          until: answer.at
-      }
-    else
-      printer = flush(%{printer | held: nil})
-      row(query)
-      row(answer)
-      %{printer | last: pair}
-    end
-  end
-
-  def print_event(event, printer) do
-    printer = flush(release(printer))
-    row(event)
-    %{printer | last: nil}
-  end
-
-  defp release(%{held: nil} = printer), do: printer
-
-  defp release(%{held: query} = printer) do
-    printer = flush(printer)
-    row(query)
-    %{printer | held: nil, last: nil}
-  end
-
-  defp flush(%{repeats: 0} = printer), do: printer
-
-  defp flush(printer) do
-    span = seconds(printer.until - printer.since)
-
-    IO.puts(
-      "          … asked #{printer.repeats} more #{plural(printer.repeats, "time")} over #{span}: same answer"
-    )
-
-    %{printer | repeats: 0, since: nil, until: nil}
-  end
-
-  defp row(%{direction: :note, meaning: meaning, at: at}),
-    do: IO.puts("#{time(at)}  ── #{readable(meaning)}")
-
-  defp row(%{direction: direction, line: line, meaning: meaning, at: at}) do
-    arrow = if direction == :sent, do: "→", else: "←"
-
-    IO.puts(
-      "#{time(at)}  #{arrow} #{String.pad_trailing(printable(line || ""), 52)}  #{readable(meaning)}"
-    )
-  end
-
-  @doc ~S"""
-  A line as it was on the wire, readable on a terminal: printable ASCII as it is, every other
-  byte (a bit flipped by a noisy line, a control character) as `\xNN`, and `\` itself as `\\`.
-  Wire text is bytes, not UTF-8: a damaged byte must not reach the terminal, nor stop the
-  printing (`IO.puts/1` raises on a binary that is not valid UTF-8).
-
-      iex> Vws.Ops.Demo.printable("11S0090ACTI" <> <<0xD6>> <> "E058")
-      "11S0090ACTI\\xD6E058"
-      iex> Vws.Ops.Demo.printable("a\tb\\c")
-      "a\\x09b\\\\c"
-  """
-  @spec printable(binary) :: String.t()
-  def printable(bytes) when is_binary(bytes) do
-    for <<byte <- bytes>>, into: "" do
-      cond do
-        byte == ?\\ -> "\\\\"
-        byte in 0x20..0x7E -> <<byte>>
-        true -> hex(byte)
-      end
-    end
-  end
-
-  @doc ~S"""
-  Text for a person (a meaning, a script step, the summary's reason) made safe to print: valid
-  UTF-8 that prints stays as it is; a byte that is not valid UTF-8 (a damaged byte quoted from
-  the wire) or a control character becomes `\xNN`.
-
-      iex> Vws.Ops.Demo.readable("MONARCH: ACTI" <> <<0xD6>> <> "E — ×20")
-      "MONARCH: ACTI\\xD6E — ×20"
-  """
-  @spec readable(binary) :: String.t()
-  def readable(text) when is_binary(text), do: readable(text, "")
-
-  defp readable(<<c::utf8, rest::binary>>, acc) when c >= 0x20 and c not in 0x7F..0x9F,
-    do: readable(rest, <<acc::binary, c::utf8>>)
-
-  defp readable(<<byte, rest::binary>>, acc), do: readable(rest, acc <> hex(byte))
-  defp readable(<<>>, acc), do: acc
-
-  defp hex(byte), do: "\\x" <> String.pad_leading(Integer.to_string(byte, 16), 2, "0")
-
   defp scale(x) when is_float(x) and x == trunc(x), do: trunc(x)
   defp scale(x), do: x
-
-  defp time(ms), do: String.pad_leading(seconds(ms), 8)
-  defp seconds(ms), do: :erlang.float_to_binary(ms / 1000, decimals: 3) <> "s"
-  defp plural(1, word), do: word
-  defp plural(_, word), do: word <> "s"
 end
