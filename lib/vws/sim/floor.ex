@@ -401,5 +401,5 @@ defmodule Vws.Sim.Floor do
   defp options(true), do: []
   defp options(opts) when is_list(opts), do: opts
 
-  defp name(ws, role), do: {:via, Registry, {Vws.Registry, {ws, role}}}
+  defp name(ws, role), do: Vws.Names.via(ws, role)
 end
