@@ -7,19 +7,15 @@ defmodule Vws.Ops.Demo do
   ## The shop floor
 
   `start_shop_floor/1` is the one place that decides what runs: the simulated equipment first,
-  then the workstation with a link to each simulator. Each simulator is a module in
-  `@simulators` with one function,
-
-      shop_floor(opts) :: {:ok, %{name: String.t(), links: [child_spec], partitions: keyword}}
-
-  which starts the simulated device (the `opts` carry `:workstation` and `:time_scale`) and says
-  which workstation links and partition options reach it. Today the list holds the whole floor
-  (`Vws.Sim.Floor`): the plant with DAQ #1 (VWS_STATUS, GRIPPER, FIXTURE and VACUUM reach it; ROBOT
-  gets its tray locks, MONARCH its cycle-start relay), DAQ #2 with the hydraulic controller
+  then the workstation with a link to each simulator. `shop_floor/1` starts the whole floor
+  (`Vws.Sim.Floor`): the plant with DAQ #1 (VWS_STATUS, GRIPPER, FIXTURE and VACUUM reach it;
+  ROBOT gets its tray locks, MONARCH its cycle-start relay), DAQ #2 with the hydraulic controller
   (HYDRAULIC), the GE-2000 (whose cycle-start input is that relay), the VAL II robot and the
-  material-handling system, with a blank in tray #1. A partition whose device is not on the
-  floor starts without a device link and answers each valid command `ERROR NO LINK TO
-  <device>` — truthfully — and a cycle stops at its first such command.
+  material-handling system, with a blank in tray #1 — and turns where the floor's devices are
+  (`Vws.Sim.Floor.devices/1`) into the workstation's links and partition options
+  (`Vws.CEC.Workstation.device_links/3`). A partition whose device is not on the floor starts
+  without a device link and answers each valid command `ERROR NO LINK TO <device>` —
+  truthfully — and a cycle stops at its first such command.
 
   ## The printed dialogue
 
@@ -29,10 +25,6 @@ defmodule Vws.Ops.Demo do
 
   alias Vws.Peers.WC.{Client, Printer, Runner, Script}
   alias Vws.Peers.WC.Runner.Summary
-
-  # Modules that put a simulated device on the shop floor (see the moduledoc). Filled in by the
-  # issues that build the simulators.
-  @simulators [Vws.Sim.Floor]
 
   @partition_devices [
     robot: Vws.Partitions.Robot,
@@ -74,7 +66,7 @@ defmodule Vws.Ops.Demo do
       [workstation: id, time_scale: time_scale, lines: lines] ++
         Keyword.take(opts, [:supervisor])
 
-    with {:ok, sims} <- start_simulators(sim_opts),
+    with {:ok, sim} <- shop_floor(sim_opts),
          {:ok, _pid} <-
            Vws.CEC.Workstation.start(
              id: id,
@@ -82,8 +74,8 @@ defmodule Vws.Ops.Demo do
              sun_comm: [bcc: Keyword.get(opts, :bcc, :sum)],
              journal: Keyword.get(opts, :journal),
              library: Keyword.get(opts, :library),
-             links: Enum.flat_map(sims, & &1.links),
-             partitions: merge_partitions(sims)
+             links: sim.links,
+             partitions: sim.partitions
            ),
          {:ok, listening} <- wait_listening(id, 2_000),
          {:ok, wc} <- wc_line(id, to_string(listening), lines, opts[:supervisor]) do
@@ -98,25 +90,45 @@ defmodule Vws.Ops.Demo do
          wc: wc,
          time_scale: time_scale,
          lines: Keyword.keys(Vws.Sim.Floor.lines(id)),
-         simulated: Enum.map(sims, & &1.name),
+         simulated: [sim.name],
          unlinked: unlinked
        }}
     end
   end
 
-  defp start_simulators(opts) do
-    Enum.reduce_while(@simulators, {:ok, []}, fn module, {:ok, acc} ->
-      case module.shop_floor(opts) do
-        {:ok, sim} -> {:cont, {:ok, acc ++ [sim]}}
-        {:error, reason} -> {:halt, {:error, {module, reason}}}
-      end
-    end)
-  end
+  @doc """
+  The demo's shop floor: starts the whole simulated floor (`Vws.Sim.Floor.start_stocked/1`:
+  linked to the caller, or under the `DynamicSupervisor` given as `:supervisor`) with the
+  `:workstation`, `:time_scale`, `:seed` and `:lines` given — hydraulic controller, GE-2000,
+  VAL II, material handling — and a blank in tray #1, and returns the workstation links and
+  partition options that reach it (`Vws.CEC.Workstation.device_links/3` of
+  `Vws.Sim.Floor.devices/1`). `{:error, {Vws.Sim.Floor, reason}}` when the floor does not start.
+  """
+  @spec shop_floor(keyword) ::
+          {:ok, %{name: String.t(), links: [Supervisor.child_spec()], partitions: keyword}}
+          | {:error, {module, term}}
+  def shop_floor(opts) do
+    ws = Keyword.fetch!(opts, :workstation)
 
-  defp merge_partitions(sims) do
-    Enum.reduce(sims, [], fn sim, acc ->
-      Keyword.merge(acc, Map.get(sim, :partitions, []), fn _p, a, b -> Keyword.merge(a, b) end)
-    end)
+    floor =
+      Keyword.take(opts, [:workstation, :time_scale, :seed, :lines, :supervisor]) ++
+        [hydraulic: true, ge2000: true, robot: true, mhs: true]
+
+    case Vws.Sim.Floor.start_stocked(floor) do
+      {:ok, _pid} ->
+        {links, partitions} = Vws.CEC.Workstation.device_links(ws, Vws.Sim.Floor.devices(ws), [])
+
+        {:ok,
+         %{
+           name:
+             "plant + DAQ #1 + DAQ #2 + hydraulic controller, GE-2000, VAL II, material handling",
+           links: links,
+           partitions: partitions
+         }}
+
+      {:error, reason} ->
+        {:error, {Vws.Sim.Floor, reason}}
+    end
   end
 
   # with faulty lines on the floor, the WC reaches SUN_COMM through one too

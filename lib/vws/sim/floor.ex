@@ -30,11 +30,13 @@ defmodule Vws.Sim.Floor do
       `Vws.Sim.Plant.set_robot/2`, the work volumes of `priv/sims/robot_locations.exs`);
     * the MHS moves the trays (`Vws.Sim.Plant.move_tray/3`) under the workstation's interlock.
 
-  `Vws.Ops.Demo` starts the whole floor before the workstation and gives the workstation
-  `devices: devices(ws)`; `mix vws.serve` starts the same floor, without the simulators of the
-  devices it is pointed at (`--daq1`, `--hydraulic`, `--ge2000`, `--robot`). Both start it with
-  `start_stocked/1`: the material handling on, a blank in tray #1. Pointing a device at
-  real equipment instead needs no simulator for it.
+  `Vws.Ops.Demo` starts the whole floor before the workstation and gives the workstation the
+  links that reach `devices(ws)` (`Vws.Ops.Demo.shop_floor/1`); `mix vws.serve` starts the
+  same floor, without the simulators of the devices it is pointed at (`--daq1`, `--hydraulic`,
+  `--ge2000`, `--robot`). Both start it with `start_stocked/1`: the material handling on, a
+  blank in tray #1. Pointing a device at real equipment instead needs no simulator for it. The
+  floor says where its devices are (`devices/1`); what the workstation makes of them is the
+  workstation's (`Vws.CEC.Workstation.device_links/3`).
 
       iex> {:ok, _floor} = Vws.Sim.Floor.start_link(workstation: "floor-doc", time_scale: 100)
       iex> Vws.Sim.Floor.daq1_endpoint("floor-doc") =~ ~r"^tcp://127.0.0.1:\\d+$"
@@ -216,36 +218,6 @@ defmodule Vws.Sim.Floor do
   """
   @spec stock(term) :: :ok | {:error, term}
   def stock(ws), do: Plant.set_part(plant(ws), :tray1, true)
-
-  @doc """
-  For `Vws.Ops.Demo`'s shop floor: starts the whole floor (`start_stocked/1`: linked to the
-  caller, or under the `DynamicSupervisor` given as `:supervisor`) with the demo's
-  `:workstation` and `:time_scale` — hydraulic controller, GE-2000, VAL II, material handling —
-  and a blank in tray #1, and returns the workstation links and partition options that reach
-  it (`Vws.CEC.Workstation.device_links/3`).
-  """
-  @spec shop_floor(keyword) ::
-          {:ok, %{name: String.t(), links: [Supervisor.child_spec()], partitions: keyword}}
-          | {:error, term}
-  def shop_floor(opts) do
-    ws = Keyword.fetch!(opts, :workstation)
-
-    floor =
-      Keyword.take(opts, [:workstation, :time_scale, :seed, :lines, :supervisor]) ++
-        [hydraulic: true, ge2000: true, robot: true, mhs: true]
-
-    with {:ok, _pid} <- start_stocked(floor) do
-      {links, partitions} = Vws.CEC.Workstation.device_links(ws, devices(ws), [])
-
-      {:ok,
-       %{
-         name:
-           "plant + DAQ #1 + DAQ #2 + hydraulic controller, GE-2000, VAL II, material handling",
-         links: links,
-         partitions: partitions
-       }}
-    end
-  end
 
   @impl true
   def init(opts) do

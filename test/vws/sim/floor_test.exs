@@ -11,7 +11,7 @@ defmodule Vws.Sim.FloorTest do
        name: "plant + DAQ #1 + DAQ #2 + hydraulic controller, GE-2000, VAL II, material handling",
        links: links,
        partitions: partitions
-     }} = Vws.Sim.Floor.shop_floor(workstation: ws, time_scale: 100)
+     }} = Vws.Ops.Demo.shop_floor(workstation: ws, time_scale: 100)
 
     start_supervised!(
       {Vws.CEC.Workstation, id: ws, wc: nil, links: links, partitions: partitions}
