@@ -58,7 +58,7 @@ defmodule Mix.Tasks.Vws.Demo do
 
   @impl true
   def run(args) do
-    opts = Vws.Ops.CLIOptions.parse!(args, @switches)
+    opts = Vws.CLIOptions.parse!(args, @switches)
     time_scale = opts[:time_scale] || 1.0
 
     Mix.Task.run("app.start")

@@ -95,7 +95,7 @@ defmodule Mix.Tasks.Vws.Serve do
 
   @impl true
   def run(args) do
-    opts = Vws.Ops.CLIOptions.parse!(args, @switches)
+    opts = Vws.CLIOptions.parse!(args, @switches)
     opts = http_tokens(opts)
 
     # config/runtime.exs starts a workstation of its own when VWS_WC is set (a release's way):

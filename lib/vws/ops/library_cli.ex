@@ -51,8 +51,8 @@ defmodule Vws.Ops.LibraryCLI do
   @doc "Runs the command line `argv`, printing to standard output; returns the exit status."
   @spec main([String.t()]) :: 0 | 1 | 2
   def main(argv) do
-    # the flags' errors in words, as every VWS command says them (Vws.Ops.CLIOptions)
-    case Vws.Ops.CLIOptions.parse(argv, @switches) do
+    # the flags' errors in words, as every VWS command says them (Vws.CLIOptions)
+    case Vws.CLIOptions.parse(argv, @switches) do
       {:ok, opts, args} ->
         if opts[:help] do
           IO.puts(usage())

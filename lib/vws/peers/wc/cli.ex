@@ -83,8 +83,8 @@ defmodule Vws.Peers.WC.CLI do
   ## Arguments
 
   defp parse(argv) do
-    # the flags' errors in words, as every VWS command says them (Vws.Ops.CLIOptions)
-    with {:ok, opts, rest} <- Vws.Ops.CLIOptions.parse(argv, @switches) do
+    # the flags' errors in words, as every VWS command says them (Vws.CLIOptions)
+    with {:ok, opts, rest} <- Vws.CLIOptions.parse(argv, @switches) do
       actions = Keyword.take(opts, [:status, :command, :script, :send])
 
       cond do
