@@ -84,7 +84,6 @@ defmodule Vws.CEC.Library do
   # be sent to it, so it is not kept either
   @max_bytes Vws.Links.DNC.Program.max_stored_bytes()
   @machine "MACHINE.DIR"
-  @tmp_prefix ".tmp-"
 
   alias Vws.CEC.Library.{Check, Files, Version}
 
@@ -213,11 +212,7 @@ defmodule Vws.CEC.Library do
          :ok <- check_source(source),
          :ok <- if(byte_size(bytes) <= @max_bytes, do: :ok, else: {:error, :too_large}),
          :ok <- File.mkdir_p(Files.numbers_dir(dir)),
-         tmp =
-           Path.join(
-             dir,
-             "#{@tmp_prefix}#{name}-#{:os.getpid()}-#{System.unique_integer([:positive])}"
-           ),
+         tmp = Files.tmp_path(dir, name),
          :ok <- Files.write_synced(tmp, bytes) do
       v =
         Version.with_origin(%{
@@ -233,13 +228,9 @@ defmodule Vws.CEC.Library do
 
       case Files.take_number(dir, v, Files.first_free(dir, name)) do
         {:ok, v} ->
-          with :ok <- :file.rename(tmp, Path.join(dir, v.file)), :ok <- Files.sync_dir(dir) do
-            {:ok, v}
-          else
-            error ->
-              File.rm(tmp)
-              error
-          end
+          with :ok <- Files.rename_or_remove(tmp, Path.join(dir, v.file)),
+               :ok <- Files.sync_dir(dir),
+               do: {:ok, v}
 
         error ->
           File.rm(tmp)
@@ -381,14 +372,7 @@ defmodule Vws.CEC.Library do
   def export(lib, name, version \\ :latest, path) do
     with {:ok, bytes, v} <- read(lib, name, version) do
       tmp = path <> ".tmp-#{:os.getpid()}-#{System.unique_integer([:positive])}"
-
-      with :ok <- Files.write_synced(tmp, bytes), :ok <- :file.rename(tmp, path) do
-        {:ok, v}
-      else
-        error ->
-          File.rm(tmp)
-          error
-      end
+      with :ok <- Files.write_whole(tmp, path, bytes), do: {:ok, v}
     end
   end
 
@@ -530,16 +514,8 @@ defmodule Vws.CEC.Library do
 
       path = Path.join(dir, @machine)
 
-      tmp =
-        Path.join(
-          dir,
-          "#{@tmp_prefix}#{@machine}-#{:os.getpid()}-#{System.unique_integer([:positive])}"
-        )
-
-      with :ok <- Files.write_synced(tmp, IO.iodata_to_binary(text)),
-           :ok <- :file.rename(tmp, path) do
-        Files.sync_dir(dir)
-      end
+      with :ok <- Files.write_whole(Files.tmp_path(dir, @machine), path, text),
+           do: Files.sync_dir(dir)
     end
   end
 
@@ -680,7 +656,7 @@ defmodule Vws.CEC.Library do
     with {:ok, dir} <- dir(lib), {:ok, files} <- Files.ls(dir) do
       limit = System.os_time(:second) - min_age_s
 
-      for file <- files, String.starts_with?(file, @tmp_prefix) do
+      for file <- files, Files.tmp?(file) do
         path = Path.join(dir, file)
 
         case File.stat(path, time: :posix) do

@@ -9,6 +9,7 @@ defmodule Vws.CEC.Library.Files do
   alias Vws.CEC.Library.Version
 
   @numbers ".v"
+  @tmp_prefix ".tmp-"
 
   @doc "The directory of the number links of library directory `dir`."
   @spec numbers_dir(Path.t()) :: Path.t()
@@ -231,6 +232,37 @@ defmodule Vws.CEC.Library.Files do
       :file.close(fd)
       if result != :ok, do: File.rm(path)
       result
+    end
+  end
+
+  @doc "A new temporary file's path in `dir`, for `name` (hidden: a listing skips it)."
+  @spec tmp_path(Path.t(), String.t()) :: Path.t()
+  def tmp_path(dir, name),
+    do:
+      Path.join(
+        dir,
+        "#{@tmp_prefix}#{name}-#{:os.getpid()}-#{System.unique_integer([:positive])}"
+      )
+
+  @doc "True for the name of a temporary file (`tmp_path/2`)."
+  @spec tmp?(String.t()) :: boolean
+  def tmp?(file), do: String.starts_with?(file, @tmp_prefix)
+
+  @doc """
+  Writes `bytes` whole to `path`: to the new file `tmp` first, synced, then renamed over `path`
+  — a crash leaves the old `path` or the new one, never a part. `tmp` is removed on failure.
+  """
+  @spec write_whole(Path.t(), Path.t(), iodata) :: :ok | {:error, term}
+  def write_whole(tmp, path, bytes) do
+    with :ok <- write_synced(tmp, bytes), do: rename_or_remove(tmp, path)
+  end
+
+  @doc "Renames `tmp` to `path`; removes `tmp` when the rename fails."
+  @spec rename_or_remove(Path.t(), Path.t()) :: :ok | {:error, term}
+  def rename_or_remove(tmp, path) do
+    with {:error, _} = error <- :file.rename(tmp, path) do
+      File.rm(tmp)
+      error
     end
   end
 
