@@ -76,7 +76,7 @@ defmodule Vws.Test.SafetyFloor do
           programs: %{"000100.PRO" => @program}
         ],
         robot: [ddcmp: t.ddcmp],
-        hydraulic: [hpib: t.hpib],
+        hydraulic: {Vws.Peers.HydraulicController, [hpib: t.hpib]},
         mhs: [timeout: interlock[:timeout], retry_ms: interlock[:retry_ms], poll_ms: 2]
       )
 

@@ -203,7 +203,7 @@ defmodule Mix.Tasks.Vws.Serve do
           time_scale: scale,
           daq1: sim_daq1 && "tcp://127.0.0.1:#{opts[:daq1_port] || 0}",
           daq2: sim_hydraulic && "tcp://127.0.0.1:0",
-          hydraulic: sim_hydraulic,
+          hydraulic: sim_hydraulic && {Vws.Peers.HydraulicController, []},
           robot: opts[:robot] == nil && [time_scale: opts[:robot_time_scale] || 1.0],
           ge2000: opts[:ge2000] == nil && [pace: opts[:ge2000_baud] || false]
         )

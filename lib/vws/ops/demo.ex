@@ -112,7 +112,7 @@ defmodule Vws.Ops.Demo do
 
     floor =
       Keyword.take(opts, [:workstation, :time_scale, :seed, :lines, :supervisor]) ++
-        [hydraulic: true, ge2000: true, robot: true, mhs: true]
+        [hydraulic: {Vws.Peers.HydraulicController, []}, ge2000: true, robot: true, mhs: true]
 
     case Vws.Sim.Floor.start_stocked(floor) do
       {:ok, _pid} ->
