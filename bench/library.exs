@@ -13,7 +13,7 @@
 Code.require_file("support.exs", __DIR__)
 Logger.configure(level: :warning)
 
-alias Vws.Links.DNC.Library
+alias Vws.CEC.Library
 
 {opts, _, _} =
   OptionParser.parse(System.argv(), strict: [programs: :integer, dir: :string, live: :boolean])

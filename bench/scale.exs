@@ -165,7 +165,7 @@ start_floor = fn ws ->
        time_scale: scale,
        daq1: "loopback:daq1-#{ws}",
        daq2: "loopback:daq2-#{ws}",
-       hydraulic: [listen: "loopback:hyd-#{ws}"],
+       hydraulic: {Vws.Peers.HydraulicController, [listen: "loopback:hyd-#{ws}"]},
        ge2000: [endpoint: "loopback:ge-#{ws}"],
        robot: [endpoint: "loopback:val-#{ws}"],
        mhs: true}

@@ -1,7 +1,7 @@
 # The soak of issue 8: the shipped machining cycle run N times on the simulated floor with a
 # bit-error rate on every link at once — the WC's, the VAL II's (DDCMP), the GE-2000's (DNC),
 # DAQ #1's and the hydraulic controller's (HPIB) and the hydraulic controller's own to DAQ #2 —
-# each cycle audited by Vws.Sim.Soak: completed, every retry counted from telemetry, commands
+# each cycle audited by Vws.Ops.Soak: completed, every retry counted from telemetry, commands
 # lost (numbered by the WC, never ended in the CEC) and duplicated (started or ended twice in the
 # CEC, or equipment that did more than the clean reference cycle), and silent differences (issue
 # 15: the program's bytes in the CEC, the GE-2000 and back at the WC, and every relay, against
@@ -27,7 +27,7 @@ time_scale = Keyword.get(opts, :time_scale, 20.0)
 machine = Vws.Bench.machine()
 
 report =
-  Vws.Sim.Soak.run(
+  Vws.Ops.Soak.run(
     cycles: cycles,
     ber: ber,
     seed: seed,

@@ -19,10 +19,11 @@ defmodule Vws.ArchitectureTest do
   ]
   # used by every layer, depending on nothing: the registry names of a workstation's parts,
   # telemetry (with whatever sits beside it, a catalogue of events), log limits, the checking
-  # of start options against a schema
+  # of start options and of command-line flags against a schema
   @shared [
     "lib/vws/names.ex",
     "lib/vws/options.ex",
+    "lib/vws/cli_options.ex",
     "lib/vws/telemetry.ex",
     "lib/vws/telemetry/",
     "lib/vws/log_limit.ex"

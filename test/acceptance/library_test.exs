@@ -4,7 +4,7 @@ defmodule Vws.Acceptance.LibraryTest do
   # — while the workstation runs and after it stopped; and a store killed with kill -9.
   use ExUnit.Case, async: true
 
-  alias Vws.Links.DNC.Library
+  alias Vws.CEC.Library
   alias Vws.Test.Acceptance
   alias Vws.Peers.WC.Client
 
@@ -125,7 +125,7 @@ defmodule Vws.Acceptance.LibraryTest do
     code = """
     text = "%\\nO42\\n" <> String.duplicate("N10 G01 X1.0 Y2.0 F300\\n", 42_000) <> "%\\n"
     for i <- Stream.iterate(1, &(&1 + 1)) do
-      {:ok, v} = Vws.Links.DNC.Library.store({:dir, #{inspect(lib_dir)}}, "42", text, source: "cli")
+      {:ok, v} = Vws.CEC.Library.store({:dir, #{inspect(lib_dir)}}, "42", text, source: "cli")
       IO.puts("stored v\#{v.version}")
     end
     """

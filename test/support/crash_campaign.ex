@@ -79,7 +79,7 @@ defmodule Vws.Test.CrashCampaign do
       {Floor,
        workstation: ws,
        time_scale: @time_scale,
-       hydraulic: true,
+       hydraulic: {HydraulicController, []},
        ge2000: true,
        robot: true,
        mhs: true}

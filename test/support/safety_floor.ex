@@ -60,7 +60,7 @@ defmodule Vws.Test.SafetyFloor do
     ws = "safety-#{System.unique_integer([:positive])}"
     # a library with a version of the selected program, for DOWNLOAD_GE(…/v) and COMPARE_GE
     library = Path.join(System.tmp_dir!(), "vws-#{ws}-library")
-    {:ok, _} = Vws.Links.DNC.Library.store({:dir, library}, "000100.PRO", @program)
+    {:ok, _} = Vws.CEC.Library.store({:dir, library}, "000100.PRO", @program)
     t = Map.fetch!(@timing, Keyword.get(opts, :timing, :steady))
     interlock = Keyword.merge(t.interlock, Keyword.get(opts, :interlock, []))
 
@@ -76,7 +76,7 @@ defmodule Vws.Test.SafetyFloor do
           programs: %{"000100.PRO" => @program}
         ],
         robot: [ddcmp: t.ddcmp],
-        hydraulic: [hpib: t.hpib],
+        hydraulic: {Vws.Peers.HydraulicController, [hpib: t.hpib]},
         mhs: [timeout: interlock[:timeout], retry_ms: interlock[:retry_ms], poll_ms: 2]
       )
 

@@ -8,7 +8,7 @@ defmodule Vws.LibraryCycleTest do
   use ExUnit.Case, async: true
 
   import ExUnit.CaptureIO
-  alias Vws.Links.DNC.Library
+  alias Vws.CEC.Library
   alias Vws.Peers.WC.Runner.Summary
 
   @moduletag timeout: 240_000

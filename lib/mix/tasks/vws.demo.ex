@@ -28,7 +28,7 @@ defmodule Mix.Tasks.Vws.Demo do
     * `--id ID` — the workstation id (default `VWS-DEMO`)
     * `--journal DIR`, `--no-journal` — as for `mix vws.serve`: the journal is on by default, in
       `journal/<id>` of the data directory (`Vws.Ops.DataDir`)
-    * `--library DIR`, `--no-library` — likewise the program library (`Vws.Links.DNC.Library`), on by
+    * `--library DIR`, `--no-library` — likewise the program library (`Vws.CEC.Library`), on by
       default in `library/<id>` of the data directory
     * `--verbose` — keep the application's info logs (by default only warnings interleave with
       the dialogue)
@@ -58,7 +58,7 @@ defmodule Mix.Tasks.Vws.Demo do
 
   @impl true
   def run(args) do
-    opts = Vws.Ops.CLIOptions.parse!(args, @switches)
+    opts = Vws.CLIOptions.parse!(args, @switches)
     time_scale = opts[:time_scale] || 1.0
 
     Mix.Task.run("app.start")

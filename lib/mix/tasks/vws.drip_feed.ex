@@ -40,7 +40,7 @@ defmodule Mix.Tasks.Vws.DripFeed do
 
   @impl true
   def run(args) do
-    {opts, rest} = Vws.Ops.CLIOptions.parse!(args, @switches, args: true)
+    {opts, rest} = Vws.CLIOptions.parse!(args, @switches, args: true)
 
     file =
       case rest do

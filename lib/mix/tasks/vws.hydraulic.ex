@@ -32,7 +32,7 @@ defmodule Mix.Tasks.Vws.Hydraulic do
 
   @impl true
   def run(args) do
-    opts = Vws.Ops.CLIOptions.parse!(args, @switches)
+    opts = Vws.CLIOptions.parse!(args, @switches)
 
     Mix.Task.run("app.start")
     # one Ctrl-C in this terminal: an ordered stop, never the BEAM's BREAK menu (which freezes it)

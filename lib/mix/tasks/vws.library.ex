@@ -1,7 +1,7 @@
 defmodule Mix.Tasks.Vws.Library do
   @shortdoc "The program library: list, show, import, export, diff, release, compare"
   @moduledoc """
-  The program library of a workstation (`Vws.Links.DNC.Library`), running or stopped
+  The program library of a workstation (`Vws.CEC.Library`), running or stopped
   (`Vws.Ops.LibraryCLI` has every option):
 
       mix vws.library list

@@ -33,7 +33,7 @@ defmodule Mix.Tasks.Vws.Serve do
       `$VWS_JOURNAL_DIR`, else `journal/<id>` of the data directory (`$VWS_DATA_DIR`, else
       `$XDG_STATE_HOME/vws`, else `~/.local/state/vws`; see `Vws.Ops.DataDir`)
     * `--no-journal` — no journal: a restart forgets every command
-    * `--library DIR` — the program library (`Vws.Links.DNC.Library`: every program DOWNLOAD_HP brought,
+    * `--library DIR` — the program library (`Vws.CEC.Library`: every program DOWNLOAD_HP brought,
       with its versions; `mix vws.library`) in DIR. By default `$VWS_LIBRARY_DIR`, else
       `library/<id>` of the data directory
     * `--no-library` — no program library
@@ -95,7 +95,7 @@ defmodule Mix.Tasks.Vws.Serve do
 
   @impl true
   def run(args) do
-    opts = Vws.Ops.CLIOptions.parse!(args, @switches)
+    opts = Vws.CLIOptions.parse!(args, @switches)
     opts = http_tokens(opts)
 
     # config/runtime.exs starts a workstation of its own when VWS_WC is set (a release's way):
@@ -203,7 +203,7 @@ defmodule Mix.Tasks.Vws.Serve do
           time_scale: scale,
           daq1: sim_daq1 && "tcp://127.0.0.1:#{opts[:daq1_port] || 0}",
           daq2: sim_hydraulic && "tcp://127.0.0.1:0",
-          hydraulic: sim_hydraulic,
+          hydraulic: sim_hydraulic && {Vws.Peers.HydraulicController, []},
           robot: opts[:robot] == nil && [time_scale: opts[:robot_time_scale] || 1.0],
           ge2000: opts[:ge2000] == nil && [pace: opts[:ge2000_baud] || false]
         )

@@ -23,7 +23,7 @@ defmodule Vws.CEC.Workstation do
     * `:wc` — the WC endpoint SUN_COMM serves (`"tcp://127.0.0.1:7070"`, `"tty:/dev/ttyS0?baud=9600"`,
       `"loopback:name"`); `nil` starts SUN_COMM without a link
     * `:journal` — a directory for the command journal (`Vws.CEC.Journal`), or its options; none by default
-    * `:library` — the directory of the workstation's program library (`Vws.Links.DNC.Library`): DOWNLOAD_HP
+    * `:library` — the directory of the workstation's program library (`Vws.CEC.Library`): DOWNLOAD_HP
       stores every program there, `DOWNLOAD_GE(nnnnnn.PRO)` sends from it; none by default
     * `:sun_comm` — further SUN_COMM options (`bcc:`, timeouts; see `Vws.CEC.SunComm`)
     * `:links` — child specs of device links, started under the links supervisor
@@ -105,7 +105,7 @@ defmodule Vws.CEC.Workstation do
     # a member of the cell (Vws.CEC.Cell) for as long as this supervisor lives
     :ok = Vws.CEC.Cell.join(ws)
     # the program library's directory, found by the workstation's id while it runs
-    :ok = Vws.Links.DNC.Library.register(ws, Keyword.get(opts, :library))
+    :ok = Vws.CEC.Library.register(ws, Keyword.get(opts, :library))
 
     {device_links, partition_opts} =
       device_links(ws, Keyword.get(opts, :devices, []), Keyword.get(opts, :partitions, []))

@@ -5,7 +5,7 @@ defmodule Vws.Ops.DataDir do
 
       $VWS_DATA_DIR                      default: $XDG_STATE_HOME/vws, else ~/.local/state/vws
       ├── journal/<workstation id>/      the command journal, the NC file and NC_UP (Vws.CEC.Journal)
-      └── library/<workstation id>/      the program library, every version (Vws.Links.DNC.Library)
+      └── library/<workstation id>/      the program library, every version (Vws.CEC.Library)
 
   The program library is on wherever the journal is by default (`mix vws.serve`, `mix vws.demo`,
   the release), in `library/<id>` of the data directory; `VWS_LIBRARY_DIR` names it instead
@@ -61,7 +61,7 @@ defmodule Vws.Ops.DataDir do
   end
 
   @doc """
-  The program library's directory of workstation `id` (`Vws.Links.DNC.Library`), or nil for none:
+  The program library's directory of workstation `id` (`Vws.CEC.Library`), or nil for none:
   `{:dir, path}` (`--library DIR`), `:off` (`--no-library`) or `:default` (then
   `VWS_LIBRARY_DIR`, `off` meaning none, else `library/<id>` under `root/0`).
 

@@ -7,34 +7,24 @@ defmodule Vws.Ops.Demo do
   ## The shop floor
 
   `start_shop_floor/1` is the one place that decides what runs: the simulated equipment first,
-  then the workstation with a link to each simulator. Each simulator is a module in
-  `@simulators` with one function,
-
-      shop_floor(opts) :: {:ok, %{name: String.t(), links: [child_spec], partitions: keyword}}
-
-  which starts the simulated device (the `opts` carry `:workstation` and `:time_scale`) and says
-  which workstation links and partition options reach it. Today the list holds the whole floor
-  (`Vws.Sim.Floor`): the plant with DAQ #1 (VWS_STATUS, GRIPPER, FIXTURE and VACUUM reach it; ROBOT
-  gets its tray locks, MONARCH its cycle-start relay), DAQ #2 with the hydraulic controller
+  then the workstation with a link to each simulator. `shop_floor/1` starts the whole floor
+  (`Vws.Sim.Floor`): the plant with DAQ #1 (VWS_STATUS, GRIPPER, FIXTURE and VACUUM reach it;
+  ROBOT gets its tray locks, MONARCH its cycle-start relay), DAQ #2 with the hydraulic controller
   (HYDRAULIC), the GE-2000 (whose cycle-start input is that relay), the VAL II robot and the
-  material-handling system, with a blank in tray #1. A partition whose device is not on the
-  floor starts without a device link and answers each valid command `ERROR NO LINK TO
-  <device>` — truthfully — and a cycle stops at its first such command.
+  material-handling system, with a blank in tray #1 — and turns where the floor's devices are
+  (`Vws.Sim.Floor.devices/1`) into the workstation's links and partition options
+  (`Vws.CEC.Workstation.device_links/3`). A partition whose device is not on the floor starts
+  without a device link and answers each valid command `ERROR NO LINK TO <device>` —
+  truthfully — and a cycle stops at its first such command.
 
   ## The printed dialogue
 
-  One row per line on the link: the time since the WC connected, `→` for WC to CEC or `←` for
-  CEC to WC, the line as on the wire, and its meaning. Script steps are announced on rows of
-  their own (`──`). A status query answered exactly as the previous one is not printed again;
-  a row `… asked N more times` says how often it was repeated.
+  As `Vws.Peers.WC.Printer` prints it (as `mix vws.wc --script` does): one row per line on the
+  link, script steps on rows of their own, a status query answered as the previous one folded.
   """
 
-  alias Vws.Peers.WC.{Client, Runner, Script}
+  alias Vws.Peers.WC.{Client, Printer, Runner, Script}
   alias Vws.Peers.WC.Runner.Summary
-
-  # Modules that put a simulated device on the shop floor (see the moduledoc). Filled in by the
-  # issues that build the simulators.
-  @simulators [Vws.Sim.Floor]
 
   @type shop_floor :: %{
           workstation: term,
@@ -67,7 +57,7 @@ defmodule Vws.Ops.Demo do
       [workstation: id, time_scale: time_scale, lines: lines] ++
         Keyword.take(opts, [:supervisor])
 
-    with {:ok, sims} <- start_simulators(sim_opts),
+    with {:ok, sim} <- shop_floor(sim_opts),
          {:ok, _pid} <-
            Vws.CEC.Workstation.start(
              id: id,
@@ -75,8 +65,8 @@ defmodule Vws.Ops.Demo do
              sun_comm: [bcc: Keyword.get(opts, :bcc, :sum)],
              journal: Keyword.get(opts, :journal),
              library: Keyword.get(opts, :library),
-             links: Enum.flat_map(sims, & &1.links),
-             partitions: merge_partitions(sims)
+             links: sim.links,
+             partitions: sim.partitions
            ),
          {:ok, listening} <- wait_listening(id, 2_000),
          {:ok, wc} <- wc_line(id, to_string(listening), lines, opts[:supervisor]) do
@@ -91,25 +81,45 @@ defmodule Vws.Ops.Demo do
          wc: wc,
          time_scale: time_scale,
          lines: Keyword.keys(Vws.Sim.Floor.lines(id)),
-         simulated: Enum.map(sims, & &1.name),
+         simulated: [sim.name],
          unlinked: unlinked
        }}
     end
   end
 
-  defp start_simulators(opts) do
-    Enum.reduce_while(@simulators, {:ok, []}, fn module, {:ok, acc} ->
-      case module.shop_floor(opts) do
-        {:ok, sim} -> {:cont, {:ok, acc ++ [sim]}}
-        {:error, reason} -> {:halt, {:error, {module, reason}}}
-      end
-    end)
-  end
+  @doc """
+  The demo's shop floor: starts the whole simulated floor (`Vws.Sim.Floor.start_stocked/1`:
+  linked to the caller, or under the `DynamicSupervisor` given as `:supervisor`) with the
+  `:workstation`, `:time_scale`, `:seed` and `:lines` given — hydraulic controller, GE-2000,
+  VAL II, material handling — and a blank in tray #1, and returns the workstation links and
+  partition options that reach it (`Vws.CEC.Workstation.device_links/3` of
+  `Vws.Sim.Floor.devices/1`). `{:error, {Vws.Sim.Floor, reason}}` when the floor does not start.
+  """
+  @spec shop_floor(keyword) ::
+          {:ok, %{name: String.t(), links: [Supervisor.child_spec()], partitions: keyword}}
+          | {:error, {module, term}}
+  def shop_floor(opts) do
+    ws = Keyword.fetch!(opts, :workstation)
 
-  defp merge_partitions(sims) do
-    Enum.reduce(sims, [], fn sim, acc ->
-      Keyword.merge(acc, Map.get(sim, :partitions, []), fn _p, a, b -> Keyword.merge(a, b) end)
-    end)
+    floor =
+      Keyword.take(opts, [:workstation, :time_scale, :seed, :lines, :supervisor]) ++
+        [hydraulic: {Vws.Peers.HydraulicController, []}, ge2000: true, robot: true, mhs: true]
+
+    case Vws.Sim.Floor.start_stocked(floor) do
+      {:ok, _pid} ->
+        {links, partitions} = Vws.CEC.Workstation.device_links(ws, Vws.Sim.Floor.devices(ws), [])
+
+        {:ok,
+         %{
+           name:
+             "plant + DAQ #1 + DAQ #2 + hydraulic controller, GE-2000, VAL II, material handling",
+           links: links,
+           partitions: partitions
+         }}
+
+      {:error, reason} ->
+        {:error, {Vws.Sim.Floor, reason}}
+    end
   end
 
   # with faulty lines on the floor, the WC reaches SUN_COMM through one too
@@ -163,7 +173,7 @@ defmodule Vws.Ops.Demo do
          {:client, {:ok, client}} <- {:client, Client.connect(floor.wc, subscribe: self())} do
       print_floor(floor, path, script)
       summary = run_printing(client, script, opts)
-      Enum.each(Summary.format(summary), &IO.puts(readable(&1)))
+      Enum.each(Summary.format(summary), &IO.puts(Printer.readable(&1)))
       {:ok, summary, floor, client}
     else
       {:script, {:error, error}} -> {:error, Exception.message(error)}
@@ -203,148 +213,34 @@ defmodule Vws.Ops.Demo do
 
   defp run_printing(client, script, opts) do
     task = Task.async(fn -> Runner.run(client, script, opts) end)
-    printer = print_until(task, client, new_printer())
+    {printer, summary} = print_until(task, client, Printer.new())
     # every event the client sent before answering this call is already in our mailbox
     _ = Client.info(client)
     printer = drain(client, printer)
-    flush(printer)
+    Printer.flush(printer)
     IO.puts("")
-    printer.summary
+    summary
   end
 
   defp print_until(%Task{ref: ref} = task, client, printer) do
     receive do
       {:wc_client, ^client, event} ->
-        print_until(task, client, print_event(event, printer))
+        print_until(task, client, Printer.print_event(event, printer))
 
       {^ref, summary} ->
         Process.demonitor(ref, [:flush])
-        %{printer | summary: summary}
+        {printer, summary}
     end
   end
 
   defp drain(client, printer) do
     receive do
-      {:wc_client, ^client, event} -> drain(client, print_event(event, printer))
+      {:wc_client, ^client, event} -> drain(client, Printer.print_event(event, printer))
     after
       0 -> printer
     end
   end
 
-  ## Printing, with repeated status polls folded
-
-  @doc false
-  def new_printer, do: %{held: nil, last: nil, repeats: 0, since: nil, until: nil, summary: nil}
-
-  @doc false
-  # Prints one event (or holds a status query until its answer shows whether it repeats).
-  def print_event(%{kind: :status_query} = event, printer) do
-    printer = release(printer)
-    %{printer | held: event}
-  end
-
-  def print_event(%{kind: :status} = answer, %{held: query} = printer) when query != nil do
-    pair = {query.meaning, answer.meaning}
-
-    if pair == printer.last do
-      %{
-        printer
-        | held: nil,
-          repeats: printer.repeats + 1,
-          since: printer.since || query.at,
-          until: answer.at
-      }
-    else
-      printer = flush(%{printer | held: nil})
-      row(query)
-      row(answer)
-      %{printer | last: pair}
-    end
-  end
-
-  def print_event(event, printer) do
-    printer = flush(release(printer))
-    row(event)
-    %{printer | last: nil}
-  end
-
-  defp release(%{held: nil} = printer), do: printer
-
-  defp release(%{held: query} = printer) do
-    printer = flush(printer)
-    row(query)
-    %{printer | held: nil, last: nil}
-  end
-
-  defp flush(%{repeats: 0} = printer), do: printer
-
-  defp flush(printer) do
-    span = seconds(printer.until - printer.since)
-
-    IO.puts(
-      "          … asked #{printer.repeats} more #{plural(printer.repeats, "time")} over #{span}: same answer"
-    )
-
-    %{printer | repeats: 0, since: nil, until: nil}
-  end
-
-  defp row(%{direction: :note, meaning: meaning, at: at}),
-    do: IO.puts("#{time(at)}  ── #{readable(meaning)}")
-
-  defp row(%{direction: direction, line: line, meaning: meaning, at: at}) do
-    arrow = if direction == :sent, do: "→", else: "←"
-
-    IO.puts(
-      "#{time(at)}  #{arrow} #{String.pad_trailing(printable(line || ""), 52)}  #{readable(meaning)}"
-    )
-  end
-
-  @doc ~S"""
-  A line as it was on the wire, readable on a terminal: printable ASCII as it is, every other
-  byte (a bit flipped by a noisy line, a control character) as `\xNN`, and `\` itself as `\\`.
-  Wire text is bytes, not UTF-8: a damaged byte must not reach the terminal, nor stop the
-  printing (`IO.puts/1` raises on a binary that is not valid UTF-8).
-
-      iex> Vws.Ops.Demo.printable("11S0090ACTI" <> <<0xD6>> <> "E058")
-      "11S0090ACTI\\xD6E058"
-      iex> Vws.Ops.Demo.printable("a\tb\\c")
-      "a\\x09b\\\\c"
-  """
-  @spec printable(binary) :: String.t()
-  def printable(bytes) when is_binary(bytes) do
-    for <<byte <- bytes>>, into: "" do
-      cond do
-        byte == ?\\ -> "\\\\"
-        byte in 0x20..0x7E -> <<byte>>
-        true -> hex(byte)
-      end
-    end
-  end
-
-  @doc ~S"""
-  Text for a person (a meaning, a script step, the summary's reason) made safe to print: valid
-  UTF-8 that prints stays as it is; a byte that is not valid UTF-8 (a damaged byte quoted from
-  the wire) or a control character becomes `\xNN`.
-
-      iex> Vws.Ops.Demo.readable("MONARCH: ACTI" <> <<0xD6>> <> "E — ×20")
-      "MONARCH: ACTI\\xD6E — ×20"
-  """
-  @spec readable(binary) :: String.t()
-  def readable(text) when is_binary(text), do: readable(text, "")
-
-  defp readable(<<c::utf8, rest::binary>>, acc) when c >= 0x20 and c not in 0x7F..0x9F,
-    do: readable(rest, <<acc::binary, c::utf8>>)
-
-  defp readable(<<byte, rest::binary>>, acc), do: readable(rest, acc <> hex(byte))
-  defp readable(<<>>, acc), do: acc
-
-  defp hex(byte), do: "\\x" <> String.pad_leading(Integer.to_string(byte, 16), 2, "0")
-
   defp scale(x) when is_float(x) and x == trunc(x), do: trunc(x)
   defp scale(x), do: x
-
-  defp time(ms), do: String.pad_leading(seconds(ms), 8)
-  defp seconds(ms), do: :erlang.float_to_binary(ms / 1000, decimals: 3) <> "s"
-  defp plural(1, word), do: word
-  defp plural(_, word), do: word <> "s"
 end

@@ -2,7 +2,7 @@ defmodule Vws.Ops.LibraryCLI do
   @moduledoc """
   The program library on the command line (`mix vws.library`; `bin/vws-library` in a release,
   with the same options): works on the library's directory
-  itself, so on a running workstation's library as well as on a stopped one's (`Vws.Links.DNC.Library`
+  itself, so on a running workstation's library as well as on a stopped one's (`Vws.CEC.Library`
   keeps stores from several OS processes apart).
 
       mix vws.library list                          # every program, its latest version, on the machine
@@ -24,7 +24,7 @@ defmodule Vws.Ops.LibraryCLI do
   it again, as its WC: it sends the Monarch command `COMPARE_GE` to `--endpoint` (default
   `tcp://127.0.0.1:7070`; `Vws.Peers.WC.CLI`).
 
-  `import` takes only an NC program (`Vws.Links.DNC.Library.check_program/1`: `%` first and
+  `import` takes only an NC program (`Vws.CEC.Library.check_program/1`: `%` first and
   last, the O word after the first `%`, text, at most 999,999 bytes) and says why it refuses
   anything else (`tool.py: not an NC program: its first line is not %`, exit status 1); a file
   holding exactly the latest version is not stored again (`same as 001234.PRO v2, nothing
@@ -34,7 +34,8 @@ defmodule Vws.Ops.LibraryCLI do
   exits 0); 2 a usage error.
   """
 
-  alias Vws.Links.DNC.Library
+  alias Vws.CEC.Library
+  alias Vws.Ops.LibraryText
 
   @switches [
     id: :string,
@@ -50,8 +51,8 @@ defmodule Vws.Ops.LibraryCLI do
   @doc "Runs the command line `argv`, printing to standard output; returns the exit status."
   @spec main([String.t()]) :: 0 | 1 | 2
   def main(argv) do
-    # the flags' errors in words, as every VWS command says them (Vws.Ops.CLIOptions)
-    case Vws.Ops.CLIOptions.parse(argv, @switches) do
+    # the flags' errors in words, as every VWS command says them (Vws.CLIOptions)
+    case Vws.CLIOptions.parse(argv, @switches) do
       {:ok, opts, args} ->
         if opts[:help] do
           IO.puts(usage())
@@ -100,7 +101,9 @@ defmodule Vws.Ops.LibraryCLI do
             IO.puts("  v#{v.version}  #{line(v)}#{mark}")
           end
 
-          IO.puts("on the machine: #{Library.on_machine_text(row.on_machine, latest, versions)}")
+          IO.puts(
+            "on the machine: #{LibraryText.on_machine_text(row.on_machine, latest, versions)}"
+          )
 
           0
         end
@@ -148,7 +151,7 @@ defmodule Vws.Ops.LibraryCLI do
     with {:ok, a} <- version_arg(a),
          {:ok, b} <- version_arg(List.first(b, "latest")),
          {:ok, diff} <- Library.diff(lib, name, a, b) do
-      case Library.format_diff(diff) do
+      case LibraryText.format_diff(diff) do
         [] -> IO.puts("#{name}: v#{a} and #{b} are the same")
         lines -> Enum.each(lines, &IO.puts/1)
       end
@@ -189,7 +192,7 @@ defmodule Vws.Ops.LibraryCLI do
   defp print_compare(lib) do
     case Library.compare(lib) do
       {:ok, result} ->
-        Library.print_compare(result)
+        LibraryText.print_compare(result)
         0
 
       error ->
@@ -232,7 +235,7 @@ defmodule Vws.Ops.LibraryCLI do
     do: "larger than #{Library.max_bytes()} bytes, the most the GE-2000's directory can say"
 
   defp reason_text(:enoent), do: "no such file"
-  defp reason_text({:not_a_program, why}), do: Library.program_refusal(why)
+  defp reason_text({:not_a_program, why}), do: LibraryText.program_refusal(why)
   defp reason_text({:not_a_file, type}), do: "not a regular file (#{type})"
   defp reason_text(reason), do: inspect(reason)
 

@@ -15,7 +15,7 @@ defmodule Vws.Partitions.Monarch do
   | `CYCLE_START` | (DAQ #1 relay) then `RNL` | DONE once the machine reports ACTIVE |
   | `RELEASE_TABLE` | `RNL` | clears the table interlock; refused `ERROR MACHINE ACTIVE` |
 
-  From the program library (`Vws.Links.DNC.Library`, ours — issue 18; the workstation's `library:`):
+  From the program library (`Vws.CEC.Library`, ours — issue 18; the workstation's `library:`):
 
   | command | on the link | result |
   |---------|-------------|--------|
@@ -171,7 +171,7 @@ defmodule Vws.Partitions.Monarch do
   def execute({:compare_ge, file}, ctx) do
     with {:ok, versions} <- library_versions(ctx.workstation, file),
          {:ok, entries} <- directory(ctx) do
-      case Vws.Links.DNC.Library.on_machine(versions, Map.get(entries, file)) do
+      case Vws.CEC.Library.on_machine(versions, Map.get(entries, file)) do
         :absent ->
           {:error, "PROGRAM ABSENT #{file}"}
 
@@ -322,9 +322,9 @@ defmodule Vws.Partitions.Monarch do
     with {:ok, blocks} <- request(ctx, :receive, :directory, "", []) do
       case Report.parse_directory(IO.iodata_to_binary(blocks)) do
         {:ok, entries} ->
-          if Vws.Links.DNC.Library.enabled?(ctx.workstation) do
+          if Vws.CEC.Library.enabled?(ctx.workstation) do
             with {:error, reason} <-
-                   Vws.Links.DNC.Library.record_machine(ctx.workstation, entries) do
+                   Vws.CEC.Library.record_machine(ctx.workstation, entries) do
               require Logger
 
               Logger.error(
@@ -345,9 +345,9 @@ defmodule Vws.Partitions.Monarch do
   # these bytes (the same SHA-256 digest, and its file reads whole), else `:differs`.
   defp read_back(ctx, file, versions) do
     with {:ok, blocks} <- request(ctx, :receive, :part_program, file, []) do
-      digest = Vws.Links.DNC.Library.digest(IO.iodata_to_binary(blocks))
+      digest = Vws.CEC.Library.digest(IO.iodata_to_binary(blocks))
 
-      case Vws.Links.DNC.Library.same_as(versions, digest) do
+      case Vws.CEC.Library.same_as(versions, digest) do
         {:ok, v} ->
           with {:ok, _text} <- library_program(ctx.workstation, file, v.version),
                do: {:same, v.version}
@@ -359,14 +359,14 @@ defmodule Vws.Partitions.Monarch do
   end
 
   defp library_program(ws, file, which) do
-    case Vws.Links.DNC.Library.read(ws, file, which) do
+    case Vws.CEC.Library.read(ws, file, which) do
       {:ok, text, _version} -> {:ok, text}
       {:error, reason} -> {:error, library_error(file, which, reason)}
     end
   end
 
   defp library_versions(ws, file) do
-    case Vws.Links.DNC.Library.versions(ws, file) do
+    case Vws.CEC.Library.versions(ws, file) do
       {:ok, versions} -> {:ok, versions}
       {:error, reason} -> {:error, library_error(file, :latest, reason)}
     end
@@ -397,13 +397,13 @@ defmodule Vws.Partitions.Monarch do
   @doc """
   Compares the program library of workstation `ws` with what its GE-2000 holds, from iex: reads
   the machine's directory (`RNF`) through `ws`'s DNC link, records it in the library, and returns
-  `Vws.Links.DNC.Library.compare/1` — each program `on_machine` `{:same, version}`, `:differs` or
+  `Vws.CEC.Library.compare/1` — each program `on_machine` `{:same, version}`, `:differs` or
   `:absent`. With `read_back: true` (every program the directory shows the same) or
   `read_back: [file names]` those programs are also read back whole (`RNS`) and compared byte for
   byte: each such row gets `read_back: :same | :differs` (a `:differs` also makes it `on_machine:
   :differs`; a `:same` names the version the bytes are: their SHA-256 digest's). A program whose
   directory entry has the size and CRC-16 of versions that differ (`{:ambiguous, [n]}`) is
-  always read back. `Vws.Links.DNC.Library.print_compare/1` prints the result.
+  always read back. `Vws.Ops.LibraryText.print_compare/1` prints the result.
 
   Options: `:link` (default the workstation's GE-2000 link), `:check`, `:request_timeout`.
   """
@@ -414,9 +414,9 @@ defmodule Vws.Partitions.Monarch do
 
     with :ok <- if(link, do: :ok, else: {:error, "NO LINK TO GE-2000"}),
          :ok <-
-           if(Vws.Links.DNC.Library.enabled?(ws), do: :ok, else: {:error, "NO PROGRAM LIBRARY"}),
+           if(Vws.CEC.Library.enabled?(ws), do: :ok, else: {:error, "NO PROGRAM LIBRARY"}),
          {:ok, _entries} <- read_directory(ctx),
-         {:ok, result} <- Vws.Links.DNC.Library.compare(ws) do
+         {:ok, result} <- Vws.CEC.Library.compare(ws) do
       wanted = Keyword.get(opts, :read_back, false)
 
       rows =
@@ -509,7 +509,7 @@ defmodule Vws.Partitions.Monarch do
   Keeps a program received from the machine in the workstation's program library: a new
   version, source `"from the machine"` — not released, so `DOWNLOAD_GE(nnnnnn.PRO)` never sends
   it; only a `DOWNLOAD_GE(nnnnnn.PRO/v)` naming it does, or a release (`mix vws.library release`,
-  `Vws.Links.DNC.Library.release/4`). When a version already holds exactly these bytes (the same
+  `Vws.CEC.Library.release/4`). When a version already holds exactly these bytes (the same
   SHA-256 digest) nothing new is stored. NC_UP is left alone: it holds only what the WC's
   `UPLOAD_GE` asked for. Without a library the program is refused (`NO PROGRAM LIBRARY`, logged
   by the monitor).
@@ -518,15 +518,15 @@ defmodule Vws.Partitions.Monarch do
   def store_from_machine(ws, name, lines) do
     require Logger
 
-    if Vws.Links.DNC.Library.enabled?(ws) do
-      case Vws.Links.DNC.Library.store(ws, name, Program.to_text(lines),
+    if Vws.CEC.Library.enabled?(ws) do
+      case Vws.CEC.Library.store(ws, name, Program.to_text(lines),
              source: "from the machine",
              only_if_new: true
            ) do
         {:ok, v} ->
           Logger.info(
             "MONARCH: program #{name} received from the machine (#{length(lines)} lines): " <>
-              "library version #{v.version} (#{Vws.Links.DNC.Library.release_text(v)})"
+              "library version #{v.version} (#{Vws.CEC.Library.release_text(v)})"
           )
 
           :ok

@@ -2,7 +2,7 @@ defmodule Vws.Sim.Floor do
   @moduledoc """
   The simulated shop floor of one workstation: the plant (`Vws.Sim.Plant`), the two
   data-acquisition units on it (`Vws.Sim.DAQ`, each listening on its own endpoint) and — when
-  asked — the hydraulic controller (`Vws.Peers.HydraulicController`) on DAQ #2, the GE-2000
+  asked — the hydraulic controller's program (`Vws.Peers.HydraulicController`) on DAQ #2, the GE-2000
   (`Vws.Sim.GE2000`), the VAL II robot (`Vws.Sim.VAL2`) and the material-handling system
   (`Vws.Sim.MHS`), wired to the plant as the real equipment is to the workstation:
 
@@ -11,14 +11,16 @@ defmodule Vws.Sim.Floor do
   ├── Vws.Sim.Plant        {ws, :sim_plant}   — other simulators find it with plant/1
   ├── Vws.Sim.DAQ (DAQ #1) {ws, :sim_daq1}    — on :daq1 (default tcp://127.0.0.1:0); `daq1: false`: none
   ├── Vws.Sim.DAQ (DAQ #2) {ws, :sim_daq2}    — the pallet's channels, on :daq2 (default tcp://127.0.0.1:0)
-  ├── Vws.Peers.HydraulicController  named {:sim_floor, ws}, on DAQ #2 — option :hydraulic
+  ├── the hydraulic controller       named {:sim_floor, ws}, on DAQ #2 — option :hydraulic
   ├── Vws.Sim.GE2000       {ws, :sim_ge2000}  — option :ge2000
   ├── Vws.Sim.VAL2         {ws, :sim_val2}    — option :robot
   └── Vws.Sim.MHS          {ws, :sim_mhs}     — option :mhs
   ```
 
-  The hydraulic controller is not a simulator — it is the controller itself — but on the
-  simulated floor it has nowhere else to run; it comes after DAQ #2, which it needs.
+  The hydraulic controller is not a simulator — it is the controller itself, a peer — but on
+  the simulated floor it has nowhere else to run; it comes after DAQ #2, which it needs. The
+  floor does not name it: whoever puts the floor together hands it the controller's module
+  (`hydraulic: {Vws.Peers.HydraulicController, opts}`), as the simulators sit below the peers.
 
   The wires, so that the plant's collision oracle (`Vws.Sim.Plant.collisions/1`) sees what the
   equipment does without asking the CEC:
@@ -30,11 +32,13 @@ defmodule Vws.Sim.Floor do
       `Vws.Sim.Plant.set_robot/2`, the work volumes of `priv/sims/robot_locations.exs`);
     * the MHS moves the trays (`Vws.Sim.Plant.move_tray/3`) under the workstation's interlock.
 
-  `Vws.Ops.Demo` starts the whole floor before the workstation and gives the workstation
-  `devices: devices(ws)`; `mix vws.serve` starts the same floor, without the simulators of the
-  devices it is pointed at (`--daq1`, `--hydraulic`, `--ge2000`, `--robot`). Both start it with
-  `start_stocked/1`: the material handling on, a blank in tray #1. Pointing a device at
-  real equipment instead needs no simulator for it.
+  `Vws.Ops.Demo` starts the whole floor before the workstation and gives the workstation the
+  links that reach `devices(ws)` (`Vws.Ops.Demo.shop_floor/1`); `mix vws.serve` starts the
+  same floor, without the simulators of the devices it is pointed at (`--daq1`, `--hydraulic`,
+  `--ge2000`, `--robot`). Both start it with `start_stocked/1`: the material handling on, a
+  blank in tray #1. Pointing a device at real equipment instead needs no simulator for it. The
+  floor says where its devices are (`devices/1`); what the workstation makes of them is the
+  workstation's (`Vws.CEC.Workstation.device_links/3`).
 
       iex> {:ok, _floor} = Vws.Sim.Floor.start_link(workstation: "floor-doc", time_scale: 100)
       iex> Vws.Sim.Floor.daq1_endpoint("floor-doc") =~ ~r"^tcp://127.0.0.1:\\d+$"
@@ -46,7 +50,6 @@ defmodule Vws.Sim.Floor do
   """
   use Supervisor
 
-  alias Vws.Peers.HydraulicController
   alias Vws.Sim.{DAQ, GE2000, Line, MHS, Plant, VAL2}
 
   @doc """
@@ -60,8 +63,9 @@ defmodule Vws.Sim.Floor do
       not call the plant) — to watch the equipment, as a test does;
     * `:daq1` — the endpoint DAQ #1 listens on, default `"tcp://127.0.0.1:0"`; `false` for no
       DAQ #1; `:daq2` the same for DAQ #2;
-    * `:hydraulic` — `true`, or `Vws.Peers.HydraulicController.start_link/1` options, to run the
-      hydraulic controller on DAQ #2 (default `false`);
+    * `:hydraulic` — `{module, opts}` to run the hydraulic controller's program on DAQ #2:
+      `module` is `Vws.Peers.HydraulicController` (or one with its `start_link/1`, `endpoint/1`
+      and `await_ready/2`), `opts` its `start_link/1` options (default `false`: none);
     * `:ge2000` — `true` or `Vws.Sim.GE2000` options (default `cycle_time` 5 s / time scale,
       at least 4 s, so that MONARCH sees the machine run after it has let go of the button, even
       when a DNC reply is lost on the way);
@@ -109,13 +113,22 @@ defmodule Vws.Sim.Floor do
   @spec daq2_endpoint(term) :: String.t()
   def daq2_endpoint(ws), do: DAQ.endpoint(daq2(ws))
 
-  @doc "The name of the floor's hydraulic controller (for `Vws.Peers.HydraulicController` calls)."
+  @doc "The name of the floor's hydraulic controller (for calls to its module, `Vws.Peers.HydraulicController`)."
   @spec hydraulic_controller(term) :: term
   def hydraulic_controller(ws), do: {:sim_floor, ws}
 
   @doc "Where the floor's hydraulic controller is reached by the CEC, as an endpoint string."
   @spec hydraulic_endpoint(term) :: String.t()
-  def hydraulic_endpoint(ws), do: HydraulicController.endpoint(hydraulic_controller(ws))
+  def hydraulic_endpoint(ws), do: hydraulic_module(ws).endpoint(hydraulic_controller(ws))
+
+  # the hydraulic controller's module, as the floor was given it (kept as the value of the
+  # floor's registered name), nil when the floor has none
+  defp hydraulic_module(ws) do
+    case Registry.lookup(Vws.Registry, {ws, :sim_floor}) do
+      [{_pid, %{hydraulic: module}}] -> module
+      _ -> nil
+    end
+  end
 
   @doc "The GE-2000 simulator of a workstation's floor (a registered name)."
   @spec ge2000(term) :: GenServer.name()
@@ -154,7 +167,8 @@ defmodule Vws.Sim.Floor do
   def devices(ws) do
     for {device, sim, endpoint} <- [
           {:daq1, daq1(ws), &DAQ.endpoint/1},
-          {:hydraulic, hydraulic_controller(ws), &HydraulicController.endpoint/1},
+          {:hydraulic, hydraulic_controller(ws),
+           fn {:sim_floor, ws} -> hydraulic_endpoint(ws) end},
           {:ge2000, ge2000(ws), &GE2000.endpoint/1},
           {:robot, robot(ws), &VAL2.endpoint/1}
         ],
@@ -167,8 +181,11 @@ defmodule Vws.Sim.Floor do
     end
   end
 
-  defp running?({:sim_floor, _ws} = controller) do
-    HydraulicController.endpoint(controller) != nil
+  defp running?({:sim_floor, ws} = controller) do
+    case hydraulic_module(ws) do
+      nil -> false
+      module -> module.endpoint(controller) != nil
+    end
   catch
     :exit, _ -> false
   end
@@ -203,8 +220,8 @@ defmodule Vws.Sim.Floor do
 
   defp await_hydraulic(_ws, falsy) when falsy in [nil, false], do: :ok
 
-  defp await_hydraulic(ws, _) do
-    case HydraulicController.await_ready(hydraulic_controller(ws), 10_000) do
+  defp await_hydraulic(ws, {module, _opts}) do
+    case module.await_ready(hydraulic_controller(ws), 10_000) do
       :ok -> :ok
       :timeout -> {:error, :hydraulic_controller_not_ready}
     end
@@ -217,39 +234,17 @@ defmodule Vws.Sim.Floor do
   @spec stock(term) :: :ok | {:error, term}
   def stock(ws), do: Plant.set_part(plant(ws), :tray1, true)
 
-  @doc """
-  For `Vws.Ops.Demo`'s shop floor: starts the whole floor (`start_stocked/1`: linked to the
-  caller, or under the `DynamicSupervisor` given as `:supervisor`) with the demo's
-  `:workstation` and `:time_scale` — hydraulic controller, GE-2000, VAL II, material handling —
-  and a blank in tray #1, and returns the workstation links and partition options that reach
-  it (`Vws.CEC.Workstation.device_links/3`).
-  """
-  @spec shop_floor(keyword) ::
-          {:ok, %{name: String.t(), links: [Supervisor.child_spec()], partitions: keyword}}
-          | {:error, term}
-  def shop_floor(opts) do
-    ws = Keyword.fetch!(opts, :workstation)
-
-    floor =
-      Keyword.take(opts, [:workstation, :time_scale, :seed, :lines, :supervisor]) ++
-        [hydraulic: true, ge2000: true, robot: true, mhs: true]
-
-    with {:ok, _pid} <- start_stocked(floor) do
-      {links, partitions} = Vws.CEC.Workstation.device_links(ws, devices(ws), [])
-
-      {:ok,
-       %{
-         name:
-           "plant + DAQ #1 + DAQ #2 + hydraulic controller, GE-2000, VAL II, material handling",
-         links: links,
-         partitions: partitions
-       }}
-    end
-  end
-
   @impl true
   def init(opts) do
     ws = Keyword.fetch!(opts, :workstation)
+
+    # the hydraulic controller's module, for hydraulic_endpoint/1 and devices/1: the value of
+    # the floor's own name (this process registered it)
+    with {module, _opts} <- Keyword.get(opts, :hydraulic, false) do
+      {_, _} =
+        Registry.update_value(Vws.Registry, {ws, :sim_floor}, fn _ -> %{hydraulic: module} end)
+    end
+
     scale = Keyword.get(opts, :time_scale, 1.0)
     plant = plant(ws)
 
@@ -302,7 +297,8 @@ defmodule Vws.Sim.Floor do
         mhs_child(ws, opts[:mhs]) ++
         line_children(ws, lines, [
           {:daq1, daq1(ws), &DAQ.endpoint/1},
-          {:hydraulic, hydraulic_controller(ws), &HydraulicController.endpoint/1},
+          {:hydraulic, hydraulic_controller(ws),
+           fn {:sim_floor, ws} -> hydraulic_endpoint(ws) end},
           {:ge2000, ge2000(ws), &GE2000.endpoint/1},
           {:robot, robot(ws), &VAL2.endpoint/1}
         ])
@@ -330,31 +326,35 @@ defmodule Vws.Sim.Floor do
     if running?(sim), do: Line.start_link([target: endpoint.(sim)] ++ opts), else: :ignore
   end
 
-  defp hydraulic_child(_ws, false), do: []
+  defp hydraulic_child(_ws, falsy) when falsy in [nil, false], do: []
 
-  defp hydraulic_child(ws, hopts) do
-    hopts = if hopts == true, do: [], else: hopts
-
+  defp hydraulic_child(ws, {module, hopts}) when is_atom(module) and is_list(hopts) do
     [
       %{
-        id: HydraulicController,
+        id: :hydraulic_controller,
         type: :supervisor,
         # DAQ #2 listens before the controller starts: its endpoint is known by then
         start:
           {__MODULE__, :start_hydraulic_controller,
-           [[name: hydraulic_controller(ws)] ++ hopts, ws]}
+           [module, [name: hydraulic_controller(ws)] ++ hopts, ws]}
       }
     ]
   end
 
+  defp hydraulic_child(_ws, other) do
+    raise ArgumentError,
+          "hydraulic: takes {module, options} (Vws.Peers.HydraulicController and its " <>
+            "start_link/1 options), got #{inspect(other)}"
+  end
+
   @doc false
-  def start_hydraulic_controller(opts, ws) do
+  def start_hydraulic_controller(module, opts, ws) do
     daq2 =
       if running?(line(ws, :daq2)),
         do: to_string(Line.endpoint(line(ws, :daq2))),
         else: DAQ.endpoint(daq2(ws))
 
-    HydraulicController.start_link(Keyword.put_new(opts, :daq2, daq2))
+    module.start_link(Keyword.put_new(opts, :daq2, daq2))
   end
 
   defp ge2000_child(_ws, falsy, _scale) when falsy in [nil, false], do: []

@@ -14,7 +14,12 @@ defmodule Vws.Ops.InspectFloorTest do
     ws = "floor-inspect-#{System.unique_integer([:positive])}"
 
     start_supervised!(
-      {Floor, workstation: ws, time_scale: 100, hydraulic: true, ge2000: true, robot: true},
+      {Floor,
+       workstation: ws,
+       time_scale: 100,
+       hydraulic: {Vws.Peers.HydraulicController, []},
+       ge2000: true,
+       robot: true},
       id: make_ref()
     )
 

@@ -4,8 +4,10 @@ defmodule Vws.Ops.LibraryCLITest do
   use ExUnit.Case, async: true
   import ExUnit.CaptureIO
 
-  alias Vws.Links.DNC.Library
+  alias Vws.CEC.Library
   alias Vws.Ops.LibraryCLI
+
+  doctest Vws.Ops.LibraryText
 
   defp cli(args) do
     # (standard error: the messages of a usage error or a version not found)

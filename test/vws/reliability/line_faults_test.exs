@@ -1,6 +1,6 @@
 # The machining cycle on the simulated floor with faulty lines (issue 8, "recovery
 # everywhere"): a bit-error rate on one link at a time, then on every link at once. Each run is
-# audited by Vws.Sim.Soak: the cycles complete, no command is lost or run twice (in the CEC or
+# audited by Vws.Ops.Soak: the cycles complete, no command is lost or run twice (in the CEC or
 # on the equipment), and the retries that made it so are counted in telemetry. The lines are
 # seeded: the same bits are damaged in every run. `bench/soak.exs` runs 100 cycles.
 defmodule Vws.Reliability.LineFaultsTest.Audit do
@@ -37,7 +37,7 @@ for {link, {ber, counter}} <- link_retries do
     use ExUnit.Case, async: true
 
     import Vws.Reliability.LineFaultsTest.Audit
-    alias Vws.Sim.Soak
+    alias Vws.Ops.Soak
 
     @moduletag timeout: 300_000
     @link link
@@ -66,7 +66,7 @@ defmodule Vws.Reliability.LineFaultsTest do
   use ExUnit.Case, async: true
 
   import Vws.Reliability.LineFaultsTest.Audit
-  alias Vws.Sim.Soak
+  alias Vws.Ops.Soak
 
   @moduletag timeout: 300_000
 

@@ -218,7 +218,12 @@ defmodule Vws.Reliability.ReconnectTest do
 
     start_supervised!(
       {Floor,
-       workstation: ws, time_scale: 50, hydraulic: true, ge2000: true, robot: true, mhs: true}
+       workstation: ws,
+       time_scale: 50,
+       hydraulic: {HydraulicController, []},
+       ge2000: true,
+       robot: true,
+       mhs: true}
     )
 
     :ok = HydraulicController.await_ready(Floor.hydraulic_controller(ws), 10_000)

@@ -262,7 +262,7 @@ defmodule Vws.Reliability.RestartTest do
        workstation: ws,
        time_scale: @scale,
        seed: 7,
-       hydraulic: true,
+       hydraulic: {Vws.Peers.HydraulicController, []},
        ge2000: true,
        mhs: Keyword.fetch!(opts, :mhs),
        robot: [

@@ -11,7 +11,7 @@ defmodule Vws.Sim.FloorTest do
        name: "plant + DAQ #1 + DAQ #2 + hydraulic controller, GE-2000, VAL II, material handling",
        links: links,
        partitions: partitions
-     }} = Vws.Sim.Floor.shop_floor(workstation: ws, time_scale: 100)
+     }} = Vws.Ops.Demo.shop_floor(workstation: ws, time_scale: 100)
 
     start_supervised!(
       {Vws.CEC.Workstation, id: ws, wc: nil, links: links, partitions: partitions}
@@ -46,7 +46,12 @@ defmodule Vws.Sim.FloorTest do
 
   test "without DAQ #1, or with the hydraulic controller, as asked" do
     ws = "floor-#{System.unique_integer([:positive])}"
-    start_supervised!({Vws.Sim.Floor, workstation: ws, daq1: false, hydraulic: true})
+
+    start_supervised!(
+      {Vws.Sim.Floor,
+       workstation: ws, daq1: false, hydraulic: {Vws.Peers.HydraulicController, []}}
+    )
+
     assert Vws.Sim.Floor.daq2_endpoint(ws) =~ "tcp://"
     controller = Vws.Sim.Floor.hydraulic_controller(ws)
     assert Vws.Peers.HydraulicController.await_ready(controller, 5_000) == :ok

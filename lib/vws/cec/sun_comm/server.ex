@@ -812,7 +812,7 @@ defmodule Vws.CEC.SunComm.Server do
   defp store_download(line, lines, answer, d, data) do
     # into the program library first (issue 18), when the workstation has one
     case with(
-           :ok <- Vws.Links.DNC.Library.store_download(data.workstation, lines),
+           :ok <- Vws.CEC.Library.store_download(data.workstation, lines),
            do: Mailbox.put_nc_file(data.workstation, lines)
          ) do
       :ok ->

@@ -16,7 +16,7 @@ defmodule Vws.Ops.Web.State do
     * `transfers` — NC transfers under way (DOWNLOAD_HP/UPLOAD_SUN on the WC link,
       DOWNLOAD_GE/UPLOAD_GE on the DNC link): lines or blocks and bytes so far and in all,
       rate, ETA;
-    * `library` — the program library (`Vws.Links.DNC.Library`, issue 18), nil without one: how many
+    * `library` — the program library (`Vws.CEC.Library`, issue 18), nil without one: how many
       programs and versions, when the machine's directory was last read, how many programs are
       the same / differ / are absent on the machine, and the 30 programs stored last with
       their latest version and where they stand on the machine;
@@ -210,10 +210,10 @@ defmodule Vws.Ops.Web.State do
 
   @doc false
   def library(lib) do
-    with true <- Vws.Links.DNC.Library.enabled?(lib),
-         {:ok, c} <- Vws.Links.DNC.Library.compare(lib) do
+    with true <- Vws.CEC.Library.enabled?(lib),
+         {:ok, c} <- Vws.CEC.Library.compare(lib) do
       words = fn p ->
-        Vws.Links.DNC.Library.on_machine_text(
+        Vws.Ops.LibraryText.on_machine_text(
           p.on_machine,
           p.latest && p.latest.version,
           p.versions
@@ -538,7 +538,7 @@ defmodule Vws.Ops.Web.State do
     version =
       named ||
         with true <- is_binary(program),
-             {:ok, %{version: v}} <- Vws.Links.DNC.Library.version(ws, program, :latest) do
+             {:ok, %{version: v}} <- Vws.CEC.Library.version(ws, program, :latest) do
           v
         else
           _ -> nil

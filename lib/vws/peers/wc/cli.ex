@@ -33,7 +33,7 @@ defmodule Vws.Peers.WC.CLI do
   for a retransmission of the same string (which it acknowledges without running it again).
   """
 
-  alias Vws.Peers.WC.{Client, Runner, Script}
+  alias Vws.Peers.WC.{Client, Printer, Runner, Script}
   alias Vws.Peers.WC.Runner.Summary
 
   @switches [
@@ -83,8 +83,8 @@ defmodule Vws.Peers.WC.CLI do
   ## Arguments
 
   defp parse(argv) do
-    # the flags' errors in words, as every VWS command says them (Vws.Ops.CLIOptions)
-    with {:ok, opts, rest} <- Vws.Ops.CLIOptions.parse(argv, @switches) do
+    # the flags' errors in words, as every VWS command says them (Vws.CLIOptions)
+    with {:ok, opts, rest} <- Vws.CLIOptions.parse(argv, @switches) do
       actions = Keyword.take(opts, [:status, :command, :script, :send])
 
       cond do
@@ -119,12 +119,12 @@ defmodule Vws.Peers.WC.CLI do
     with {:ok, conn} <- Vws.CEC.Cell.connect(endpoint(opts)),
          :ok <- Vws.Links.Transport.activate(conn) do
       try do
-        say(opts, "→ #{Vws.Ops.Demo.printable(line)}")
+        say(opts, "→ #{Printer.printable(line)}")
         :ok = Vws.Links.Transport.send(conn, [line, "\r\n"])
 
         case receive_line(conn, Vws.Codecs.WC.LineDecoder.new(), min(timeout(opts), 10_000)) do
           {:ok, reply} ->
-            IO.puts(if opts[:quiet], do: reply, else: "← #{Vws.Ops.Demo.printable(reply)}")
+            IO.puts(if opts[:quiet], do: reply, else: "← #{Printer.printable(reply)}")
             send_status(reply, bcc(opts))
 
           {:error, reason} ->
@@ -193,15 +193,15 @@ defmodule Vws.Peers.WC.CLI do
     say(opts, "script #{path} (#{length(script.steps)} steps) against #{endpoint(opts)}")
     :ok = Client.subscribe(client, self())
     task = Task.async(fn -> Runner.run(client, script, timeout: timeout(opts)) end)
-    summary = print_until(task, client, Vws.Ops.Demo.new_printer(), opts)
-    Enum.each(Summary.format(summary), &IO.puts(Vws.Ops.Demo.readable(&1)))
+    summary = print_until(task, client, Printer.new(), opts)
+    Enum.each(Summary.format(summary), &IO.puts(Printer.readable(&1)))
     if Summary.completed?(summary), do: 0, else: 1
   end
 
   defp print_until(%Task{ref: ref} = task, client, printer, opts) do
     receive do
       {:wc_client, ^client, event} ->
-        printer = if opts[:quiet], do: printer, else: Vws.Ops.Demo.print_event(event, printer)
+        printer = if opts[:quiet], do: printer, else: Printer.print_event(event, printer)
         print_until(task, client, printer, opts)
 
       {^ref, summary} ->

@@ -2,7 +2,7 @@ defmodule Vws.Ops.Web.LibraryStateTest do
   # The dashboard's program library section (issue 18), as /api/state carries it.
   use ExUnit.Case, async: true
 
-  alias Vws.Links.DNC.Library
+  alias Vws.CEC.Library
 
   @tag :tmp_dir
   test "programs, versions, the machine's directory and where each program stands", %{

@@ -267,7 +267,7 @@ defmodule Vws.Partitions.Monarch.DripFeedTest do
     defp from_machine?(ws) do
       match?(
         {:ok, "%\nO100\nN10 G01 X1\nN20 M30\n%\n", %{source: "from the machine"}},
-        Vws.Links.DNC.Library.read(ws, "000100.PRO", 1)
+        Vws.CEC.Library.read(ws, "000100.PRO", 1)
       )
     end
 

@@ -5,7 +5,7 @@ defmodule Vws.Partitions.Monarch.LibraryTest do
 
   alias Vws.Links.DNC
   alias Vws.CEC.Workstation
-  alias Vws.Links.DNC.Library
+  alias Vws.CEC.Library
   alias Vws.Partitions.Monarch
   alias Vws.Sim.GE2000
   alias Vws.Test.WCPeer
@@ -151,7 +151,7 @@ defmodule Vws.Partitions.Monarch.LibraryTest do
 
     assert Enum.find(c.programs, &(&1.name == "000001.PRO")).read_back == :same
     assert c.machine_only == ["000009.PRO"]
-    text = Enum.join(Library.format_compare(c), "\n")
+    text = Enum.join(Vws.Ops.LibraryText.format_compare(c), "\n")
     assert text =~ ~r/000001.PRO .*on the machine: same, read back: same/
     assert text =~ ~r/000002.PRO .*on the machine: differs/
     assert text =~ ~r/000003.PRO .*on the machine: absent/
@@ -270,7 +270,7 @@ defmodule Vws.Partitions.Monarch.LibraryTest do
     assert GE2000.program(sim, "004321.PRO") == edited
     # the directory shows the machine holds v2, which came from the machine
     {:ok, c} = Library.compare(ws)
-    text = Enum.join(Library.format_compare(c), "\n")
+    text = Enum.join(Vws.Ops.LibraryText.format_compare(c), "\n")
     assert text =~ "same as v2 (from the machine, not released)"
 
     {:ok, v3} = Library.release(ws, "4321", 2, source: "iex")

@@ -75,7 +75,7 @@ defmodule Vws.Codecs.WC.CLITest do
     assert out =~ "cannot reach the controller"
   end
 
-  test "a bad flag is one line naming it and what is wrong (Vws.Ops.CLIOptions), status 2" do
+  test "a bad flag is one line naming it and what is wrong (Vws.CLIOptions), status 2" do
     me = self()
 
     err =

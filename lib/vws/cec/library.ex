@@ -1,4 +1,4 @@
-defmodule Vws.Links.DNC.Library do
+defmodule Vws.CEC.Library do
   @moduledoc """
   The program library (issues 18 and 30): every workstation's NC programs on disk, each with its
   versions — who or what stored it, when, its size, CRC-16/ARC and SHA-256 digest — kept across
@@ -56,16 +56,24 @@ defmodule Vws.Links.DNC.Library do
   before any directory was read. A full read-back (`Vws.Partitions.Monarch.compare/2`,
   `COMPARE_GE(nnnnnn.PRO)`) takes the digest of every byte and names the version that has it.
 
+  ## Parts
+
+  This module is the store's interface; the parts it delegates to are pure or plain file work:
+  `Vws.CEC.Library.Version` (digests, released or not, where the machine stands),
+  `Vws.CEC.Library.Files` (version file names, number links, files written whole) and
+  `Vws.CEC.Library.Check` (is it an NC program). It prints nothing: the words and tables for
+  people are `Vws.Ops.LibraryText`'s (`print_compare/1`, `format_diff/1`, …).
+
   ## Used from
 
   Every function takes the workstation's id (a running workstation started with `library:`,
   `Vws.CEC.Workstation`) or `{:dir, path}` (any library directory, e.g. that of a stopped workstation).
 
       iex> dir = Path.join(System.tmp_dir!(), "vws-lib-doc-\#{System.unique_integer([:positive])}")
-      iex> {:ok, v} = Vws.Links.DNC.Library.store({:dir, dir}, "1234", "%\\nO1234\\nM30\\n%\\n", source: "iex")
+      iex> {:ok, v} = Vws.CEC.Library.store({:dir, dir}, "1234", "%\\nO1234\\nM30\\n%\\n", source: "iex")
       iex> {v.name, v.version, v.size, v.source}
       {"001234.PRO", 1, 14, "iex"}
-      iex> {:ok, "%\\nO1234\\nM30\\n%\\n", _} = Vws.Links.DNC.Library.read({:dir, dir}, "001234.PRO")
+      iex> {:ok, "%\\nO1234\\nM30\\n%\\n", _} = Vws.CEC.Library.read({:dir, dir}, "001234.PRO")
       iex> File.rm_rf!(dir) |> is_list()
       true
   """
@@ -76,36 +84,16 @@ defmodule Vws.Links.DNC.Library do
   # be sent to it, so it is not kept either
   @max_bytes Vws.Links.DNC.Program.max_stored_bytes()
   @machine "MACHINE.DIR"
-  @tmp_prefix ".tmp-"
-  @numbers ".v"
+
+  alias Vws.CEC.Library.{Check, Files, Version}
 
   @typedoc "A workstation id, or `{:dir, path}` for a library directory itself."
   @type lib :: term | {:dir, Path.t()}
 
   @typedoc "One stored version."
-  @type version :: %{
-          name: String.t(),
-          version: pos_integer,
-          at: DateTime.t(),
-          source: String.t(),
-          size: non_neg_integer,
-          crc: 0..0xFFFF,
-          digest: String.t() | nil,
-          origin: :library | :machine,
-          released: boolean,
-          file: String.t()
-        }
+  @type version :: Version.t()
 
-  @type on_machine ::
-          :unknown
-          | :unreadable
-          | :absent
-          | :differs
-          | {:same, pos_integer}
-          | {:ambiguous, [pos_integer]}
-
-  # the source of a program the operator sent from the machine: its version is not released
-  @from_machine "from the machine"
+  @type on_machine :: Version.on_machine()
 
   ## Where
 
@@ -152,11 +140,11 @@ defmodule Vws.Links.DNC.Library do
   A program name as the library keeps it: `{:ok, "nnnnnn.PRO" | "nnnnnn.GSU"}` or
   `{:error, :bad_name}`.
 
-      iex> Vws.Links.DNC.Library.name("1234")
+      iex> Vws.CEC.Library.name("1234")
       {:ok, "001234.PRO"}
-      iex> Vws.Links.DNC.Library.name("o77.gsu")
+      iex> Vws.CEC.Library.name("o77.gsu")
       {:ok, "000077.GSU"}
-      iex> Vws.Links.DNC.Library.name("../../etc/passwd")
+      iex> Vws.CEC.Library.name("../../etc/passwd")
       {:error, :bad_name}
   """
   @spec name(term) :: {:ok, String.t()} | {:error, :bad_name}
@@ -223,15 +211,11 @@ defmodule Vws.Links.DNC.Library do
          {:ok, name} <- name(name),
          :ok <- check_source(source),
          :ok <- if(byte_size(bytes) <= @max_bytes, do: :ok, else: {:error, :too_large}),
-         :ok <- File.mkdir_p(Path.join(dir, @numbers)),
-         tmp =
-           Path.join(
-             dir,
-             "#{@tmp_prefix}#{name}-#{:os.getpid()}-#{System.unique_integer([:positive])}"
-           ),
-         :ok <- write_synced(tmp, bytes) do
+         :ok <- File.mkdir_p(Files.numbers_dir(dir)),
+         tmp = Files.tmp_path(dir, name),
+         :ok <- Files.write_synced(tmp, bytes) do
       v =
-        with_origin(%{
+        Version.with_origin(%{
           name: name,
           version: nil,
           at: at,
@@ -242,15 +226,11 @@ defmodule Vws.Links.DNC.Library do
           file: nil
         })
 
-      case take_number(dir, v, first_free(dir, name)) do
+      case Files.take_number(dir, v, Files.first_free(dir, name)) do
         {:ok, v} ->
-          with :ok <- :file.rename(tmp, Path.join(dir, v.file)), :ok <- sync_dir(dir) do
-            {:ok, v}
-          else
-            error ->
-              File.rm(tmp)
-              error
-          end
+          with :ok <- Files.rename_or_remove(tmp, Path.join(dir, v.file)),
+               :ok <- Files.sync_dir(dir),
+               do: {:ok, v}
 
         error ->
           File.rm(tmp)
@@ -264,11 +244,11 @@ defmodule Vws.Links.DNC.Library do
   hexadecimal digits). Two versions hold the same bytes exactly when their digests are equal;
   size and CRC-16 are kept only because the GE-2000's directory speaks them.
 
-      iex> Vws.Links.DNC.Library.digest("") |> String.slice(0, 16)
+      iex> Vws.CEC.Library.digest("") |> String.slice(0, 16)
       "e3b0c44298fc1c14"
   """
   @spec digest(binary) :: String.t()
-  def digest(bytes), do: :crypto.hash(:sha256, bytes) |> Base.encode16(case: :lower)
+  defdelegate digest(bytes), to: Version
 
   @doc """
   True for a version that `:latest` may name — every version but those the operator sent from
@@ -276,12 +256,7 @@ defmodule Vws.Links.DNC.Library do
   `DOWNLOAD_GE(nnnnnn.PRO/v)` that names it, until `release/4` stores it as a released version.
   """
   @spec released?(map) :: boolean
-  def released?(%{source: source}), do: source != @from_machine
-
-  defp with_origin(v) do
-    released = released?(v)
-    Map.merge(v, %{origin: if(released, do: :library, else: :machine), released: released})
-  end
+  defdelegate released?(version), to: Version
 
   @doc """
   Releases version `which` of `name`: stores its bytes as a new, released version (source
@@ -297,41 +272,6 @@ defmodule Vws.Links.DNC.Library do
       source = "#{Keyword.get(opts, :source, "iex")} release of v#{v.version}"
       store(lib, name, bytes, source: source, only_if_changed: true)
     end
-  end
-
-  # The number is taken by creating the link .v/<name>~<version> → <version's file name>: the
-  # link's creation fails when the number is taken, in whatever process took it.
-  defp take_number(dir, v, n) when n < 1_000_000 do
-    v = %{v | version: n, file: file_name(%{v | version: n})}
-
-    case File.ln_s(Path.join("..", v.file), number_link(dir, v.name, n)) do
-      :ok -> {:ok, v}
-      {:error, :eexist} -> take_number(dir, v, n + 1)
-      error -> error
-    end
-  end
-
-  defp take_number(_dir, _v, _n), do: {:error, :too_many_versions}
-
-  # .v/<name>~<version>: kept apart, so that a listing reads only the versions' own names
-  defp number_link(dir, name, n), do: Path.join([dir, @numbers, "#{name}~#{pad(n, 6)}"])
-
-  # Where to start looking for a free number: after the last number taken (a link that
-  # exists, whether its version was finished or not), found by halving.
-  defp first_free(dir, name) do
-    taken? = fn n ->
-      match?({:ok, _}, :file.read_link_info(number_link(dir, name, n)))
-    end
-
-    hi = Stream.iterate(1, &(&1 * 2)) |> Enum.find(&(not taken?.(&1) or &1 >= 1_000_000))
-    first_free(taken?, div(hi, 2), hi)
-  end
-
-  defp first_free(_taken?, lo, hi) when hi - lo <= 1, do: max(hi, 1)
-
-  defp first_free(taken?, lo, hi) do
-    mid = div(lo + hi, 2)
-    if taken?.(mid), do: first_free(taken?, mid, hi), else: first_free(taken?, lo, mid)
   end
 
   defp check_source(source) when is_binary(source) do
@@ -372,7 +312,7 @@ defmodule Vws.Links.DNC.Library do
   (`O1234` → `001234.PRO`). Source default `"cli"`.
 
   `{:ok, version}` when stored; `{:same, version}` when the latest released version already holds
-  exactly these bytes (nothing stored); `{:error, {:not_a_program, why}}` (`program_refusal/1`
+  exactly these bytes (nothing stored); `{:error, {:not_a_program, why}}` (`Vws.Ops.LibraryText.program_refusal/1`
   says it in words), `{:error, {:not_a_file, type}}` or another `store/4` error, nothing stored.
   """
   @spec import_file(lib, Path.t(), keyword) ::
@@ -408,111 +348,15 @@ defmodule Vws.Links.DNC.Library do
   `Vws.Links.DNC.Program.complete?/1`), `:no_program_number` (the first line after `%` is not an
   `O` word, or `:` in EIA) or `:bad_program_number` (more than six digits).
 
-      iex> Vws.Links.DNC.Library.check_program("%\\nO1234\\nN10 G00 X0\\nM30\\n%\\n")
+      iex> Vws.CEC.Library.check_program("%\\nO1234\\nN10 G00 X0\\nM30\\n%\\n")
       :ok
-      iex> Vws.Links.DNC.Library.check_program("import os\\nprint(os.getcwd())\\n")
+      iex> Vws.CEC.Library.check_program("import os\\nprint(os.getcwd())\\n")
       {:error, {:not_a_program, :no_start}}
-      iex> Vws.Links.DNC.Library.check_program("%\\nN10 G00\\n%\\n")
+      iex> Vws.CEC.Library.check_program("%\\nN10 G00\\n%\\n")
       {:error, {:not_a_program, :no_program_number}}
   """
   @spec check_program(binary) :: :ok | {:error, {:not_a_program, term}}
-  def check_program(bytes) when is_binary(bytes) do
-    lines = Vws.Links.DNC.Program.from_text(bytes)
-
-    cond do
-      byte_size(bytes) > @max_bytes ->
-        {:error, {:not_a_program, {:too_large, byte_size(bytes)}}}
-
-      offset = binary_at(bytes) ->
-        {:error, {:not_a_program, {:binary, offset}}}
-
-      control = control_at(lines) ->
-        {:error, {:not_a_program, control}}
-
-      String.trim(List.first(lines, "")) != "%" ->
-        {:error, {:not_a_program, :no_start}}
-
-      not Vws.Links.DNC.Program.complete?(bytes) or length(lines) < 2 ->
-        {:error, {:not_a_program, :no_end}}
-
-      true ->
-        program_number(lines)
-    end
-  end
-
-  # a NUL byte, or bytes that are not UTF-8 text: the offset of the first
-  defp binary_at(bytes) do
-    case :binary.match(bytes, <<0>>) do
-      {offset, _} ->
-        offset
-
-      :nomatch ->
-        case :unicode.characters_to_binary(bytes) do
-          {:error, good, _rest} -> byte_size(good)
-          {:incomplete, good, _rest} -> byte_size(good)
-          _ -> nil
-        end
-    end
-  end
-
-  # a control character but TAB, CR, LF (the X3.28 transmission controls among them, which
-  # `Vws.Links.DNC.Program.sendable?/1` refuses on the DNC link): {:control, byte, line}
-  defp control_at(lines) do
-    lines
-    |> Enum.with_index(1)
-    |> Enum.find_value(fn {line, i} ->
-      for(<<c <- line>>, c < 0x20 and c not in [?\t, ?\r], do: c)
-      |> Enum.concat(for <<c <- line>>, c == 0x7F, do: c)
-      |> case do
-        [c | _] -> {:control, c, i}
-        [] -> nil
-      end
-    end)
-  end
-
-  # the program number on the first line after the opening %, comments and blank lines skipped
-  defp program_number([_percent | lines]) do
-    first =
-      Enum.find(lines, fn line ->
-        String.replace(line, ~r/\([^)]*\)?/, "") |> String.trim() != ""
-      end)
-
-    stripped = first |> to_string() |> String.replace(~r/\([^)]*\)?/, "") |> String.trim()
-
-    if String.match?(stripped, ~r/^[Oo:]\s*\d/) do
-      case Vws.Links.DNC.Program.number([stripped]) do
-        {:ok, _} -> :ok
-        {:error, reason} -> {:error, {:not_a_program, reason}}
-      end
-    else
-      {:error, {:not_a_program, :no_program_number}}
-    end
-  end
-
-  @doc """
-  Why `check_program/1` refused a file, in words (for `mix vws.library import`).
-
-      iex> Vws.Links.DNC.Library.program_refusal(:no_start)
-      "not an NC program: its first line is not %"
-  """
-  @spec program_refusal(term) :: String.t()
-  def program_refusal(why), do: "not an NC program: " <> refusal(why)
-
-  defp refusal({:too_large, size}),
-    do: "#{size} bytes, more than the #{@max_bytes} bytes a program may have"
-
-  defp refusal({:binary, offset}), do: "a binary file (not text at byte #{offset})"
-
-  defp refusal({:control, byte, line}),
-    do: "control character 0x#{Base.encode16(<<byte>>)} on line #{line}"
-
-  defp refusal(:no_start), do: "its first line is not %"
-  defp refusal(:no_end), do: "its last line is not % (ending with a line feed)"
-
-  defp refusal(:no_program_number),
-    do: "no program number (an O word, or : in EIA) on the line after the opening %"
-
-  defp refusal(:bad_program_number), do: "its program number has more than six digits"
+  defdelegate check_program(bytes), to: Check, as: :program
 
   defp import_name(nil, bytes) do
     case Vws.Links.DNC.Program.file_name(bytes) do
@@ -528,14 +372,7 @@ defmodule Vws.Links.DNC.Library do
   def export(lib, name, version \\ :latest, path) do
     with {:ok, bytes, v} <- read(lib, name, version) do
       tmp = path <> ".tmp-#{:os.getpid()}-#{System.unique_integer([:positive])}"
-
-      with :ok <- write_synced(tmp, bytes), :ok <- :file.rename(tmp, path) do
-        {:ok, v}
-      else
-        error ->
-          File.rm(tmp)
-          error
-      end
+      with :ok <- Files.write_whole(tmp, path, bytes), do: {:ok, v}
     end
   end
 
@@ -563,11 +400,11 @@ defmodule Vws.Links.DNC.Library do
   def versions(lib, name) do
     with {:ok, dir} <- dir(lib),
          {:ok, name} <- name(name),
-         {:ok, files} <- ls(dir) do
+         {:ok, files} <- Files.ls(dir) do
       case files
            |> Enum.filter(&String.starts_with?(&1, name <> "~"))
-           |> parse_files()
-           |> with_digests(dir) do
+           |> Files.parse_files()
+           |> Files.with_digests(dir) do
         [] -> {:error, :not_found}
         vs -> {:ok, Enum.sort_by(vs, & &1.version)}
       end
@@ -593,11 +430,11 @@ defmodule Vws.Links.DNC.Library do
   def version(lib, name, n) when is_integer(n) and n > 0 do
     with {:ok, dir} <- dir(lib), {:ok, name} <- name(name) do
       # the number's link names the version's file: no directory listing needed
-      with {:ok, target} <- :file.read_link(number_link(dir, name, n)),
-           [v] <- parse_files([target |> to_string() |> Path.basename()]),
+      with {:ok, target} <- :file.read_link(Files.number_link(dir, name, n)),
+           [v] <- Files.parse_files([target |> to_string() |> Path.basename()]),
            true <- v.name == name and v.version == n,
            true <- File.regular?(Path.join(dir, v.file)) do
-        {:ok, hd(with_digests([v], dir))}
+        {:ok, hd(Files.with_digests([v], dir))}
       else
         _ -> {:error, :not_found}
       end
@@ -611,28 +448,14 @@ defmodule Vws.Links.DNC.Library do
   `{:ok, version}`, or `{:error, :not_released}` when there is none.
   """
   @spec latest_released([version]) :: {:ok, version} | {:error, :not_released}
-  def latest_released(versions) do
-    case versions |> Enum.filter(&released?/1) |> List.last() do
-      nil -> {:error, :not_released}
-      v -> {:ok, v}
-    end
-  end
+  defdelegate latest_released(versions), to: Version
 
   @doc """
   The version among `versions` that holds the bytes of SHA-256 `digest` (`digest/1`): the newest
   released one with it, else the newest with it — `{:ok, version}` or `:none`.
   """
   @spec same_as([version], String.t() | nil) :: {:ok, version} | :none
-  def same_as(_versions, nil), do: :none
-
-  def same_as(versions, digest) do
-    holding = Enum.filter(versions, &(&1.digest == digest))
-
-    case Enum.filter(holding, &released?/1) do
-      [] -> if holding == [], do: :none, else: {:ok, List.last(holding)}
-      released -> {:ok, List.last(released)}
-    end
-  end
+  defdelegate same_as(versions, digest), to: Version
 
   @doc """
   The bytes of a version (`:latest` by default, see `version/3`): `{:ok, bytes, version}`;
@@ -656,7 +479,7 @@ defmodule Vws.Links.DNC.Library do
 
   @doc """
   The differences between two versions of `name`, line by line: `{:ok, [{:eq | :del | :ins,
-  [line]}]}` (`List.myers_difference/2`); `format_diff/1` prints it.
+  [line]}]}` (`List.myers_difference/2`); `Vws.Ops.LibraryText.format_diff/1` prints it.
   """
   @spec diff(lib, term, pos_integer | :latest, pos_integer | :latest) ::
           {:ok, [{:eq | :del | :ins, [binary]}]} | {:error, term}
@@ -668,34 +491,6 @@ defmodule Vws.Links.DNC.Library do
          Vws.Links.DNC.Program.from_text(text_a),
          Vws.Links.DNC.Program.from_text(text_b)
        )}
-    end
-  end
-
-  @doc """
-  A diff as text: `-` before a line only in the first version, `+` only in the second, two blanks
-  before a line in both; runs of more than six common lines are cut to their first and last
-  three. An empty diff (`[]` or all common) prints as nothing.
-  """
-  @spec format_diff([{:eq | :del | :ins, [binary]}]) :: [String.t()]
-  def format_diff(diff) do
-    if Enum.all?(diff, &(elem(&1, 0) == :eq)) do
-      []
-    else
-      Enum.flat_map(diff, fn
-        {:del, lines} ->
-          Enum.map(lines, &("- " <> &1))
-
-        {:ins, lines} ->
-          Enum.map(lines, &("+ " <> &1))
-
-        {:eq, lines} when length(lines) > 6 ->
-          Enum.map(Enum.take(lines, 3), &("  " <> &1)) ++
-            ["  … #{length(lines) - 6} lines the same …"] ++
-            Enum.map(Enum.take(lines, -3), &("  " <> &1))
-
-        {:eq, lines} ->
-          Enum.map(lines, &("  " <> &1))
-      end)
     end
   end
 
@@ -719,16 +514,8 @@ defmodule Vws.Links.DNC.Library do
 
       path = Path.join(dir, @machine)
 
-      tmp =
-        Path.join(
-          dir,
-          "#{@tmp_prefix}#{@machine}-#{:os.getpid()}-#{System.unique_integer([:positive])}"
-        )
-
-      with :ok <- write_synced(tmp, IO.iodata_to_binary(text)),
-           :ok <- :file.rename(tmp, path) do
-        sync_dir(dir)
-      end
+      with :ok <- Files.write_whole(Files.tmp_path(dir, @machine), path, text),
+           do: Files.sync_dir(dir)
     end
   end
 
@@ -740,7 +527,7 @@ defmodule Vws.Links.DNC.Library do
     do: [
       name,
       ?\s,
-      pad(e.size, 6),
+      Files.pad(e.size, 6),
       ?\s,
       String.pad_leading(Integer.to_string(e.crc, 16), 4, "0"),
       ?\n
@@ -781,41 +568,17 @@ defmodule Vws.Links.DNC.Library do
   `Vws.Partitions.Monarch.compare/2`) tells which, if any, the machine holds.
 
       iex> v = %{version: 2, size: 9, crc: 0xBB3D, digest: "aa", source: "wc"}
-      iex> Vws.Links.DNC.Library.on_machine([v], %{size: 9, crc: 0xBB3D})
+      iex> Vws.CEC.Library.on_machine([v], %{size: 9, crc: 0xBB3D})
       {:same, 2}
-      iex> Vws.Links.DNC.Library.on_machine([v], %{size: 9, crc: 0x1234})
+      iex> Vws.CEC.Library.on_machine([v], %{size: 9, crc: 0x1234})
       :differs
-      iex> Vws.Links.DNC.Library.on_machine([v], nil)
+      iex> Vws.CEC.Library.on_machine([v], nil)
       :absent
-      iex> Vws.Links.DNC.Library.on_machine([%{v | version: 1, digest: "bb"}, v], %{size: 9, crc: 0xBB3D})
+      iex> Vws.CEC.Library.on_machine([%{v | version: 1, digest: "bb"}, v], %{size: 9, crc: 0xBB3D})
       {:ambiguous, [1, 2]}
   """
-  @spec on_machine([map], map | nil | :unknown) :: on_machine
-  def on_machine(_versions, :unknown), do: :unknown
-  # its directory line could not be read: only reading the program back can tell
-  def on_machine(_versions, :unreadable), do: :unreadable
-  def on_machine(_versions, nil), do: :absent
-
-  def on_machine(versions, %{size: size, crc: crc}) do
-    case Enum.filter(versions, &(&1.size == size and &1.crc == crc)) do
-      [] ->
-        :differs
-
-      matching ->
-        case matching |> Enum.map(& &1.digest) |> Enum.uniq() do
-          # one version stored before digests, whose bytes no longer match its name
-          [nil] ->
-            {:same, List.last(matching).version}
-
-          [digest] ->
-            {:ok, v} = same_as(matching, digest)
-            {:same, v.version}
-
-          _ ->
-            {:ambiguous, Enum.map(matching, & &1.version)}
-        end
-    end
-  end
+  @spec on_machine([map], map | nil | :unknown | :unreadable) :: on_machine
+  defdelegate on_machine(versions, entry), to: Version
 
   @doc """
   Every program with its versions and where it stands on the machine, from the directory last
@@ -866,45 +629,6 @@ defmodule Vws.Links.DNC.Library do
   end
 
   @doc """
-  The words for a compare state, as iex, the dashboard and `mix vws.library` show them: `latest`
-  is the number of the latest released version, `versions` (optional) the program's versions,
-  so that a version from the machine is said to be one.
-
-      iex> Vws.Links.DNC.Library.on_machine_text({:same, 3}, 3)
-      "same"
-      iex> Vws.Links.DNC.Library.on_machine_text({:same, 2}, 3)
-      "same as v2 (not the latest)"
-      iex> Vws.Links.DNC.Library.on_machine_text({:same, 4}, 3, [%{version: 4, source: "from the machine"}])
-      "same as v4 (from the machine, not released)"
-      iex> Vws.Links.DNC.Library.on_machine_text({:ambiguous, [1, 3]}, 3)
-      "size and CRC of v1 and v3, which differ (read back to tell)"
-  """
-  @spec on_machine_text(on_machine, pos_integer | nil, [map]) :: String.t()
-  def on_machine_text(state, latest, versions \\ [])
-  def on_machine_text({:same, n}, latest, _) when n == latest, do: "same"
-
-  def on_machine_text({:same, n}, _latest, versions) do
-    if Enum.any?(versions, &(&1.version == n and not released?(&1))),
-      do: "same as v#{n} (from the machine, not released)",
-      else: "same as v#{n} (not the latest)"
-  end
-
-  def on_machine_text({:ambiguous, ns}, _, _) do
-    names =
-      case Enum.map(ns, &"v#{&1}") do
-        [one] -> one
-        many -> Enum.join(Enum.drop(many, -1), ", ") <> " and " <> List.last(many)
-      end
-
-    "size and CRC of #{names}, which differ (read back to tell)"
-  end
-
-  def on_machine_text(:differs, _, _), do: "differs"
-  def on_machine_text(:absent, _, _), do: "absent"
-  def on_machine_text(:unknown, _, _), do: "unknown (directory not read yet)"
-  def on_machine_text(:unreadable, _, _), do: "unknown (its directory line could not be read)"
-
-  @doc """
   What a version is, in words, for listings: `"released"` or `"from the machine, not
   released"`.
   """
@@ -912,249 +636,14 @@ defmodule Vws.Links.DNC.Library do
   def release_text(v),
     do: if(released?(v), do: "released", else: "from the machine, not released")
 
-  @doc """
-  A compare (`compare/1`, `Vws.Partitions.Monarch.compare/2`) as text lines: one per program —
-  name, latest released version (else the newest, said to be from the machine), its source and
-  time, size, CRC, and on the machine; then the versions from the machine newer than it — then
-  the machine's files the library does not have.
-  """
-  @spec format_compare(map) :: [String.t()]
-  def format_compare(%{read_at: read_at, programs: programs, machine_only: machine_only}) do
-    head =
-      case read_at do
-        nil -> "machine directory: not read yet"
-        at -> "machine directory read #{DateTime.to_iso8601(at)}"
-      end
-
-    rows =
-      for p <- programs do
-        v = p.latest || p.newest
-        latest = p.latest && p.latest.version
-
-        back =
-          case Map.get(p, :read_back) do
-            nil -> ""
-            :same -> ", read back: same"
-            :differs -> ", read back: differs"
-            {:error, reason} -> ", read back failed: #{reason}"
-          end
-
-        unreleased =
-          for u <- p.versions, not released?(u), latest == nil or u.version > latest do
-            "v#{u.version}"
-          end
-
-        "#{p.name}  v#{v.version} of #{length(p.versions)}#{if latest, do: "", else: " (from the machine, not released)"}" <>
-          "  #{DateTime.to_iso8601(v.at)}  " <>
-          "#{v.source}  #{v.size} bytes  CRC #{hex4(v.crc)}  on the machine: " <>
-          on_machine_text(p.on_machine, latest, p.versions) <>
-          back <>
-          if(unreleased == [] or latest == nil,
-            do: "",
-            else: "  (newer, from the machine, not released: #{Enum.join(unreleased, ", ")})"
-          )
-      end
-
-    [head | rows] ++ Enum.map(machine_only, &"#{&1}  on the machine only")
-  end
-
-  @doc "Prints `format_compare/1` of `compare/1` (or of a compare given), for iex."
-  @spec print_compare(lib | map) :: :ok
-  def print_compare(%{programs: _} = result), do: Enum.each(format_compare(result), &IO.puts/1)
-
-  def print_compare(lib) do
-    case compare(lib) do
-      {:ok, result} -> print_compare(result)
-      {:error, reason} -> IO.puts("no library: #{inspect(reason)}")
-    end
-  end
-
-  defp hex4(crc), do: String.pad_leading(Integer.to_string(crc, 16), 4, "0")
-
   ## Files
 
   defp all_versions(lib) do
     with {:ok, dir} <- dir(lib) do
-      case ls(dir) do
-        {:ok, files} -> {:ok, files |> parse_files() |> with_digests(dir)}
+      case Files.ls(dir) do
+        {:ok, files} -> {:ok, files |> Files.parse_files() |> Files.with_digests(dir)}
         error -> error
       end
-    end
-  end
-
-  defp ls(dir) do
-    case :prim_file.list_dir(dir) do
-      # the library's own names are ASCII: list_to_binary/1 is the quick way; any other name
-      # (not the library's) is converted properly, and then skipped
-      {:ok, names} -> {:ok, Enum.map(names, &name_to_binary/1)}
-      {:error, :enoent} -> {:ok, []}
-      error -> error
-    end
-  end
-
-  defp name_to_binary(name) do
-    :erlang.list_to_binary(name)
-  rescue
-    ArgumentError -> IO.chardata_to_string(name)
-  end
-
-  # Only whole version names count; the number links, temporary files, MACHINE.DIR and anything
-  # foreign are skipped. A name without a digest (stored before versions had one) gets
-  # `digest: nil`: with_digests/2 reads its bytes.
-  # (binary matches, no regular expressions: a listing parses every name of the directory)
-  defp parse_files(files) do
-    for <<name::binary-10, "~", n::binary-6, "~", rest::binary>> = file <- files,
-        stored_name?(name),
-        [at, source, size, crc | digest] <- [:binary.split(rest, "~", [:global])],
-        digest <- parse_digest(digest),
-        v when v > 0 <- [int(n, 10)],
-        size when size >= 0 <- [int(size, 10)],
-        crc when crc >= 0 <- [int(crc, 16)],
-        {:ok, at} <- [parse_at(at)] do
-      with_origin(%{
-        name: name,
-        version: v,
-        at: at,
-        source:
-          if(:binary.match(source, "+") == :nomatch,
-            do: source,
-            else: String.replace(source, "+", " ")
-          ),
-        size: size,
-        crc: crc,
-        digest: digest,
-        file: file
-      })
-    end
-  end
-
-  # [] (a version stored before digests) → nil; 64 lower-case hexadecimal digits; else none
-  defp parse_digest([]), do: [nil]
-  defp parse_digest([<<_::binary-64>> = d]), do: if(hex?(d), do: [d], else: [])
-  defp parse_digest(_), do: []
-
-  defp hex?(<<>>), do: true
-  defp hex?(<<c, rest::binary>>) when c in ?0..?9 or c in ?a..?f, do: hex?(rest)
-  defp hex?(_), do: false
-
-  # A version stored before versions had a digest: its digest is computed from its bytes when
-  # they are whole (size and CRC as stored); a file that is not keeps `digest: nil` — it is the
-  # same as no other version, and reads as damaged.
-  defp with_digests(versions, dir) do
-    Enum.map(versions, fn
-      %{digest: nil} = v ->
-        case File.read(Path.join(dir, v.file)) do
-          {:ok, bytes} ->
-            if byte_size(bytes) == v.size and Vws.Codecs.CRC16.compute(bytes) == v.crc,
-              do: %{v | digest: digest(bytes)},
-              else: v
-
-          _ ->
-            v
-        end
-
-      v ->
-        v
-    end)
-  end
-
-  defp file_name(v) do
-    Enum.join(
-      [
-        v.name,
-        pad(v.version, 6),
-        format_at(v.at),
-        String.replace(v.source, " ", "+"),
-        pad(v.size, 6),
-        String.pad_leading(Integer.to_string(v.crc, 16), 4, "0"),
-        v.digest
-      ],
-      "~"
-    )
-  end
-
-  # 20261125T090000.123Z
-  defp format_at(at) do
-    {ms, _} = at.microsecond
-
-    :io_lib.format("~4..0B~2..0B~2..0BT~2..0B~2..0B~2..0B.~3..0BZ", [
-      at.year,
-      at.month,
-      at.day,
-      at.hour,
-      at.minute,
-      at.second,
-      div(ms, 1000)
-    ])
-    |> IO.iodata_to_binary()
-  end
-
-  # a name as store/4 writes it: six digits, .PRO or .GSU
-  defp stored_name?(<<digits::binary-6, ".", ext::binary-3>>) when ext in ["PRO", "GSU"],
-    do: digits?(digits)
-
-  defp stored_name?(_), do: false
-
-  defp digits?(<<>>), do: true
-  defp digits?(<<c, rest::binary>>) when c in ?0..?9, do: digits?(rest)
-  defp digits?(_), do: false
-
-  # digits only (no sign, no blanks) as an integer, else -1
-  defp int(text, base) do
-    if base == 16 or digits?(text), do: :erlang.binary_to_integer(text, base), else: -1
-  rescue
-    ArgumentError -> -1
-  end
-
-  defp parse_at(
-         <<y::binary-4, mo::binary-2, d::binary-2, "T", h::binary-2, mi::binary-2, s::binary-2,
-           ".", ms::binary-3, "Z">>
-       ) do
-    [y, mo, d, h, mi, s, ms] = for part <- [y, mo, d, h, mi, s, ms], do: int(part, 10)
-
-    with true <- Enum.min([y, mo, d, h, mi, s, ms]) >= 0,
-         true <- :calendar.valid_date(y, mo, d) and h < 24 and mi < 60 and s < 60 do
-      {:ok,
-       %DateTime{
-         year: y,
-         month: mo,
-         day: d,
-         hour: h,
-         minute: mi,
-         second: s,
-         microsecond: {ms * 1000, 3},
-         time_zone: "Etc/UTC",
-         zone_abbr: "UTC",
-         utc_offset: 0,
-         std_offset: 0
-       }}
-    else
-      _ -> :error
-    end
-  end
-
-  defp parse_at(_), do: :error
-
-  defp pad(n, width), do: String.pad_leading(Integer.to_string(n), width, "0")
-
-  defp write_synced(path, bytes) do
-    with {:ok, fd} <- :file.open(path, [:write, :exclusive, :raw, :binary]) do
-      result = with :ok <- :file.write(fd, bytes), do: :file.sync(fd)
-      :file.close(fd)
-      if result != :ok, do: File.rm(path)
-      result
-    end
-  end
-
-  defp sync_dir(dir) do
-    case :file.open(dir, [:read, :raw, :directory]) do
-      {:ok, fd} ->
-        result = :file.sync(fd)
-        :file.close(fd)
-        result
-
-      error ->
-        error
     end
   end
 
@@ -1164,10 +653,10 @@ defmodule Vws.Links.DNC.Library do
   """
   @spec tidy(lib, non_neg_integer) :: :ok | {:error, term}
   def tidy(lib, min_age_s \\ 3600) do
-    with {:ok, dir} <- dir(lib), {:ok, files} <- ls(dir) do
+    with {:ok, dir} <- dir(lib), {:ok, files} <- Files.ls(dir) do
       limit = System.os_time(:second) - min_age_s
 
-      for file <- files, String.starts_with?(file, @tmp_prefix) do
+      for file <- files, Files.tmp?(file) do
         path = Path.join(dir, file)
 
         case File.stat(path, time: :posix) do

@@ -1,9 +1,9 @@
-defmodule Vws.Ops.CLIOptionsTest do
+defmodule Vws.CLIOptionsTest do
   use ExUnit.Case, async: true
 
-  alias Vws.Ops.CLIOptions
+  alias Vws.CLIOptions
 
-  doctest Vws.Ops.CLIOptions
+  doctest Vws.CLIOptions
   doctest Vws.Ops.StartError
 
   @serve [

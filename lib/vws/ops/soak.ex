@@ -1,4 +1,4 @@
-defmodule Vws.Sim.Soak do
+defmodule Vws.Ops.Soak do
   @moduledoc """
   The machining cycle run over and over on a simulated floor whose every link — the WC's, the
   VAL II's (DDCMP), the GE-2000's (DNC), DAQ #1's and the hydraulic controller's (HPIB), and the
@@ -25,7 +25,7 @@ defmodule Vws.Sim.Soak do
 
   `bench/soak.exs` prints the figures of a long run; the reliability tests run a short one.
 
-      report = Vws.Sim.Soak.run(cycles: 3, ber: 1.0e-4, seed: 1, time_scale: 20)
+      report = Vws.Ops.Soak.run(cycles: 3, ber: 1.0e-4, seed: 1, time_scale: 20)
       report.completed  #=> 3
       report.lost       #=> 0
   """

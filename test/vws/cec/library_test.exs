@@ -1,8 +1,8 @@
-defmodule Vws.Links.DNC.LibraryTest do
+defmodule Vws.CEC.LibraryTest do
   use ExUnit.Case, async: true
   use Vws.PropCase
 
-  alias Vws.Links.DNC.Library
+  alias Vws.CEC.Library
 
   doctest Library
   doctest Vws.Test.CRCCollision
@@ -155,12 +155,13 @@ defmodule Vws.Links.DNC.LibraryTest do
 
     {:ok, diff} = Library.diff(lib, "1234", 1, 2)
 
-    assert Library.format_diff(diff) |> Enum.filter(&String.starts_with?(&1, ["+", "-"])) == [
+    assert Vws.Ops.LibraryText.format_diff(diff)
+           |> Enum.filter(&String.starts_with?(&1, ["+", "-"])) == [
              "+ N15 M05"
            ]
 
     {:ok, same} = Library.diff(lib, "1234", 2, :latest)
-    assert Library.format_diff(same) == []
+    assert Vws.Ops.LibraryText.format_diff(same) == []
 
     File.write!(src, "N10 G00\n")
     assert Library.import_file(lib, src) == {:error, {:not_a_program, :no_start}}
@@ -174,7 +175,7 @@ defmodule Vws.Links.DNC.LibraryTest do
     refused = fn bytes ->
       File.write!(src, bytes)
       assert {:error, {:not_a_program, why}} = Library.import_file(lib, src, name: "1234")
-      assert Library.program_refusal(why) =~ ~r/^not an NC program: [a-z0-9]/
+      assert Vws.Ops.LibraryText.program_refusal(why) =~ ~r/^not an NC program: [a-z0-9]/
       why
     end
 
@@ -253,7 +254,7 @@ defmodule Vws.Links.DNC.LibraryTest do
              %{"000001.PRO" => {:same, 1}, "000002.PRO" => :differs, "000003.PRO" => :absent}
 
     assert c.machine_only == ["000009.PRO"]
-    assert Library.on_machine_text({:same, 1}, 2) =~ "v1"
+    assert Vws.Ops.LibraryText.on_machine_text({:same, 1}, 2) =~ "v1"
   end
 
   test "a workstation's library outlives it: stopped and started again, every version is there",
@@ -340,7 +341,7 @@ defmodule Vws.Links.DNC.LibraryTest do
       assert {:ok, %{version: 2}} = Library.version(lib, "10", :newest)
       # export and diff take :latest the same way
       {:ok, diff} = Library.diff(lib, "10", :latest, 2)
-      assert "+ N1 (EDITED AT THE PANEL)" in Library.format_diff(diff)
+      assert "+ N1 (EDITED AT THE PANEL)" in Vws.Ops.LibraryText.format_diff(diff)
 
       # only from the machine: nothing released
       {:ok, _} = Library.store(lib, "11", "%\nO11\n%\n", source: "from the machine")
@@ -371,7 +372,7 @@ defmodule Vws.Links.DNC.LibraryTest do
       [p12, p13] = c.programs
       assert {p12.latest.version, p12.newest.version, p12.on_machine} == {1, 2, {:same, 2}}
       assert {p13.latest, p13.newest.version} == {nil, 1}
-      text = Enum.join(Library.format_compare(c), "\n")
+      text = Enum.join(Vws.Ops.LibraryText.format_compare(c), "\n")
 
       assert text =~
                ~r/000012.PRO  v1 of 2 .* on the machine: same as v2 \(from the machine, not released\)  \(newer, from the machine, not released: v2\)/
@@ -397,7 +398,7 @@ defmodule Vws.Links.DNC.LibraryTest do
       entry = Vws.Links.DNC.Report.entry("000014.PRO", a)
       {:ok, vs} = Library.versions(lib, "14")
       assert Library.on_machine(vs, entry) == {:ambiguous, [1, 2]}
-      assert Library.on_machine_text({:ambiguous, [1, 2]}, 2) =~ "read back to tell"
+      assert Vws.Ops.LibraryText.on_machine_text({:ambiguous, [1, 2]}, 2) =~ "read back to tell"
       assert Library.same_as(vs, Library.digest(a)) == {:ok, v1}
       assert Library.same_as(vs, Library.digest(b)) == {:ok, v2}
       assert Library.same_as(vs, Library.digest("%\nO14\n%\n")) == :none

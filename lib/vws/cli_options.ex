@@ -1,19 +1,19 @@
-defmodule Vws.Ops.CLIOptions do
+defmodule Vws.CLIOptions do
   @moduledoc """
   The command-line flags of every VWS command (`mix vws.serve`, `mix vws.demo`, `mix vws.wc`,
   `mix vws.hydraulic`, `mix vws.library`, `mix vws.drip_feed` and the release's `bin/vws-*`),
   parsed and checked in one place, so that a wrong flag is answered the same way everywhere: one
   line naming the flag and what is wrong with it — never an Elixir term.
 
-      iex> Vws.Ops.CLIOptions.parse(["--wc-port", "abc"], wc_port: :port)
+      iex> Vws.CLIOptions.parse(["--wc-port", "abc"], wc_port: :port)
       {:error, "--wc-port: abc is not a port number (1-65535)"}
-      iex> Vws.Ops.CLIOptions.parse(["--wc-port", "7071", "x"], wc_port: :port)
+      iex> Vws.CLIOptions.parse(["--wc-port", "7071", "x"], wc_port: :port)
       {:ok, [wc_port: 7071], ["x"]}
-      iex> Vws.Ops.CLIOptions.parse(["--wc-prot", "7071"], wc_port: :port, bind: :string)
+      iex> Vws.CLIOptions.parse(["--wc-prot", "7071"], wc_port: :port, bind: :string)
       {:error, "--wc-prot: unknown option (did you mean --wc-port?)"}
-      iex> Vws.Ops.CLIOptions.parse(["--time-scale", "0"], time_scale: :positive_float)
+      iex> Vws.CLIOptions.parse(["--time-scale", "0"], time_scale: :positive_float)
       {:error, "--time-scale: 0 is not a number above 0"}
-      iex> Vws.Ops.CLIOptions.parse(["--id"], id: :string)
+      iex> Vws.CLIOptions.parse(["--id"], id: :string)
       {:error, "--id: needs a value"}
 
   Types: OptionParser's `:string`, `:boolean`, `:integer`, `:float`, `:count`, and
