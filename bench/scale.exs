@@ -65,7 +65,7 @@ counts =
 defmodule Bench.Obedient do
   @moduledoc false
   # A partition that takes any command and ends it DONE at once.
-  @behaviour Vws.CEC.Partition
+  @behaviour Vws.CEC.Partition.CommandSet
   @impl true
   def device, do: "NOTHING"
   @impl true

@@ -4,7 +4,7 @@ defmodule Vws.Test.ObedientPartition do
   command reports `{:executing, pid, number, text}` and waits for `{:result, result}`; without,
   it ends `DONE` at once — except a text `FAIL <reason>`, which ends `ERROR <reason>`.
   """
-  @behaviour Vws.CEC.Partition
+  @behaviour Vws.CEC.Partition.CommandSet
 
   @impl true
   def device, do: "TEST DEVICE"

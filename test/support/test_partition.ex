@@ -4,7 +4,7 @@ defmodule Vws.Test.HeldPartition do
   to the test process given as `options: [test: pid]` and then waits for the test to send the
   result (`send(pid, {:result, :done})`), so a test holds a command in flight as long as it likes.
   """
-  @behaviour Vws.CEC.Partition
+  @behaviour Vws.CEC.Partition.CommandSet
 
   @impl true
   def device, do: "TEST DEVICE"

@@ -104,7 +104,7 @@ defmodule Vws.CEC.Journal do
   alias Vws.CEC.Journal.{Log, Replay}
 
   # the mailbox's recorder: every change is given here before it is visible
-  @behaviour Vws.CEC.Mailbox
+  @behaviour Vws.CEC.Mailbox.Recorder
 
   @interrupted {:error, "INTERRUPTED BY RESTART"}
   @journal_failed {:error, "JOURNAL WRITE FAILED"}
@@ -129,7 +129,7 @@ defmodule Vws.CEC.Journal do
   DOWN` because the VAL II's link is being stopped with them — is not what the equipment did.
   The command stays in flight in the journal and answers `ERROR INTERRUPTED BY RESTART`.
   """
-  @impl Vws.CEC.Mailbox
+  @impl Vws.CEC.Mailbox.Recorder
   @spec record(:ets.tid(), tuple) :: :ok | {:error, term}
   def record(table, record) do
     case :ets.lookup(table, :journal) do
@@ -184,7 +184,7 @@ defmodule Vws.CEC.Journal do
   syncs it to disk. Does nothing when the workstation has no journal. A program that cannot be
   stored makes the journal not healthy (a full disk), as a record does.
   """
-  @impl Vws.CEC.Mailbox
+  @impl Vws.CEC.Mailbox.Recorder
   @spec store_lines(:ets.tid(), :nc_file | :nc_up, [binary]) :: :ok | {:error, term}
   def store_lines(table, key, lines) when key in [:nc_file, :nc_up] do
     case :ets.lookup(table, :journal) do

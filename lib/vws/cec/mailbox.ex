@@ -39,9 +39,9 @@ defmodule Vws.CEC.Mailbox do
 
   With a journal (`Vws.CEC.Journal`), every command-status change is written to disk before it is
   written here, and a restarted workstation gets its command statuses back. The mailbox does not
-  know the journal: a *recorder* — a module with the callbacks below, attached to the table with
-  `attach_recorder/2` — is given every change first (`record/2`, `store_lines` for the programs);
-  without one, nothing is recorded. The journal reads and restores the mailboxes through
+  know the journal: a *recorder* — a module implementing `Vws.CEC.Mailbox.Recorder`, attached to
+  the table with `attach_recorder/2` — is given every change first (`record/2`, `store_lines/3`
+  for the programs); without one, nothing is recorded. The journal reads and restores the mailboxes through
   `dump/1` and `load/2`, never through the table's keys.
 
   ## Change notices
@@ -61,12 +61,6 @@ defmodule Vws.CEC.Mailbox do
   """
 
   require Logger
-
-  @doc "Makes `record` durable (the command journal); `{:error, reason}` when it could not."
-  @callback record(:ets.tid(), record :: tuple) :: :ok | {:error, term}
-
-  @doc "Stores a program (`:nc_file` or `:nc_up`) durably, whole or not at all."
-  @callback store_lines(:ets.tid(), :nc_file | :nc_up, [binary]) :: :ok | {:error, term}
 
   @type workstation :: term
   @type partition :: :robot | :monarch | :gripper | :fixture | :vacuum | :hydraulic
@@ -312,7 +306,7 @@ defmodule Vws.CEC.Mailbox do
   def put_status(_ws, set, _number, _status) when is_atom(set), do: :ok
 
   @doc """
-  Attaches the recorder (a module with this module's callbacks, `Vws.CEC.Journal`) that is given
+  Attaches the recorder (a `Vws.CEC.Mailbox.Recorder`, `Vws.CEC.Journal`) that is given
   every change before it is visible.
   """
   @spec attach_recorder(:ets.tid(), module) :: :ok

@@ -1,22 +1,16 @@
 defmodule Vws.CEC.Partition do
   @moduledoc """
-  The behaviour shared by the six command partitions (ROBOT, MONARCH, GRIPPER, FIXTURE, VACUUM,
-  HYDRAULIC), and the GenServer that runs them.
+  The GenServer that runs each of the six command partitions (ROBOT, MONARCH, GRIPPER, FIXTURE,
+  VACUUM, HYDRAULIC) over its command set, a module implementing `Vws.CEC.Partition.CommandSet`.
 
   It is the seed's partition loop (§2.3, Fig. 4): wait in ON EVENT for the partition's event, read
   CMD_IN, set the command status `EXECUTING`, run the command, then set `DONE` or
   `ERROR <reason>`.
 
-  A callback module gives the set's grammar and what running a command means:
-
-      @callback device() :: String.t()                        # "VAL II", "GE-2000", "DAQ #1" …
-      @callback parse(String.t()) :: {:ok, term} | {:error, :unknown | String.t()}
-      @callback execute(command :: term, ctx) :: :done | {:error, String.t()}
-
-  `execute/2` runs in a process of its own, linked to the partition, so the partition stays
-  responsive (status, inspection) while a robot moves; if it raises or exits the command ends
-  `ERROR` with the reason. If the partition itself dies, the linked command process dies with it,
-  and the restarted partition ends the command it finds in flight with
+  The command set's `execute/2` runs in a process of its own, linked to the partition, so the
+  partition stays responsive (status, inspection) while a robot moves; if it raises or exits the
+  command ends `ERROR` with the reason. If the partition itself dies, the linked command process
+  dies with it, and the restarted partition ends the command it finds in flight with
   `ERROR INTERRUPTED BY PARTITION RESTART` — it never runs it again by itself.
 
   ## Interlocks
@@ -24,27 +18,14 @@ defmodule Vws.CEC.Partition do
   Between the grammar and `execute/2`, every command passes the one interlock table,
   `Vws.CEC.Interlock.Rules`: the work volumes it needs are taken first (a refusal ends it
   `ERROR INTERLOCK …` before the device acts) and kept or given back as the table says once it
-  has ended. A module takes part through three optional callbacks:
-
-      @callback volumes(command :: term, ctx) :: {:ok, [volume]} | {:error, String.t()}
-      @callback conditions(volume :: atom, ctx) :: (-> :ok | {:error, String.t()})
-      @callback missing_link(command :: term, ctx) :: String.t() | nil
-
-  — the volumes a command's target lies in (ROBOT's motions), the physical conditions of a
-  volume (the machine idle and the table parked), and a second device a command needs beyond
-  the partition's link (MONARCH's CYCLE_START: the relay on DAQ #1), refused `ERROR NO LINK TO
-  <device>` before anything is taken.
+  has ended. The command set takes part through its optional callbacks `volumes/2`,
+  `conditions/2` and `missing_link/2`.
 
   ## After a restart of the workstation
 
   A command the journal found `EXECUTING` when the workstation went down answers
-  `ERROR INTERRUPTED BY RESTART` and is never run again. What the module may do instead is its
-  safe clean-up, the optional callback
-
-      @callback interrupted(command :: term, ctx) :: :ok | {:error, String.t()}
-
-  — the state a failed command of the set leaves the device in, never the command's work (the
-  vise: both valves off, so the jaws hold where they are). The restarted partition runs it in a
+  `ERROR INTERRUPTED BY RESTART` and is never run again. What the command set may do instead is
+  its safe clean-up, the optional callback `interrupted/2`. The restarted partition runs it in a
   process of its own, trying again every `:cleanup_retry_ms` (250) until `:cleanup_timeout_ms`
   (60 000) while its device is not reachable yet, and reports it as
   `[:vws, :partition, :cleaned_up]` (`status` `:ok` or `{:error, reason}`).
@@ -59,24 +40,6 @@ defmodule Vws.CEC.Partition do
   alias Vws.CEC.Interlock.Rules
   alias Vws.Codecs.WC.Words
 
-  @type ctx :: %{
-          workstation: term,
-          partition: Mailbox.partition(),
-          number: 0..9999,
-          text: String.t(),
-          link: term,
-          options: keyword
-        }
-
-  @callback device() :: String.t()
-  @callback parse(String.t()) :: {:ok, term} | {:error, :unknown | String.t()}
-  @callback execute(command :: term, ctx) :: :done | {:error, String.t()}
-  @callback interrupted(command :: term, ctx) :: :ok | {:error, String.t()}
-  @callback volumes(command :: term, ctx) :: {:ok, [atom]} | {:error, String.t()}
-  @callback conditions(volume :: atom, ctx) :: (() -> :ok | {:error, String.t()})
-  @callback missing_link(command :: term, ctx) :: String.t() | nil
-  @optional_callbacks interrupted: 2, volumes: 2, conditions: 2, missing_link: 2
-
   @doc false
   def child_spec(opts) do
     %{
@@ -87,8 +50,8 @@ defmodule Vws.CEC.Partition do
   end
 
   @doc """
-  Starts a partition. Options: `:workstation`, `:partition` (its set), `:module` (the callback
-  module), `:link` (whatever the module needs to reach its device, `nil` when not configured) and
+  Starts a partition. Options: `:workstation`, `:partition` (its set), `:module` (its command set,
+  `Vws.CEC.Partition.CommandSet`), `:link` (whatever the module needs to reach its device, `nil` when not configured) and
   `:options` (passed to the module in `ctx.options`), `:interlocks` (`:on`; `:off` only for a
   stand-in module whose commands are not a seed set's, see `Vws.CEC.Workstation`).
   """

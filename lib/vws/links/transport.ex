@@ -6,10 +6,10 @@ defmodule Vws.Links.Transport do
   (`Vws.CEC.Cell.connect/2`), which passes the transport that reaches the workstation as the
   `transport:` option of `connect/2`. Without one, connecting to it is `{:error, :not_resolved}`.
 
-  This module is both the behaviour every transport implements and the facade protocol code
-  calls. The facade picks the transport from the endpoint (`Vws.Links.Endpoint`), so a driver written
-  once runs unchanged over a real serial line, a terminal server, a simulator on TCP, or a
-  loopback pair in tests.
+  This module is the facade protocol code calls; every transport implements
+  `Vws.Links.Transport.Behaviour`. The facade picks the transport from the endpoint
+  (`Vws.Links.Endpoint`), so a driver written once runs unchanged over a real serial line, a
+  terminal server, a simulator on TCP, or a loopback pair in tests.
 
   ## Receiving: active-once
 
@@ -52,13 +52,10 @@ defmodule Vws.Links.Transport do
       iex> Vws.Links.Transport.close_listener(listener)
       :ok
 
-  ## Implementing a transport
+  ## Errors
 
-  A transport module implements the callbacks below; they are named like the facade functions
-  and take the transport's own `handle` instead of a `Vws.Links.Transport.Conn`. A transport returns
-  its errors as `{:error, reason}` with the `:inet`-style atoms where one fits (`:closed`,
-  `:timeout`, `:econnrefused`, `:eaddrinuse`, `:not_owner`); the facade hands every one of them
-  to its caller as `{:error, %Vws.Links.Transport.Error{reason: reason}}` (see there for every reason).
+  Every failure is `{:error, %Vws.Links.Transport.Error{reason: reason}}` (see there for every
+  reason); implementing a transport: `Vws.Links.Transport.Behaviour`.
   """
 
   import Kernel, except: [send: 2]
@@ -67,49 +64,10 @@ defmodule Vws.Links.Transport do
   alias Vws.Links.Endpoint
   alias Vws.Links.Transport.{Conn, Error, Listener}
 
-  @typedoc "A transport's own value for one connection."
-  @type handle :: term()
-  @typedoc "A transport's own value for one listener."
-  @type listener_handle :: term()
   @typedoc "An endpoint, or its string form."
   @type endpoint :: Endpoint.t() | String.t()
-  @typedoc "What a message to the controlling process meant for the connection."
-  @type message_result :: {:data, binary()} | :closed | {:error, term()} | :unknown
   @typedoc "What the facade returns when a transport fails (`Vws.Links.Transport.Error`)."
   @type error :: {:error, Error.t() | Vws.Links.Endpoint.Error.t()}
-
-  @doc "Opens a connection to `endpoint`; the caller becomes its controlling process."
-  @callback connect(Endpoint.t(), keyword()) :: {:ok, handle()} | {:error, term()}
-
-  @doc "Starts listening on `endpoint`; `{:error, :not_listenable}` if it cannot."
-  @callback listen(Endpoint.t(), keyword()) :: {:ok, listener_handle()} | {:error, term()}
-
-  @doc "The bound endpoint of a listener."
-  @callback listener_endpoint(listener_handle()) :: Endpoint.t()
-
-  @doc "Waits for the next incoming connection; the caller becomes its controlling process."
-  @callback accept(listener_handle(), timeout()) :: {:ok, handle()} | {:error, term()}
-
-  @doc "Stops listening; pending, not yet accepted connections are closed."
-  @callback close_listener(listener_handle()) :: :ok
-
-  @doc "Sends bytes."
-  @callback send(handle(), iodata()) :: :ok | {:error, term()}
-
-  @doc "Closes the connection; the peer sees it closed once it has received everything sent before."
-  @callback close(handle()) :: :ok
-
-  @doc "Makes `pid` the controlling process. Only the current controlling process may do it."
-  @callback controlling_process(handle(), pid()) :: :ok | {:error, term()}
-
-  @doc "Arms delivery of the next chunk of received bytes (or of the close) to the owner."
-  @callback activate(handle()) :: :ok
-
-  @doc "Classifies a message received by the controlling process."
-  @callback handle_message(handle(), term()) :: message_result()
-
-  @doc "A printable description of the other end."
-  @callback peer(handle()) :: String.t()
 
   @doc """
   Connects to `endpoint` (a `Vws.Links.Endpoint` or its string form).

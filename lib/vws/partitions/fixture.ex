@@ -47,7 +47,7 @@ defmodule Vws.Partitions.Fixture do
   0.3 s), `:min_force_n`, `:interlock` (as ROBOT's: `timeout`, `retry_ms`, `machine_stale_ms`,
   `sensor_timeout_ms`).
   """
-  @behaviour Vws.CEC.Partition
+  @behaviour Vws.CEC.Partition.CommandSet
 
   alias Vws.CEC.Interlock
   alias Vws.Links.DAQ.DeviceStatus

@@ -21,7 +21,7 @@ defmodule Vws.Partitions.Gripper do
   Options (`ctx.options`): `:timeout_ms` — how long the sensors have to confirm (default 3000
   for OPEN and CLOSE, 6000 for ROTATE_n, a 270° turn taking 3 s).
   """
-  @behaviour Vws.CEC.Partition
+  @behaviour Vws.CEC.Partition.CommandSet
 
   alias Vws.Links.DAQ.{DeviceStatus, Readings}
   alias Vws.Partitions.VwsStatus

@@ -33,7 +33,7 @@ defmodule Vws.Partitions.Hydraulic do
   Options (`ctx.options`): `:poll_ms` (100), `:timeout_ms` (60 000: a whole sequence),
   `:silence_ms` (3000), `:request_ms` (one HPIB request, 1000).
   """
-  @behaviour Vws.CEC.Partition
+  @behaviour Vws.CEC.Partition.CommandSet
 
   require Logger
 

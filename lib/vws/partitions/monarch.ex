@@ -98,7 +98,7 @@ defmodule Vws.Partitions.Monarch do
   @not_again [:delete, :download_execute]
   @broken_off [:nak_limit, :no_reply, :aborted, :no_response, :receive_timeout, :no_answer_to_bid]
 
-  @behaviour Vws.CEC.Partition
+  @behaviour Vws.CEC.Partition.CommandSet
   require Logger
 
   alias Vws.Links.DNC

@@ -68,7 +68,7 @@ defmodule Vws.Partitions.Robot do
       `machine_stale_ms`, `sensor_timeout_ms` (see `Vws.Partitions.TableConditions.check/2`).
     * `:work_volumes` — a map or a path in the shape of `priv/work_volumes.exs` (the default).
   """
-  @behaviour Vws.CEC.Partition
+  @behaviour Vws.CEC.Partition.CommandSet
 
   alias Vws.CEC.{Interlock, Mailbox}
   alias Vws.Links.VAL

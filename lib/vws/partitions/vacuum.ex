@@ -11,7 +11,7 @@ defmodule Vws.Partitions.Vacuum do
 
   Options (`ctx.options`): `:timeout_ms` (default 3000).
   """
-  @behaviour Vws.CEC.Partition
+  @behaviour Vws.CEC.Partition.CommandSet
 
   alias Vws.Partitions.VwsStatus
 

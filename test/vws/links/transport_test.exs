@@ -22,8 +22,9 @@ defmodule Vws.Links.TransportTest do
              {:error, %Vws.Links.Transport.Error{reason: :not_listenable}}
   end
 
-  test "every transport implements the whole behaviour" do
-    callbacks = Transport.behaviour_info(:callbacks)
+  test "every transport implements the whole behaviour, and the facade offers each callback" do
+    callbacks = Transport.Behaviour.behaviour_info(:callbacks)
+    assert {:handle_message, 2} in callbacks
 
     for module <- [
           Vws.Links.Transport.TCP,
@@ -33,9 +34,11 @@ defmodule Vws.Links.TransportTest do
       Code.ensure_loaded!(module)
 
       behaviours = module.module_info(:attributes) |> Keyword.get_values(:behaviour)
-      assert Transport in List.flatten(behaviours)
+      assert Transport.Behaviour in List.flatten(behaviours)
 
       for {name, arity} <- callbacks, do: assert(function_exported?(module, name, arity))
     end
+
+    for {name, arity} <- callbacks, do: assert(function_exported?(Transport, name, arity))
   end
 end

@@ -36,7 +36,7 @@ defmodule Vws.CEC.Cell.Connection do
   those of the underlying transport.
   """
 
-  @behaviour Vws.Links.Transport
+  @behaviour Vws.Links.Transport.Behaviour
 
   import Kernel, except: [send: 2]
 

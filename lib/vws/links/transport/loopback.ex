@@ -18,7 +18,7 @@ defmodule Vws.Links.Transport.Loopback do
   The handle is this module's struct; `ref` tags the messages of one side.
   """
 
-  @behaviour Vws.Links.Transport
+  @behaviour Vws.Links.Transport.Behaviour
 
   import Kernel, except: [send: 2]
 

@@ -39,7 +39,7 @@ defmodule Vws.Links.Transport.Serial do
   exits the same way.
   """
 
-  @behaviour Vws.Links.Transport
+  @behaviour Vws.Links.Transport.Behaviour
 
   import Kernel, except: [send: 2]
 

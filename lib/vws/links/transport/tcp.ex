@@ -14,7 +14,7 @@ defmodule Vws.Links.Transport.TCP do
   peer that never reads cannot block its owner for longer.
   """
 
-  @behaviour Vws.Links.Transport
+  @behaviour Vws.Links.Transport.Behaviour
 
   import Kernel, except: [send: 2]
 

@@ -11,7 +11,7 @@ defmodule Vws.Codecs.WC.WordsTest do
 
   # a partition module that ends its command with whatever the test put in the command's text
   defmodule AnyResult do
-    @behaviour Vws.CEC.Partition
+    @behaviour Vws.CEC.Partition.CommandSet
     def device, do: "TEST DEVICE"
     def parse(_text), do: {:ok, :on}
     def execute(_command, ctx), do: ctx.options[:result]
