@@ -144,7 +144,8 @@ defmodule Vws.ArchitectureTest do
              Enum.join(in_lib, "\n") <>
              "\nA behaviour goes in a module of its own that depends on nothing " <>
              "(`Vws.CEC.Partition.CommandSet`, `Vws.Links.Transport.Behaviour`); a module " <>
-             "attribute computed at compile time from another module becomes a function call."
+             "attribute that calls or captures (`&M.f/1`) another module at compile time " <>
+             "becomes a function, or names the module as data ({M, :f})."
   end
 
   test "no dependency cycle but a facade and its direct children", %{graph: graph} do
