@@ -41,7 +41,7 @@ defmodule Vws.Links.DNC.Session do
   @doc false
   def telemetry_prefix, do: @telemetry_prefix
 
-  alias Vws.Links.DNC.{Frame, LinkError}
+  alias Vws.Links.DNC.{Frame, LinkError, Transfer}
   alias Vws.Links.DNC.Frame.{Command, Text}
 
   @counters [
@@ -143,7 +143,7 @@ defmodule Vws.Links.DNC.Session do
   def request(%{state: :idle} = s, command, blocks, now) do
     case encode_request(command, blocks, s) do
       {:ok, frames} ->
-        tx = new_tx(:request, frames, [0 | sizes(blocks)], now)
+        tx = Transfer.new_tx(:request, frames, [0 | sizes(blocks)], now)
         s = %{s | req: %{command: command, started: now}, tx: tx}
         s |> bid() |> done()
 
@@ -157,7 +157,7 @@ defmodule Vws.Links.DNC.Session do
   def transmit(%{state: :idle} = s, blocks, now) do
     case encode_texts_safe(blocks, :lrc, s) do
       {:ok, frames} ->
-        %{s | tx: new_tx(:unsolicited, frames, sizes(blocks), now)} |> bid() |> done()
+        %{s | tx: Transfer.new_tx(:unsolicited, frames, sizes(blocks), now)} |> bid() |> done()
 
       :error ->
         {:error, :invalid_text}
@@ -172,7 +172,9 @@ defmodule Vws.Links.DNC.Session do
   def answer(%{state: :answering, rx: %{ref: ref, command: command}} = s, ref, blocks, now) do
     case encode_texts_safe(blocks, command.check, s) do
       {:ok, frames} ->
-        %{s | rx: nil, tx: new_tx(:answer, frames, sizes(blocks), now)} |> bid() |> done()
+        %{s | rx: nil, tx: Transfer.new_tx(:answer, frames, sizes(blocks), now)}
+        |> bid()
+        |> done()
 
       :error ->
         {:error, :invalid_text}
@@ -223,48 +225,9 @@ defmodule Vws.Links.DNC.Session do
 
   def handle_timeout(s, tag, now), do: timeout(s.state, tag, s, now) |> done()
 
-  @doc """
-  The transmission under way: direction, command, blocks and bytes (on the line, blocks
-  whole) done and in all, the program's text bytes done and in all (a reception's totals are
-  not known before its end), retries, pauses (WACKs: the receiver asked us to wait) and its
-  start (`now` units).
-  """
-  @spec transfer(t) :: map | nil
-  def transfer(%{tx: %{frames: frames} = tx} = s) do
-    total = tuple_size(frames)
-
-    %{
-      direction: :out,
-      command: s.req && s.req.command,
-      blocks: tx.acked,
-      total_blocks: total,
-      bytes: tx.bytes_acked,
-      total_bytes: tx.bytes,
-      program_bytes: tx.text_acked,
-      total_program_bytes: tx.text_bytes,
-      retries: tx.retries,
-      pauses: tx.pauses,
-      started: tx.started
-    }
-  end
-
-  def transfer(%{rx: %{} = rx} = s) do
-    %{
-      direction: :in,
-      command: rx.command || (s.req && s.req.command),
-      blocks: rx.count,
-      total_blocks: nil,
-      bytes: rx.bytes,
-      total_bytes: nil,
-      program_bytes: rx.bytes,
-      total_program_bytes: nil,
-      retries: rx.retries,
-      pauses: 0,
-      started: rx.started
-    }
-  end
-
-  def transfer(_s), do: nil
+  @doc "The transfer under way (`Vws.Links.DNC.Transfer.view/3`), or nil."
+  @spec transfer(t) :: Transfer.view() | nil
+  def transfer(s), do: Transfer.view(s.tx, s.rx, s.req && s.req.command)
 
   ## Frames, by state
 
@@ -492,30 +455,6 @@ defmodule Vws.Links.DNC.Session do
 
   ## Transmitting
 
-  defp new_tx(kind, frames, sizes, now) do
-    %{
-      kind: kind,
-      frames: List.to_tuple(frames),
-      sizes: List.to_tuple(sizes),
-      acked: 0,
-      bids: 0,
-      yields: 0,
-      naks: 0,
-      enqs: 0,
-      wacks: 0,
-      polled: false,
-      confirm: nil,
-      wacked: false,
-      retries: 0,
-      pauses: 0,
-      started: now,
-      text_acked: 0,
-      text_bytes: Enum.sum(sizes),
-      bytes_acked: 0,
-      bytes: Enum.reduce(frames, 0, &(IO.iodata_length(&1) + &2))
-    }
-  end
-
   defp sizes(blocks), do: Enum.map(blocks, &byte_size/1)
 
   defp encode_request(%Command{} = command, blocks, s) when is_list(blocks) do
@@ -637,26 +576,7 @@ defmodule Vws.Links.DNC.Session do
 
   defp start_receiving(s, kind, now) do
     s = send_control(s, :ack0)
-    receive_timer(%{s | rx: new_rx(kind, now), state: :receiving, credit: :infinity})
-  end
-
-  defp new_rx(kind, now) do
-    %{
-      kind: kind,
-      command: nil,
-      blocks: [],
-      count: 0,
-      bytes: 0,
-      last: :ack0,
-      sent: :ack0,
-      accepted: nil,
-      ack: :ack0,
-      naks: 0,
-      copies: 0,
-      retries: 0,
-      ref: nil,
-      started: now
-    }
+    receive_timer(%{s | rx: Transfer.new_rx(kind, now), state: :receiving, credit: :infinity})
   end
 
   defp receive_timer(s), do: state_timeout(s, s.limits.receive_timeout, :receive)
@@ -728,7 +648,7 @@ defmodule Vws.Links.DNC.Session do
   defp take_block(%Command{} = command, %{rx: %{kind: :slave}, tx: nil} = s, now) do
     s = log(s, :info, "DNC: a new command block while receiving: the peer's last EOT was lost")
     s = end_reception(s, now)
-    s = %{s | rx: new_rx(:slave, now), state: :receiving, credit: :infinity}
+    s = %{s | rx: Transfer.new_rx(:slave, now), state: :receiving, credit: :infinity}
     accept_block(s, command, 0)
   end
 
