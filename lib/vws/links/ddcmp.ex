@@ -54,10 +54,9 @@ defmodule Vws.Links.DDCMP do
     * `{:ddcmp, link, :peer_restarted}` — a STRT arrived while RUNNING: the peer restarted.
 
   `:up` alternates with `{:down, _}` / `:peer_restarted`. Each time the link enters RUNNING a new
-  **session** begins; sessions are numbered 1, 2, … in the order of the `:up` messages, so an
-  owner that counts its `:up`s knows the session of every message it handles (the messages come in
-  order) — even when the link has already restarted and is RUNNING again in a later one, its news
-  still in the owner's mailbox. Whenever the link leaves RUNNING the
+  **session** begins (numbered 1, 2, … in `info/1`). An owner that must never answer a message
+  of one session in the next runs the protocol core in its own process instead, as
+  `Vws.Links.VAL` does: this process API is for tests and tools. Whenever the link leaves RUNNING the
   messages not yet acknowledged by the peer, and those still queued, are dropped: the layer above
   decides what to send again. Messages given to `send_data/2` while the link is not RUNNING wait
   for it (in order) and go out once it is.
@@ -76,6 +75,10 @@ defmodule Vws.Links.DDCMP do
       longer received messages are NAKed (reason 16);
     * `:name` — registers the link (`atom`, `{:global, term}` or `{:via, module, term}`);
     * `:workstation` — the id of the workstation the link serves, for telemetry metadata;
+    * `:id` — the child spec's id (`child_spec/1`).
+
+  Checked by `start_link/1` (`Vws.Options`): an unknown option or a bad value raises
+  `Vws.Options.Error` naming it.
     * `:backoff` — `{min, max}` reconnect delay for `:endpoint`, ms, doubling with every wait and
       back to `min` only once the link has run (`Vws.Links.Backoff`): a peer that accepts and drops
       the connection before start-up completes is dialled less and less often.
@@ -101,7 +104,7 @@ defmodule Vws.Links.DDCMP do
   | ASTRT | timer expires | send STACK, start timer | ASTRT |
   | ASTRT | receive other ACK, NAK, REP, data, error | ignore | ASTRT |
   | ISTRT / ASTRT → RUNNING | (entering RUNNING) | session := session + 1 | RUNNING |
-  | RUNNING | `send_data/2` (with `session:`, only that session's) | queue; sent when T = N + 1 and N − A < window, with RESP = R | RUNNING |
+  | RUNNING | `send_data/2` | queue; sent when T = N + 1 and N − A < window, with RESP = R | RUNNING |
   | RUNNING | receive data, NUM = R + 1 | R := NUM, give to owner, set SACK | RUNNING |
   | RUNNING | receive data, other NUM | discard | RUNNING |
   | RUNNING | receive data or ACK, A < RESP ≤ N | A := RESP (messages up to it done), T := max(T, A + 1); all done → stop timer | RUNNING |
@@ -162,15 +165,26 @@ defmodule Vws.Links.DDCMP do
           | {:id, term}
           | {:workstation, term}
 
-  @defaults [
-    window: 7,
-    rep_timeout: 3000,
-    start_timeout: 3000,
-    max_failures: 8,
-    role: :active,
-    max_data: 4096,
-    backoff: {100, 5000}
+  # the protocol's options (`Vws.Links.DDCMP.Protocol`), also those of a process that runs the
+  # core itself (`Vws.Links.VAL`, `Vws.Sim.VAL2`)
+  @protocol_schema [
+    window: [type: {:in, 1..255}, default: 7],
+    rep_timeout: [type: :pos_integer, default: 3000],
+    start_timeout: [type: :pos_integer, default: 3000],
+    max_failures: [type: :pos_integer, default: 8],
+    role: [type: {:in, [:active, :passive]}, default: :active],
+    max_data: [type: {:in, 0..16383}, default: 4096],
+    backoff: [type: {:custom, &Vws.Links.Connection.check_backoff/1}, default: {100, 5000}],
+    workstation: [type: :any]
   ]
+
+  @schema [
+            endpoint: [type: {:custom, &Vws.Links.Connection.check_endpoint/1}],
+            conn: [type: {:custom, &Vws.Links.Connection.check_conn/1}],
+            owner: [type: :any],
+            name: [type: :any],
+            id: [type: :any]
+          ] ++ @protocol_schema
 
   @doc """
   A child spec (`:id` defaults to `:name`, else `Vws.Links.DDCMP`). Under a supervisor use `:endpoint`
@@ -229,30 +243,28 @@ defmodule Vws.Links.DDCMP do
 
   With `hold: false` a message is refused with `{:error, :not_running}` unless the link is RUNNING:
   a command meant for this session must never be delivered in the next one (after a restart).
-  A link process that has ended refuses it the same way (with `hold: false` or `session:`).
-
-  With `session: n` (the owner's count of `:up` messages, see "Owner messages") a message is
-  refused with `{:error, :not_running}` unless the link is RUNNING **in session `n`**: what the
-  owner sends in answer to a message of session `n` never reaches the peer in a later session,
-  however far behind the link the owner is. `hold: false` cannot promise that: by the time the
-  owner answers, the link may have restarted and be RUNNING again.
+  A link process that has ended refuses it the same way.
   """
   @spec send_data(link, iodata, keyword) :: :ok | {:error, :too_long | :not_running}
   def send_data(link, iodata, opts \\ []) do
-    request = {:send, IO.iodata_to_binary(iodata), Keyword.take(opts, [:hold, :session])}
+    [hold: hold] =
+      Vws.Options.validate!(opts, [hold: [type: :boolean, default: true]], "send_data")
 
-    if Keyword.has_key?(opts, :session) or Keyword.get(opts, :hold, true) == false,
-      do: refusable_call(link, request),
-      else: :gen_statem.call(link, request)
-  end
+    request = {:send, IO.iodata_to_binary(iodata), hold: hold}
 
-  # A link that has ended is RUNNING in no session: the refusal the caller is ready for, not an
-  # exit. Its owner traps exits, and the link's end may still wait in the owner's mailbox behind
-  # the message it is answering (a peer whose connection just died).
-  defp refusable_call(link, request) do
-    :gen_statem.call(link, request)
-  catch
-    :exit, {_reason, {:gen_statem, :call, _}} -> {:error, :not_running}
+    case Vws.Links.Connection.call(link, request, :infinity) do
+      {:ok, reply} ->
+        reply
+
+      # A link that has ended is RUNNING in no session: the refusal the caller is ready for, not
+      # an exit. Its owner traps exits, and the link's end may still wait in the owner's mailbox
+      # behind the message it is answering (a peer whose connection just died).
+      {:error, {:exit, _reason}} when hold == false ->
+        {:error, :not_running}
+
+      {:error, {:exit, reason}} ->
+        exit({reason, {__MODULE__, :send_data, [link]}})
+    end
   end
 
   @doc """
@@ -283,37 +295,18 @@ defmodule Vws.Links.DDCMP do
   @doc false
   # The options checked once, by the caller, with the defaults filled in (also `Vws.Links.VAL`'s).
   def validate!(opts) do
+    opts = Vws.Options.validate!(opts, @schema, "DDCMP")
+
     case {Keyword.has_key?(opts, :endpoint), Keyword.has_key?(opts, :conn)} do
       {true, false} -> :ok
       {false, true} -> :ok
       _ -> raise ArgumentError, "Vws.Links.DDCMP needs exactly one of :endpoint or :conn"
     end
 
-    opts |> validate_protocol!() |> Keyword.put_new(:owner, self())
+    Keyword.put_new(opts, :owner, self())
   end
 
   @doc false
   # The protocol's options alone, for a process that brings its own transport (`Vws.Sim.VAL2`).
-  def validate_protocol!(opts) do
-    opts = Keyword.merge(@defaults, opts)
-
-    check!(opts, :window, &(is_integer(&1) and &1 in 1..255))
-    check!(opts, :rep_timeout, &(is_integer(&1) and &1 > 0))
-    check!(opts, :start_timeout, &(is_integer(&1) and &1 > 0))
-    check!(opts, :max_failures, &(is_integer(&1) and &1 > 0))
-    check!(opts, :role, &(&1 in [:active, :passive]))
-    check!(opts, :max_data, &(is_integer(&1) and &1 in 0..16383))
-
-    check!(opts, :backoff, fn
-      {min, max} -> is_integer(min) and is_integer(max) and min > 0 and max >= min
-      _ -> false
-    end)
-
-    opts
-  end
-
-  defp check!(opts, key, valid?) do
-    value = Keyword.fetch!(opts, key)
-    unless valid?.(value), do: raise(ArgumentError, "invalid #{key}: #{inspect(value)}")
-  end
+  def validate_protocol!(opts), do: Vws.Options.validate!(opts, @protocol_schema, "DDCMP")
 end

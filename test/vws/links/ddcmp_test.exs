@@ -161,7 +161,7 @@ defmodule Vws.Links.DDCMPTest do
     assert DDCMP.info(link).state != :running
   end
 
-  test "a link that has ended refuses send_data with hold: false or session: n; it does not exit the caller" do
+  test "a link that has ended refuses send_data with hold: false; it does not exit the caller" do
     Process.flag(:trap_exit, true)
 
     {:ok, link} =
@@ -172,31 +172,14 @@ defmodule Vws.Links.DDCMPTest do
 
     :ok = DDCMP.stop(link)
     # its end reaches this (trapping) owner as a message, after the calls below
-    assert DDCMP.send_data(link, "answer", session: 1) == {:error, :not_running}
     assert DDCMP.send_data(link, "DO MOVE SAFE", hold: false) == {:error, :not_running}
     assert_receive {:EXIT, ^link, _}
   end
 
-  test "send_data with session: n goes only into session n, never into a later one the link has begun" do
-    {_relay, a, b} = pair([], [])
-    assert DDCMP.info(a).session == 1
-    assert DDCMP.send_data(a, "first", session: 1) == :ok
-    assert_receive {:ddcmp, ^b, {:data, "first"}}, 5000
-
-    # the link restarts and is RUNNING again before its owner has handled anything of it:
-    # an answer the owner gives to a message of session 1 must not reach the peer in session 2
-    :ok = DDCMP.restart(a)
-    assert_receive {:ddcmp, ^a, {:down, :restart}}
-    assert_receive {:ddcmp, ^b, :peer_restarted}, 5000
-    assert_receive {:ddcmp, ^a, :up}, 5000
-    assert_receive {:ddcmp, ^b, :up}, 5000
-    assert %{state: :running, session: 2} = DDCMP.info(a)
-
-    assert DDCMP.send_data(a, "late answer", session: 1) == {:error, :not_running}
-    assert DDCMP.send_data(a, "second", session: 2) == :ok
-    assert_receive {:ddcmp, ^b, {:data, data}}, 5000
-    assert data == "second"
-    assert DDCMP.info(b).counters.received == 2
+  test "send_data takes hold: and nothing else (the session: option is gone)" do
+    {_relay, a, _b} = pair([], [])
+    assert_raise Vws.Options.Error, ~r/session/, fn -> DDCMP.send_data(a, "first", session: 1) end
+    assert_raise Vws.Options.Error, ~r/hold/, fn -> DDCMP.send_data(a, "first", hold: :no) end
   end
 
   test "lossy line (PropEr over seeds, windows, loss and damage rates): each message once, in order" do
@@ -208,10 +191,32 @@ defmodule Vws.Links.DDCMPTest do
       assert_raise ArgumentError, fn -> DDCMP.start_link(owner: self()) end
     end
 
-    test "invalid values are refused" do
-      for bad <- [window: 0, window: 256, role: :master, max_data: 20_000, rep_timeout: 0] do
-        assert_raise ArgumentError, fn -> DDCMP.start_link([bad, endpoint: "loopback:x"]) end
+    test "invalid values are refused, naming the option" do
+      for {key, _} = bad <- [
+            window: 0,
+            window: 256,
+            role: :master,
+            max_data: 20_000,
+            rep_timeout: 0,
+            backoff: {10, 5},
+            endpoint: "ftp://x"
+          ] do
+        error =
+          assert_raise Vws.Options.Error, fn ->
+            DDCMP.start_link(Keyword.merge([endpoint: "loopback:x"], [bad]))
+          end
+
+        assert error.key == key and error.reason == :invalid
       end
+    end
+
+    test "an unknown option is refused at start" do
+      error =
+        assert_raise Vws.Options.Error, fn ->
+          DDCMP.start_link(endpoint: "loopback:x", windw: 3)
+        end
+
+      assert Exception.message(error) =~ "unknown DDCMP option :windw"
     end
 
     test "child_spec/1 takes the name as id" do

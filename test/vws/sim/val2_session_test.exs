@@ -49,8 +49,9 @@ defmodule Vws.Sim.VAL2SessionTest do
     assert info.violations == 0 and info.stale == 0
   end
 
+  # never held for a later session: refused (and the test fails) unless the link is RUNNING
   defp send_message(cec, message),
-    do: :ok = DDCMP.send_data(cec, Message.encode(message), session: DDCMP.info(cec).session)
+    do: :ok = DDCMP.send_data(cec, Message.encode(message), hold: false)
 
   # the next message on `lun` with `function`; others are skipped (LUN 1's status is replied to)
   defp receive_message(cec, lun, function) do

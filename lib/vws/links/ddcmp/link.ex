@@ -2,7 +2,7 @@ defmodule Vws.Links.DDCMP.Link do
   @moduledoc false
   # The process behind `Vws.Links.DDCMP`: a transport and a `Vws.Links.DDCMP.Protocol`, nothing more. The
   # protocol (states, sequence numbers, what to send, which timer to arm) is the pure core; this
-  # process dials (with back-off), hands received bytes, requests and expired timers to the core,
+  # process dials (with back-off, `Vws.Links.Connection`), hands received bytes, requests and expired timers to the core,
   # writes the frames it returns, arms its timers and tells the owner its news
   # (`Vws.Links.DDCMP.Wire`). Its own state says only whether a transport is there.
 
@@ -10,27 +10,33 @@ defmodule Vws.Links.DDCMP.Link do
 
   require Logger
 
+  alias Vws.Links.Connection
   alias Vws.Links.DDCMP.{Protocol, Wire}
-  alias Vws.Links.Transport
 
-  defstruct [:owner, :name, :workstation, :endpoint, :backoff, :conn, :protocol, dialled: false]
+  defstruct [:owner, :name, :workstation, :wire, :protocol]
 
   @impl :gen_statem
   def callback_mode, do: :handle_event_function
 
   @impl :gen_statem
   def init(opts) do
-    {min_backoff, max_backoff} = Keyword.fetch!(opts, :backoff)
     if ws = Keyword.get(opts, :workstation), do: Logger.metadata(workstation: ws)
     endpoint = Keyword.get(opts, :endpoint)
+    name = Keyword.get(opts, :name)
+    workstation = Keyword.get(opts, :workstation)
 
     data = %__MODULE__{
       owner: Keyword.fetch!(opts, :owner),
-      name: Keyword.get(opts, :name),
-      workstation: Keyword.get(opts, :workstation),
-      endpoint: endpoint,
-      # doubles with every wait, back to the minimum when the link runs (Vws.Links.Backoff)
-      backoff: Vws.Links.Backoff.new(min_backoff, max_backoff),
+      name: name,
+      workstation: workstation,
+      # the back-off doubles with every wait, back to the minimum when the link runs
+      wire:
+        Connection.new(
+          endpoint: endpoint,
+          backoff: Keyword.fetch!(opts, :backoff),
+          telemetry: {[:vws, :ddcmp], %{link: name || self(), workstation: workstation}},
+          label: "DDCMP link #{inspect(name || self())}"
+        ),
       protocol:
         Protocol.new([halt_reason: if(endpoint, do: :disconnected, else: :attaching)] ++ opts)
     }
@@ -41,32 +47,22 @@ defmodule Vws.Links.DDCMP.Link do
   end
 
   @impl :gen_statem
-  def terminate(_reason, _state, %__MODULE__{conn: conn}) do
-    if conn, do: Transport.close(conn)
+  def terminate(_reason, _state, %__MODULE__{wire: wire}) do
+    Connection.close(wire)
     :ok
   end
 
   @impl :gen_statem
   def handle_event({:timeout, :connect}, :connect, :disconnected, data) do
-    data = %__MODULE__{data | dialled: true}
+    case Connection.connect(data.wire) do
+      {:ok, wire} ->
+        connected(%__MODULE__{data | wire: wire})
 
-    case Transport.connect(data.endpoint) do
-      {:ok, conn} ->
-        :ok = Transport.activate(conn)
-        connected(%__MODULE__{data | conn: conn})
-
-      {:error, reason} ->
-        {delay, backoff} = Vws.Links.Backoff.next(data.backoff)
-
-        Wire.telemetry(meta(data), :connect_failed, %{count: 1, retry_in: delay}, %{
-          endpoint: to_string(data.endpoint),
-          reason: reason
-        })
-
+      {:error, reason, retry_in, wire} ->
         protocol = %Protocol{data.protocol | last_error: {:connect, reason}}
 
-        {:keep_state, %__MODULE__{data | backoff: backoff, protocol: protocol},
-         [{{:timeout, :connect}, delay, :connect}]}
+        {:keep_state, %__MODULE__{data | wire: wire, protocol: protocol},
+         [{{:timeout, :connect}, retry_in, :connect}]}
     end
   end
 
@@ -74,12 +70,16 @@ defmodule Vws.Links.DDCMP.Link do
         {:call, from},
         {:attach, conn},
         :disconnected,
-        %__MODULE__{endpoint: nil} = data
-      )
-      when data.conn == nil do
-    :ok = Transport.activate(conn)
-    connected(%__MODULE__{data | conn: conn}, [{:reply, from, :ok}])
+        %__MODULE__{wire: %Connection{endpoint: nil, conn: nil}} = data
+      ) do
+    connected(%__MODULE__{data | wire: Connection.attach(data.wire, conn)}, [{:reply, from, :ok}])
   end
+
+  def handle_event(:cast, {Connection, _, _, _} = call, _state, _data),
+    do: {:keep_state_and_data, [Connection.as_call(call)]}
+
+  def handle_event({:call, from}, {:deadline, _deadline, request}, state, data),
+    do: handle_event({:call, from}, request, state, data)
 
   def handle_event({:call, from}, {:send, bytes, opts}, _state, data) when is_binary(bytes) do
     case Protocol.send(data.protocol, bytes, opts) do
@@ -99,7 +99,7 @@ defmodule Vws.Links.DDCMP.Link do
     info =
       data.protocol
       |> Protocol.info()
-      |> Map.merge(%{connected: data.conn != nil, peer: data.conn && Transport.peer(data.conn)})
+      |> Map.merge(%{connected: Connection.connected?(data.wire), peer: data.wire.peer})
 
     {:keep_state_and_data, [{:reply, from, info}]}
   end
@@ -108,20 +108,11 @@ defmodule Vws.Links.DDCMP.Link do
     run(data, Protocol.handle_timeout(data.protocol, timer))
   end
 
-  def handle_event(:info, message, :connected, %__MODULE__{conn: conn} = data) do
-    case Transport.handle_message(conn, message) do
-      {:data, bytes} ->
-        :ok = Transport.activate(conn)
-        run(data, Protocol.handle_bytes(data.protocol, bytes))
-
-      :closed ->
-        disconnected(data, :closed)
-
-      {:error, reason} ->
-        disconnected(data, {:transport, reason})
-
-      :unknown ->
-        unexpected(data, :info, message)
+  def handle_event(:info, message, :connected, data) do
+    case Connection.handle_message(data.wire, message) do
+      {:data, bytes} -> run(data, Protocol.handle_bytes(data.protocol, bytes))
+      {:closed, reason} -> disconnected(data, reason)
+      :unknown -> unexpected(data, :info, message)
     end
   end
 
@@ -138,16 +129,13 @@ defmodule Vws.Links.DDCMP.Link do
   end
 
   defp disconnected(data, reason) do
-    Transport.close(data.conn)
     was_running = Protocol.running?(data.protocol)
-    data = %__MODULE__{data | conn: nil}
+    {retry_in, wire} = Connection.lost(data.wire, reason)
+    data = %__MODULE__{data | wire: wire}
     {:keep_state, data, actions} = run(data, Protocol.disconnected(data.protocol, reason))
 
-    if data.endpoint do
-      {delay, backoff} = Vws.Links.Backoff.next(data.backoff)
-
-      {:next_state, :disconnected, %__MODULE__{data | backoff: backoff},
-       actions ++ [{{:timeout, :connect}, delay, :connect}]}
+    if wire.endpoint do
+      {:next_state, :disconnected, data, actions ++ [{{:timeout, :connect}, retry_in, :connect}]}
     else
       # A handed-over connection cannot be dialled again: the link's life ends with it, and the
       # owner always hears of it.
@@ -161,12 +149,10 @@ defmodule Vws.Links.DDCMP.Link do
   end
 
   defp run(data, {protocol, frames, events}, actions \\ []) do
-    {news, timers} = Wire.perform(frames, events, data.conn, meta(data))
+    {news, timers} = Wire.perform(frames, events, data.wire.conn, meta(data))
     Enum.each(news, &notify(data, &1))
-
-    backoff = if :up in news, do: Vws.Links.Backoff.reset(data.backoff), else: data.backoff
-
-    {:keep_state, %__MODULE__{data | protocol: protocol, backoff: backoff}, timers ++ actions}
+    wire = if :up in news, do: Connection.alive(data.wire), else: data.wire
+    {:keep_state, %__MODULE__{data | protocol: protocol, wire: wire}, timers ++ actions}
   end
 
   defp unexpected(data, type, content) do
