@@ -58,7 +58,7 @@ defmodule Vws.Links.Connection do
   ]
 
   @type t :: %__MODULE__{
-          endpoint: Endpoint.t() | nil,
+          endpoint: Endpoint.t() | String.t() | nil,
           conn: Transport.Conn.t() | nil,
           peer: String.t() | nil,
           backoff: Backoff.t(),
@@ -104,15 +104,8 @@ defmodule Vws.Links.Connection do
     {min, max} = Keyword.fetch!(opts, :backoff)
     {prefix, metadata} = Keyword.get(opts, :telemetry, {nil, %{}})
 
-    endpoint =
-      case Keyword.get(opts, :endpoint) do
-        nil -> nil
-        %Endpoint{} = endpoint -> endpoint
-        string -> Endpoint.parse!(string)
-      end
-
     %__MODULE__{
-      endpoint: endpoint,
+      endpoint: Keyword.get(opts, :endpoint),
       backoff: Backoff.new(min, max),
       connect: Keyword.get(opts, :connect, []),
       prefix: prefix,

@@ -53,6 +53,8 @@ defmodule Vws.Links.DNC do
       to the minimum only once the peer has sent a frame on a connection — `Vws.Links.Backoff`;
       `connect_timeout` 2 000 ms) whenever the peer goes away. Without it the link waits to be
       given a connection with `attach/2` (a listener's accepted connections, say).
+    * `:connect` — more options for `Vws.Links.Transport.connect/2` when dialling `:endpoint`
+      (`transport:`, the transport that reaches it)
     * `:conn` — an open `Vws.Links.Transport` connection of the caller's, handed to the link at start
     * `:role` — `:cec` (default) or `:ge` (pads ENQ and EOT with DEL and wins contention; both can
       be set alone with `pad:` and `win_contention:`)
@@ -64,7 +66,11 @@ defmodule Vws.Links.DNC do
       received blocks), `answer_timeout` 5 000 ms (for the owner's `answer/3`), `max_text` 256
       bytes per block, `max_receive` 4 MiB per received transmission (not for `E`, which keeps
       nothing), `receive_buffer` (see Drip feed).
-    Pacing and fault injection are the simulators' (`Vws.Sim.GE2000`, `Vws.Sim.Line`).
+    Pacing and fault injection are the simulators' (`Vws.Sim.GE2000`, `Vws.Sim.Line`), which put
+    their own transports under a link (`Vws.Sim.Tap`), never a hook in it.
+
+  Checked by `start_link/1` (`Vws.Options`): an unknown option or a bad value raises
+  `Vws.Options.Error` naming it.
 
   ## Messages to the owner
 
@@ -168,15 +174,20 @@ defmodule Vws.Links.DNC do
 
   Waits while the link is busy (the request is postponed until it is idle); answers
   `{:error, %LinkError{reason: :link_down}}` at once while there is no connection. `timeout`
-  (ms or `:infinity`) bounds the whole request; the protocol's own limits always end it anyway.
+  (ms or `:infinity`) is the caller's deadline, waiting for the line included: a request still
+  waiting when it passes is never bid for, one under way is ended (EOT), and
+  `{:error, %LinkError{reason: :timeout}}` is returned — an answer after it never reaches the
+  caller (`Vws.Links.Connection`). The protocol's own limits always end a request anyway.
   """
   @spec request(link, Frame.Command.t(), [binary], timeout) ::
           {:ok, [binary]} | {:error, LinkError.t()}
   def request(link, %Frame.Command{} = command, text_blocks, timeout \\ :infinity)
       when is_list(text_blocks) do
-    :gen_statem.call(link, {:request, command, text_blocks, timeout})
-  catch
-    :exit, _reason -> {:error, %LinkError{reason: :link_down}}
+    case Vws.Links.Connection.call(link, {:request, command, text_blocks}, timeout) do
+      {:ok, result} -> result
+      {:error, :timeout} -> {:error, %LinkError{reason: :timeout}}
+      {:error, {:exit, _reason}} -> {:error, %LinkError{reason: :link_down}}
+    end
   end
 
   @doc "Answers the peer's `R` command announced to the owner as `{:request, ref, command, blocks}`."
@@ -201,8 +212,7 @@ defmodule Vws.Links.DNC do
   @doc """
   The link's state (`:disconnected`, `:idle`, `:bidding`, `:sending`, `:turnaround` — waiting for
   the peer's bid after our `R` command —, `:receiving`, `:answering` — the owner preparing the
-  answer to the peer's `R` command), role, endpoint, peer, fault (a simulator's, `:none`), block
-  size, counters and the
+  answer to the peer's `R` command), role, endpoint, peer, block size, counters and the
   transfer under way (`progress/1`).
   """
   @spec info(link) :: map
@@ -238,12 +248,4 @@ defmodule Vws.Links.DNC do
   @doc "Makes `pid` the link's owner, told what happens on the link (see above)."
   @spec set_owner(link, pid | nil) :: :ok
   def set_owner(link, pid), do: :gen_statem.call(link, {:set_owner, pid})
-
-  @doc false
-  # A tap between the protocol and the wire, `{module, state}` or nil: a simulator's fault
-  # injection (`Vws.Sim.GE2000.Faults`). `module.outgoing(state, bytes, transfer)` returns
-  # `{state, iodata}` (transfer: `Vws.Links.DNC.Session.transfer/1` after the bytes were made);
-  # `module.incoming(state, bytes, session_state)` returns `{state, bytes, [{:transmit, blocks}]}`.
-  @spec set_tap(link, {module, term} | nil) :: :ok
-  def set_tap(link, tap), do: :gen_statem.call(link, {:set_tap, tap})
 end

@@ -62,15 +62,29 @@ defmodule Vws.Links.HPIB do
   | `[:vws, :hpib, :retry]`        | `count` | `bus, address, endpoint, commands, reason, try` |
   """
 
+  alias Vws.Links.Connection
   alias Vws.Links.HPIB.{Device, Error}
 
   @type bus :: term
   @type address :: 0..30
   @type device :: {bus, address}
   @type result :: Vws.Codecs.SCPI.response() | :ok
-  @type request_id :: {address, :gen_statem.request_id()}
+  @type request_id :: {address, Connection.request_id()}
 
-  @call_margin 2_000
+  # how long a caller waits for a request without a timeout of its own (the device ends it
+  # after its own default `:timeout`, much sooner)
+  @default_wait 60_000
+
+  @schema [
+    bus: [type: :any, required: true],
+    address: [type: {:in, 0..30}, required: true],
+    endpoint: [type: {:custom, &Connection.check_endpoint/1}, required: true],
+    timeout: [type: :pos_integer],
+    connect_timeout: [type: :pos_integer],
+    backoff: [type: {:custom, &Connection.check_backoff/1}],
+    retries: [type: :non_neg_integer],
+    device: [type: {:or, [nil, :string]}]
+  ]
 
   @doc false
   def child_spec(opts) do
@@ -92,16 +106,14 @@ defmodule Vws.Links.HPIB do
       back to `first_ms` only once the device has answered on a connection (`Vws.Links.Backoff`);
     * `:retries` — how many times a repeatable request is tried again (2);
     * `:device` — what the device is, for people (`"DAQ #1"`), shown by `info/1` and the dashboard.
+
+  Checked first (`Vws.Options`): an unknown option or a bad value raises `Vws.Options.Error`
+  naming it.
   """
   @spec start_link(keyword) :: :gen_statem.start_ret()
   def start_link(opts) do
-    bus = Keyword.fetch!(opts, :bus)
-    address = Keyword.fetch!(opts, :address)
-
-    unless is_integer(address) and address in 0..30,
-      do: raise(ArgumentError, "an HPIB primary address is 0..30, got #{inspect(address)}")
-
-    :gen_statem.start_link(name(bus, address), Device, opts, [])
+    opts = Vws.Options.validate!(opts, @schema, "HPIB")
+    :gen_statem.start_link(name(opts[:bus], opts[:address]), Device, opts, [])
   end
 
   @doc "The registered name of a device process."
@@ -131,11 +143,12 @@ defmodule Vws.Links.HPIB do
   def transaction({bus, address} = device, commands, timeout \\ nil) do
     {request, wait} = request(device, commands, timeout)
 
-    try do
-      :gen_statem.call(name(bus, address), request, wait)
-    catch
-      :exit, {:timeout, _} -> {:error, %Error{reason: :timeout, address: address, detail: wait}}
-      :exit, _ -> {:error, %Error{reason: :no_device, address: address}}
+    # the device honours the deadline (the request is never sent after it, and a late answer
+    # closes the connection); an answer after it never reaches this caller
+    case Connection.call(name(bus, address), request, wait) do
+      {:ok, reply} -> reply
+      {:error, :timeout} -> {:error, %Error{reason: :timeout, address: address, detail: wait}}
+      {:error, {:exit, _}} -> {:error, %Error{reason: :no_device, address: address}}
     end
   end
 
@@ -145,8 +158,8 @@ defmodule Vws.Links.HPIB do
   """
   @spec send_request(device, [Vws.Codecs.SCPI.command()], timeout | nil) :: request_id
   def send_request({bus, address} = device, commands, timeout \\ nil) do
-    {request, _wait} = request(device, commands, timeout)
-    {address, :gen_statem.send_request(name(bus, address), request)}
+    {request, wait} = request(device, commands, timeout)
+    {address, Connection.send_request(name(bus, address), request, wait)}
   end
 
   @doc """
@@ -155,10 +168,10 @@ defmodule Vws.Links.HPIB do
   """
   @spec check_response(term, request_id) :: {:ok, [result]} | {:error, Error.t()} | :no_reply
   def check_response(msg, {address, request_id}) do
-    case :gen_statem.check_response(msg, request_id) do
-      {:reply, reply} -> reply
+    case Connection.check_response(msg, request_id) do
+      {:ok, reply} -> reply
       :no_reply -> :no_reply
-      {:error, {_reason, _server}} -> {:error, %Error{reason: :no_device, address: address}}
+      {:error, {:exit, _reason}} -> {:error, %Error{reason: :no_device, address: address}}
     end
   end
 
@@ -182,15 +195,16 @@ defmodule Vws.Links.HPIB do
   @spec await_connected(device, non_neg_integer) :: :ok | :timeout
   def await_connected(device, timeout) do
     server = if is_pid(device), do: device, else: name(elem(device, 0), elem(device, 1))
-    :gen_statem.call(server, :await_connected, timeout)
-  catch
-    :exit, _ -> :timeout
+
+    case Connection.call(server, :await_connected, timeout) do
+      {:ok, :ok} -> :ok
+      {:error, _} -> :timeout
+    end
   end
 
   defp request({_bus, _address}, commands, timeout) when is_list(commands) and commands != [] do
     Enum.each(commands, &Vws.Codecs.SCPI.encode_command/1)
     timeout = timeout && max(timeout, 0)
-    deadline = timeout && System.monotonic_time(:millisecond) + timeout
-    {{:request, commands, deadline, timeout}, (timeout || 60_000) + @call_margin}
+    {{:request, commands, timeout}, timeout || @default_wait}
   end
 end

@@ -65,7 +65,11 @@ defmodule Vws.Links.VAL do
     * `:name` — registered name of the process
     * `:ddcmp` — options for the link, as `Vws.Links.DDCMP`'s: `:endpoint` (required; dialled again
       with back-off whenever the controller goes away), `:window`, `:rep_timeout`, `:backoff`,
-      `:workstation`, …; `:role` is set here. Checked by `start_link/1` (`ArgumentError`).
+      `:workstation`, …; `:role` is set here.
+    * `:id` — the child spec's id.
+
+  Checked by `start_link/1` (`Vws.Options`): an unknown option or a bad value raises
+  `Vws.Options.Error` naming it.
 
   ## Telemetry
 
@@ -90,6 +94,12 @@ defmodule Vws.Links.VAL do
            | {:bad_response, String.t()}
            | {:bad_command, Vws.Links.VAL.Error.t()}}
 
+  @schema [
+    name: [type: :any],
+    id: [type: :any],
+    ddcmp: [type: :keyword_list, required: true]
+  ]
+
   @doc false
   def child_spec(opts) do
     %{
@@ -102,7 +112,8 @@ defmodule Vws.Links.VAL do
   @doc "Starts the process for one VAL II wire. See the module doc for options."
   @spec start_link(keyword) :: :gen_statem.start_ret()
   def start_link(opts) do
-    ddcmp = Keyword.get(opts, :ddcmp, [])
+    opts = Vws.Options.validate!(opts, @schema, "VAL")
+    ddcmp = Keyword.fetch!(opts, :ddcmp)
 
     unless Keyword.has_key?(ddcmp, :endpoint),
       do: raise(ArgumentError, "Vws.Links.VAL needs ddcmp: [endpoint: …]")
@@ -145,19 +156,13 @@ defmodule Vws.Links.VAL do
     if wait == :response and waits_for(text) != :response,
       do: raise(ArgumentError, "#{inspect(text)} waits for more than its response")
 
-    deadline = if timeout == :infinity, do: :infinity, else: now() + timeout
-    # the process answers :timeout itself at the deadline; the margin only covers a dead process
-    call_timeout = if timeout == :infinity, do: :infinity, else: timeout + 1_000
-
-    try do
-      :gen_statem.call(val, {:request, text, wait, deadline}, call_timeout)
-    catch
-      :exit, {:timeout, _} ->
-        {:error, :timeout}
-
+    # the process honours the caller's deadline (a command is never sent after it); an answer
+    # after it never reaches the caller (Vws.Links.Connection)
+    case Vws.Links.Connection.call(val, {:request, text, wait}, timeout) do
+      {:ok, result} -> result
+      {:error, :timeout} -> {:error, :timeout}
       # not running, or ended during the call: the command's fate is unknown, never a crash here
-      :exit, {reason, _} ->
-        {:error, {:link_down, reason}}
+      {:error, {:exit, reason}} -> {:error, {:link_down, reason}}
     end
   end
 
@@ -262,6 +267,4 @@ defmodule Vws.Links.VAL do
       _ -> :response
     end
   end
-
-  defp now, do: System.monotonic_time(:millisecond)
 end

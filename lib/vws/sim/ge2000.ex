@@ -79,6 +79,7 @@ defmodule Vws.Sim.GE2000 do
   alias Vws.Links.DNC.{Frame, Program, Report}
   alias Vws.Links.DNC.Frame.Command
   alias Vws.Sim.GE2000.Faults
+  alias Vws.Sim.Tap
 
   @default_baud 4800
   # drip feed: the block buffer, and how fast a program runs out of it (characters a second)
@@ -239,6 +240,8 @@ defmodule Vws.Sim.GE2000 do
       acceptor: nil,
       link_opts: link_opts,
       link: nil,
+      # the line end the faults are put in (Vws.Sim.Tap): the link knows nothing of it
+      tap: nil,
       baud: baud,
       line: nil,
       memory: memory,
@@ -275,9 +278,13 @@ defmodule Vws.Sim.GE2000 do
   @impl true
   def handle_continue(:open, s) do
     endpoint = Vws.Links.Endpoint.parse!(s.endpoint)
+    {:ok, tap} = Tap.start_link(owner: self())
+    s = %{s | tap: tap}
 
     if endpoint.kind == :tty do
-      {:ok, link} = DNC.start_link(Keyword.put(s.link_opts, :endpoint, s.endpoint))
+      # the link dials the tty itself, through the tap
+      through_tap = [endpoint: s.endpoint, connect: [transport: Tap, tap: tap]]
+      {:ok, link} = DNC.start_link(Keyword.merge(s.link_opts, through_tap))
       {:noreply, %{s | link: link, bound: s.endpoint}}
     else
       {:ok, link} = DNC.start_link(s.link_opts)
@@ -286,7 +293,7 @@ defmodule Vws.Sim.GE2000 do
       case Vws.Links.Transport.listen(listen || endpoint) do
         {:ok, listener} ->
           allow = s.allow
-          acceptor = spawn_link(fn -> accept_loop(listener, link, allow) end)
+          acceptor = spawn_link(fn -> accept_loop(listener, link, allow, tap) end)
           bound = to_string(Vws.Links.Transport.listener_endpoint(listener))
           s = %{s | link: link, listener: listener, acceptor: acceptor, bound: bound}
 
@@ -320,7 +327,7 @@ defmodule Vws.Sim.GE2000 do
 
   # A new connection takes over from the previous one, like a cable plugged in again.
   # Only an allowed peer (default loopback, `Vws.Links.Transport.Policy`) is plugged in.
-  defp accept_loop(listener, link, allow) do
+  defp accept_loop(listener, link, allow, tap) do
     case Vws.Links.Transport.accept(listener, :infinity) do
       {:ok, conn} ->
         with {:ok, ip} <- Vws.Links.Transport.peer_address(conn),
@@ -331,10 +338,10 @@ defmodule Vws.Sim.GE2000 do
 
           Vws.Links.Transport.close(conn)
         else
-          _ -> attach(link, conn)
+          _ -> attach(link, Tap.wrap(conn, tap))
         end
 
-        accept_loop(listener, link, allow)
+        accept_loop(listener, link, allow, tap)
 
       {:error, reason} ->
         exit({:accept_failed, reason})
@@ -373,15 +380,15 @@ defmodule Vws.Sim.GE2000 do
     do: {:reply, :ok, %{s | file_as: fun}}
 
   def handle_call({:set_fault, :none}, _from, s),
-    do: {:reply, DNC.set_tap(s.link, nil), %{s | file_as: nil}}
+    do: {:reply, Tap.set(s.tap, nil), %{s | file_as: nil}}
 
   def handle_call({:set_fault, :bid_contention}, _from, s) do
     fault = {:bid_contention, [Report.status(report(s))]}
-    {:reply, DNC.set_tap(s.link, Faults.tap(fault)), s}
+    {:reply, Tap.set(s.tap, {Faults, Faults.new(fault)}), s}
   end
 
   def handle_call({:set_fault, fault}, _from, s),
-    do: {:reply, DNC.set_tap(s.link, Faults.tap(fault)), s}
+    do: {:reply, Tap.set(s.tap, {Faults, Faults.new(fault)}), s}
 
   def handle_call(:cycle_start, _from, s), do: {:reply, :ok, start_cycle(s)}
   def handle_call(:end_cycle, _from, s), do: {:reply, :ok, end_cycle_now(s)}
@@ -467,10 +474,20 @@ defmodule Vws.Sim.GE2000 do
     {:noreply, s}
   end
 
+  # the tap took the CEC's bid for ours meeting it (:bid_contention): the link bids now
+  def handle_info({:tap, tap, {:transmit, blocks}}, %{tap: tap} = s) do
+    case DNC.transmit(s.link, blocks) do
+      :ok -> :ok
+      error -> Logger.warning("GE-2000 simulator could not bid: #{inspect(error)}")
+    end
+
+    {:noreply, s}
+  end
+
   def handle_info({:cycle_end, n}, %{cycles: n} = s), do: {:noreply, end_cycle_now(s)}
   def handle_info({:cycle_end, _earlier}, s), do: {:noreply, s}
 
-  def handle_info({:EXIT, pid, reason}, s) when pid in [s.link, s.acceptor, s.line] do
+  def handle_info({:EXIT, pid, reason}, s) when pid in [s.link, s.acceptor, s.line, s.tap] do
     {:stop, reason, s}
   end
 

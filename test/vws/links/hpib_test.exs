@@ -151,7 +151,7 @@ defmodule Vws.Links.HPIBTest do
 
     # the waiter's requests to the device: one, answered when it is connected (it asked for its
     # state every 5 ms)
-    :erlang.trace_pattern({:gen_statem, :call, 3}, true, [:local])
+    :erlang.trace_pattern({Vws.Links.Connection, :call, 3}, true, [:local])
     :erlang.trace(waiter, true, [:call])
 
     try do
@@ -161,13 +161,13 @@ defmodule Vws.Links.HPIBTest do
       _listener = instrument(ctx)
       assert_receive {:awaited, :ok}, 30_000
     after
-      :erlang.trace_pattern({:gen_statem, :call, 3}, false, [:local])
+      :erlang.trace_pattern({Vws.Links.Connection, :call, 3}, false, [:local])
     end
 
     calls =
       Stream.repeatedly(fn ->
         receive do
-          {:trace, ^waiter, :call, {:gen_statem, :call, [_, request, _]}} -> request
+          {:trace, ^waiter, :call, {Vws.Links.Connection, :call, [_, request, _]}} -> request
         after
           0 -> nil
         end
@@ -395,8 +395,12 @@ defmodule Vws.Links.HPIBTest do
   end
 
   test "addresses are 0..30 and commands must be of the SCPI subset", ctx do
-    assert_raise ArgumentError, fn ->
+    assert_raise Vws.Options.Error, ~r/HPIB option :address/, fn ->
       HPIB.start_link(bus: ctx.bus, address: 31, endpoint: ctx.endpoint)
+    end
+
+    assert_raise Vws.Options.Error, ~r/unknown HPIB option :adress/, fn ->
+      HPIB.start_link(bus: ctx.bus, adress: 3, endpoint: ctx.endpoint)
     end
 
     assert_raise ArgumentError, fn -> HPIB.query({ctx.bus, 9}, {:meas_res?, []}) end

@@ -14,16 +14,15 @@ defmodule Vws.Links.DNC.Link do
   # :turnaround, :receiving, :answering), so the core's state timeouts are gen_statem state
   # timeouts (a change of state cancels them), and requests that arrive while a transmission is
   # in progress are postponed until :idle; while :disconnected they are answered :link_down.
-  # The caller's deadline is the generic timeout {:timeout, :request}.
-  #
-  # A `tap` ({module, state}) may stand between the core and the wire: a simulator's fault
-  # injection (Vws.Sim.GE2000.Faults). The product never sets one.
+  # The caller's deadline (Vws.Links.Connection) is the generic timeout {:timeout, :request}; a
+  # request still postponed when it passes is answered :timeout and never bid for. The
+  # connection, its back-off and their telemetry are the shell's (Vws.Links.Connection).
 
   @behaviour :gen_statem
   require Logger
 
+  alias Vws.Links.Connection
   alias Vws.Links.DNC.{LinkError, Session}
-  alias Vws.Links.Transport
 
   @defaults [
     role: :cec,
@@ -55,23 +54,51 @@ defmodule Vws.Links.DNC.Link do
   defstruct [
     :name,
     :owner,
-    :endpoint,
     :role,
     :limits,
-    :conn,
-    :peer,
-    :backoff,
+    :wire,
     :req,
     :session,
-    tap: nil,
     progress: nil,
-    connect_failures: 0
+    reconnect_in: 0
   ]
 
   ## Start
 
+  # Vws.Options: checked in the caller, before the process starts
+  @schema [
+            name: [type: :any],
+            owner: [type: :any],
+            endpoint: [type: {:or, [nil, {:custom, &Connection.check_endpoint/1}]}],
+            connect: [type: :keyword_list],
+            role: [type: {:in, [:cec, :ge]}],
+            pad: [type: :boolean],
+            win_contention: [type: :boolean]
+          ] ++
+            for(
+              key <- [:reply_timeout, :response_timeout, :receive_timeout, :answer_timeout],
+              do: {key, [type: :pos_integer]}
+            ) ++
+            for(
+              key <- [:max_naks, :max_enqs, :max_wacks, :max_contention, :wack_delay],
+              do: {key, [type: :non_neg_integer]}
+            ) ++
+            [
+              max_text: [type: :pos_integer],
+              max_receive: [type: :pos_integer],
+              receive_buffer: [type: {:or, [:non_neg_integer, {:in, [:infinity]}]}],
+              connect_timeout: [type: :pos_integer],
+              backoff_min: [type: :non_neg_integer],
+              backoff_max: [type: :non_neg_integer]
+            ]
+
   @doc false
   def start_link(opts) do
+    opts = Vws.Options.validate!(opts, @schema, "DNC link")
+
+    if Keyword.get(opts, :backoff_min, 100) > Keyword.get(opts, :backoff_max, 5_000),
+      do: raise(ArgumentError, "DNC link: backoff_min is over backoff_max")
+
     case Keyword.get(opts, :name) do
       nil -> :gen_statem.start_link(__MODULE__, opts, [])
       name -> :gen_statem.start_link(name, __MODULE__, opts, [])
@@ -83,13 +110,9 @@ defmodule Vws.Links.DNC.Link do
 
   @impl true
   def init(opts) do
-    unknown = Keyword.keys(opts) -- [:name, :pad, :win_contention, :tap | Keyword.keys(@defaults)]
-
-    if unknown != [], do: raise(ArgumentError, "unknown DNC link options #{inspect(unknown)}")
-
+    # checked by Vws.Links.DNC.start_link/1 (Vws.Options)
     o = Keyword.merge(@defaults, opts)
     role = o[:role]
-    unless role in [:cec, :ge], do: raise(ArgumentError, "role must be :cec or :ge")
 
     Logger.metadata(
       dnc_link: o[:name] || self(),
@@ -98,19 +121,28 @@ defmodule Vws.Links.DNC.Link do
     )
 
     limits =
-      Map.new(Keyword.drop(o, [:name, :owner, :endpoint, :role, :pad, :win_contention, :tap]))
+      Map.new(Keyword.drop(o, [:name, :owner, :endpoint, :connect, :role, :pad, :win_contention]))
 
     session =
       Session.new([role: role, limits: limits] ++ Keyword.take(opts, [:pad, :win_contention]))
 
+    name = o[:name] || self()
+
     data = %__MODULE__{
-      name: o[:name] || self(),
+      name: name,
       owner: o[:owner],
-      endpoint: o[:endpoint],
       role: role,
       limits: limits,
-      tap: o[:tap],
-      backoff: Vws.Links.Backoff.new(o[:backoff_min], o[:backoff_max]),
+      wire:
+        Connection.new(
+          endpoint: o[:endpoint],
+          backoff: {o[:backoff_min], o[:backoff_max]},
+          connect: [timeout: o[:connect_timeout]] ++ Keyword.get(o, :connect, []),
+          telemetry:
+            {[:vws, :dnc], %{link: name, role: role, workstation: Vws.Names.id_of(name)}},
+          report: [:connect_failed, :connected, :disconnected],
+          label: "DNC link"
+        ),
       session: session
     }
 
@@ -120,62 +152,60 @@ defmodule Vws.Links.DNC.Link do
   ## :disconnected — (re)connecting with backoff, or waiting to be given a connection
 
   @impl true
-  def handle_event(:enter, _old, :disconnected, %{endpoint: nil}), do: :keep_state_and_data
+  def handle_event(:enter, _old, :disconnected, %{wire: %{endpoint: nil}}),
+    do: :keep_state_and_data
 
-  # The first dial goes at once; after a lost connection the back-off's next wait (it doubles
+  # The first dial goes at once; after a lost connection, the wait the shell gave (it doubles
   # until the peer has sent a frame on a connection, see Vws.Links.Backoff).
-  def handle_event(:enter, _old, :disconnected, data) do
-    if Session.counters(data.session).connections == 0 and data.connect_failures == 0 do
-      {:keep_state_and_data, [{:state_timeout, 0, :connect}]}
-    else
-      {wait, backoff} = Vws.Links.Backoff.next(data.backoff)
-      {:keep_state, %{data | backoff: backoff}, [{:state_timeout, wait, :connect}]}
-    end
-  end
+  def handle_event(:enter, _old, :disconnected, data),
+    do: {:keep_state_and_data, [{:state_timeout, data.reconnect_in, :connect}]}
 
   def handle_event(:enter, _old, _state, _data), do: :keep_state_and_data
 
   def handle_event(:state_timeout, :connect, :disconnected, data) do
-    case Transport.connect(data.endpoint, timeout: data.limits.connect_timeout) do
-      {:ok, conn} ->
-        {:next_state, :idle, take_connection(data, conn)}
+    case Connection.connect(data.wire) do
+      {:ok, wire} ->
+        {:next_state, :idle, take_connection(%{data | wire: wire})}
 
-      {:error, reason} ->
-        failures = data.connect_failures + 1
-        level = if failures == 1, do: :warning, else: :debug
-        Logger.log(level, "DNC link cannot reach #{data.endpoint}: #{inspect(reason)}; retrying")
-        {wait, backoff} = Vws.Links.Backoff.next(data.backoff)
-        data = %{data | backoff: backoff, connect_failures: failures}
-
-        emit(data, :connect_failed, %{endpoint: to_string(data.endpoint), reason: reason}, %{
-          count: 1,
-          retry_in: wait
-        })
-
-        {:keep_state, data, [{:state_timeout, wait, :connect}]}
+      {:error, _reason, retry_in, wire} ->
+        {:keep_state, %{data | wire: wire}, [{:state_timeout, retry_in, :connect}]}
     end
   end
 
-  def handle_event({:call, from}, {:request, _cmd, _blocks, _timeout}, :disconnected, _data) do
+  # Vws.Links.DNC.request/4: the caller's deadline comes with it (Vws.Links.Connection)
+  def handle_event(:cast, {Connection, _, _, _} = call, _state, _data),
+    do: {:keep_state_and_data, [Connection.as_call(call)]}
+
+  def handle_event({:call, from}, {:deadline, _, {:request, _, _}}, :disconnected, _data) do
     {:keep_state_and_data, [{:reply, from, {:error, %LinkError{reason: :link_down}}}]}
   end
 
   ## Requests, answers and unsolicited text: only while :idle (postponed otherwise)
 
-  def handle_event({:call, from}, {:request, command, blocks, timeout}, :idle, data) do
-    case Session.request(data.session, command, blocks, now()) do
-      {:error, :invalid_text} ->
-        {:keep_state_and_data, [{:reply, from, {:error, %LinkError{reason: :invalid_text}}}]}
+  def handle_event({:call, from}, {:deadline, deadline, {:request, command, blocks}}, :idle, data) do
+    if Connection.expired?(deadline) do
+      # it waited its whole time for the line: never bid for
+      {:keep_state_and_data, [{:reply, from, {:error, %LinkError{reason: :timeout}}}]}
+    else
+      case Session.request(data.session, command, blocks, now()) do
+        {:error, :invalid_text} ->
+          {:keep_state_and_data, [{:reply, from, {:error, %LinkError{reason: :invalid_text}}}]}
 
-      result ->
-        ref = make_ref()
-        req = %{from: from, ref: ref, command: command}
-        deadline = if timeout == :infinity, do: [], else: [{{:timeout, :request}, timeout, ref}]
-        apply_result(%{data | req: req}, result, deadline)
+        result ->
+          ref = make_ref()
+          req = %{from: from, ref: ref, command: command}
+
+          timer =
+            if deadline == :infinity,
+              do: [],
+              else: [{{:timeout, :request}, Connection.remaining(deadline), ref}]
+
+          apply_result(%{data | req: req}, result, timer)
+      end
     end
   end
 
-  def handle_event({:call, _from}, {:request, _, _, _}, _state, _data),
+  def handle_event({:call, _from}, {:deadline, _, {:request, _, _}}, _state, _data),
     do: {:keep_state_and_data, [:postpone]}
 
   def handle_event({:call, from}, {:transmit, blocks}, :idle, data) do
@@ -216,9 +246,8 @@ defmodule Vws.Links.DNC.Link do
     info = %{
       state: state,
       role: data.role,
-      endpoint: data.endpoint,
-      peer: data.peer,
-      fault: tap_fault(data.tap),
+      endpoint: data.wire.endpoint,
+      peer: data.wire.peer,
       max_text: data.limits.max_text,
       counters: Session.counters(session),
       transfer: Vws.Links.DNC.Progress.of(session, now())
@@ -230,26 +259,21 @@ defmodule Vws.Links.DNC.Link do
   def handle_event({:call, from}, {:set_owner, owner}, _state, data),
     do: {:keep_state, %{data | owner: owner}, [{:reply, from, :ok}]}
 
-  def handle_event({:call, from}, {:set_tap, tap}, _state, data),
-    do: {:keep_state, %{data | tap: tap}, [{:reply, from, :ok}]}
-
   def handle_event({:call, from}, {:grant, bytes}, _state, data),
     do:
       {:keep_state, %{data | session: Session.grant(data.session, bytes)}, [{:reply, from, :ok}]}
 
   def handle_event({:call, from}, {:attach, conn}, _state, data) do
     data =
-      if data.conn do
-        Logger.warning("DNC: a new connection takes over from #{data.peer}, which is closed")
-        old = data.conn
-        data = lose_connection(data, :taken_over)
-        Transport.close(old)
-        data
+      if Connection.connected?(data.wire) do
+        Logger.warning("DNC: a new connection takes over from #{data.wire.peer}, which is closed")
+        lose_connection(data, :taken_over)
       else
         data
       end
 
-    {:next_state, :idle, take_connection(data, conn), [{:reply, from, :ok}]}
+    data = %{data | wire: Connection.attach(data.wire, conn)}
+    {:next_state, :idle, take_connection(data), [{:reply, from, :ok}]}
   end
 
   def handle_event({:call, from}, other, _state, data) do
@@ -268,17 +292,13 @@ defmodule Vws.Links.DNC.Link do
     apply_result(data, Session.handle_timeout(data.session, tag, now()), [])
   end
 
-  def handle_event(:info, msg, state, %{conn: conn} = data) when conn != nil do
-    case Transport.handle_message(conn, msg) do
+  def handle_event(:info, msg, _state, data) do
+    case Connection.handle_message(data.wire, msg) do
       {:data, bytes} ->
-        :ok = Transport.activate(conn)
-        received(bytes, data)
+        apply_result(data, Session.handle_bytes(data.session, bytes, now()), [])
 
-      :closed ->
-        connection_lost(state, data, :closed)
-
-      {:error, reason} ->
-        connection_lost(state, data, reason)
+      {:closed, reason} ->
+        {:next_state, :disconnected, lose_connection(data, reason)}
 
       :unknown ->
         Logger.debug("DNC link ignored #{inspect(msg, limit: 5)}")
@@ -289,31 +309,6 @@ defmodule Vws.Links.DNC.Link do
   def handle_event(type, content, state, data) do
     Logger.debug("DNC: #{inspect({type, content}, limit: 5)} unexpected in state #{state}")
     {:keep_state, %{data | session: Session.unexpected(data.session)}}
-  end
-
-  # what a simulator's tap says it does to the line (`describe/1`), for info/1
-  defp tap_fault(nil), do: :none
-
-  defp tap_fault({mod, state}) do
-    if function_exported?(mod, :describe, 1), do: mod.describe(state), else: mod
-  end
-
-  ## The core's results
-
-  defp received(bytes, %{tap: {mod, tap}} = data) do
-    {tap, bytes, actions} = mod.incoming(tap, bytes, Session.state(data.session))
-    data = %{data | tap: {mod, tap}}
-    result = Session.handle_bytes(data.session, bytes, now())
-    {data, actions} = tap_actions(data, actions)
-    apply_result(data, result, actions)
-  end
-
-  defp received(bytes, data),
-    do: apply_result(data, Session.handle_bytes(data.session, bytes, now()), [])
-
-  # a tap may make this end bid and send text of its own (a contention of the simulator's)
-  defp tap_actions(data, actions) do
-    {data, for({:transmit, blocks} <- actions, do: {:next_event, :internal, {:transmit, blocks}})}
   end
 
   defp apply_result(data, {session, output, events}, actions) do
@@ -429,61 +424,34 @@ defmodule Vws.Links.DNC.Link do
   end
 
   defp carry_out(:peer_alive, {data, actions}),
-    do: {%{data | backoff: Vws.Links.Backoff.reset(data.backoff)}, actions}
+    do: {%{data | wire: Connection.alive(data.wire)}, actions}
 
   ## Connection
 
-  defp take_connection(data, conn) do
-    :ok = Transport.activate(conn)
-    peer = Transport.peer(conn)
-    Logger.info("DNC link connected to #{peer}")
-    emit(data, :connected, %{peer: peer})
+  defp take_connection(data) do
     notify(data, :connected)
-
-    %{
-      data
-      | conn: conn,
-        peer: peer,
-        session: Session.connected(data.session),
-        connect_failures: 0
-    }
+    %{data | session: Session.connected(data.session)}
   end
 
-  defp connection_lost(_state, data, reason) do
-    Logger.warning("DNC link to #{data.peer} lost: #{inspect(reason)}")
-    data = lose_connection(data, reason)
-    {:next_state, :disconnected, data}
-  end
-
-  # Everything in progress ends :link_down; the connection is dropped.
+  # Everything in progress ends :link_down; the connection is closed (its back-off's next wait
+  # is taken when :disconnected is entered again).
   defp lose_connection(data, reason) do
     {session, _output, events} = Session.disconnected(data.session, now())
     {data, actions} = Enum.reduce(events, {%{data | session: session}, []}, &carry_out/2)
     for {:reply, from, result} <- actions, do: :gen_statem.reply(from, result)
-    emit(data, :disconnected, %{peer: data.peer, reason: reason})
+    {retry_in, wire} = Connection.lost(data.wire, reason)
     notify(data, :disconnected)
-    %{data | conn: nil, peer: nil, req: nil}
-  end
-
-  defp send_bytes(%{conn: nil} = data, _bytes), do: data
-
-  defp send_bytes(%{tap: {mod, tap}} = data, bytes) do
-    {tap, out} = mod.outgoing(tap, IO.iodata_to_binary(bytes), Session.transfer(data.session))
-    data = %{data | tap: {mod, tap}}
-    if out != [], do: transport_send(data, out)
-    data
+    %{data | wire: wire, req: nil, reconnect_in: retry_in}
   end
 
   defp send_bytes(data, bytes) do
-    transport_send(data, bytes)
-    data
-  end
-
-  defp transport_send(data, bytes) do
-    case Transport.send(data.conn, bytes) do
+    case Connection.send(data.wire, bytes) do
       :ok -> :ok
+      {:error, :not_connected} -> :ok
       {:error, reason} -> Logger.warning("DNC send failed: #{inspect(reason)}")
     end
+
+    data
   end
 
   ## Helpers
@@ -493,7 +461,7 @@ defmodule Vws.Links.DNC.Link do
   defp notify(%{owner: nil}, _msg), do: :ok
   defp notify(%{owner: owner}, msg), do: send(owner, {:dnc, self(), msg})
 
-  defp emit(data, event, metadata, measurements \\ %{count: 1}) do
+  defp emit(data, event, metadata, measurements) do
     Vws.Telemetry.execute([:vws, :dnc, event], measurements, link_metadata(data, metadata))
   end
 

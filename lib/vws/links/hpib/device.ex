@@ -25,7 +25,7 @@ defmodule Vws.Links.HPIB.Device do
   require Logger
 
   alias Vws.Codecs.SCPI
-  alias Vws.Links.Transport
+  alias Vws.Links.Connection
   alias Vws.Links.HPIB.Error
 
   @default_timeout 1_000
@@ -44,21 +44,27 @@ defmodule Vws.Links.HPIB.Device do
     bus = Keyword.fetch!(opts, :bus)
     address = Keyword.fetch!(opts, :address)
     endpoint = Vws.Links.Endpoint.parse!(Keyword.fetch!(opts, :endpoint))
-    {first, max} = Keyword.get(opts, :backoff, @backoff)
     Logger.metadata(hpib_bus: bus, hpib_address: address)
+    metadata = %{bus: bus, address: address, endpoint: Vws.Links.Endpoint.to_string(endpoint)}
 
     data = %{
       bus: bus,
       address: address,
       device: Keyword.get(opts, :device),
-      endpoint: endpoint,
       timeout: Keyword.get(opts, :timeout, @default_timeout),
       retries: Keyword.get(opts, :retries, @retries),
       retried: 0,
-      connect_timeout: Keyword.get(opts, :connect_timeout, @connect_timeout),
-      backoff: Vws.Links.Backoff.new(first, max),
-      # dial again without waiting (after a timeout: the device may only have been slow)
-      conn: nil,
+      # the connection, its back-off and the connect_failed event (Vws.Links.Connection); the
+      # logs and the other events are this driver's own (Vws.LogLimit keeps them short)
+      wire:
+        Connection.new(
+          endpoint: endpoint,
+          backoff: Keyword.get(opts, :backoff, @backoff),
+          connect: [timeout: Keyword.get(opts, :connect_timeout, @connect_timeout)],
+          telemetry: {[:vws, :hpib], metadata}
+        ),
+      # how long :disconnected waits before dialling again (the shell's back-off)
+      retry_in: 0,
       decoder: SCPI.new(),
       current: nil,
       queue: :queue.new(),
@@ -78,9 +84,8 @@ defmodule Vws.Links.HPIB.Device do
   def connecting(:enter, _old, _data), do: {:keep_state_and_data, [{:state_timeout, 0, :connect}]}
 
   def connecting(:state_timeout, :connect, data) do
-    case Transport.connect(data.endpoint, timeout: data.connect_timeout) do
-      {:ok, conn} ->
-        :ok = Transport.activate(conn)
+    case Connection.connect(data.wire) do
+      {:ok, wire} ->
         # reconnecting during trouble already told (a device that times out or drops every
         # connection) is part of that trouble, not news
         unless Vws.LogLimit.on?(:timeout) or Vws.LogLimit.on?(:lost),
@@ -92,7 +97,7 @@ defmodule Vws.Links.HPIB.Device do
         serve(
           %{
             data
-            | conn: conn,
+            | wire: wire,
               decoder: SCPI.new(),
               was_connected: true,
               connects: data.connects + 1,
@@ -101,7 +106,7 @@ defmodule Vws.Links.HPIB.Device do
           []
         )
 
-      {:error, reason} ->
+      {:error, reason, retry_in, wire} ->
         if data.was_connected do
           Logger.warning(
             "HPIB device #{data.address}: cannot connect to #{endpoint(data)}: #{inspect(reason)}"
@@ -109,11 +114,14 @@ defmodule Vws.Links.HPIB.Device do
         end
 
         # the next attempt comes after the back-off's next wait (see disconnected/3)
-        telemetry(:connect_failed, data, %{reason: reason}, %{
-          retry_in: Vws.Links.Backoff.peek(data.backoff)
-        })
+        data = %{
+          data
+          | wire: wire,
+            retry_in: retry_in,
+            was_connected: false,
+            last_error: {:connect, reason}
+        }
 
-        data = %{data | was_connected: false, last_error: {:connect, reason}}
         error = not_connected(data)
 
         queued =
@@ -130,10 +138,8 @@ defmodule Vws.Links.HPIB.Device do
 
   ## disconnected
 
-  def disconnected(:enter, _old, data) do
-    {wait, backoff} = Vws.Links.Backoff.next(data.backoff)
-    {:keep_state, %{data | backoff: backoff}, [{:state_timeout, wait, :retry}]}
-  end
+  def disconnected(:enter, _old, data),
+    do: {:keep_state_and_data, [{:state_timeout, data.retry_in, :retry}]}
 
   def disconnected(:state_timeout, :retry, data), do: {:next_state, :connecting, data}
 
@@ -179,8 +185,15 @@ defmodule Vws.Links.HPIB.Device do
       # reconnect at once (the device may only have been slow); the requests queued behind this
       # one wait for the new connection
       telemetry(:disconnected, data, %{reason: :timeout})
-      if data.conn, do: Transport.close(data.conn)
-      data = %{data | current: nil, conn: nil, decoder: SCPI.new(), last_error: :timeout}
+
+      data = %{
+        data
+        | current: nil,
+          wire: Connection.close(data.wire),
+          decoder: SCPI.new(),
+          last_error: :timeout
+      }
+
       {:next_state, :connecting, data, [{:reply, from, {:error, error}}]}
     end)
   end
@@ -213,7 +226,7 @@ defmodule Vws.Links.HPIB.Device do
   end
 
   defp send_request(data, actions, from, commands, {deadline, timeout, tries}) do
-    case Transport.send(data.conn, Enum.map(commands, &SCPI.encode_command/1)) do
+    case Connection.send(data.wire, Enum.map(commands, &SCPI.encode_command/1)) do
       :ok ->
         case Enum.filter(commands, &SCPI.response?/1) do
           [] ->
@@ -248,20 +261,17 @@ defmodule Vws.Links.HPIB.Device do
   ## Bytes from the device
 
   defp transport_message(msg, data) do
-    case Transport.handle_message(data.conn, msg) do
+    case Connection.handle_message(data.wire, msg) do
       {:data, bytes} ->
-        Transport.activate(data.conn)
         {lines, decoder} = SCPI.feed(data.decoder, bytes)
         # the device answers: this connection works, a later loss is dialled again soon
-        data =
-          if lines == [], do: data, else: %{data | backoff: Vws.Links.Backoff.reset(data.backoff)}
-
+        data = if lines == [], do: data, else: %{data | wire: Connection.alive(data.wire)}
         lines |> Enum.reduce(%{data | decoder: decoder}, &line/2) |> answered()
 
-      :closed ->
-        connection_closed(data, :closed)
+      {:closed, {:transport, reason}} ->
+        connection_closed(data, reason)
 
-      {:error, reason} ->
+      {:closed, reason} ->
         connection_closed(data, reason)
 
       :unknown ->
@@ -341,14 +351,13 @@ defmodule Vws.Links.HPIB.Device do
   defp try_again(%{current: c} = data, error, give_up) do
     if c.tries < data.retries and repeatable?(c.commands) and now() < c.deadline do
       telemetry(:retry, data, %{commands: c.commands, reason: error.reason, try: c.tries + 1})
-      if data.conn, do: Transport.close(data.conn)
       request = {c.from, {:request, c.commands, c.deadline, c.timeout}, c.tries + 1}
 
       {:next_state, :connecting,
        %{
          data
          | current: nil,
-           conn: nil,
+           wire: Connection.close(data.wire),
            decoder: SCPI.new(),
            retried: data.retried + 1,
            queue: :queue.in_r(request, data.queue)
@@ -362,9 +371,9 @@ defmodule Vws.Links.HPIB.Device do
 
   # Closes the connection; every request still queued fails :not_connected.
   defp lose_connection(data, reason, actions) do
-    if data.conn, do: Transport.close(data.conn)
+    {retry_in, wire} = Connection.lost(data.wire, reason)
     telemetry(:disconnected, data, %{reason: reason})
-    data = %{data | conn: nil, decoder: SCPI.new(), last_error: reason}
+    data = %{data | wire: wire, retry_in: retry_in, decoder: SCPI.new(), last_error: reason}
     error = not_connected(data)
 
     queued =
@@ -393,6 +402,20 @@ defmodule Vws.Links.HPIB.Device do
 
     {:keep_state_and_data, [{:reply, from, info}]}
   end
+
+  # Vws.Links.HPIB's requests come with the caller's deadline (Vws.Links.Connection); a request
+  # without a timeout of its own has the device's, from now
+  defp common(_state, :cast, {Connection, _, _, _} = call, _data),
+    do: {:keep_state_and_data, [Connection.as_call(call)]}
+
+  defp common(_state, {:call, from}, {:deadline, deadline, {:request, commands, timeout}}, data) do
+    deadline = if timeout, do: deadline, else: now() + data.timeout
+    request = {:request, commands, deadline, timeout}
+    {:keep_state_and_data, [{:next_event, {:call, from}, request}]}
+  end
+
+  defp common(_state, {:call, from}, {:deadline, _deadline, :await_connected}, _data),
+    do: {:keep_state_and_data, [{:next_event, {:call, from}, :await_connected}]}
 
   # Vws.Links.HPIB.await_connected/2: answered once connected, postponed until then
   defp common(state, {:call, from}, :await_connected, _data) do
@@ -439,6 +462,6 @@ defmodule Vws.Links.HPIB.Device do
     )
   end
 
-  defp endpoint(data), do: Vws.Links.Endpoint.to_string(data.endpoint)
+  defp endpoint(data), do: Vws.Links.Endpoint.to_string(data.wire.endpoint)
   defp now, do: System.monotonic_time(:millisecond)
 end

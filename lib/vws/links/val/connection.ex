@@ -31,8 +31,8 @@ defmodule Vws.Links.VAL.Connection do
 
   require Logger
 
+  alias Vws.Links.Connection
   alias Vws.Links.DDCMP.{Protocol, Wire}
-  alias Vws.Links.Transport
   alias Vws.Links.VAL.Message
 
   @lun_short_status 1
@@ -50,15 +50,20 @@ defmodule Vws.Links.VAL.Connection do
     ddcmp = Keyword.fetch!(opts, :ddcmp)
     workstation = Keyword.get(ddcmp, :workstation) || Vws.Names.id_of(name)
     Logger.metadata(val: inspect(name), workstation: workstation)
-    {min_backoff, max_backoff} = Keyword.fetch!(ddcmp, :backoff)
+    line_meta = %{link: name, workstation: workstation}
 
     data = %{
       name: name,
-      endpoint: Keyword.fetch!(ddcmp, :endpoint),
-      backoff: Vws.Links.Backoff.new(min_backoff, max_backoff),
-      conn: nil,
+      # the transport and its back-off, back to the minimum once the link runs
+      wire:
+        Connection.new(
+          endpoint: Keyword.fetch!(ddcmp, :endpoint),
+          backoff: Keyword.fetch!(ddcmp, :backoff),
+          telemetry: {[:vws, :ddcmp], line_meta},
+          label: "VAL II link"
+        ),
       protocol: Protocol.new(Keyword.put(ddcmp, :role, :active)),
-      line_meta: %{link: name, workstation: workstation},
+      line_meta: line_meta,
       # VAL messages to give to the protocol when the callback ends
       out: [],
       queue: [],
@@ -79,23 +84,15 @@ defmodule Vws.Links.VAL.Connection do
 
   @impl true
   def handle_event({:timeout, :connect}, :connect, state, data) do
-    case Transport.connect(data.endpoint) do
-      {:ok, conn} ->
-        :ok = Transport.activate(conn)
-        line(state, %{data | conn: conn}, Protocol.connect(data.protocol))
+    case Connection.connect(data.wire) do
+      {:ok, wire} ->
+        line(state, %{data | wire: wire}, Protocol.connect(data.protocol))
 
-      {:error, reason} ->
-        {delay, backoff} = Vws.Links.Backoff.next(data.backoff)
-
-        Wire.telemetry(data.line_meta, :connect_failed, %{count: 1, retry_in: delay}, %{
-          endpoint: to_string(data.endpoint),
-          reason: reason
-        })
-
+      {:error, reason, retry_in, wire} ->
         protocol = %Protocol{data.protocol | last_error: {:connect, reason}}
 
-        {:keep_state, %{data | backoff: backoff, protocol: protocol},
-         [{{:timeout, :connect}, delay, :connect}]}
+        {:keep_state, %{data | wire: wire, protocol: protocol},
+         [{{:timeout, :connect}, retry_in, :connect}]}
     end
   end
 
@@ -104,6 +101,13 @@ defmodule Vws.Links.VAL.Connection do
   end
 
   # Requests -----------------------------------------------------------------------------------
+
+  # Vws.Links.VAL.request/3: the caller's deadline comes with it (Vws.Links.Connection)
+  def handle_event(:cast, {Connection, _, _, _} = call, _state, _data),
+    do: {:keep_state_and_data, [Connection.as_call(call)]}
+
+  def handle_event({:call, from}, {:deadline, deadline, {:request, text, wait}}, state, data),
+    do: handle_event({:call, from}, {:request, text, wait, deadline}, state, data)
 
   # The controller cannot be reached (the transport is gone and is being dialled again): the
   # request fails now rather than wait to be sent whenever the robot is back.
@@ -152,7 +156,7 @@ defmodule Vws.Links.VAL.Connection do
       line:
         data.protocol
         |> Protocol.info()
-        |> Map.merge(%{connected: data.conn != nil, peer: data.conn && Transport.peer(data.conn)}),
+        |> Map.merge(%{connected: Connection.connected?(data.wire), peer: data.wire.peer}),
       prompt: data.prompt,
       short_status: data.short_status,
       last_async: Enum.reverse(data.last_async),
@@ -203,30 +207,19 @@ defmodule Vws.Links.VAL.Connection do
 
   # The line ----------------------------------------------------------------------------------
 
-  def handle_event(:info, message, state, %{conn: conn} = data) when conn != nil do
-    case Transport.handle_message(conn, message) do
-      {:data, bytes} ->
-        :ok = Transport.activate(conn)
-        line(state, data, Protocol.handle_bytes(data.protocol, bytes))
-
-      :closed ->
-        disconnected(state, data, :closed)
-
-      {:error, reason} ->
-        disconnected(state, data, {:transport, reason})
-
-      :unknown ->
-        other_info(state, message, data)
+  def handle_event(:info, message, state, data) do
+    case Connection.handle_message(data.wire, message) do
+      {:data, bytes} -> line(state, data, Protocol.handle_bytes(data.protocol, bytes))
+      {:closed, reason} -> disconnected(state, data, reason)
+      :unknown -> other_info(state, message, data)
     end
   end
-
-  def handle_event(:info, message, state, data), do: other_info(state, message, data)
 
   def handle_event(type, content, state, data), do: unexpected(state, type, content, data)
 
   @impl true
-  def terminate(_reason, _state, %{conn: conn}) do
-    if conn, do: Transport.close(conn)
+  def terminate(_reason, _state, %{wire: wire}) do
+    Connection.close(wire)
     :ok
   end
 
@@ -246,19 +239,18 @@ defmodule Vws.Links.VAL.Connection do
   # The transport is gone: the protocol halts (down if it was running) and the link is dialled
   # again after the back-off's next wait.
   defp disconnected(state, data, reason) do
-    Transport.close(data.conn)
-    {delay, backoff} = Vws.Links.Backoff.next(data.backoff)
-    data = %{data | conn: nil, backoff: backoff}
+    {retry_in, wire} = Connection.lost(data.wire, reason)
+    data = %{data | wire: wire}
 
     line(state, data, Protocol.disconnected(data.protocol, reason), [
-      {{:timeout, :connect}, delay, :connect}
+      {{:timeout, :connect}, retry_in, :connect}
     ])
   end
 
   # A result of the protocol: its frames go out, its timers are armed, and its news is handled
   # in order; then what may go now goes (`done/3`).
   defp line(state, data, {protocol, frames, events}, actions \\ []) do
-    {news, timers} = Wire.perform(frames, events, data.conn, data.line_meta)
+    {news, timers} = Wire.perform(frames, events, data.wire.conn, data.line_meta)
     data = %{data | protocol: protocol}
 
     {state, data, more} =
@@ -273,7 +265,7 @@ defmodule Vws.Links.VAL.Connection do
   defp news(:up, {lun2, activity}, data) do
     Logger.info("VAL II link up")
     lun2 = if lun2 == :down, do: :idle, else: lun2
-    data = %{data | gone: nil, backoff: Vws.Links.Backoff.reset(data.backoff)}
+    data = %{data | gone: nil, wire: Connection.alive(data.wire)}
     {{lun2, activity}, data, []}
   end
 
@@ -514,7 +506,7 @@ defmodule Vws.Links.VAL.Connection do
         end
       end)
 
-    {[], timers} = Wire.perform(frames, events, data.conn, data.line_meta)
+    {[], timers} = Wire.perform(frames, events, data.wire.conn, data.line_meta)
     {%{data | out: [], protocol: protocol}, timers}
   end
 

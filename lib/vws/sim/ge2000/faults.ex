@@ -1,8 +1,8 @@
 defmodule Vws.Sim.GE2000.Faults do
   @moduledoc """
-  The simulated GE-2000's misbehaviour on its DNC line (`Vws.Sim.GE2000.set_fault/2`): a tap the
-  simulator puts between its link's protocol and the wire (`Vws.Links.DNC.set_tap/2`), which changes
-  what goes out and what comes in. The protocol itself (`Vws.Links.DNC.Session`) knows of no fault.
+  The simulated GE-2000's misbehaviour on its DNC line (`Vws.Sim.GE2000.set_fault/2`): a tap
+  module (`Vws.Sim.Tap`) under the simulator's link, which changes what goes out and what comes
+  in. Neither the link (`Vws.Links.DNC`) nor its protocol (`Vws.Links.DNC.Session`) knows of it.
 
     * `:nak_once_per_block` — the acknowledgement of every block received goes out as NAK the
       first time (the block comes again; the copy is acknowledged)
@@ -31,58 +31,101 @@ defmodule Vws.Sim.GE2000.Faults do
   @wack <<0x10, ?;>>
   @nak <<0x15>>
 
-  @doc "The tap for `Vws.Links.DNC.set_tap/2`: `{#{inspect(__MODULE__)}, state}`."
-  @spec tap(fault) :: {module, map}
-  def tap(fault), do: {__MODULE__, %{fault: fault, done: 0, corrupted: nil}}
+  @enq <<0x05>>
+  @eot <<0x04>>
 
-  @doc "The fault, as `Vws.Links.DNC.info/1` shows it."
+  @doc """
+  The state of a tap (`Vws.Sim.Tap`) that does `fault`. Besides the fault it keeps what it has
+  seen of the line — the tap stands outside the link and knows only its bytes: whether a
+  transmission is under way (from a bid's ENQ to its EOT, either way), and in a reception, the
+  link's last acknowledgement and the number of blocks it has acknowledged (ACK0 and ACK1
+  alternate: an acknowledgement unlike the last is a new block's, a copy's is the same).
+  """
+  @spec new(fault) :: map
+  def new(fault),
+    do: %{fault: fault, line: :idle, last_ack: nil, block: 0, done: 0, corrupted: nil}
+
+  @doc "The fault, as `Vws.Sim.Tap.describe/1` shows it."
   @spec describe(map) :: term
   def describe(%{fault: {:bid_contention, _blocks}}), do: :bid_contention
   def describe(%{fault: fault}), do: fault
 
   @doc false
-  def outgoing(%{fault: :silent} = st, _bytes, _transfer), do: {st, []}
+  # One send of the link (a frame or a control).
+  def outgoing(st, bytes) do
+    st = see_outgoing(st, bytes)
+    fault_outgoing(st, bytes)
+  end
 
-  def outgoing(%{fault: fault} = st, bytes, transfer)
-      when bytes in [@ack0, @ack1] and fault in [:nak_once_per_block, :drop_replies] do
-    case transfer do
-      # the first reply to block n (a copy's is the same acknowledgement and passes)
-      %{direction: :in, blocks: n} when n > st.done ->
-        {%{st | done: n}, if(fault == :nak_once_per_block, do: @nak, else: [])}
+  @doc false
+  # One chunk received.
+  def incoming(%{fault: :silent} = st, _bytes), do: {st, "", []}
 
-      %{direction: :in, blocks: n} ->
-        {%{st | done: n}, bytes}
+  def incoming(%{fault: {:bid_contention, blocks}, line: :idle} = st, <<0x05, rest::binary>>),
+    do: {%{st | fault: :none, line: :busy}, rest, [{:transmit, blocks}]}
 
-      _ ->
-        {st, bytes}
+  def incoming(%{fault: :armed_enq_as_eot} = st, <<0x05, rest::binary>>),
+    do: {see_incoming(%{st | fault: :none}, @eot), <<0x04, rest::binary>>, []}
+
+  def incoming(st, bytes), do: {see_incoming(st, bytes), bytes, []}
+
+  # What the line is doing, from the tap's side. A bid (ENQ on an idle line) starts a
+  # transmission, an EOT ends it; an acknowledgement of ours unlike the last is a new block's.
+  defp see_incoming(st, bytes) do
+    cond do
+      st.line == :idle and String.starts_with?(bytes, @enq) ->
+        %{st | line: :busy, last_ack: nil, block: 0}
+
+      # (an EOT comes after a reply, on its own: a block's check byte may be 0x04)
+      String.starts_with?(bytes, @eot) ->
+        %{st | line: :idle}
+
+      true ->
+        st
     end
   end
 
-  def outgoing(%{fault: {:enq_as_eot, n}} = st, bytes, %{direction: :in, blocks: n})
-      when bytes in [@ack0, @ack1],
-      do: {%{st | fault: :armed_enq_as_eot}, []}
+  defp see_outgoing(st, bytes) when bytes in [@ack0, @ack1] do
+    cond do
+      st.last_ack == nil -> %{st | last_ack: bytes}
+      st.last_ack == bytes -> st
+      true -> %{st | last_ack: bytes, block: st.block + 1}
+    end
+  end
 
-  def outgoing(%{fault: {:wack, n}} = st, bytes, %{direction: :in, blocks: b})
-      when bytes in [@ack0, @ack1] and n > 0 and b > 0,
-      do: {%{st | fault: {:wack, n - 1}}, @wack}
+  defp see_outgoing(st, <<0x05, _::binary>>) when st.line == :idle,
+    do: %{st | line: :busy, last_ack: nil, block: 0}
 
-  def outgoing(%{fault: :corrupt} = st, <<first, _::binary>> = bytes, _transfer)
-      when first in [0x01, 0x02] and bytes != st.corrupted do
+  defp see_outgoing(st, <<0x04, _::binary>>), do: %{st | line: :idle}
+  defp see_outgoing(st, _bytes), do: st
+
+  defp fault_outgoing(%{fault: :silent} = st, _bytes), do: {st, []}
+
+  # the first reply to block n (a copy's is the same acknowledgement and passes)
+  defp fault_outgoing(%{fault: fault} = st, bytes)
+       when bytes in [@ack0, @ack1] and fault in [:nak_once_per_block, :drop_replies] do
+    # (a reception's reply to the bid is block 0's: the count starts again)
+    reply = if st.block > st.done, do: fault_reply(fault), else: bytes
+    {%{st | done: st.block}, reply}
+  end
+
+  defp fault_outgoing(%{fault: {:enq_as_eot, n}, block: n} = st, bytes)
+       when bytes in [@ack0, @ack1],
+       do: {%{st | fault: :armed_enq_as_eot}, []}
+
+  defp fault_outgoing(%{fault: {:wack, n}, block: b} = st, bytes)
+       when bytes in [@ack0, @ack1] and n > 0 and b > 0,
+       do: {%{st | fault: {:wack, n - 1}}, @wack}
+
+  defp fault_outgoing(%{fault: :corrupt} = st, <<first, _::binary>> = bytes)
+       when first in [0x01, 0x02] and bytes != st.corrupted do
     size = byte_size(bytes) - 1
     <<head::binary-size(size), last>> = bytes
     {%{st | corrupted: bytes}, <<head::binary, Bitwise.bxor(last, 0x01)>>}
   end
 
-  def outgoing(st, bytes, _transfer), do: {st, bytes}
+  defp fault_outgoing(st, bytes), do: {st, bytes}
 
-  @doc false
-  def incoming(%{fault: :silent} = st, _bytes, _state), do: {st, "", []}
-
-  def incoming(%{fault: {:bid_contention, blocks}} = st, <<0x05, rest::binary>>, :idle),
-    do: {%{st | fault: :none}, rest, [{:transmit, blocks}]}
-
-  def incoming(%{fault: :armed_enq_as_eot} = st, <<0x05, rest::binary>>, _state),
-    do: {%{st | fault: :none}, <<0x04, rest::binary>>, []}
-
-  def incoming(st, bytes, _state), do: {st, bytes, []}
+  defp fault_reply(:nak_once_per_block), do: @nak
+  defp fault_reply(:drop_replies), do: []
 end
