@@ -56,16 +56,26 @@ defmodule Vws.Links.DAQ do
 
   defstruct [:daq, :volt_channels, :ohm_channels, :sensors, :actuators, :threshold_volts]
 
-  @doc "A driver for one DAQ of the channel map; see the options above."
+  @schema [
+    channel_map: [type: {:custom, &__MODULE__.__channel_map__/1}],
+    daq: [type: {:in, [:daq1, :daq2]}, default: :daq1],
+    switches: [type: :keyword_list, default: []]
+  ]
+
+  @doc """
+  A driver for one DAQ of the channel map; see the options above. Raises `Vws.Options.Error`
+  for an unknown option or a bad value.
+  """
   @spec new(keyword) :: t
   def new(opts \\ []) do
+    opts = Vws.Options.validate!(opts, @schema, "DAQ")
     config = ChannelMap.load(Keyword.get(opts, :channel_map, ChannelMap.default_path()))
-    daq = Keyword.get(opts, :daq, :daq1)
+    daq = Keyword.fetch!(opts, :daq)
 
     entries = for {{^daq, channel}, entry} <- config.channels, into: %{}, do: {channel, entry}
 
     entries =
-      Enum.reduce(Keyword.get(opts, :switches, []), entries, fn {signal, channel}, acc ->
+      Enum.reduce(Keyword.fetch!(opts, :switches), entries, fn {signal, channel}, acc ->
         case Map.get(acc, channel) do
           %{kind: :spare} ->
             Map.put(acc, channel, %{kind: :switch, signal: signal})
@@ -136,6 +146,12 @@ defmodule Vws.Links.DAQ do
       channels: channels
     }
   end
+
+  @doc false
+  def __channel_map__(map_or_path) when is_map(map_or_path) or is_binary(map_or_path),
+    do: {:ok, map_or_path}
+
+  def __channel_map__(_), do: {:error, "expected a path or a map"}
 
   defp value(_entry, reading, _threshold) when abs(reading) >= @overload_at, do: :open_circuit
   defp value(%{kind: :switch}, volts, threshold), do: volts > threshold

@@ -214,4 +214,12 @@ defmodule Vws.Links.DAQTest do
       assert Map.keys(DeviceStatus.texts(r)) |> Enum.sort() == [1, 2, 3, 4, 5, 7]
     end
   end
+
+  test "new/1 refuses an unknown option or a bad value, naming it" do
+    assert_raise Vws.Options.Error, ~r/unknown DAQ option :switch/, fn ->
+      Vws.Links.DAQ.new(switch: [changer1_released: 116])
+    end
+
+    assert_raise Vws.Options.Error, ~r/DAQ option :daq/, fn -> Vws.Links.DAQ.new(daq: :daq3) end
+  end
 end

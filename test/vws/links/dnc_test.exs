@@ -669,5 +669,37 @@ defmodule Vws.Links.DNCTest do
       assert {:error, %LinkError{reason: :timeout}} = Task.await(task)
       assert DNC.info(link).state == :idle
     end
+
+    test "the deadline counts from the call: one that passes while the line is busy is never bid for",
+         ctx do
+      {link, peer} = connected(ctx)
+      first = request(link, @sns, [])
+      expect(peer, @enq)
+      # the second waits (postponed) behind the first, and its time runs out meanwhile
+      second = request(link, @sns, [], 50)
+      assert {:error, %LinkError{reason: :timeout}} = Task.await(second)
+
+      DNCPeer.send_raw(peer, @ack0)
+      expect(peer, @sns_bytes)
+      DNCPeer.send_raw(peer, @ack1)
+      expect(peer, @eot)
+      assert Task.await(first) == {:ok, []}
+      # nothing more: the second was dropped once the line was free, not bid for
+      assert DNCPeer.quiet?(peer, 200)
+      assert DNC.info(link).state == :idle
+    end
+  end
+
+  describe "options" do
+    test "an unknown option or a bad value is refused at start, naming it" do
+      assert_raise Vws.Options.Error, ~r/unknown DNC link option :reply_timout/, fn ->
+        DNC.start_link(reply_timout: 100)
+      end
+
+      for {key, _} = bad <- [role: :master, max_naks: -1, reply_timeout: 0, endpoint: "ftp://x"] do
+        error = assert_raise Vws.Options.Error, fn -> DNC.start_link([bad]) end
+        assert error.key == key and error.reason == :invalid
+      end
+    end
   end
 end

@@ -370,4 +370,24 @@ defmodule Vws.Links.VALTest do
     assert links == [self()]
     assert VAL.info(val).line.session == 1
   end
+
+  test "options: an unknown one or a bad DDCMP value is refused at start, naming it" do
+    assert_raise Vws.Options.Error, ~r/unknown VAL option :dccmp/, fn ->
+      VAL.start_link(dccmp: [endpoint: "loopback:x"])
+    end
+
+    assert_raise Vws.Options.Error, ~r/DDCMP option :window/, fn ->
+      VAL.start_link(ddcmp: [endpoint: "loopback:x", window: 0])
+    end
+  end
+
+  test "a request whose time runs out leaves no answer behind in the caller's mailbox", %{
+    val: val
+  } do
+    # never sent (no prompt): the process answers :timeout at the deadline too, to an alias
+    # that is gone by then
+    assert VAL.command(val, "WHERE", 30) == {:error, :timeout}
+    assert Vws.Test.Eventually.eventually(fn -> VAL.info(val).queued == 0 end)
+    assert Process.info(self(), :messages) == {:messages, []}
+  end
 end
