@@ -1,7 +1,8 @@
 defmodule Vws.Links.Backoff do
   @moduledoc """
   How long a device link waits before it dials its peer again: the one rule of every link that
-  dials (`Vws.Links.DDCMP`, `Vws.Links.DNC`, `Vws.Links.HPIB`).
+  dials (`Vws.Links.DDCMP`, `Vws.Links.VAL`, `Vws.Links.DNC`, `Vws.Links.HPIB`), kept by their
+  shell, `Vws.Links.Connection`.
 
   The wait doubles, from `min` up to `max`, each time it is taken — after an attempt that failed
   and after a connection that was lost — and comes back to `min` only when a connection has

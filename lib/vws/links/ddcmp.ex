@@ -167,24 +167,29 @@ defmodule Vws.Links.DDCMP do
 
   # the protocol's options (`Vws.Links.DDCMP.Protocol`), also those of a process that runs the
   # core itself (`Vws.Links.VAL`, `Vws.Sim.VAL2`)
-  @protocol_schema [
-    window: [type: {:in, 1..255}, default: 7],
-    rep_timeout: [type: :pos_integer, default: 3000],
-    start_timeout: [type: :pos_integer, default: 3000],
-    max_failures: [type: :pos_integer, default: 8],
-    role: [type: {:in, [:active, :passive]}, default: :active],
-    max_data: [type: {:in, 0..16383}, default: 4096],
-    backoff: [type: {:custom, &Vws.Links.Connection.check_backoff/1}, default: {100, 5000}],
-    workstation: [type: :any]
-  ]
+  defp protocol_schema do
+    [
+      window: [type: {:in, 1..255}, default: 7],
+      rep_timeout: [type: :pos_integer, default: 3000],
+      start_timeout: [type: :pos_integer, default: 3000],
+      max_failures: [type: :pos_integer, default: 8],
+      role: [type: {:in, [:active, :passive]}, default: :active],
+      max_data: [type: {:in, 0..16383}, default: 4096],
+      backoff: [type: {:custom, &Vws.Links.Connection.check_backoff/1}, default: {100, 5000}],
+      workstation: [type: :any]
+    ]
+  end
 
-  @schema [
-            endpoint: [type: {:custom, &Vws.Links.Connection.check_endpoint/1}],
-            conn: [type: {:custom, &Vws.Links.Connection.check_conn/1}],
-            owner: [type: :any],
-            name: [type: :any],
-            id: [type: :any]
-          ] ++ @protocol_schema
+  # (functions, not attributes: a captured function in an attribute is a compile-time dependency)
+  defp schema do
+    [
+      endpoint: [type: {:custom, &Vws.Links.Connection.check_endpoint/1}],
+      conn: [type: {:custom, &Vws.Links.Connection.check_conn/1}],
+      owner: [type: :any],
+      name: [type: :any],
+      id: [type: :any]
+    ] ++ protocol_schema()
+  end
 
   @doc """
   A child spec (`:id` defaults to `:name`, else `Vws.Links.DDCMP`). Under a supervisor use `:endpoint`
@@ -295,7 +300,7 @@ defmodule Vws.Links.DDCMP do
   @doc false
   # The options checked once, by the caller, with the defaults filled in (also `Vws.Links.VAL`'s).
   def validate!(opts) do
-    opts = Vws.Options.validate!(opts, @schema, "DDCMP")
+    opts = Vws.Options.validate!(opts, schema(), "DDCMP")
 
     case {Keyword.has_key?(opts, :endpoint), Keyword.has_key?(opts, :conn)} do
       {true, false} -> :ok
@@ -308,5 +313,5 @@ defmodule Vws.Links.DDCMP do
 
   @doc false
   # The protocol's options alone, for a process that brings its own transport (`Vws.Sim.VAL2`).
-  def validate_protocol!(opts), do: Vws.Options.validate!(opts, @protocol_schema, "DDCMP")
+  def validate_protocol!(opts), do: Vws.Options.validate!(opts, protocol_schema(), "DDCMP")
 end

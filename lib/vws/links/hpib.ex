@@ -75,16 +75,19 @@ defmodule Vws.Links.HPIB do
   # after its own default `:timeout`, much sooner)
   @default_wait 60_000
 
-  @schema [
-    bus: [type: :any, required: true],
-    address: [type: {:in, 0..30}, required: true],
-    endpoint: [type: {:custom, &Connection.check_endpoint/1}, required: true],
-    timeout: [type: :pos_integer],
-    connect_timeout: [type: :pos_integer],
-    backoff: [type: {:custom, &Connection.check_backoff/1}],
-    retries: [type: :non_neg_integer],
-    device: [type: {:or, [nil, :string]}]
-  ]
+  # (a function: a captured function in an attribute would be a compile-time dependency)
+  defp schema do
+    [
+      bus: [type: :any, required: true],
+      address: [type: {:in, 0..30}, required: true],
+      endpoint: [type: {:custom, &Connection.check_endpoint/1}, required: true],
+      timeout: [type: :pos_integer],
+      connect_timeout: [type: :pos_integer],
+      backoff: [type: {:custom, &Connection.check_backoff/1}],
+      retries: [type: :non_neg_integer],
+      device: [type: {:or, [nil, :string]}]
+    ]
+  end
 
   @doc false
   def child_spec(opts) do
@@ -112,7 +115,7 @@ defmodule Vws.Links.HPIB do
   """
   @spec start_link(keyword) :: :gen_statem.start_ret()
   def start_link(opts) do
-    opts = Vws.Options.validate!(opts, @schema, "HPIB")
+    opts = Vws.Options.validate!(opts, schema(), "HPIB")
     :gen_statem.start_link(name(opts[:bus], opts[:address]), Device, opts, [])
   end
 

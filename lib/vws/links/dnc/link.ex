@@ -65,36 +65,39 @@ defmodule Vws.Links.DNC.Link do
 
   ## Start
 
-  # Vws.Options: checked in the caller, before the process starts
-  @schema [
-            name: [type: :any],
-            owner: [type: :any],
-            endpoint: [type: {:or, [nil, {:custom, &Connection.check_endpoint/1}]}],
-            connect: [type: :keyword_list],
-            role: [type: {:in, [:cec, :ge]}],
-            pad: [type: :boolean],
-            win_contention: [type: :boolean]
-          ] ++
-            for(
-              key <- [:reply_timeout, :response_timeout, :receive_timeout, :answer_timeout],
-              do: {key, [type: :pos_integer]}
-            ) ++
-            for(
-              key <- [:max_naks, :max_enqs, :max_wacks, :max_contention, :wack_delay],
-              do: {key, [type: :non_neg_integer]}
-            ) ++
-            [
-              max_text: [type: :pos_integer],
-              max_receive: [type: :pos_integer],
-              receive_buffer: [type: {:or, [:non_neg_integer, {:in, [:infinity]}]}],
-              connect_timeout: [type: :pos_integer],
-              backoff_min: [type: :non_neg_integer],
-              backoff_max: [type: :non_neg_integer]
-            ]
+  # Vws.Options: checked in the caller, before the process starts (a function: a captured
+  # function in an attribute would be a compile-time dependency)
+  defp schema do
+    [
+      name: [type: :any],
+      owner: [type: :any],
+      endpoint: [type: {:or, [nil, {:custom, &Connection.check_endpoint/1}]}],
+      connect: [type: :keyword_list],
+      role: [type: {:in, [:cec, :ge]}],
+      pad: [type: :boolean],
+      win_contention: [type: :boolean]
+    ] ++
+      for(
+        key <- [:reply_timeout, :response_timeout, :receive_timeout, :answer_timeout],
+        do: {key, [type: :pos_integer]}
+      ) ++
+      for(
+        key <- [:max_naks, :max_enqs, :max_wacks, :max_contention, :wack_delay],
+        do: {key, [type: :non_neg_integer]}
+      ) ++
+      [
+        max_text: [type: :pos_integer],
+        max_receive: [type: :pos_integer],
+        receive_buffer: [type: {:or, [:non_neg_integer, {:in, [:infinity]}]}],
+        connect_timeout: [type: :pos_integer],
+        backoff_min: [type: :non_neg_integer],
+        backoff_max: [type: :non_neg_integer]
+      ]
+  end
 
   @doc false
   def start_link(opts) do
-    opts = Vws.Options.validate!(opts, @schema, "DNC link")
+    opts = Vws.Options.validate!(opts, schema(), "DNC link")
 
     if Keyword.get(opts, :backoff_min, 100) > Keyword.get(opts, :backoff_max, 5_000),
       do: raise(ArgumentError, "DNC link: backoff_min is over backoff_max")
