@@ -148,7 +148,9 @@ defmodule Vws.CEC.ErrorPathsTest do
           GenServer.reply(from, %{max_text: 256})
           fake_loop(script)
 
-        {:"$gen_call", from, {:request, _command, _blocks, _timeout}} ->
+        # Vws.Links.DNC.request/4 casts the request with the caller's deadline and a reply
+        # address (Vws.Links.Connection)
+        {:"$gen_cast", {Vws.Links.Connection, from, _deadline, {:request, _command, _blocks}}} ->
           [answer | rest] = script
           GenServer.reply(from, answer)
           fake_loop(rest ++ [answer])
