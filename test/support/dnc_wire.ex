@@ -30,17 +30,16 @@ defmodule Vws.Test.DNCWire do
 
   alias Vws.Links.DNC.Session
 
-  # the link's own defaults, as the link hands them to its core
-  @limits Keyword.drop(Vws.Links.DNC.Link.defaults(), [:role, :owner, :endpoint])
-
-  def limits, do: @limits
+  # the link's own defaults, as the link hands them to its core (asked at run time: read into an
+  # attribute they would make this file recompile with the link and all it calls)
+  def limits, do: Keyword.drop(Vws.Links.DNC.Link.defaults(), [:role, :owner, :endpoint])
 
   def run(opts) do
     buffer = Keyword.get(opts, :receive_buffer, :infinity)
-    a = Session.new(role: :cec, limits: @limits) |> Session.connected()
+    a = Session.new(role: :cec, limits: limits()) |> Session.connected()
 
     b =
-      Session.new(role: :ge, limits: Keyword.put(@limits, :receive_buffer, buffer))
+      Session.new(role: :ge, limits: Keyword.put(limits(), :receive_buffer, buffer))
       |> Session.connected()
 
     w = %{

@@ -35,7 +35,7 @@ defmodule Vws.Sim.Tap do
       {:data, <<0x04>>}
   """
 
-  @behaviour Vws.Links.Transport
+  @behaviour Vws.Links.Transport.Behaviour
 
   use GenServer
 
@@ -101,7 +101,7 @@ defmodule Vws.Sim.Tap do
 
   ## The transport
 
-  @impl Transport
+  @impl true
   def connect(endpoint, opts) do
     {tap, opts} = Keyword.pop(opts, :tap)
 
@@ -113,19 +113,19 @@ defmodule Vws.Sim.Tap do
     end
   end
 
-  @impl Transport
+  @impl true
   def listen(_endpoint, _opts), do: {:error, :not_listenable}
 
-  @impl Transport
+  @impl true
   def listener_endpoint(_listener), do: raise(ArgumentError, "a tap does not listen")
 
-  @impl Transport
+  @impl true
   def accept(_listener, _timeout), do: {:error, :not_listenable}
 
-  @impl Transport
+  @impl true
   def close_listener(_listener), do: :ok
 
-  @impl Transport
+  @impl true
   def send({conn, tap}, data) do
     case GenServer.call(tap, {:outgoing, IO.iodata_to_binary(data)}) do
       [] -> :ok
@@ -134,16 +134,16 @@ defmodule Vws.Sim.Tap do
     end
   end
 
-  @impl Transport
+  @impl true
   def close({conn, _tap}), do: Transport.close(conn)
 
-  @impl Transport
+  @impl true
   def controlling_process({conn, _tap}, pid), do: unwrap(Transport.controlling_process(conn, pid))
 
-  @impl Transport
+  @impl true
   def activate({conn, _tap}), do: Transport.activate(conn)
 
-  @impl Transport
+  @impl true
   def handle_message({conn, tap}, message) do
     case Transport.handle_message(conn, message) do
       {:data, bytes} -> {:data, GenServer.call(tap, {:incoming, bytes})}
@@ -152,7 +152,7 @@ defmodule Vws.Sim.Tap do
     end
   end
 
-  @impl Transport
+  @impl true
   def peer({conn, _tap}), do: Transport.peer(conn)
 
   defp unwrap({:error, %{reason: reason}}), do: {:error, reason}
