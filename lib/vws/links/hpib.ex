@@ -49,7 +49,8 @@ defmodule Vws.Links.HPIB do
   (`Vws.Links.Backoff`) decides when to dial a peer that drops connections.
 
   `send_request/3` and `check_response/2` make the same request without blocking the caller
-  (`:gen_statem.send_request/2` underneath), for a process that must keep its own schedule.
+  (`Vws.Links.Connection.send_request/3` underneath: the device answers by the request's
+  deadline at the latest), for a process that must keep its own schedule.
 
   ## Telemetry
 
