@@ -614,7 +614,9 @@ defmodule Vws.Links.DNCTest do
 
   describe "connection" do
     test "requests while down end :link_down at once; the link reconnects", ctx do
-      {link, peer} = connected(ctx, backoff_min: 10, backoff_max: 20)
+      # the next dial waits a second: the request below is made while there is no connection,
+      # however slow the machine (a dial 10 ms later beat it on a loaded one)
+      {link, peer} = connected(ctx, backoff_min: 1_000, backoff_max: 1_000)
       DNCPeer.close(peer)
       assert_receive {:dnc, ^link, :disconnected}, 5_000
       assert {:error, %LinkError{reason: :link_down}} = DNC.request(link, @sns, [])
