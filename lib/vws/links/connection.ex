@@ -21,7 +21,8 @@ defmodule Vws.Links.Connection do
       replies with an ordinary `{:reply, from, reply}` action. The caller stops waiting at its
       deadline, and its alias goes with it: an answer that comes later is dropped by the
       runtime, it never reaches the caller's mailbox. No `timeout + margin`, no
-      `catch :exit`.
+      `catch :exit`. (The alias is a monitor's, `alias: :reply_demonitor`: the caller also
+      sees the driver end, and the alias takes one reply at most.)
 
   A driver takes the requests with one clause that makes them calls again:
 
