@@ -535,11 +535,7 @@ defmodule Vws.CEC.Mailbox do
 
   @doc "The status word of a command status as the WC reads it."
   @spec status_word(status) :: String.t()
-  def status_word(:none), do: "NONE"
-  def status_word(:executing), do: "EXECUTING"
-  def status_word(:done), do: "DONE"
-  def status_word({:error, reason}), do: "ERROR " <> reason
-  def status_word({:no_data, why}), do: "NO DATA (" <> why <> ")"
+  defdelegate status_word(status), to: Vws.Codecs.WC.Status, as: :word
 
   @doc """
   A device-status value in words, as a person reads it: the text itself; `{:no_data, why}` as
