@@ -98,10 +98,17 @@ defmodule Vws.CEC.SunComm do
   a programmer's error but a deployment's: `start_link/1` returns
   `{:error, {:wc_link_policy, message}}`.
 
-  ## The process (`Vws.CEC.SunComm.Server`, a `:gen_statem`)
+  ## The core and the process
 
-  Its states are SUN_COMM's modes; the link (listener, acceptor, the WC connection) is data
-  beside them, as a WC may come and go in any mode:
+  The Parser's rules and both transfers are a pure core, `Vws.CEC.SunComm.Session`: each line,
+  expired timer or lost link goes in, replies and effects (journal, dispatch, statuses, the
+  program to store, the end of a transfer, timers) come out as data, in order. The process
+  (`Vws.CEC.SunComm.Server`, a `:gen_statem`) keeps the link and carries them out; a command
+  goes to its partition through `Vws.CEC.Partition.dispatch/4` (CMD_IN and the partition's
+  event), never by SUN_COMM causing another partition's event.
+
+  Its states are SUN_COMM's modes (the session's); the link (listener, acceptor, the WC
+  connection) is data beside them, as a WC may come and go in any mode:
 
   ```
   :waiting_to_proceed --OK_TO_PROCEED--> :command              (opens the link: listen or tty)
