@@ -288,15 +288,18 @@ defmodule Vws.CEC.SunComm.Server do
   defp carry_out({:status, set, number, status}, ws),
     do: Mailbox.put_status(ws, set, number, status)
 
+  # A transfer's command ends here unless something ended it first (MONARCH restarted while
+  # SUN_COMM carried it out: `ERROR INTERRUPTED BY PARTITION RESTART`); only an end that was
+  # written is reported.
   defp carry_out({:finish, number, status}, ws) do
-    Mailbox.finish(ws, :monarch, number, status)
-
-    Vws.Telemetry.execute([:vws, :partition, :command_finished], %{duration: 0}, %{
-      workstation: ws,
-      partition: :monarch,
-      command: number,
-      status: status
-    })
+    with :ok <- Mailbox.finish(ws, :monarch, number, status) do
+      Vws.Telemetry.execute([:vws, :partition, :command_finished], %{duration: 0}, %{
+        workstation: ws,
+        partition: :monarch,
+        command: number,
+        status: status
+      })
+    end
   end
 
   defp answer({:journal, record}, ws), do: Vws.CEC.Journal.record(Mailbox.table(ws), record)
