@@ -193,9 +193,10 @@ defmodule Vws.CEC.SunComm.Session do
         %__MODULE__{awaiting: nil, transfer: %{kind: :download} = d} = s,
         :no_line,
         _
-      ),
-      do:
-        s |> end_transfer(d.number, {:error, "DOWNLOAD STALLED AFTER #{d.count} LINES"}) |> done()
+      ) do
+    why = "DOWNLOAD STALLED AFTER #{d.count} LINES"
+    s |> end_transfer(d.number, {:error, why}) |> done()
+  end
 
   def handle_timeout(%__MODULE__{awaiting: nil, transfer: %{kind: :upload}} = s, :no_answer, _),
     do: s |> resend_upload_line() |> done()
@@ -282,14 +283,7 @@ defmodule Vws.CEC.SunComm.Session do
         request(s, {:read_status, status.text}, {:status_answer, status.number})
 
       s.last_string == {cs.sequence, line} ->
-        s
-        |> log(
-          :info,
-          "string #{cs.sequence} is a retransmission: acknowledged again, nothing executed"
-        )
-        |> telemetry(:retransmission, %{count: 1}, %{sequence: cs.sequence})
-        |> bump(:retransmissions)
-        |> reply({:ack, cs.sequence})
+        acknowledge_again(s, cs, "is a retransmission: acknowledged again, nothing executed")
 
       true ->
         commands =
@@ -299,6 +293,15 @@ defmodule Vws.CEC.SunComm.Session do
 
         request(s, {:journal, {:string, cs.sequence, line, commands}}, {:journaled, cs, line})
     end
+  end
+
+  # rule 4: the last accepted string again (its acknowledgement was lost)
+  defp acknowledge_again(s, cs, what) do
+    s
+    |> log(:info, "string #{cs.sequence} #{what}")
+    |> telemetry(:retransmission, %{count: 1}, %{sequence: cs.sequence})
+    |> bump(:retransmissions)
+    |> reply({:ack, cs.sequence})
   end
 
   defp status_string?(%{commands: [%{set: :status}]}), do: true
@@ -366,7 +369,7 @@ defmodule Vws.CEC.SunComm.Session do
   end
 
   defp dispatched(s, command, rest, transfer, answer, ctx) do
-    %{set: set, number: n, text: text} = command
+    %{set: set, number: n} = command
 
     case answer do
       {:busy, previous} ->
@@ -381,12 +384,22 @@ defmodule Vws.CEC.SunComm.Session do
 
       :ok ->
         s
-        |> effect(
-          {:telemetry, [:vws, :partition, :command_dispatched], %{count: 1},
-           %{partition: set, command: n, text: text}}
-        )
+        |> claimed(command)
         |> dispatch_next(rest, transfer_of(command) || transfer, ctx)
     end
+  end
+
+  # A transfer's command is reported dispatched as `Vws.CEC.Partition.dispatch/4` reports the
+  # others (which it does before their partition hears of them).
+  defp claimed(s, %{set: set, number: n, text: text} = command) do
+    if transfer_of(command),
+      do:
+        effect(
+          s,
+          {:telemetry, [:vws, :partition, :command_dispatched], %{count: 1},
+           %{partition: set, command: n, text: text}}
+        ),
+      else: s
   end
 
   # The transfer a command begins: the WC names the program's CRC, or not (the seed's form), or
@@ -503,13 +516,7 @@ defmodule Vws.CEC.SunComm.Session do
     cond do
       s.last_string == {cs.sequence, line} ->
         s
-        |> log(
-          :info,
-          "string #{cs.sequence} again during #{kind}: acknowledged again, transfer restarted"
-        )
-        |> telemetry(:retransmission, %{count: 1}, %{sequence: cs.sequence})
-        |> bump(:retransmissions)
-        |> reply({:ack, cs.sequence})
+        |> acknowledge_again(cs, "again during #{kind}: acknowledged again, transfer restarted")
         |> Map.put(:transfer, nil)
         |> start_transfer(again(s.transfer), ctx)
 

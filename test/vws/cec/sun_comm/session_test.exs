@@ -301,12 +301,8 @@ defmodule Vws.CEC.SunComm.SessionTest do
     )
   end
 
-  # The WC sends the program line after line; it goes on to the next line when its line was
-  # answered A with its number, else sends it again. A step may let the download's timer fire.
-  defp download(program, faults, crc?) do
-    # without a named CRC only damage that does not break the line in two
-    faults = if crc?, do: faults, else: Enum.map(faults, &no_line_break/1)
-
+  # DOWNLOAD_HP 0001 acknowledged, naming the program's CRC or not: the session in download mode
+  defp start_download(program, crc?) do
     command =
       if crc?,
         do: "DOWNLOAD_HP(#{ProgramCRC.format(ProgramCRC.compute(program))})",
@@ -315,6 +311,16 @@ defmodule Vws.CEC.SunComm.SessionTest do
     line = wc_string(1, [{"M", 1, command}]) |> String.trim_trailing()
     {s, env, _} = carry(Session.handle_line(Session.new(), line, @ctx), env(), [])
     assert Session.mode(s) == :download
+    {s, env}
+  end
+
+  # The WC sends the program line after line; it goes on to the next line when its line was
+  # answered A with its number, else sends it again. A step may let the download's timer fire.
+  defp download(program, faults, crc?) do
+    # without a named CRC only damage that does not break the line in two
+    faults = if crc?, do: faults, else: Enum.map(faults, &no_line_break/1)
+
+    {s, env} = start_download(program, crc?)
 
     {s, env, _next} =
       Enum.reduce_while(faults, {s, env, 1}, fn fault, {s, env, next} ->
@@ -399,13 +405,7 @@ defmodule Vws.CEC.SunComm.SessionTest do
     damaged = program_line(2, text) |> damage({:crlf, byte_size(head) + 3, ?\n})
 
     for {crc?, expected} <- [{false, :done}, {true, :error}] do
-      command =
-        if crc?,
-          do: "DOWNLOAD_HP(#{ProgramCRC.format(ProgramCRC.compute(program))})",
-          else: "DOWNLOAD_HP"
-
-      line = wc_string(1, [{"M", 1, command}]) |> String.trim_trailing()
-      {s, env, _} = carry(Session.handle_line(Session.new(), line, @ctx), env(), [])
+      {s, env} = start_download(program, crc?)
       {s, env, _} = feed(s, env, program_line(1, "%"))
       {s, env, fed} = feed(s, env, damaged)
       assert [{_, _, head_out, _}, {_, _, tail_out, _}] = fed
