@@ -308,10 +308,22 @@ defmodule Vws.CEC.SunComm.Server do
   defp answer({:read_status, name}, ws), do: Vws.CEC.SunComm.Status.answer(ws, name)
   defp answer({:read_nc_up}, ws), do: Mailbox.nc_up(ws)
 
-  # into the program library first (issue 18), when the workstation has one
+  # Into the program library first (issue 18), when the workstation has one; then the NC file,
+  # which the journal keeps as a reference to that version when the version gives these very
+  # lines back — one durable copy of the program, not two.
   defp answer({:store_program, lines}, ws) do
-    with :ok <- Vws.CEC.Library.store_download(ws, lines),
-         do: Mailbox.put_nc_file(ws, lines)
+    case Vws.CEC.Library.store_download(ws, lines) do
+      {:ok, v} -> Mailbox.put_nc_file(ws, lines, library_version(v, lines))
+      :ok -> Mailbox.put_nc_file(ws, lines)
+      {:error, _} = error -> error
+    end
+  end
+
+  defp library_version(v, lines) do
+    alias Vws.Links.DNC.Program
+
+    if v.digest != nil and Program.from_text(Program.to_text(lines)) == lines,
+      do: {:library, v.name, v.version, v.digest}
   end
 
   defp send_reply(_reply, {%{conn: nil} = data, lost}), do: {data, lost}
