@@ -58,7 +58,8 @@ defmodule Vws.CEC.SunComm do
   `ERROR PROGRAM TOO LARGE <n> BYTES (LIMIT 999999)` (`Vws.Links.DNC.Program.check_size/1`); in
   both cases nothing is stored. Otherwise the program is stored in the
   workstation's program library (`Vws.CEC.Library.store_download/2`, when it has one) and
-  journaled as the NC file, and the Monarch command ends `DONE`; a resend of that closing line after the command ended is
+  journaled as the NC file (by the library's version when it went there, `Vws.CEC.Journal`,
+  "Programs"), and the Monarch command ends `DONE`; a resend of that closing line after the command ended is
   answered the same again. After acknowledging `M…UPLOAD_SUN` it sends NC_UP line by line; a line
   answered `E`, with a damaged answer, with another number or not at all is sent again (at most
   `:upload_retries` times); the closing line carries the program's CRC, `%/cccc`; the command
