@@ -10,7 +10,7 @@ defmodule Vws.Test.SafetyFloor do
   (`Vws.CEC.Mailbox.dispatch/4` and the partition's event).
   """
 
-  alias Vws.CEC.{Events, Mailbox}
+  alias Vws.CEC.Mailbox
   alias Vws.Sim.{Floor, Plant}
 
   @partitions [:robot, :monarch, :gripper, :fixture, :vacuum, :hydraulic]
@@ -178,9 +178,8 @@ defmodule Vws.Test.SafetyFloor do
     {last, _} = Mailbox.cmd_in(f.ws, partition)
     number = rem((last || 0) + 1, 10_000)
 
-    case Mailbox.dispatch(f.ws, partition, number, text) do
+    case Vws.CEC.Partition.dispatch(f.ws, partition, number, text) do
       :ok ->
-        :ok = Events.cause(f.ws, partition, number)
         number
 
       {:busy, n} ->

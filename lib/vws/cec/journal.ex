@@ -53,6 +53,13 @@ defmodule Vws.CEC.Journal do
   and renamed over the old one (`store_lines/3`), so after a crash it is the old program or the
   new one, never a part. It is written before the mailbox shows it, as every status is.
 
+  A program DOWNLOAD_HP brought into the workstation's program library (`Vws.CEC.Library`,
+  durable before the NC file is written) is not written twice: the NC file's file holds
+  `{:library, name, version, digest}`, and a restart reads that version back (whole, with that
+  SHA-256 digest). A version is never removed from the library; one that cannot be read (the
+  workstation started on another library directory) restores no NC file and says so in the
+  log, as a damaged file does.
+
   ## Restart
 
   When the journal opens on a fresh mailbox table it replays the log: command statuses, CMD_IN,
@@ -181,21 +188,29 @@ defmodule Vws.CEC.Journal do
 
   @doc """
   Stores a program (`:nc_file` or `:nc_up`) in the journal's directory, whole or not at all, and
-  syncs it to disk. Does nothing when the workstation has no journal. A program that cannot be
-  stored makes the journal not healthy (a full disk), as a record does.
+  syncs it to disk: its lines, or the reference `{:library, name, version, digest}` to the
+  program library's version that holds them (see "Programs"). Does nothing when the workstation
+  has no journal. A program that cannot be stored makes the journal not healthy (a full disk),
+  as a record does.
   """
   @impl Vws.CEC.Mailbox.Recorder
-  @spec store_lines(:ets.tid(), :nc_file | :nc_up, [binary]) :: :ok | {:error, term}
-  def store_lines(table, key, lines) when key in [:nc_file, :nc_up] do
+  @spec store_lines(:ets.tid(), :nc_file | :nc_up, Vws.CEC.Mailbox.Recorder.program()) ::
+          :ok | {:error, term}
+  def store_lines(table, key, program) when key in [:nc_file, :nc_up] do
     case :ets.lookup(table, :journal) do
       [] -> :ok
-      [{:journal, journal}] -> call(journal, {:store_lines, key, lines})
+      [{:journal, journal}] -> call(journal, {:store_lines, key, program})
     end
   end
 
-  defp write_whole(path, lines) do
+  defp write_whole(path, program) do
     tmp = path <> ".new"
-    bin = :erlang.term_to_binary({:lines, lines})
+
+    bin =
+      case program do
+        lines when is_list(lines) -> :erlang.term_to_binary({:lines, lines})
+        {:library, _name, _version, _digest} = ref -> :erlang.term_to_binary(ref)
+      end
 
     with {:ok, fd} <- :file.open(tmp, [:write, :raw, :binary]),
          :ok <- write_sync_close(fd, bin) do
@@ -213,7 +228,7 @@ defmodule Vws.CEC.Journal do
     result
   end
 
-  defp read_lines(dir, key) do
+  defp read_lines(ws, dir, key) do
     path = Path.join(dir, Atom.to_string(key))
 
     with {:ok, bin} <- File.read(path),
@@ -224,8 +239,34 @@ defmodule Vws.CEC.Journal do
       {:error, :enoent} ->
         []
 
+      {:library, name, version, digest} ->
+        from_library(ws, path, key, name, version, digest)
+
       _other ->
         Logger.error("#{path} unreadable (damaged): no #{key} restored")
+        []
+    end
+  end
+
+  # The program a reference names, read back from the library: the version must read whole and
+  # be the very bytes recorded (its digest), else nothing is restored, loudly.
+  defp from_library(ws, path, key, name, version, digest) do
+    case Vws.CEC.Library.read(ws, name, version) do
+      {:ok, bytes, %{digest: ^digest}} ->
+        Vws.Links.DNC.Program.from_text(bytes)
+
+      other ->
+        why =
+          case other do
+            {:ok, _bytes, _other_version} -> "other bytes"
+            {:error, reason} -> Vws.Codecs.WC.Words.of(reason)
+          end
+
+        Logger.error(
+          "#{path} names #{name} version #{version} of the program library, which cannot be " <>
+            "read (#{why}): no #{key} restored"
+        )
+
         []
     end
   end
@@ -268,7 +309,7 @@ defmodule Vws.CEC.Journal do
     # Restore only into a fresh table: if only the journal restarted, the mailboxes are current.
     if :ets.insert_new(table, {:journal_restored, true}) do
       restore(ws, table, dir, s.path)
-      for key <- [:nc_file, :nc_up], do: :ets.insert(table, {key, read_lines(dir, key)})
+      for key <- [:nc_file, :nc_up], do: :ets.insert(table, {key, read_lines(ws, dir, key)})
     end
 
     # Compact: the snapshot of the restored state replaces everything before it, so a damaged
@@ -331,8 +372,8 @@ defmodule Vws.CEC.Journal do
     {:reply, {:error, :not_healthy}, s}
   end
 
-  def handle_call({:store_lines, key, lines}, _from, s) do
-    case write_whole(Path.join(s.dir, Atom.to_string(key)), lines) do
+  def handle_call({:store_lines, key, program}, _from, s) do
+    case write_whole(Path.join(s.dir, Atom.to_string(key)), program) do
       :ok ->
         {:reply, :ok, s}
 

@@ -283,12 +283,13 @@ defmodule Vws.CEC.Library do
   @doc """
   DOWNLOAD_HP's program (the lines the WC sent) as the next version of its program (named by its
   program number), source `"wc"` — unless the latest released version holds exactly these bytes
-  (the same SHA-256 digest: the same program downloaded again is not a new version): `:ok` — also when the workstation has no library, or the
-  program has no program number (then it is the NC file only, as in the seed) — or
-  `{:error, {:library, reason}}`: SUN_COMM then ends DOWNLOAD_HP with an error and keeps the old
-  NC file.
+  (the same SHA-256 digest: the same program downloaded again is not a new version):
+  `{:ok, version}` (the one stored, or the one that holds these bytes already); `:ok` when the
+  workstation has no library, or the program has no program number (then it is the NC file
+  only, as in the seed); or `{:error, {:library, reason}}`: SUN_COMM then ends DOWNLOAD_HP with
+  an error and keeps the old NC file.
   """
-  @spec store_download(lib, [binary]) :: :ok | {:error, {:library, term}}
+  @spec store_download(lib, [binary]) :: {:ok, version} | :ok | {:error, {:library, term}}
   def store_download(lib, lines) do
     with true <- enabled?(lib),
          {:ok, name} <- Vws.Links.DNC.Program.file_name(lines),
@@ -298,7 +299,7 @@ defmodule Vws.CEC.Library do
              only_if_changed: true
            ) do
       Logger.info("program library: #{v.name} version #{v.version} stored (#{v.size} bytes)")
-      :ok
+      {:ok, v}
     else
       false -> :ok
       {:error, reason} when reason in [:no_program_number, :bad_program_number] -> :ok

@@ -432,10 +432,13 @@ defmodule Vws.CEC.Mailbox do
   @doc """
   Replaces the NC file (the program downloaded from the WC). With a journal the program is on
   disk first (the recorder's `store_lines`, `Vws.CEC.Journal.store_lines/3`); `{:error, reason}` when it could not be made durable
-  (the mailbox keeps the old program then).
+  (the mailbox keeps the old program then). `from`: `{:library, name, version, digest}` when
+  these lines are that version of the program library already (DOWNLOAD_HP): the recorder
+  keeps the reference, not a second copy.
   """
-  @spec put_nc_file(workstation, [binary]) :: :ok | {:error, term}
-  def put_nc_file(ws, lines), do: put_lines(ws, :nc_file, lines)
+  @spec put_nc_file(workstation, [binary], nil | {:library, String.t(), pos_integer, binary}) ::
+          :ok | {:error, term}
+  def put_nc_file(ws, lines, from \\ nil), do: put_lines(ws, :nc_file, lines, from || lines)
 
   @doc "The NC file's lines."
   @spec nc_file(workstation) :: [binary]
@@ -443,16 +446,16 @@ defmodule Vws.CEC.Mailbox do
 
   @doc "Replaces NC_UP (the program uploaded from the machine tool); durable like `put_nc_file/2`."
   @spec put_nc_up(workstation, [binary]) :: :ok | {:error, term}
-  def put_nc_up(ws, lines), do: put_lines(ws, :nc_up, lines)
+  def put_nc_up(ws, lines), do: put_lines(ws, :nc_up, lines, lines)
 
   @doc "NC_UP's lines."
   @spec nc_up(workstation) :: [binary]
   def nc_up(ws), do: get_lines(ws, :nc_up)
 
-  defp put_lines(ws, key, lines) when is_list(lines) do
+  defp put_lines(ws, key, lines, durable) when is_list(lines) do
     table = table(ws)
 
-    case store_lines(table, key, lines) do
+    case store_lines(table, key, durable) do
       :ok ->
         :ets.insert(table, {key, lines})
         :ok
@@ -535,11 +538,7 @@ defmodule Vws.CEC.Mailbox do
 
   @doc "The status word of a command status as the WC reads it."
   @spec status_word(status) :: String.t()
-  def status_word(:none), do: "NONE"
-  def status_word(:executing), do: "EXECUTING"
-  def status_word(:done), do: "DONE"
-  def status_word({:error, reason}), do: "ERROR " <> reason
-  def status_word({:no_data, why}), do: "NO DATA (" <> why <> ")"
+  defdelegate status_word(status), to: Vws.Codecs.WC.Status, as: :word
 
   @doc """
   A device-status value in words, as a person reads it: the text itself; `{:no_data, why}` as

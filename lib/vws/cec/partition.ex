@@ -76,6 +76,28 @@ defmodule Vws.CEC.Partition do
   @spec info(term, Mailbox.partition()) :: map
   def info(ws, partition), do: GenServer.call(via(ws, partition), :info)
 
+  @doc """
+  Hands command `number` to a workstation's partition: CMD_IN written and the command in flight
+  (`Vws.CEC.Mailbox.dispatch/4`, durable first), `[:vws, :partition, :command_dispatched]`, then
+  the partition's event, on which it runs it. `{:busy, previous}` while its previous command is
+  in flight and `{:error, words}` when the dispatch could not be made durable: then nothing runs.
+  """
+  @spec dispatch(term, Mailbox.partition(), 0..9999, String.t()) ::
+          :ok | {:busy, 0..9999} | {:error, String.t()}
+  def dispatch(ws, partition, number, text) do
+    with :ok <- Mailbox.dispatch(ws, partition, number, text) do
+      # before the event: what the command does comes after its dispatch, in every record
+      Vws.Telemetry.execute([:vws, :partition, :command_dispatched], %{count: 1}, %{
+        workstation: ws,
+        partition: partition,
+        command: number,
+        text: text
+      })
+
+      :ok = Events.cause(ws, partition, number)
+    end
+  end
+
   @impl true
   def init(opts) do
     Process.flag(:trap_exit, true)

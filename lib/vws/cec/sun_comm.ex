@@ -58,7 +58,8 @@ defmodule Vws.CEC.SunComm do
   `ERROR PROGRAM TOO LARGE <n> BYTES (LIMIT 999999)` (`Vws.Links.DNC.Program.check_size/1`); in
   both cases nothing is stored. Otherwise the program is stored in the
   workstation's program library (`Vws.CEC.Library.store_download/2`, when it has one) and
-  journaled as the NC file, and the Monarch command ends `DONE`; a resend of that closing line after the command ended is
+  journaled as the NC file (by the library's version when it went there, `Vws.CEC.Journal`,
+  "Programs"), and the Monarch command ends `DONE`; a resend of that closing line after the command ended is
   answered the same again. After acknowledging `M…UPLOAD_SUN` it sends NC_UP line by line; a line
   answered `E`, with a damaged answer, with another number or not at all is sent again (at most
   `:upload_retries` times); the closing line carries the program's CRC, `%/cccc`; the command
@@ -98,10 +99,17 @@ defmodule Vws.CEC.SunComm do
   a programmer's error but a deployment's: `start_link/1` returns
   `{:error, {:wc_link_policy, message}}`.
 
-  ## The process (`Vws.CEC.SunComm.Server`, a `:gen_statem`)
+  ## The core and the process
 
-  Its states are SUN_COMM's modes; the link (listener, acceptor, the WC connection) is data
-  beside them, as a WC may come and go in any mode:
+  The Parser's rules and both transfers are a pure core, `Vws.CEC.SunComm.Session`: each line,
+  expired timer or lost link goes in, replies and effects (journal, dispatch, statuses, the
+  program to store, the end of a transfer, timers) come out as data, in order. The process
+  (`Vws.CEC.SunComm.Server`, a `:gen_statem`) keeps the link and carries them out; a command
+  goes to its partition through `Vws.CEC.Partition.dispatch/4` (CMD_IN and the partition's
+  event), never by SUN_COMM causing another partition's event.
+
+  Its states are SUN_COMM's modes (the session's); the link (listener, acceptor, the WC
+  connection) is data beside them, as a WC may come and go in any mode:
 
   ```
   :waiting_to_proceed --OK_TO_PROCEED--> :command              (opens the link: listen or tty)

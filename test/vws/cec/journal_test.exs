@@ -100,6 +100,58 @@ defmodule Vws.CEC.JournalTest do
     assert held.() == [{:table, :robot, [:disabled]}, {:table, :fixture, [:vise]}]
   end
 
+  test "a program DOWNLOAD_HP stored in the library is journaled by its version, not a second " <>
+         "copy, and comes back after a restart; from another library directory it says so",
+       %{tmp_dir: dir} do
+    id = "nc-ref-#{System.unique_integer([:positive])}"
+    journal = Path.join(dir, "journal")
+
+    opts = fn library ->
+      [
+        id: id,
+        wc: "loopback:wc-#{id}",
+        journal: [dir: journal],
+        library: Path.join(dir, library),
+        partitions: Vws.Test.Workstation.held_robot()
+      ]
+    end
+
+    start_supervised!({Workstation, opts.("library")}, id: id)
+    {:ok, peer} = WCPeer.connect("loopback:wc-#{id}")
+    program = ["%", "O004711", "N10 G90 G00 X0 Y0", "N20 G01 X63.5 F200", "%"]
+    WCPeer.send_string(peer, 60, [{"M", 1, "DOWNLOAD_HP"}])
+    assert WCPeer.recv_line(peer) =~ "05A0060"
+
+    for {line, n} <- Enum.with_index(program, 1) do
+      WCPeer.send_raw(peer, Vws.Codecs.WC.Reply.encode({:line, n, line}))
+      answer = Vws.Codecs.WC.Reply.encode(WCPeer.download_answer(program, n))
+      assert WCPeer.recv_line(peer) <> "\r\n" == IO.iodata_to_binary(answer)
+    end
+
+    assert WCPeer.status(peer, 61, 35, "MONARCH_CMD") == "0001DONE"
+
+    # the journal holds the library's version, the library the program
+    {:ok, bytes, v} = Vws.CEC.Library.read(id, "004711.PRO", :latest)
+    assert bytes == Vws.Links.DNC.Program.to_text(program)
+    nc_file = :erlang.binary_to_term(File.read!(Path.join(journal, "nc_file")))
+    assert nc_file == {:library, "004711.PRO", v.version, v.digest}
+
+    :ok = stop_supervised(id)
+    start_supervised!({Workstation, opts.("library")}, id: id)
+    assert Mailbox.nc_file(id) == program
+
+    # a library that does not hold that version: no NC file, in the log
+    :ok = stop_supervised(id)
+
+    log =
+      ExUnit.CaptureLog.capture_log(fn ->
+        start_supervised!({Workstation, opts.("another library")}, id: id)
+      end)
+
+    assert Mailbox.nc_file(id) == []
+    assert log =~ "names 004711.PRO version #{v.version} of the program library"
+  end
+
   # the whole workstation killed and started again on the same journal directory, its log kept
   defp restart(id, dir) do
     :ok = stop_supervised(id)

@@ -1,7 +1,7 @@
 defmodule Vws.Partitions.RobotTest do
   use ExUnit.Case, async: true
 
-  alias Vws.CEC.{Events, Interlock, Mailbox}
+  alias Vws.CEC.{Interlock, Mailbox}
   alias Vws.Partitions.Robot
   alias Vws.Test.VALPeer
   alias Vws.Links.VAL.Message
@@ -50,8 +50,7 @@ defmodule Vws.Partitions.RobotTest do
   end
 
   defp run(ws, number, text) do
-    :ok = Mailbox.dispatch(ws, :robot, number, text)
-    :ok = Events.cause(ws, :robot, number)
+    :ok = Vws.CEC.Partition.dispatch(ws, :robot, number, text)
   end
 
   defp status(ws), do: Mailbox.command_status(ws, :robot)

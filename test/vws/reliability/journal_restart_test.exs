@@ -16,7 +16,7 @@ defmodule Vws.Reliability.JournalRestartTest do
   @moduletag :tmp_dir
   @moduletag timeout: 300_000
 
-  @names Status.names() ++ ["Q_CMD", "Z_CMD", "K_CMD"]
+  @names Vws.Codecs.WC.Status.names() ++ ["Q_CMD", "Z_CMD", "K_CMD"]
 
   defp start_ws(id, dir) do
     opts = [

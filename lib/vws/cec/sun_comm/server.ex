@@ -1,21 +1,23 @@
 defmodule Vws.CEC.SunComm.Server do
   @moduledoc false
   # SUN_COMM's process, behind the `Vws.CEC.SunComm` facade (which documents the protocol, the
-  # states and the options, validated there). States are the modes: `:waiting_to_proceed`,
-  # `:command`, `:download`, `:upload`; the link is data beside them.
+  # states and the options, validated there). The Parser and the transfers are a pure core,
+  # `Vws.CEC.SunComm.Session`; this process keeps the link (listener, acceptor, the WC's
+  # connection, a tty reopened, the takeover rule), gives the core every line, expired timer and
+  # lost link, and carries out what it returns in order (`run/3`): the replies, then the
+  # effects, the answer to a request given back to the core at once. The states are the
+  # session's modes after `:waiting_to_proceed`, so a transfer's timer is a state timeout.
   #
-  # The functions below the state callbacks take and return the data; those that may end or
-  # start a transfer return `{state, data, actions}`, which `step/1` turns into the callback's
-  # result. A reply that cannot be sent drops the connection at once (no further reply goes to
-  # it) and inserts `{:link_lost, peer, why}`, handled next, before any other event: that is
-  # where a transfer the loss interrupts ends.
+  # A reply that cannot be sent drops the connection at once (no further reply goes to it); the
+  # loss is handled when the result has been carried out, before any other event.
 
   @behaviour :gen_statem
   require Logger
 
-  alias Vws.CEC.{Events, Mailbox}
+  alias Vws.CEC.{Events, Mailbox, Partition}
+  alias Vws.CEC.SunComm.Session
   alias Vws.Links.Transport
-  alias Vws.Codecs.WC.{Command, CommandString, LineDecoder, ProgramCRC, Reply}
+  alias Vws.Codecs.WC.{LineDecoder, Reply}
 
   @dialogue_length 200
 
@@ -31,15 +33,18 @@ defmodule Vws.CEC.SunComm.Server do
     Events.create(ws, :wc_listening)
     :ok = Events.subscribe(ws, :ok_to_proceed)
 
+    session =
+      opts
+      |> Map.take([:bcc, :max_program_bytes, :download_timeout, :upload_timeout, :upload_retries])
+      |> Keyword.new()
+      |> Keyword.put(:last_string, Mailbox.last_string(ws))
+      |> Session.new()
+
     data =
       opts
       |> Map.take([
         :bcc,
         :max_line,
-        :download_timeout,
-        :upload_timeout,
-        :upload_retries,
-        :max_program_bytes,
         :tty_retry,
         :partial_line_timeout,
         :allow,
@@ -50,6 +55,7 @@ defmodule Vws.CEC.SunComm.Server do
       |> Map.merge(%{
         workstation: ws,
         endpoint: opts.wc,
+        session: session,
         # a newcomer waiting for the current WC's connection to end (takeover grace)
         waiting: nil,
         last_heard: nil,
@@ -58,26 +64,9 @@ defmodule Vws.CEC.SunComm.Server do
         acceptor: nil,
         conn: nil,
         decoder: nil,
-        # the download or upload under way (in those states), else nil
-        transfer: nil,
-        # the closing line of the last download and its answer: a resend of it after the
-        # transfer ended (its answer was damaged) is answered again
-        last_closing: nil,
-        # events to insert after the current one (a link lost while replying)
-        pending: [],
+        connections: 0,
         dialogue: :queue.new(),
-        dialogue_size: 0,
-        counters: %{
-          strings: 0,
-          naks: 0,
-          retransmissions: 0,
-          rules_broken: 0,
-          status_answers: 0,
-          connections: 0,
-          lines_in: 0,
-          lines_out: 0,
-          lines_again: 0
-        }
+        dialogue_size: 0
       })
 
     # OK_TO_PROCEED may have been caused before we subscribed (the workstation causes it just
@@ -105,62 +94,31 @@ defmodule Vws.CEC.SunComm.Server do
   # Command strings (and status queries) from the WC.
   def command(:enter, _old, _data), do: :keep_state_and_data
   def command(:internal, :open, data), do: open(data)
-
-  def command(:internal, {:line, {:error, error}}, data), do: damaged_line(:command, error, data)
-
-  def command(:internal, {:line, line}, data),
-    do: step(command_line(line, record(data, :in, line)))
-
-  def command(type, content, data), do: common(type, content, :command, data)
+  def command(type, content, data), do: linked(type, content, :command, data)
 
   @doc false
   # DOWNLOAD_HP: numbered program lines from the WC.
   def download(:enter, _old, _data), do: :keep_state_and_data
-
-  def download(:internal, {:line, {:error, error}}, data),
-    do: damaged_line(:download, error, data)
-
-  def download(:internal, {:line, line}, data) do
-    data = record(data, :in, line)
-
-    case string_during_transfer(line, data) do
-      {:ok, cs} -> step(command_string_in_transfer(cs, line, :download, data))
-      _no_string -> step(download_line(line, data))
-    end
-  end
-
-  def download(:state_timeout, :no_line, %{transfer: d} = data),
-    do:
-      step(
-        {:command,
-         end_transfer(data, d.number, {:error, "DOWNLOAD STALLED AFTER #{d.count} LINES"}), []}
-      )
-
-  def download(type, content, data), do: common(type, content, :download, data)
+  def download(type, content, data), do: linked(type, content, :download, data)
 
   @doc false
   # UPLOAD_SUN: numbered program lines to the WC, each answered before the next.
   def upload(:enter, _old, _data), do: :keep_state_and_data
+  def upload(type, content, data), do: linked(type, content, :upload, data)
 
-  def upload(:internal, {:line, {:error, error}}, data), do: damaged_line(:upload, error, data)
-
-  def upload(:internal, {:line, line}, data) do
-    data = record(data, :in, line)
-
-    case string_during_transfer(line, data) do
-      {:ok, cs} -> step(command_string_in_transfer(cs, line, :upload, data))
-      _no_string -> step(upload_answer(line, data))
-    end
+  # Lines and transfer timers go to the session.
+  defp linked(:internal, {:line, line}, state, data) do
+    data = record(data, :in, dialogue_text(line))
+    step(state, data, Session.handle_line(data.session, line, ctx()))
   end
 
-  def upload(:state_timeout, :no_answer, data), do: step(resend_upload_line(data))
+  defp linked(:state_timeout, name, state, data),
+    do: step(state, data, Session.handle_timeout(data.session, name, ctx()))
 
-  def upload(type, content, data), do: common(type, content, :upload, data)
+  defp linked(type, content, state, data), do: common(type, content, state, data)
 
-  # A line the decoder could not take (too long): answered E, the state unchanged.
-  defp damaged_line(state, error, data),
-    do:
-      step({state, reject(record(data, :in, "<#{Exception.message(error)}>"), error.reason), []})
+  defp dialogue_text({:error, error}), do: "<#{Exception.message(error)}>"
+  defp dialogue_text(line), do: line
 
   ## Events of every state
 
@@ -171,40 +129,23 @@ defmodule Vws.CEC.SunComm.Server do
       listening: data.listening,
       ok_to_proceed: state != :waiting_to_proceed,
       peer: data.conn && Transport.peer(data.conn),
-      mode: mode_name(state, data.transfer),
-      transfer: transfer_info(state, data.transfer),
-      counters: data.counters
+      mode: Session.mode_name(data.session),
+      transfer: Session.transfer_info(data.session),
+      counters: Map.put(Session.counters(data.session), :connections, data.connections)
     }
 
     {:keep_state_and_data, [{:reply, from, info}]}
   end
 
-  # A command from this node's operator (`Vws.Ops.Web.Command`), not from the WC: the same rules
-  # of the Parser for one command, the same dispatch (interlocks in its partition, the journal
-  # in Mailbox.dispatch/4) as a WC string's command. Nothing goes on the WC link, and the WC's
-  # last string (rule 4) is untouched. Transfers with the WC (DOWNLOAD_HP, UPLOAD_SUN) are not
-  # for it. Answers :ok (dispatched; the status tells the rest) or {:error, words}.
+  # A command from this node's operator (`Vws.Ops.Web.Command`), not from the WC
+  # (`Session.local_command/5`): :ok (dispatched; the status tells the rest) or {:error, words}.
+  defp common({:call, from}, {:local_command, _, _, _}, :waiting_to_proceed, _data),
+    do:
+      {:keep_state_and_data, [{:reply, from, {:error, "NOT READY (WAITING FOR OK TO PROCEED)"}}]}
+
   defp common({:call, from}, {:local_command, letter, number, text}, state, data) do
-    set = Command.set_for_letter(letter)
-
-    {data, answer} =
-      cond do
-        state == :waiting_to_proceed ->
-          {data, {:error, "NOT READY (WAITING FOR OK TO PROCEED)"}}
-
-        set not in Mailbox.partitions() ->
-          {data, {:error, "UNKNOWN COMMAND SET #{letter}"}}
-
-        set == :monarch and Vws.Codecs.Commands.transfer(text) in [:download_hp, :upload_sun] ->
-          {data, {:error, "TRANSFER WITH THE WC ONLY"}}
-
-        true ->
-          Logger.info("operator command #{letter}#{Command.pad4(number)} #{text}")
-          {data, nil} = dispatch(%{set: set, number: number, text: text}, data)
-          {%{data | counters: Map.update(data.counters, :operator_commands, 1, &(&1 + 1))}, :ok}
-      end
-
-    {:keep_state, data, [{:reply, from, answer}]}
+    {answer, result} = Session.local_command(data.session, letter, number, text, ctx())
+    step(state, data, result, [{:reply, from, answer}])
   end
 
   defp common({:call, from}, :dialogue, _state, data),
@@ -216,7 +157,7 @@ defmodule Vws.CEC.SunComm.Server do
   defp common(:info, {:wc_accepted, conn}, state, data) do
     cond do
       data.conn == nil or silent_ms(data) >= data.takeover_after ->
-        step(take_link(state, data, conn))
+        take_link(state, data, conn)
 
       data.waiting != nil ->
         # one newcomer waits at a time; a second one is refused at once
@@ -235,18 +176,17 @@ defmodule Vws.CEC.SunComm.Server do
 
   defp common({:timeout, :takeover_grace}, _stale, _state, _data), do: :keep_state_and_data
 
-  defp common({:timeout, :reopen_tty}, _, state, data), do: step(open_tty(state, data))
+  defp common({:timeout, :reopen_tty}, _, state, data), do: open_tty(state, data)
 
   defp common({:timeout, :partial_line}, _, state, data) do
     # the end of a line never came: its CR LF was lost or damaged on the line
     data = %{data | decoder: data.decoder && LineDecoder.new(max_line: data.max_line)}
     data = record(data, :in, "<unfinished line dropped after #{data.partial_line_timeout} ms>")
-    data = if state == :upload, do: data, else: reject(data, :unfinished_line)
-    step({state, data, []})
+    step(state, data, Session.unfinished_line(data.session))
   end
 
   defp common(:internal, {:link_lost, peer, why}, state, data),
-    do: step(link_lost(state, data, peer, why))
+    do: link_lost(state, data, peer, why, [])
 
   defp common(:internal, :read_more, _state, data) do
     if data.conn, do: Transport.activate(data.conn)
@@ -295,10 +235,117 @@ defmodule Vws.CEC.SunComm.Server do
     :ok
   end
 
-  # `{state, data, actions}` → the callback's result, with the events a lost link inserted.
-  defp step({state, data, actions}) do
-    {:next_state, state, %{data | pending: []}, actions ++ Enum.reverse(data.pending)}
+  ## Carrying out the session's results
+
+  # A result of the session carried out; the callback's answer, in the session's mode.
+  defp step(state, data, result, actions \\ []) do
+    case run(data, result, {actions, nil}) do
+      {data, actions, nil} -> {:next_state, next_state(state, data), data, actions}
+      {data, actions, {peer, why}} -> link_lost(state, data, peer, why, actions)
+    end
   end
+
+  defp next_state(:waiting_to_proceed, _data), do: :waiting_to_proceed
+  defp next_state(_state, data), do: Session.mode(data.session)
+
+  # The replies, then the effects in order; a request (always the last effect) is answered
+  # into the session at once and what that returns is carried out in turn. `lost`: the peer
+  # and reason of a connection a reply could not be sent on.
+  defp run(data, {session, replies, effects}, {actions, lost}) do
+    {data, lost} = Enum.reduce(replies, {%{data | session: session}, lost}, &send_reply/2)
+    {actions, answer} = Enum.reduce(effects, {actions, nil}, &perform(&1, &2, data))
+
+    case answer do
+      nil -> {data, actions, lost}
+      {:answer, a} -> run(data, Session.handle_result(data.session, a, ctx()), {actions, lost})
+    end
+  end
+
+  @requests [:journal, :dispatch, :claim, :read_status, :read_nc_up, :store_program]
+
+  defp perform({:timer, name, ms}, {actions, nil}, _data),
+    do: {actions ++ [{:state_timeout, ms, name}], nil}
+
+  defp perform(request, {actions, nil}, data) when elem(request, 0) in @requests,
+    do: {actions, {:answer, answer(request, data.workstation)}}
+
+  defp perform(effect, {actions, nil}, data) do
+    carry_out(effect, data.workstation)
+    {actions, nil}
+  end
+
+  defp carry_out({:log, level, message}, _ws), do: Logger.log(level, message)
+
+  defp carry_out({:telemetry, event, measurements, metadata}, ws),
+    do: Vws.Telemetry.execute(event, measurements, Map.put(metadata, :workstation, ws))
+
+  defp carry_out({:remember_string, sequence, line}, ws),
+    do: Mailbox.put_last_string(ws, sequence, line)
+
+  defp carry_out({:status, {:unknown, letter}, number, status}, ws),
+    do: Mailbox.put_unknown_status(ws, letter, number, status)
+
+  defp carry_out({:status, set, number, status}, ws),
+    do: Mailbox.put_status(ws, set, number, status)
+
+  # A transfer's command ends here unless something ended it first (MONARCH restarted while
+  # SUN_COMM carried it out: `ERROR INTERRUPTED BY PARTITION RESTART`); only an end that was
+  # written is reported.
+  defp carry_out({:finish, number, status}, ws) do
+    with :ok <- Mailbox.finish(ws, :monarch, number, status) do
+      Vws.Telemetry.execute([:vws, :partition, :command_finished], %{duration: 0}, %{
+        workstation: ws,
+        partition: :monarch,
+        command: number,
+        status: status
+      })
+    end
+  end
+
+  defp answer({:journal, record}, ws), do: Vws.CEC.Journal.record(Mailbox.table(ws), record)
+  defp answer({:dispatch, set, n, text}, ws), do: Partition.dispatch(ws, set, n, text)
+  defp answer({:claim, set, n, text}, ws), do: Mailbox.dispatch(ws, set, n, text)
+  defp answer({:read_status, name}, ws), do: Vws.CEC.SunComm.Status.answer(ws, name)
+  defp answer({:read_nc_up}, ws), do: Mailbox.nc_up(ws)
+
+  # Into the program library first (issue 18), when the workstation has one; then the NC file,
+  # which the journal keeps as a reference to that version when the version gives these very
+  # lines back — one durable copy of the program, not two.
+  defp answer({:store_program, lines}, ws) do
+    case Vws.CEC.Library.store_download(ws, lines) do
+      {:ok, v} -> Mailbox.put_nc_file(ws, lines, library_version(v, lines))
+      :ok -> Mailbox.put_nc_file(ws, lines)
+      {:error, _} = error -> error
+    end
+  end
+
+  defp library_version(v, lines) do
+    alias Vws.Links.DNC.Program
+
+    if v.digest != nil and Program.from_text(Program.to_text(lines)) == lines,
+      do: {:library, v.name, v.version, v.digest}
+  end
+
+  defp send_reply(_reply, {%{conn: nil} = data, lost}), do: {data, lost}
+
+  defp send_reply(reply, {data, lost}) do
+    bytes = reply |> Reply.encode(bcc: data.bcc) |> IO.iodata_to_binary()
+
+    case Transport.send(data.conn, bytes) do
+      :ok ->
+        telemetry(data, :reply_sent, %{bytes: byte_size(bytes)}, %{kind: reply_kind(reply)})
+        {record(data, :out, String.trim_trailing(bytes, "\r\n")), lost}
+
+      {:error, reason} ->
+        # a WC that does not read (send_timeout) or is gone: drop it rather than wait on it
+        peer = Transport.peer(data.conn)
+        Transport.close(data.conn)
+        {%{data | conn: nil}, {peer, "reply not sent: #{inspect(reason)}"}}
+    end
+  end
+
+  defp reply_kind(reply) when is_atom(reply), do: reply
+  defp reply_kind(reply) when is_tuple(reply), do: elem(reply, 0)
 
   ## The link
 
@@ -308,7 +355,7 @@ defmodule Vws.CEC.SunComm.Server do
     endpoint = Vws.Links.Endpoint.parse!(data.endpoint)
 
     if endpoint.kind == :tty do
-      step(open_tty(:command, data))
+      open_tty(:command, data)
     else
       case Transport.listen(endpoint, send_timeout: data.send_timeout) do
         {:ok, listener} ->
@@ -332,9 +379,8 @@ defmodule Vws.CEC.SunComm.Server do
     case Transport.connect(data.endpoint) do
       {:ok, conn} ->
         Vws.LogLimit.clear(:wc_tty, "WC tty #{data.endpoint} open")
-        {state, data, actions} = take_link(state, data, conn)
         :ok = Events.cause(data.workstation, :wc_listening, conn.endpoint)
-        {state, %{data | listening: conn.endpoint}, actions}
+        take_link(state, %{data | listening: conn.endpoint}, conn)
 
       {:error, reason} ->
         # once, not at every try (once a second)
@@ -344,31 +390,27 @@ defmodule Vws.CEC.SunComm.Server do
           :error
         )
 
-        {state, data, [{{:timeout, :reopen_tty}, data.tty_retry, :reopen}]}
+        {:keep_state_and_data, [{{:timeout, :reopen_tty}, data.tty_retry, :reopen}]}
     end
   end
 
   # A new connection becomes the WC's link; the one it replaces (and any transfer on it) ends.
-  defp take_link(state, data, conn) do
-    data =
-      if data.conn do
-        Logger.warning(
-          "WC connection from #{Transport.peer(conn)} takes over from #{Transport.peer(data.conn)}, which is closed"
-        )
+  defp take_link(state, data, conn, actions \\ []) do
+    {data, actions, nil} =
+      run(data, Session.link_lost(data.session, "WC LINK TAKEN OVER"), {actions, nil})
 
-        old = data.conn
-        data = abort_transfer(data, "WC LINK TAKEN OVER")
-        Transport.close(old)
+    if old = data.conn do
+      Logger.warning(
+        "WC connection from #{Transport.peer(conn)} takes over from #{Transport.peer(old)}, which is closed"
+      )
 
-        telemetry(data, :wc_disconnected, %{count: 1}, %{
-          peer: Transport.peer(old),
-          reason: :taken_over
-        })
+      Transport.close(old)
 
-        data
-      else
-        abort_transfer(data, "WC LINK TAKEN OVER")
-      end
+      telemetry(data, :wc_disconnected, %{count: 1}, %{
+        peer: Transport.peer(old),
+        reason: :taken_over
+      })
+    end
 
     Logger.info("WC connected: #{Transport.peer(conn)}")
     telemetry(data, :wc_connected, %{count: 1}, %{peer: Transport.peer(conn)})
@@ -379,11 +421,12 @@ defmodule Vws.CEC.SunComm.Server do
       | conn: conn,
         last_heard: now_ms(),
         decoder: LineDecoder.new(max_line: data.max_line),
-        counters: bump(data.counters, :connections)
+        connections: data.connections + 1
     }
 
     # the new connection's first bytes start their own line
-    {next_mode(state, data), data, [{{:timeout, :partial_line}, :cancel}]}
+    {:next_state, next_state(state, data), data,
+     actions ++ [{{:timeout, :partial_line}, :cancel}]}
   end
 
   defp silent_ms(data), do: now_ms() - data.last_heard
@@ -403,42 +446,36 @@ defmodule Vws.CEC.SunComm.Server do
     data
   end
 
-  defp link_lost(state, data, peer, why) do
+  defp link_lost(state, data, peer, why, actions) do
     # the WC closing its connection is how a WC ends a session: news, not a warning
     if why == "closed",
       do: Logger.info("WC link closed by the WC"),
       else: Logger.warning("WC link lost (#{why})")
 
     telemetry(data, :wc_disconnected, %{count: 1}, %{peer: peer, reason: why})
-    data = abort_transfer(data, "WC LINK LOST")
     data = %{data | conn: nil, decoder: nil}
 
+    # a tty: open it again
     reopen =
-      if data.listener == nil and data.endpoint do
-        # a tty: open it again
-        [{{:timeout, :reopen_tty}, data.tty_retry, :reopen}]
-      else
-        []
-      end
+      if data.listener == nil and data.endpoint,
+        do: [{{:timeout, :reopen_tty}, data.tty_retry, :reopen}],
+        else: []
 
-    actions = [{{:timeout, :partial_line}, :cancel} | reopen]
+    actions = actions ++ [{{:timeout, :partial_line}, :cancel} | reopen]
+
+    {data, actions, nil} =
+      run(data, Session.link_lost(data.session, "WC LINK LOST"), {actions, nil})
 
     case data.waiting do
       nil ->
-        {next_mode(state, data), data, actions}
+        {:next_state, next_state(state, data), data, actions}
 
       conn ->
         # the current WC is gone: a newcomer waiting for that takes the link now
-        {state, data, more} = take_link(state, %{data | waiting: nil}, conn)
-
-        {state, data, actions ++ [{{:timeout, :takeover_grace}, :cancel} | more]}
+        actions = actions ++ [{{:timeout, :takeover_grace}, :cancel}]
+        take_link(state, %{data | waiting: nil}, conn, actions)
     end
   end
-
-  # A transfer that ended (its data gone) leaves its state for :command.
-  defp next_mode(:waiting_to_proceed, _data), do: :waiting_to_proceed
-  defp next_mode(_state, %{transfer: nil}), do: :command
-  defp next_mode(state, _data), do: state
 
   # Bytes of an unfinished line start (or restart) the inter-character timer; a line whose end
   # does not follow within `partial_line_timeout` is dropped and answered `E` (a WC waiting on
@@ -450,501 +487,7 @@ defmodule Vws.CEC.SunComm.Server do
       else: {{:timeout, :partial_line}, :cancel}
   end
 
-  ## Lines in
-
-  # An intact command string during a program transfer: the WC is not in the transfer. Decoded
-  # here once; the decoded string is what is handled from here on.
-  defp string_during_transfer("*" <> _ = line, data),
-    do: CommandString.decode(line, bcc: data.bcc)
-
-  defp string_during_transfer(_line, _data), do: :no
-
-  # The string that began the transfer, again: its acknowledgement was lost and the WC is
-  # still waiting for it, so it is acknowledged again and the transfer begins afresh from its
-  # first line (the WC sends or takes the program only after the acknowledgement). A status
-  # query during an upload is answered and the upload goes on: it runs nothing, and a WC that
-  # has taken the closing line asks its command's status while its answer reached us damaged —
-  # the closing line goes again and it answers again. Any other string (and a status query
-  # during a download, where the WC is the sender): the WC gave the transfer up; it ends
-  # ERROR and the string is handled as usual.
-  defp command_string_in_transfer(cs, line, kind, data) do
-    cond do
-      Mailbox.last_string(data.workstation) == {cs.sequence, line} ->
-        restart_transfer(cs, kind, data)
-
-      kind == :upload and status_string?(cs) ->
-        {data, nil} = accept_string(cs, line, data)
-        {:upload, data, []}
-
-      true ->
-        Logger.warning("string #{cs.sequence} during #{kind}: the WC left the transfer")
-        string_received(cs, line, abort_transfer(data, "COMMAND STRING FROM THE WC"))
-    end
-  end
-
-  defp restart_transfer(cs, kind, data) do
-    Logger.info(
-      "string #{cs.sequence} again during #{kind}: acknowledged again, transfer restarted"
-    )
-
-    telemetry(data, :retransmission, %{count: 1}, %{sequence: cs.sequence})
-    data = reply(%{data | counters: bump(data.counters, :retransmissions)}, {:ack, cs.sequence})
-    start_transfer(again(kind, data.transfer), data)
-  end
-
-  defp reject(data, reason) do
-    telemetry(data, :string_rejected, %{bytes: 0}, %{reason: reason})
-    %{reply(data, :nak) | counters: bump(data.counters, :naks)}
-  end
-
-  defp command_line("", data), do: {:command, reject(data, :empty_line), []}
-
-  defp command_line(line, %{last_closing: {line, answer}} = data) do
-    Logger.info("the closing line of the last download again: answered again")
-    {:command, %{reply(data, answer) | counters: bump(data.counters, :lines_again)}, []}
-  end
-
-  defp command_line(line, data) do
-    case CommandString.decode(line, bcc: data.bcc) do
-      {:error, error} -> {:command, reject(%{data | last_closing: nil}, error.reason), []}
-      {:ok, cs} -> string_received(cs, line, data)
-    end
-  end
-
-  # A decoded string, in :command (or just back in it from a transfer the string ended).
-  defp string_received(cs, line, data) do
-    data = %{data | last_closing: nil, counters: bump(data.counters, :strings)}
-
-    telemetry(data, :string_received, %{bytes: byte_size(line)}, %{
-      sequence: cs.sequence,
-      commands: length(cs.commands)
-    })
-
-    case accept_string(cs, line, data) do
-      {data, nil} -> {:command, data, []}
-      {data, transfer} -> start_transfer(transfer, data)
-    end
-  end
-
-  # The Parser's rules, then the commands dispatched. Returns the data and the transfer the
-  # string begins (`{:download, number, expected}`, `{:upload, number}`), or nil.
-  defp accept_string(cs, line, data) do
-    ws = data.workstation
-
-    cond do
-      status_string?(cs) ->
-        # status strings are not remembered for rule 4: answering one twice is harmless, and a
-        # status poll between a lost acknowledgement and its resend must not hide the resend
-        [status] = cs.commands
-        text = Vws.CEC.SunComm.Status.answer(ws, status.text)
-        data = %{data | counters: bump(data.counters, :status_answers)}
-        {reply(data, {:status, status.number, text}), nil}
-
-      Mailbox.last_string(ws) == {cs.sequence, line} ->
-        Logger.info(
-          "string #{cs.sequence} is a retransmission: acknowledged again, nothing executed"
-        )
-
-        telemetry(data, :retransmission, %{count: 1}, %{sequence: cs.sequence})
-        data = %{data | counters: bump(data.counters, :retransmissions)}
-        {reply(data, {:ack, cs.sequence}), nil}
-
-      journal_string(ws, cs, line) != :ok ->
-        # not durable, so not acknowledged: the WC sends it again
-        {reject(data, :journal_unavailable), nil}
-
-      broken = broken_rule(cs) ->
-        Mailbox.put_last_string(ws, cs.sequence, line)
-        data = reply(data, {:ack, cs.sequence})
-        Logger.warning("string #{cs.sequence} breaks a rule (#{broken}): nothing in it runs")
-        telemetry(data, :rule_broken, %{count: 1}, %{sequence: cs.sequence, rule: broken})
-
-        for %{set: set, number: n} <- cs.commands do
-          case set do
-            {:unknown, letter} -> Mailbox.put_unknown_status(ws, letter, n, {:error, broken})
-            :ack -> :ok
-            set -> Mailbox.put_status(ws, set, n, {:error, broken})
-          end
-        end
-
-        {%{data | counters: bump(data.counters, :rules_broken)}, nil}
-
-      true ->
-        Mailbox.put_last_string(ws, cs.sequence, line)
-        data = reply(data, {:ack, cs.sequence})
-        # rule 1: one Monarch command at most, so one transfer at most
-        Enum.reduce(cs.commands, {data, nil}, fn command, {data, transfer} ->
-          case dispatch(command, data) do
-            {data, nil} -> {data, transfer}
-            {data, started} -> {data, started}
-          end
-        end)
-    end
-  end
-
-  defp journal_string(ws, cs, line) do
-    commands =
-      for %{set: set, number: n} <- cs.commands, set in Mailbox.partitions(), do: {set, n}
-
-    Vws.CEC.Journal.record(Mailbox.table(ws), {:string, cs.sequence, line, commands})
-  end
-
-  defp status_string?(%{commands: [%{set: :status}]}), do: true
-  defp status_string?(_), do: false
-
-  defp broken_rule(cs) do
-    letters = Enum.map(cs.commands, & &1.letter)
-
-    cond do
-      unknown = Enum.find(cs.commands, &match?({:unknown, _}, &1.set)) ->
-        "UNKNOWN COMMAND SET #{unknown.letter}"
-
-      Enum.any?(cs.commands, &(&1.set == :status)) ->
-        "RULE 2 STATUS COMMAND NOT ALONE"
-
-      dup = Enum.find(letters, &(Enum.count(letters, fn l -> l == &1 end) > 1)) ->
-        "RULE 1 SET #{dup} REPEATED"
-
-      true ->
-        nil
-    end
-  end
-
-  # One command to its partition (CMD_IN + CAUSE EVENT), or — DOWNLOAD_HP, UPLOAD_SUN — the
-  # transfer SUN_COMM carries out itself: `{data, nil | {:download, number, expected} |
-  # {:upload, number}}`.
-  defp dispatch(%{set: :ack} = command, data) do
-    Logger.debug("acknowledgement command #{command.number} #{command.text}")
-    {data, nil}
-  end
-
-  defp dispatch(%{set: set, number: number, text: text}, data) do
-    ws = data.workstation
-
-    case Mailbox.dispatch(ws, set, number, text) do
-      {:busy, previous} ->
-        Logger.warning("#{set} command #{number} refused: command #{previous} still in flight")
-        Mailbox.put_status(ws, set, number, {:error, "BUSY #{Command.pad4(previous)}"})
-        {data, nil}
-
-      {:error, _journal_write_failed} ->
-        # not durable, so not run: its status says so (Mailbox.dispatch/4)
-        {data, nil}
-
-      :ok ->
-        Vws.Telemetry.execute([:vws, :partition, :command_dispatched], %{count: 1}, %{
-          workstation: ws,
-          partition: set,
-          command: number,
-          text: text
-        })
-
-        # the two transfers SUN_COMM carries out are recognised here; every other command is
-        # parsed once, by its partition
-        case set == :monarch && Vws.Codecs.Commands.transfer(text) do
-          # the WC names the program's CRC, or not (the seed's form), or names it badly: the
-          # program's lines follow in every case, and the check is made at its end
-          :download_hp ->
-            {data, {:download, number, nil}}
-
-          {:download_hp, crc} ->
-            {data, {:download, number, crc}}
-
-          {:error, why} ->
-            {data, {:download, number, {:error, why}}}
-
-          :upload_sun ->
-            {data, {:upload, number}}
-
-          _ ->
-            :ok = Events.cause(ws, set, number)
-            {data, nil}
-        end
-    end
-  end
-
-  ## Transfers
-
-  # `expected`: the program's CRC the WC named, nil (none named) or `{:error, why}` (named
-  # badly); `crc` the CRC of the lines stored so far (PROTOCOLS.md §1 "Whole-program check")
-  defp start_transfer({:download, number, expected}, data) do
-    Logger.info("DOWNLOAD_HP #{number}: reading program lines from the WC")
-
-    d = %{
-      kind: :download,
-      number: number,
-      expected: expected,
-      lines: [],
-      count: 0,
-      bytes: 0,
-      crc: 0,
-      started: now_ms()
-    }
-
-    {:download, %{data | transfer: d}, [download_timer(data)]}
-  end
-
-  defp start_transfer({:upload, number}, data) do
-    case Mailbox.nc_up(data.workstation) do
-      [] ->
-        Mailbox.finish(data.workstation, :monarch, number, {:error, "NO UPLOADED PROGRAM"})
-        {:command, %{data | transfer: nil}, []}
-
-      lines ->
-        Logger.info("UPLOAD_SUN #{number}: sending #{length(lines)} lines to the WC")
-
-        u = %{
-          kind: :upload,
-          number: number,
-          lines: lines,
-          sent: 0,
-          retries: 0,
-          started: now_ms(),
-          total: length(lines),
-          bytes: 0,
-          total_bytes: Enum.reduce(lines, 0, &(byte_size(&1) + 1 + &2)),
-          crc: ProgramCRC.compute(lines)
-        }
-
-        send_upload_line(%{data | transfer: u})
-    end
-  end
-
-  # the transfer a resent string begins again
-  defp again(:download, d), do: {:download, d.number, d.expected}
-  defp again(:upload, u), do: {:upload, u.number}
-
-  defp download_timer(data), do: {:state_timeout, data.download_timeout, :no_line}
-
-  ## NC download (WC → CEC)
-
-  defp download_line(line, %{transfer: d} = data) do
-    next = rem(d.count + 1, 10_000)
-    last = if d.count > 0, do: rem(d.count, 10_000)
-
-    case Reply.decode_line(line, bcc: data.bcc) do
-      {:error, error} ->
-        {:download, reject(data, error.reason), [download_timer(data)]}
-
-      {:ok, {:line, ^next, text}} ->
-        store_download_line(line, text, d, data)
-
-      {:ok, {:line, ^last, _text}} ->
-        # the WC did not take our answer for its line: the same line again, stored once
-        data = %{reply(data, {:line_ack, last}) | counters: bump(data.counters, :lines_again)}
-        {:download, data, [download_timer(data)]}
-
-      {:ok, {:line, n, _text}} ->
-        Logger.warning("DOWNLOAD_HP #{d.number}: line #{n} came when #{next} was due")
-        data = reject(data, :line_out_of_order)
-        {:command, end_transfer(data, d.number, {:error, "PROGRAM LINE OUT OF ORDER"}), []}
-    end
-  end
-
-  defp store_download_line(line, text, d, data) do
-    data = %{data | counters: bump(data.counters, :lines_in)}
-    telemetry(data, :nc_line, %{bytes: byte_size(text)}, %{direction: :in})
-
-    d = %{
-      d
-      | lines: [text | d.lines],
-        count: d.count + 1,
-        bytes: d.bytes + byte_size(text) + 1,
-        crc: ProgramCRC.add_line(d.crc, text)
-    }
-
-    cond do
-      d.bytes > data.max_program_bytes ->
-        data = reject(data, :program_too_large)
-        why = "NC PROGRAM LARGER THAN #{data.max_program_bytes} BYTES"
-        {:command, end_transfer(data, d.number, {:error, why}), []}
-
-      String.trim(text) == "%" and d.count > 1 ->
-        close_download(line, d, data)
-
-      true ->
-        data = reply(%{data | transfer: d}, {:line_ack, rem(d.count, 10_000)})
-        {:download, data, [download_timer(data)]}
-    end
-  end
-
-  # The closing `%`: answered `A` + the number of lines + `/` + the CRC of what came, whatever
-  # follows, so the WC can compare the whole program too (and a resend of the closing line
-  # gets the same answer). The program is stored only if it is the one the WC named (when it
-  # named one) and not larger than a program may be (PROTOCOLS.md §2 "Program size limit");
-  # otherwise the command ends ERROR and the NC file and the library keep what they had.
-  defp close_download(line, d, data) do
-    lines = Enum.reverse(d.lines)
-    answer = {:line_ack, rem(d.count, 10_000), d.crc}
-
-    # d.bytes: the size of the program's text, every line with its LF
-    refused =
-      with :ok <- program_crc(d.expected, d.crc),
-           do: Vws.Links.DNC.Program.check_size(d.bytes)
-
-    case refused do
-      :ok ->
-        store_download(line, lines, answer, d, data)
-
-      {:error, why} ->
-        Logger.warning(
-          "DOWNLOAD_HP #{d.number}: #{d.count} lines received, not stored: #{why}; " <>
-            "the NC file is kept as it was"
-        )
-
-        telemetry(data, :string_rejected, %{bytes: 0}, %{reason: refusal(why)})
-        data = reply(data, answer)
-        data = end_transfer(data, d.number, {:error, why})
-        {:command, %{data | last_closing: {line, answer}}, []}
-    end
-  end
-
-  defp refusal("PROGRAM TOO LARGE" <> _), do: :program_too_large
-  defp refusal(_why), do: :program_crc
-
-  defp program_crc(nil, _crc), do: :ok
-  defp program_crc({:error, why}, _crc), do: {:error, why}
-  defp program_crc(crc, crc), do: :ok
-
-  defp program_crc(expected, crc),
-    do: {:error, "PROGRAM CRC #{ProgramCRC.format(crc)} EXPECTED #{ProgramCRC.format(expected)}"}
-
-  defp store_download(line, lines, answer, d, data) do
-    # into the program library first (issue 18), when the workstation has one
-    case with(
-           :ok <- Vws.CEC.Library.store_download(data.workstation, lines),
-           do: Mailbox.put_nc_file(data.workstation, lines)
-         ) do
-      :ok ->
-        data = reply(data, answer)
-        Logger.info("DOWNLOAD_HP #{d.number}: #{d.count} lines stored as the NC file")
-        data = end_transfer(data, d.number, :done)
-        {:command, %{data | last_closing: {line, answer}}, []}
-
-      {:error, reason} ->
-        data = reject(data, :journal_unavailable)
-        Logger.error("DOWNLOAD_HP #{d.number}: NC file not stored: #{inspect(reason)}")
-        why = "NC FILE NOT STORED #{Vws.Codecs.WC.Words.of(reason)}"
-        {:command, end_transfer(data, d.number, {:error, why}), []}
-    end
-  end
-
-  ## NC upload (CEC → WC)
-
-  defp send_upload_line(%{transfer: %{lines: [line | rest]} = u} = data) do
-    telemetry(data, :nc_line, %{bytes: byte_size(line)}, %{direction: :out})
-    data = reply(data, {:line, rem(u.sent + 1, 10_000), upload_text(line, rest, u)})
-
-    {:upload, %{data | counters: bump(data.counters, :lines_out)},
-     [{:state_timeout, data.upload_timeout, :no_answer}]}
-  end
-
-  defp upload_answer(line, %{transfer: u} = data) do
-    this = rem(u.sent + 1, 10_000)
-    previous = if u.sent > 0, do: rem(u.sent, 10_000)
-
-    case Reply.decode(line, bcc: data.bcc) do
-      {:ok, {:line_ack, ^this}} ->
-        case u.lines do
-          [_last] ->
-            Logger.info("UPLOAD_SUN #{u.number}: #{u.sent + 1} lines sent")
-            {:command, end_transfer(data, u.number, :done), []}
-
-          [sent | rest] ->
-            u = %{
-              u
-              | lines: rest,
-                sent: u.sent + 1,
-                retries: 0,
-                bytes: u.bytes + byte_size(sent) + 1
-            }
-
-            send_upload_line(%{data | transfer: u})
-        end
-
-      {:ok, {:line_ack, ^previous}} ->
-        # a late second answer to the line before (sent again after a silence): nothing new
-        {:upload, data, []}
-
-      {:ok, :nak} ->
-        resend_upload_line(data)
-
-      _ ->
-        # a damaged answer, or one naming another line: this line is not known to be stored
-        Logger.warning(
-          "during UPLOAD_SUN the WC sent #{inspect(line)}; expected A#{Command.pad4(this)}"
-        )
-
-        resend_upload_line(data)
-    end
-  end
-
-  # The closing `%` carries the program's CRC as `%/cccc` (PROTOCOLS.md §1 "Whole-program
-  # check"): the `%` stays first, so a WC that looks only for `%` still ends there.
-  defp upload_text(line, [], u) do
-    if String.trim(line) == "%" and u.total > 1,
-      do: ProgramCRC.closing_line(line, u.crc),
-      else: line
-  end
-
-  defp upload_text(line, _rest, _u), do: line
-
-  defp resend_upload_line(%{transfer: u} = data) do
-    if u.retries >= data.upload_retries do
-      why = "UPLOAD LINE #{u.sent + 1} NOT ACKNOWLEDGED AFTER #{u.retries + 1} TRIES"
-      {:command, end_transfer(data, u.number, {:error, why}), []}
-    else
-      send_upload_line(%{data | transfer: %{u | retries: u.retries + 1}})
-    end
-  end
-
-  ## Transfer endings
-
-  defp abort_transfer(%{transfer: nil} = data, _why), do: data
-
-  defp abort_transfer(%{transfer: %{kind: :download} = d} = data, why),
-    do: end_transfer(data, d.number, {:error, "#{why} DURING DOWNLOAD AFTER #{d.count} LINES"})
-
-  defp abort_transfer(%{transfer: %{kind: :upload} = u} = data, why),
-    do: end_transfer(data, u.number, {:error, "#{why} DURING UPLOAD AFTER #{u.sent} LINES"})
-
-  defp end_transfer(data, number, status) do
-    Mailbox.finish(data.workstation, :monarch, number, status)
-
-    Vws.Telemetry.execute([:vws, :partition, :command_finished], %{duration: 0}, %{
-      workstation: data.workstation,
-      partition: :monarch,
-      command: number,
-      status: status
-    })
-
-    %{data | transfer: nil}
-  end
-
-  ## Replies out
-
-  defp reply(%{conn: nil} = data, _reply), do: data
-
-  defp reply(data, reply) do
-    iodata = Reply.encode(reply, bcc: data.bcc)
-    bytes = IO.iodata_to_binary(iodata)
-
-    case Transport.send(data.conn, bytes) do
-      :ok ->
-        telemetry(data, :reply_sent, %{bytes: byte_size(bytes)}, %{kind: reply_kind(reply)})
-        record(data, :out, String.trim_trailing(bytes, "\r\n"))
-
-      {:error, reason} ->
-        # a WC that does not read (send_timeout) or is gone: drop it rather than wait on it
-        peer = Transport.peer(data.conn)
-        Transport.close(data.conn)
-        lost = {:next_event, :internal, {:link_lost, peer, "reply not sent: #{inspect(reason)}"}}
-        %{data | conn: nil, pending: [lost | data.pending]}
-    end
-  end
-
-  defp reply_kind(reply) when is_atom(reply), do: reply
-  defp reply_kind(reply) when is_tuple(reply), do: elem(reply, 0)
+  ## Dialogue, telemetry
 
   defp record(data, direction, line) do
     entry = {now_ms(), direction, line}
@@ -958,8 +501,6 @@ defmodule Vws.CEC.SunComm.Server do
     end
   end
 
-  ## Helpers
-
   defp telemetry(data, event, measurements, metadata) do
     Vws.Telemetry.execute(
       [:vws, :sun_comm, event],
@@ -968,36 +509,6 @@ defmodule Vws.CEC.SunComm.Server do
     )
   end
 
-  defp bump(counters, key), do: Map.update!(counters, key, &(&1 + 1))
+  defp ctx, do: %{now: now_ms()}
   defp now_ms, do: System.monotonic_time(:millisecond)
-
-  # an NC transfer's progress for info/1: lines and bytes so far, the totals when known (an
-  # upload's; a download's length is not announced), and its start (monotonic ms)
-  defp transfer_info(:download, d),
-    do: %{
-      kind: "DOWNLOAD_HP",
-      number: d.number,
-      lines: d.count,
-      bytes: d.bytes,
-      total_lines: nil,
-      total_bytes: nil,
-      started_ms: d.started
-    }
-
-  defp transfer_info(:upload, u),
-    do: %{
-      kind: "UPLOAD_SUN",
-      number: u.number,
-      lines: u.sent,
-      bytes: u.bytes,
-      total_lines: u.total,
-      total_bytes: u.total_bytes,
-      started_ms: u.started
-    }
-
-  defp transfer_info(_state, _transfer), do: nil
-
-  defp mode_name(:download, d), do: {:download, d.number, d.count}
-  defp mode_name(:upload, u), do: {:upload, u.number, u.sent}
-  defp mode_name(_state, _transfer), do: :command
 end

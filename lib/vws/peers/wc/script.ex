@@ -277,7 +277,7 @@ defmodule Vws.Peers.WC.Script do
   defp status_name(name) do
     name = String.upcase(name)
 
-    if name in Vws.CEC.SunComm.Status.names(),
+    if name in Vws.Codecs.WC.Status.names(),
       do: {:ok, name},
       else: {:error, :unknown_status, name}
   end

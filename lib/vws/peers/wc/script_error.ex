@@ -87,7 +87,7 @@ defmodule Vws.Peers.WC.ScriptError do
 
   defp words(%{reason: :unknown_status, data: name}) do
     "#{inspect(name)} is not a status SUN_COMM answers; known: " <>
-      Enum.join(Enum.sort(Vws.CEC.SunComm.Status.names()), ", ")
+      Enum.join(Enum.sort(Vws.Codecs.WC.Status.names()), ", ")
   end
 
   defp words(%{reason: :missing_argument, data: what}), do: what
