@@ -175,7 +175,8 @@ defmodule Vws.TelemetryCatalogueTest do
   #
   # A pure protocol core (no process, no I/O) emits nothing itself: it returns
   # `{:telemetry, name, measurements, metadata}` for its process to emit as `prefix ++ [name]`,
-  # and says so with `@telemetry_prefix [:vws, …]` — those tuples are read as emissions. The
+  # and says so with `@telemetry_prefix [:vws, …]` — those tuples are read as emissions (a core
+  # that names the whole event, `{:telemetry, [:vws, …], …}`, needs no prefix). The
   # process that emits what its core returned says `@telemetry_relay true`: its emission with a
   # name it was given is checked at the core, not here.
   defp scan_source(source, file) do
@@ -268,6 +269,11 @@ defmodule Vws.TelemetryCatalogueTest do
           if telemetry_module?(module),
             do: {node, [{fun, name, meta[:line]} | acc]},
             else: {node, acc}
+
+        # a core's tuple with the whole name (a list, resolved as an emitter's argument)
+        {:{}, meta, [:telemetry, name, _measurements, _metadata]} = node, acc
+        when is_list(name) ->
+          {node, [{:execute, name, meta[:line]} | acc]}
 
         {:{}, meta, [:telemetry, name, _measurements, _metadata]} = node, acc
         when is_list(prefix) ->

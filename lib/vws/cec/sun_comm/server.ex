@@ -1,5 +1,10 @@
 defmodule Vws.CEC.SunComm.Server do
   @moduledoc false
+  # emits the telemetry its core (Vws.CEC.SunComm.Session) returns: the names are checked there
+  @telemetry_relay true
+
+  @doc false
+  def telemetry_relay?, do: @telemetry_relay
   # SUN_COMM's process, behind the `Vws.CEC.SunComm` facade (which documents the protocol, the
   # states and the options, validated there). The Parser and the transfers are a pure core,
   # `Vws.CEC.SunComm.Session`; this process keeps the link (listener, acceptor, the WC's
