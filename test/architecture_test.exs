@@ -123,6 +123,23 @@ defmodule Vws.ArchitectureTest do
              Enum.join(loose, "\n  ")
   end
 
+  # Issue 26: a file that does more than one thing grows; 900 lines is where we split it (the
+  # moduledoc and the doctests count — they are what a reader reads).
+  @max_lines 900
+
+  test "no file of lib/ is over #{@max_lines} lines" do
+    files = Path.wildcard(Path.join(Path.expand("../lib", __DIR__), "**/*.ex"))
+    assert length(files) > 100, "found only #{length(files)} files under lib/"
+
+    long =
+      for file <- files,
+          lines = file |> File.read!() |> String.split("\n") |> length(),
+          lines > @max_lines,
+          do: "#{Path.relative_to(file, Path.expand("..", __DIR__))}: #{lines} lines"
+
+    assert long == [], "split these files by what they do:\n  " <> Enum.join(long, "\n  ")
+  end
+
   test "no compile-time dependency drags others along", %{graph: graph} do
     # A compile edge to a file that depends on anything ("compile-connected") recompiles the one
     # file whenever any of those change. What we find must be what `mix xref graph --label
