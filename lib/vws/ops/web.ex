@@ -32,7 +32,8 @@ defmodule Vws.Ops.Web do
     * `:bind` — address to listen on (default `"127.0.0.1"`)
     * `:token` — the token control actions need (default none: read-only)
     * `:read_token` — the token every read needs (default none: reads open)
-    * `:max_connections`, `:max_client_connections`, `:max_client_connect_rate`, `:max_rate`, `:max_client_rate`, `:max_body`, `:max_line`, `:max_headers`, `:max_head`,
+    * `:max_connections`, `:max_client_connections`, `:max_client_connect_rate`, `:max_rate`,
+      `:max_client_rate`, `:max_wait`, `:max_body`, `:max_line`, `:max_headers`, `:max_head`,
       `:head_timeout`, `:idle_timeout`, `:body_timeout`, `:max_requests`, `:send_timeout` — the
       server's limits (`Vws.Ops.Web.Server`)
     * `:state_max_age` — ms the `/api/state` answer is reused for (`Vws.Ops.Web.Snapshot`, 200)

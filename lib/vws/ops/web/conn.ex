@@ -195,8 +195,8 @@ defmodule Vws.Ops.Web.Conn do
   defp pace(conf) do
     rate = conf.limits.max_client_rate
 
-    with :ok <- Clients.pace(conf.client_pace, rate, 10_000, rate) do
-      Clients.pace(conf.pace, conf.limits.max_rate)
+    with :ok <- Clients.pace(conf.client_pace, rate, conf.limits.max_wait, rate) do
+      Clients.pace(conf.pace, conf.limits.max_rate, conf.limits.max_wait)
     end
   end
 

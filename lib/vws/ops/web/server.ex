@@ -38,7 +38,7 @@ defmodule Vws.Ops.Web.Server do
     * at most `:max_client_rate` requests a second from one client [50, and 50 at once after a
       quiet second; the dashboard asks 2.5 a second per open page], and `:max_rate` in all [500]: a request beyond them waits its turn
       (the client is held, not sent away to come straight back), and one that would wait more
-      than 10 s is answered 503. One client flooding waits behind its own requests and takes at
+      than `:max_wait` ms [10 000] is answered 503. One client flooding waits behind its own requests and takes at
       most its own rate of the server's. Each part of a stream counts as a request;
     * an MTConnect stream (`interval=`) runs beside its connection's process, which watches the
       socket (`active: :once`): when the client closes or resets it the stream ends at once,
@@ -77,7 +77,8 @@ defmodule Vws.Ops.Web.Server do
     max_requests: 100,
     send_timeout: 10_000,
     max_rate: 500,
-    max_client_rate: 50
+    max_client_rate: 50,
+    max_wait: 10_000
   ]
 
   @doc "The limits and timeouts the server applies unless told otherwise."
