@@ -32,7 +32,7 @@ defmodule Vws.Acceptance.DashboardTest do
 
     proc =
       Acceptance.start(
-        ~w(mix vws.serve --wc-port #{wc} --http-port #{http} --time-scale 10 --ge2000-baud 1200),
+        ~w(mix vws.serve --wc-port #{wc} --http-port #{http} --time-scale 10 --ge2000-baud 2400),
         env: [{"MIX_ENV", "dev"}]
       )
 
@@ -77,7 +77,7 @@ defmodule Vws.Acceptance.DashboardTest do
 
     assert :done = Client.await_command(client, "M", 1, 10_000)
 
-    # the program on to the GE-2000 over the DNC link (paced at 1200 Bd: ~20 s), read meanwhile
+    # the program on to the GE-2000 over the DNC link (paced at 2400 Bd: ~8 s), read meanwhile
     {:ok, [{"M", ge}]} = Client.send_commands(client, [{"M", "DOWNLOAD_GE"}])
     page = text(dump_dom(url, 2_000))
 
