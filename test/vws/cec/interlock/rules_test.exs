@@ -219,8 +219,9 @@ defmodule Vws.CEC.Interlock.RulesTest do
       no_collisions(f)
     end
 
-    # a roller table that takes 0.6 s, so the robot's request meets the tray moving
-    @tag floor: [plant: [config: %{motion: %{tray_s: 600.0}}]]
+    # a roller table that takes 5 s, so both of the robot's requests meet the tray moving (0.6 s
+    # let a loaded machine see it arrive before the second)
+    @tag floor: [plant: [config: %{motion: %{tray_s: 5_000.0}}]]
     test "refused while the MHS moves the tray", %{f: f} do
       :ok = MHS.request(f.mhs, 1, :out)
       assert SafetyFloor.wait_until(fn -> Plant.snapshot(f.plant).trays[1].moving end, 1_000)
@@ -229,7 +230,7 @@ defmodule Vws.CEC.Interlock.RulesTest do
       assert robot_at(f) == "SAFE"
       # the robot's own tray is not the MHS's
       assert run(f, :robot, "DO APPRO TRAY2/50") == :done
-      assert SafetyFloor.wait_until(fn -> not MHS.busy?(f.mhs) end, 2_000)
+      assert SafetyFloor.wait_until(fn -> not MHS.busy?(f.mhs) end, 20_000)
       assert [%{tray: 1, direction: :out, result: :ok}] = MHS.history(f.mhs)
       no_collisions(f)
     end
