@@ -22,7 +22,10 @@ defmodule Vws.Ops.CrashLog do
   domain that Logger drops. `install/0` therefore also adds a `:logger` handler of its own that
   reads supervisor reports and writes one error line for a child that ended `:killed` — only that
   reason, since every other abnormal end was already reported by the process itself, and
-  logging those too would say each crash twice.
+  logging those too would say each crash twice — and only for a child its supervisor restarts
+  (a link, a partition, a server): a temporary one (an HTTP connection the web server closes
+  by killing its process to make room for a new client) is work given up on purpose, and under
+  2,000 hostile sockets a line for each would be a flood of its own.
   """
 
   require Logger
@@ -47,7 +50,8 @@ defmodule Vws.Ops.CrashLog do
   # :logger handler callback: a supervisor's report of a child that was killed
   def log(%{msg: {:report, %{label: {:supervisor, :child_terminated}, report: report}}}, _config) do
     with :killed <- Keyword.get(report, :reason),
-         offender when is_list(offender) <- Keyword.get(report, :offender) do
+         offender when is_list(offender) <- Keyword.get(report, :offender),
+         restart when restart in [:permanent, :transient] <- Keyword.get(offender, :restart_type) do
       Logger.error(
         [
           "process ",

@@ -134,4 +134,19 @@ defmodule Vws.Ops.CrashLogTest do
     assert [_line] = crash_lines(log), log
     assert killed_lines(log) == [], log
   end
+
+  test "a temporary child killed (an HTTP connection shed on purpose) is not logged" do
+    log =
+      capture_log(fn ->
+        {:ok, sup} = Task.Supervisor.start_link()
+        {:ok, pid} = Task.Supervisor.start_child(sup, fn -> Process.sleep(:infinity) end)
+        ref = Process.monitor(pid)
+        Process.exit(pid, :kill)
+        assert_receive {:DOWN, ^ref, :process, ^pid, :killed}
+        Logger.flush()
+        Supervisor.stop(sup)
+      end)
+
+    assert killed_lines(log) == [], log
+  end
 end
