@@ -11,6 +11,9 @@ defmodule Vws.Reliability.JournalDamageTest do
   alias Vws.CEC.Journal.{Log, Replay}
 
   @moduletag :tmp_dir
+  # the properties write and sync hundreds of journals: under the whole suite's disk traffic
+  # 300 cases took more than ExUnit's default minute
+  @moduletag timeout: 300_000
 
   @partitions Mailbox.partitions()
   @letters ["Q", "X", "Z"]
