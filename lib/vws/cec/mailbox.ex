@@ -420,8 +420,11 @@ defmodule Vws.CEC.Mailbox do
     :ok
   end
 
-  @doc "The last accepted command string: `{seq, line}` or `{nil, nil}`."
-  @spec last_string(workstation) :: {0..9999 | nil, binary | nil}
+  @doc """
+  The last accepted command string: `{seq, line}`, `{nil, nil}` (none yet) or `{:unknown, nil}`
+  (the journal that held it was damaged: `Vws.CEC.Journal.Replay`).
+  """
+  @spec last_string(workstation) :: {0..9999 | nil | :unknown, binary | nil}
   def last_string(ws) do
     [{_, seq, line}] = :ets.lookup(table(ws), :last_string)
     {seq, line}
@@ -482,7 +485,7 @@ defmodule Vws.CEC.Mailbox do
               cmd_in: {0..9999 | nil, String.t() | nil}
             }
           },
-          last_string: {non_neg_integer | nil, binary | nil},
+          last_string: {non_neg_integer | nil | :unknown, binary | nil},
           unknown: %{String.t() => {0..9999 | nil, status}},
           unknown_default: status
         }

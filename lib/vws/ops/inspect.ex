@@ -813,6 +813,7 @@ defmodule Vws.Ops.Inspect do
   defp count(n), do: to_string(n)
 
   defp number(nil), do: "----"
+  defp number(:unknown), do: "UNKNOWN (JOURNAL DAMAGED)"
   defp number(n), do: Vws.Codecs.WC.Command.pad4(n)
 
   defp arrow(:in), do: "→"

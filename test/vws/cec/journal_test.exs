@@ -192,17 +192,25 @@ defmodule Vws.CEC.JournalTest do
     assert WCPeer.status(peer, 1, 1, "GRIPPER_CMD") == "0000NO DATA (JOURNAL DAMAGED)"
     assert WCPeer.status(peer, 2, 1, "Q_CMD") == "0000NO DATA (JOURNAL DAMAGED)"
 
-    # a new command makes its status known again; the others stay unknown across restarts
+    # the first string may be the lost last one again (rule 4 cannot tell): acknowledged, not run
     WCPeer.send_string(peer, 3, [{"V", 7, "ON"}])
     assert WCPeer.recv_line(peer) =~ "05A0003"
 
     assert WCPeer.await_status(peer, 4, "VACUUM_CMD", &(&1 =~ "ERROR")) ==
-             "0007ERROR NO LINK TO DAQ #1"
+             "0007ERROR NOT RUN LAST STRING UNKNOWN AFTER JOURNAL DAMAGE SEND AGAIN"
+
+    # sent again under a new number, it runs and its status is known again; the others stay
+    # unknown across restarts
+    WCPeer.send_string(peer, 5, [{"V", 8, "ON"}])
+    assert WCPeer.recv_line(peer) =~ "05A0005"
+
+    assert WCPeer.await_status(peer, 6, "VACUUM_CMD", &(&1 =~ ~r/^0008ERROR/)) ==
+             "0008ERROR NO LINK TO DAQ #1"
 
     WCPeer.close(peer)
     quiet = restart(id, dir)
     refute quiet =~ "journal of #{inspect(id)} damaged"
-    assert Mailbox.command_status(id, :vacuum) == {7, {:error, "NO LINK TO DAQ #1"}}
+    assert Mailbox.command_status(id, :vacuum) == {8, {:error, "NO LINK TO DAQ #1"}}
     assert Mailbox.command_status(id, :gripper) == {nil, {:no_data, "JOURNAL DAMAGED"}}
   end
 

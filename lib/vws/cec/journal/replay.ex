@@ -280,7 +280,9 @@ defmodule Vws.CEC.Journal.Replay do
     %{
       state
       | partitions: Map.new(state.partitions, fn {p, _} -> {p, unknown_entry(why)} end),
-        last_string: {nil, nil},
+        # the last string may be in what was lost: unknown, not absent (SUN_COMM then runs
+        # nothing of the first string it gets, which may be that one again — rule 4 cannot tell)
+        last_string: {:unknown, nil},
         unknown: Map.new(state.unknown, fn {l, _} -> {l, {nil, {:no_data, why}}} end),
         unknown_default: {:no_data, why}
     }
@@ -310,6 +312,7 @@ defmodule Vws.CEC.Journal.Replay do
   defp letter?(l), do: is_binary(l) and byte_size(l) in 1..4
 
   defp last_string?({nil, nil}), do: true
+  defp last_string?({:unknown, nil}), do: true
   defp last_string?({seq, line}), do: number?(seq) and is_binary(line)
   defp last_string?(_), do: false
 

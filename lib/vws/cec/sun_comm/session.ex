@@ -43,6 +43,9 @@ defmodule Vws.CEC.SunComm.Session do
 
   alias Vws.Codecs.WC.{Command, CommandString, ProgramCRC, Reply}
 
+  # what a command of the first string after a damaged journal answers (see journaled/4)
+  @last_string_unknown "NOT RUN LAST STRING UNKNOWN AFTER JOURNAL DAMAGE SEND AGAIN"
+
   @counters [
     :strings,
     :naks,
@@ -95,7 +98,8 @@ defmodule Vws.CEC.SunComm.Session do
   @doc """
   A session in command mode. Options: `:bcc`, `:max_program_bytes`, `:download_timeout`,
   `:upload_timeout`, `:upload_retries` (see `Vws.CEC.SunComm`) and `:last_string`, the last
-  accepted string `{sequence, line}` a restarted SUN_COMM finds in the mailboxes.
+  accepted string `{sequence, line}` a restarted SUN_COMM finds in the mailboxes (or
+  `{:unknown, nil}` after a damaged journal: the first command string then runs nothing).
   """
   @spec new(keyword) :: t
   def new(opts \\ []) do
@@ -327,7 +331,15 @@ defmodule Vws.CEC.SunComm.Session do
 
   # A journaled string: acknowledged, then either nothing in it runs (a rule broken: each
   # command answers the rule on its next status query) or its commands go to their partitions.
+  #
+  # After a damaged journal the last string is unknown (`{:unknown, nil}`): the first string
+  # then may be the lost one sent again, which rule 4 cannot recognise, and its commands may
+  # already have run (a robot move is physical). It is acknowledged and nothing in it runs; each
+  # command answers so on its next status query, and the WC sends them again under a new
+  # sequence number. Only that first string: the next ones are known again.
   defp journaled(s, cs, line, ctx) do
+    last_unknown? = match?({:unknown, _}, s.last_string)
+
     s =
       s
       |> effect({:remember_string, cs.sequence, line})
@@ -335,6 +347,19 @@ defmodule Vws.CEC.SunComm.Session do
       |> reply({:ack, cs.sequence})
 
     case broken_rule(cs) do
+      nil when last_unknown? ->
+        s =
+          log(
+            s,
+            :warning,
+            "string #{cs.sequence}: the last string was lost with the damaged journal, so this " <>
+              "one may be it again: nothing in it runs (#{@last_string_unknown})"
+          )
+
+        for %{set: set, number: n} <- cs.commands, set not in [:ack, :status], reduce: s do
+          s -> effect(s, {:status, set, n, {:error, @last_string_unknown}})
+        end
+
       nil ->
         dispatch_next(s, cs.commands, nil, ctx)
 

@@ -661,5 +661,6 @@ defmodule Vws.Ops.Web.State do
   def label(ws), do: Vws.Ops.MTConnect.Model.device_name(ws)
 
   defp number(nil), do: nil
+  defp number(:unknown), do: "unknown (journal damaged)"
   defp number(n), do: Vws.Codecs.WC.Command.pad4(n)
 end

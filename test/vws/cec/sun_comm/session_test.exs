@@ -278,6 +278,47 @@ defmodule Vws.CEC.SunComm.SessionTest do
     refute Enum.any?(out, &match?({:request, _, _}, &1))
   end
 
+  test "after a damaged journal (last string unknown) the first command string runs nothing; " <>
+         "status queries are answered; the next string runs" do
+    s = Session.new(last_string: {:unknown, nil})
+    env = env()
+
+    # a status query first: answered, and the first command string is still the one denied
+    status = wc_string(20, [{"S", 1, "ROBOT_CMD"}]) |> String.trim_trailing()
+    {s, env, out} = carry(Session.handle_line(s, status, @ctx), env, [])
+    assert [{:status, 1, "0000NONE"}] = replies(out)
+
+    # it may be the lost string again: acknowledged, journaled, nothing dispatched, each command
+    # answers why in words
+    line = wc_string(21, [{"R", 7, "DO MOVE MV1"}, {"G", 8, "OPEN"}]) |> String.trim_trailing()
+    {s, env, out} = carry(Session.handle_line(s, line, @ctx), env, [])
+    assert replies(out) == [{:ack, 21}]
+    assert Enum.any?(out, &match?({:request, {:journal, {:string, 21, _, _}}, :ok}, &1))
+
+    refute Enum.any?(
+             out,
+             &match?({:request, {how, _, _, _}, _} when how in [:dispatch, :claim], &1)
+           )
+
+    for {set, n} <- [robot: 7, gripper: 8] do
+      assert {:effect, {:status, ^set, ^n, {:error, words}}} =
+               Enum.find(out, &match?({:effect, {:status, ^set, ^n, _}}, &1))
+
+      assert words =~ "NOT RUN" and Words.text?(words)
+    end
+
+    # sent again (its acknowledgement lost): rule 4 knows it now, nothing runs
+    {s, env, out} = carry(Session.handle_line(s, line, @ctx), env, [])
+    assert replies(out) == [{:ack, 21}]
+    refute Enum.any?(out, &match?({:request, _, _}, &1))
+
+    # the WC sends them under a new number: they run
+    again = wc_string(22, [{"R", 9, "DO MOVE MV1"}]) |> String.trim_trailing()
+    {_s, _env, out} = carry(Session.handle_line(s, again, @ctx), env, [])
+    assert replies(out) == [{:ack, 22}]
+    assert {:request, {:dispatch, :robot, 9, "DO MOVE MV1"}, :ok} in out
+  end
+
   test "a command for a busy set answers ERROR BUSY and does not run; the others of its string do" do
     line = wc_string(9, [{"G", 5, "OPEN"}, {"R", 6, "WHERE"}]) |> String.trim_trailing()
     env = %{env() | in_flight: %{gripper: 4}}
