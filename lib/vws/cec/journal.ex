@@ -176,9 +176,12 @@ defmodule Vws.CEC.Journal do
 
   @doc """
   The command of `partition` the restart interrupted, `{number, text}` (text nil when the journal
-  has only its number), taken once: the restarted partition's safe clean-up runs for it.
+  has only its number), or `{nil, :unknown}` when its status was lost with a damaged journal (a
+  command may have been under way), taken once: the restarted partition's safe clean-up runs
+  for it.
   """
-  @spec take_interrupted(term, atom) :: {0..9999, String.t() | nil} | nil
+  @spec take_interrupted(term, atom) ::
+          {0..9999, String.t() | nil} | {nil, :unknown} | nil
   def take_interrupted(ws, partition) do
     case :ets.take(Mailbox.table(ws), {:interrupted, partition}) do
       [{_, number, text}] -> {number, text}
@@ -686,6 +689,11 @@ defmodule Vws.CEC.Journal do
     # what each restarted partition's safe clean-up is for (Vws.CEC.Partition, interrupted/2)
     for {p, %{status: :executing, number: n, cmd_in: {in_n, text}}} <- state.partitions do
       :ets.insert(table, {{:interrupted, p}, n, if(in_n == n, do: text)})
+    end
+
+    # a status lost with damaged bytes may have been a command under way: its clean-up runs too
+    for {p, %{status: {:no_data, _}}} <- state.partitions do
+      :ets.insert(table, {{:interrupted, p}, nil, :unknown})
     end
 
     if interrupted != [] do

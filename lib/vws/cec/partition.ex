@@ -309,7 +309,7 @@ defmodule Vws.CEC.Partition do
   defp clean_up(module, ctx) do
     with {:module, _} <- Code.ensure_loaded(module),
          true <- function_exported?(module, :interrupted, 2),
-         {:ok, command} <- module.parse(ctx.text || "") do
+         {:ok, command} <- interrupted_command(module, ctx.text) do
       retry = Keyword.get(ctx.options, :cleanup_retry_ms, 250)
 
       deadline =
@@ -320,16 +320,14 @@ defmodule Vws.CEC.Partition do
         Logger.metadata(workstation: ctx.workstation, partition: ctx.partition)
         status = clean_up_until(module, command, ctx, retry, deadline)
 
+        what = what_was_interrupted(ctx)
+
         case status do
           :ok ->
-            Logger.warning(
-              "command #{ctx.number} #{ctx.text} interrupted by the restart: safe state restored"
-            )
+            Logger.warning("#{what}: safe state restored")
 
           {:error, why} ->
-            Logger.error(
-              "command #{ctx.number} #{ctx.text} interrupted by the restart: safe state NOT restored (#{why})"
-            )
+            Logger.error("#{what}: safe state NOT restored (#{why})")
         end
 
         Vws.Telemetry.execute([:vws, :partition, :cleaned_up], %{count: 1}, %{
@@ -344,6 +342,17 @@ defmodule Vws.CEC.Partition do
       _ -> :ok
     end
   end
+
+  # `:unknown`: the status was lost with a damaged journal, so whatever may have been under way
+  # is cleaned up as an interrupted command would be (the callback's `:unknown` clause)
+  defp interrupted_command(_module, :unknown), do: {:ok, :unknown}
+  defp interrupted_command(module, text), do: module.parse(text || "")
+
+  defp what_was_interrupted(%{text: :unknown}),
+    do: "status unknown after the damaged journal (a command may have been under way)"
+
+  defp what_was_interrupted(ctx),
+    do: "command #{ctx.number} #{ctx.text} interrupted by the restart"
 
   defp clean_up_until(module, command, ctx, retry, deadline) do
     case safe(fn -> module.interrupted(command, ctx) end) do

@@ -95,10 +95,11 @@ defmodule Vws.Partitions.Fixture do
     end
   end
 
-  # After a restart that interrupted OPEN or CLOSE: both valves off, so the vise holds where it
-  # is — what a failed motion leaves — never the motion again.
+  # After a restart that interrupted OPEN or CLOSE, or one after which FIXTURE's status is
+  # unknown (a damaged journal: either may have been under way): both valves off, so the vise
+  # holds where it is — what a failed motion leaves — never the motion again.
   @impl true
-  def interrupted(command, ctx) when command in [:open, :close] do
+  def interrupted(command, ctx) when command in [:open, :close, :unknown] do
     VwsStatus.actuate(ctx.workstation, vise_open_valve: :open, vise_close_valve: :open)
   end
 

@@ -7,13 +7,17 @@ defmodule Vws.CEC.JournalTest do
 
   @moduletag :tmp_dir
 
-  defp start_ws(id, dir, extra \\ []) do
-    opts = [
-      id: id,
-      wc: "loopback:wc-#{id}",
-      journal: [dir: dir] ++ extra,
-      partitions: Vws.Test.Workstation.held_robot()
-    ]
+  defp start_ws(id, dir, extra \\ [], overrides \\ []) do
+    opts =
+      Keyword.merge(
+        [
+          id: id,
+          wc: "loopback:wc-#{id}",
+          journal: [dir: dir] ++ extra,
+          partitions: Vws.Test.Workstation.held_robot()
+        ],
+        overrides
+      )
 
     start_supervised!({Workstation, opts}, id: id)
   end
@@ -212,6 +216,59 @@ defmodule Vws.CEC.JournalTest do
     refute quiet =~ "journal of #{inspect(id)} damaged"
     assert Mailbox.command_status(id, :vacuum) == {8, {:error, "NO LINK TO DAQ #1"}}
     assert Mailbox.command_status(id, :gripper) == {nil, {:no_data, "JOURNAL DAMAGED"}}
+  end
+
+  # A status lost with damaged bytes may have been a command under way (a vise motion): the
+  # restarted partition's safe clean-up runs as for an interrupted command. Here FIXTURE's —
+  # both vise valves off — with no DAQ to reach, so it gives up quickly and says so.
+  test "after damage, a partition whose status is unknown runs its safe clean-up", %{tmp_dir: dir} do
+    id = "cleanup-damage-#{System.unique_integer([:positive])}"
+    start_ws(id, dir)
+    :ok = stop_supervised(id)
+
+    bin = File.read!(journal_file(dir))
+    <<head::binary-size(4), rest::binary>> = bin
+
+    File.write!(
+      journal_file(dir),
+      head <> :crypto.strong_rand_bytes(8) <> binary_part(rest, 8, byte_size(rest) - 8)
+    )
+
+    parent = self()
+    handler = "cleanup-#{id}"
+
+    Vws.Telemetry.attach(
+      handler,
+      [:vws, :partition, :cleaned_up],
+      fn _event, _m, meta, _ -> send(parent, {:cleaned_up, meta}) end,
+      nil
+    )
+
+    on_exit(fn -> Vws.Telemetry.detach(handler) end)
+
+    fixture = [options: [cleanup_timeout_ms: 300, cleanup_retry_ms: 50]]
+
+    log =
+      ExUnit.CaptureLog.capture_log(fn ->
+        start_ws(id, dir, [],
+          partitions: Keyword.put(Vws.Test.Workstation.held_robot(), :fixture, fixture)
+        )
+
+        assert_receive {:cleaned_up, %{workstation: ^id, partition: :fixture} = meta}, 10_000
+        assert meta.text == :unknown
+        # no DAQ #1 here: the valves could not be reached, and that is not hidden
+        assert {:error, why} = meta.status
+        assert is_binary(why)
+        Logger.flush()
+      end)
+
+    assert Mailbox.command_status(id, :fixture) == {nil, {:no_data, "JOURNAL DAMAGED"}}
+
+    assert log =~
+             "status unknown after the damaged journal (a command may have been under way): safe state NOT restored"
+
+    # a partition without a clean-up of its own (the gripper) has nothing to run
+    refute_received {:cleaned_up, %{workstation: ^id, partition: :gripper}}
   end
 
   # A lease taken in the damaged part is not known (the arm may be in the vise): every volume is

@@ -67,7 +67,11 @@ defmodule Vws.CEC.Partition.CommandSet do
   @doc "Runs one command on the device: `:done`, or `{:error, words}`."
   @callback execute(command :: term, ctx) :: :done | {:error, String.t()}
 
-  @doc "Restores the safe state a command the restart interrupted leaves its device in."
+  @doc """
+  Restores the safe state a command the restart interrupted leaves its device in; `command` is
+  `:unknown` when the partition's status was lost with a damaged journal (a command may have been
+  under way).
+  """
   @callback interrupted(command :: term, ctx) :: :ok | {:error, String.t()}
 
   @doc "The work volumes the command enters, taken before it runs."
