@@ -226,13 +226,30 @@ defmodule Vws.Partitions.MonarchTest do
          ctx do
       big = program(1_000_000)
       :ok = Mailbox.put_nc_file(ctx.ws, big)
-      sent = DNC.info(ctx.link).counters.blocks_sent
       size = byte_size(Program.to_text(big))
+
+      # what the link sends meanwhile: MONARCH's status monitor reads the machine's status (a
+      # request of a few bytes) whenever it likes, so the link's block counter cannot tell;
+      # every transmission is told with the program bytes it carried
+      parent = self()
+      handler = "too-large-#{System.unique_integer([:positive])}"
+
+      Vws.Telemetry.attach(
+        handler,
+        [:vws, :dnc, :transmission],
+        fn _event, m, meta, _ -> send(parent, {:transmission, meta[:workstation], m.bytes}) end,
+        nil
+      )
+
+      on_exit(fn -> Vws.Telemetry.detach(handler) end)
 
       assert monarch(ctx.peer, 1, "DOWNLOAD_GE") ==
                "0001ERROR PROGRAM TOO LARGE #{size} BYTES (LIMIT 999999)"
 
-      assert DNC.info(ctx.link).counters.blocks_sent == sent
+      # (a status request carries a few bytes; a program's first block alone 256)
+      carried = collect_transmissions(ctx.ws, [])
+      assert Enum.all?(carried, &(&1 < 100)), "program bytes sent: #{inspect(carried)}"
+      assert GE2000.state(ctx.sim).downloads == 0
 
       # the machine holds one anyway (put there by hand): its 7-digit directory line is unknown,
       # every other file and command works
@@ -240,7 +257,19 @@ defmodule Vws.Partitions.MonarchTest do
       small = ["%", "O4713", "N10 G00 X0", "M30", "%"]
       :ok = Mailbox.put_nc_file(ctx.ws, small)
       assert monarch(ctx.peer, 2, "DOWNLOAD_GE") == "0002DONE"
+      # (the watch above sees a program sent: this one's bytes, with its blocks' framing)
+      sent = collect_transmissions(ctx.ws, [])
+      assert Enum.any?(sent, &(&1 >= byte_size(Program.to_text(small)))), inspect(sent)
       assert monarch(ctx.peer, 3, "COMPARE_GE") == "0003DONE"
+    end
+  end
+
+  # the program bytes of each transmission of `ws`'s link told so far
+  defp collect_transmissions(ws, acc) do
+    receive do
+      {:transmission, ^ws, bytes} -> collect_transmissions(ws, [bytes | acc])
+    after
+      0 -> Enum.reverse(acc)
     end
   end
 
