@@ -24,6 +24,20 @@ defmodule Vws.Peers.HydraulicControllerTest do
     String.to_integer(n)
   end
 
+  # The floor with DAQ #2 answering within 1.5 s here, not 300 ms: on a loaded suite the
+  # controller's reads of it missed 300 ms (these tests judge the sequence, not the timing; the
+  # silent DAQ #2 has a test of its own)
+  defp controller(opts \\ []) do
+    HydraulicFloor.controller(
+      Keyword.update(
+        opts,
+        :controller,
+        [timeout_ms: 1_500],
+        &Keyword.put_new(&1, :timeout_ms, 1_500)
+      )
+    )
+  end
+
   defp run(device, command) do
     :ok = HPIB.write(device, command)
     HydraulicFloor.await_status(device)
@@ -40,8 +54,7 @@ defmodule Vws.Peers.HydraulicControllerTest do
                end)
       end
 
-      %{plant: plant, name: name, endpoint: endpoint} =
-        HydraulicFloor.controller(before_controller: clamp_it)
+      %{plant: plant, name: name, endpoint: endpoint} = controller(before_controller: clamp_it)
 
       assert %{phase: :ready, init_result: :done, depressurised: true} =
                HydraulicController.info(name)
@@ -103,7 +116,7 @@ defmodule Vws.Peers.HydraulicControllerTest do
 
   describe "CLAMP_PALLET and RELEASE_PALLET" do
     test "clamp: rams, then swing clamps, confirmed; release reverses it" do
-      %{plant: plant, endpoint: endpoint} = HydraulicFloor.controller()
+      %{plant: plant, endpoint: endpoint} = controller()
       cec = HydraulicFloor.hpib(endpoint)
 
       assert run(cec, :clamp_pallet) == :done
@@ -126,7 +139,7 @@ defmodule Vws.Peers.HydraulicControllerTest do
     end
 
     test "a weak clamp: ERROR with the force measured" do
-      %{plant: plant, endpoint: endpoint} = HydraulicFloor.controller()
+      %{plant: plant, endpoint: endpoint} = controller()
       :ok = Plant.inject_fault(plant, :weak_clamp, where: :pallet, force_n: 1200)
       cec = HydraulicFloor.hpib(endpoint)
 
@@ -138,7 +151,7 @@ defmodule Vws.Peers.HydraulicControllerTest do
     end
 
     test "a clamp 2 valve that does not move: ERROR CLAMP 2 FORCE 0 N, clamp 1 already on" do
-      %{plant: plant, endpoint: endpoint} = HydraulicFloor.controller()
+      %{plant: plant, endpoint: endpoint} = controller()
       :ok = Plant.inject_fault(plant, :stuck_valve, actuator: :swing_clamp2_valve)
       cec = HydraulicFloor.hpib(endpoint)
 
@@ -149,7 +162,7 @@ defmodule Vws.Peers.HydraulicControllerTest do
     end
 
     test "a stuck X ram valve: ERROR PALLET NOT AGAINST X STOP, and no clamp was moved" do
-      %{plant: plant, endpoint: endpoint} = HydraulicFloor.controller()
+      %{plant: plant, endpoint: endpoint} = controller()
       :ok = Plant.inject_fault(plant, :stuck_valve, actuator: :ram_x_valve)
       cec = HydraulicFloor.hpib(endpoint)
 
@@ -158,7 +171,7 @@ defmodule Vws.Peers.HydraulicControllerTest do
     end
 
     test "a broken Y switch: ERROR PALLET NOT AGAINST Y STOP" do
-      %{plant: plant, endpoint: endpoint} = HydraulicFloor.controller()
+      %{plant: plant, endpoint: endpoint} = controller()
       :ok = Plant.inject_fault(plant, :broken_switch, switch: :pallet_y)
       cec = HydraulicFloor.hpib(endpoint)
 
@@ -167,7 +180,7 @@ defmodule Vws.Peers.HydraulicControllerTest do
     end
 
     test "release goes clamp 2 first: a stuck clamp 2 stops it with clamp 1 and the rams still on" do
-      %{plant: plant, endpoint: endpoint} = HydraulicFloor.controller()
+      %{plant: plant, endpoint: endpoint} = controller()
       cec = HydraulicFloor.hpib(endpoint)
       assert run(cec, :clamp_pallet) == :done
       :ok = Plant.inject_fault(plant, :stuck_valve, actuator: :swing_clamp2_valve)
@@ -179,7 +192,7 @@ defmodule Vws.Peers.HydraulicControllerTest do
     end
 
     test "an open-circuit force gauge is named with its channel" do
-      %{plant: plant, endpoint: endpoint} = HydraulicFloor.controller()
+      %{plant: plant, endpoint: endpoint} = controller()
       :ok = Plant.inject_fault(plant, :sensor_open_circuit, daq: :daq2, channel: 104)
       cec = HydraulicFloor.hpib(endpoint)
 
@@ -188,11 +201,11 @@ defmodule Vws.Peers.HydraulicControllerTest do
     end
 
     test "DAQ #2 not answering: ERROR DAQ #2 NOT ANSWERING, PALLET? confirms nothing" do
-      %{daq2: daq2, endpoint: endpoint} = HydraulicFloor.controller()
+      %{daq2: daq2, endpoint: endpoint} = controller()
       cec = HydraulicFloor.hpib(endpoint)
       :ok = DAQ.set_fault(daq2, :mute)
 
-      assert run(cec, :clamp_pallet) == {:error, "DAQ #2 NOT ANSWERING (NO ANSWER IN 300 MS)"}
+      assert run(cec, :clamp_pallet) == {:error, "DAQ #2 NOT ANSWERING (NO ANSWER IN 1500 MS)"}
 
       # (the controller waits out DAQ #2's silence before it answers: time for a loaded machine)
       assert HPIB.query(cec, :pallet?, 5_000) ==
@@ -204,7 +217,7 @@ defmodule Vws.Peers.HydraulicControllerTest do
     test "STATUS? and PALLET? are answered while a sequence runs; a second command is not run" do
       # a stuck ram: the sequence waits its whole step timeout
       %{plant: plant, name: name, endpoint: endpoint} =
-        HydraulicFloor.controller(controller: [step_timeout_ms: 1_500])
+        controller(controller: [step_timeout_ms: 1_500])
 
       :ok = Plant.inject_fault(plant, :stuck_valve, actuator: :ram_x_valve)
       cec = HydraulicFloor.hpib(endpoint)
@@ -224,7 +237,7 @@ defmodule Vws.Peers.HydraulicControllerTest do
     end
 
     test "answers as an instrument: *IDN?, SYST:ERR? after a line it does not know" do
-      %{endpoint: endpoint} = HydraulicFloor.controller()
+      %{endpoint: endpoint} = controller()
       cec = HydraulicFloor.hpib(endpoint)
 
       assert {:ok, %{manufacturer: "NBS-VWS", model: "HP-9836 HYDRAULIC CONTROLLER"}} =
@@ -236,7 +249,7 @@ defmodule Vws.Peers.HydraulicControllerTest do
     end
 
     test "serves several CEC connections at once" do
-      %{endpoint: endpoint, name: name} = HydraulicFloor.controller()
+      %{endpoint: endpoint, name: name} = controller()
       a = HydraulicFloor.hpib(endpoint)
       b = HydraulicFloor.hpib(endpoint)
       assert run(a, :clamp_pallet) == :done
