@@ -164,6 +164,16 @@ defmodule Vws.CEC.JournalTest do
 
   defp journal_file(dir), do: Path.join(dir, "journal.log")
 
+  # 8 random bytes just after the file's 4-byte header: the first records are lost
+  defp damage_after_header(dir) do
+    <<head::binary-size(4), rest::binary>> = File.read!(journal_file(dir))
+
+    File.write!(
+      journal_file(dir),
+      head <> :crypto.strong_rand_bytes(8) <> binary_part(rest, 8, byte_size(rest) - 8)
+    )
+  end
+
   defp statuses(id), do: Map.new(Mailbox.partitions(), &{&1, Mailbox.command_status(id, &1)})
 
   test "a record torn by a power loss mid-write: the statuses it could have changed say so, loudly",
@@ -226,13 +236,7 @@ defmodule Vws.CEC.JournalTest do
     start_ws(id, dir)
     :ok = stop_supervised(id)
 
-    bin = File.read!(journal_file(dir))
-    <<head::binary-size(4), rest::binary>> = bin
-
-    File.write!(
-      journal_file(dir),
-      head <> :crypto.strong_rand_bytes(8) <> binary_part(rest, 8, byte_size(rest) - 8)
-    )
+    damage_after_header(dir)
 
     parent = self()
     handler = "cleanup-#{id}"
@@ -279,13 +283,7 @@ defmodule Vws.CEC.JournalTest do
     :ok = Vws.CEC.Interlock.acquire(id, :tray1, :mhs, 0)
     :ok = stop_supervised(id)
 
-    bin = File.read!(journal_file(dir))
-    <<head::binary-size(4), rest::binary>> = bin
-
-    File.write!(
-      journal_file(dir),
-      head <> :crypto.strong_rand_bytes(8) <> binary_part(rest, 8, byte_size(rest) - 8)
-    )
+    damage_after_header(dir)
 
     log = ExUnit.CaptureLog.capture_log(fn -> start_ws(id, dir) end)
     assert log =~ "every work volume held by JOURNAL"
