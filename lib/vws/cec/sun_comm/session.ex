@@ -348,31 +348,30 @@ defmodule Vws.CEC.SunComm.Session do
 
     case broken_rule(cs) do
       nil when last_unknown? ->
-        s =
-          log(
-            s,
-            :warning,
-            "string #{cs.sequence}: the last string was lost with the damaged journal, so this " <>
-              "one may be it again: nothing in it runs (#{@last_string_unknown})"
-          )
-
-        for %{set: set, number: n} <- cs.commands, set not in [:ack, :status], reduce: s do
-          s -> effect(s, {:status, set, n, {:error, @last_string_unknown}})
-        end
+        s
+        |> log(
+          :warning,
+          "string #{cs.sequence}: the last string was lost with the damaged journal, so this " <>
+            "one may be it again: nothing in it runs (#{@last_string_unknown})"
+        )
+        |> run_nothing(cs, @last_string_unknown)
 
       nil ->
         dispatch_next(s, cs.commands, nil, ctx)
 
       broken ->
-        s =
-          s
-          |> log(:warning, "string #{cs.sequence} breaks a rule (#{broken}): nothing in it runs")
-          |> telemetry(:rule_broken, %{count: 1}, %{sequence: cs.sequence, rule: broken})
-          |> bump(:rules_broken)
+        s
+        |> log(:warning, "string #{cs.sequence} breaks a rule (#{broken}): nothing in it runs")
+        |> telemetry(:rule_broken, %{count: 1}, %{sequence: cs.sequence, rule: broken})
+        |> bump(:rules_broken)
+        |> run_nothing(cs, broken)
+    end
+  end
 
-        for %{set: set, number: n} <- cs.commands, set not in [:ack, :status], reduce: s do
-          s -> effect(s, {:status, set, n, {:error, broken}})
-        end
+  # Each command of an acknowledged string that must not run answers `why` on its next query.
+  defp run_nothing(s, cs, why) do
+    for %{set: set, number: n} <- cs.commands, set not in [:ack, :status], reduce: s do
+      s -> effect(s, {:status, set, n, {:error, why}})
     end
   end
 
