@@ -85,9 +85,10 @@ defmodule Vws.Ops.Web.Clients do
 
   @doc false
   # Takes the next free slot of a pace cell (1/rate s apart) and waits for it; `:busy` when it is
-  # more than `max_wait` ms away (then nothing is taken). `burst`: how many slots a client that
-  # was quiet may take at once (the cell's time may lag that far behind now).
-  def pace(ref, rate, max_wait \\ 10_000, burst \\ 0) do
+  # more than `max_wait` ms away (then nothing is taken; the server's `:max_wait` limit).
+  # `burst`: how many slots a client that was quiet may take at once (the cell's time may lag
+  # that far behind now).
+  def pace(ref, rate, max_wait, burst \\ 0) do
     interval = div(1_000_000, rate)
     now = System.monotonic_time(:microsecond)
     next = :atomics.get(ref, 1)

@@ -36,10 +36,11 @@ defmodule Vws.Ops.Web.Server do
     * at most `:max_requests` requests per kept-alive connection [100]; an answer that the client
       does not read within `:send_timeout` ms [10 000] closes the connection;
     * at most `:max_client_rate` requests a second from one client [50, and 50 at once after a
-      quiet second; the dashboard asks 2.5 a second per open page], and `:max_rate` in all [500]: a request beyond them waits its turn
-      (the client is held, not sent away to come straight back), and one that would wait more
-      than `:max_wait` ms [10 000] is answered 503. One client flooding waits behind its own requests and takes at
-      most its own rate of the server's. Each part of a stream counts as a request;
+      quiet second; the dashboard asks 2.5 a second per open page], and `:max_rate` in all
+      [500]: a request beyond them waits its turn (the client is held, not sent away to come
+      straight back), and one that would wait more than `:max_wait` ms [10 000] is answered
+      503. One client flooding waits behind its own requests and takes at most its own rate of
+      the server's. Each part of a stream counts as a request;
     * an MTConnect stream (`interval=`) runs beside its connection's process, which watches the
       socket (`active: :once`): when the client closes or resets it the stream ends at once,
       whatever it was waiting for, and the socket is closed (no connection is left in CLOSE-WAIT
