@@ -85,7 +85,7 @@ defmodule Vws.CEC.Library do
   @max_bytes Vws.Links.DNC.Program.max_stored_bytes()
   @machine "MACHINE.DIR"
 
-  alias Vws.CEC.Library.{Check, Files, Version}
+  alias Vws.CEC.Library.{Check, Files, History, Version}
 
   @typedoc "A workstation id, or `{:dir, path}` for a library directory itself."
   @type lib :: term | {:dir, Path.t()}
@@ -647,6 +647,47 @@ defmodule Vws.CEC.Library do
       end
     end
   end
+
+  ## Transfer history (issue 27)
+
+  @doc """
+  Records one transfer in the library's history (`Vws.CEC.Library.History`, synced before
+  `:ok`): `fields` as `History.new/1` takes them. `{:error, :no_library}` without a library.
+  """
+  @spec record_transfer(lib, map | keyword) :: :ok | {:error, term}
+  def record_transfer(lib, fields) do
+    with {:ok, dir} <- dir(lib), do: History.append(history_dir(dir), History.new(fields))
+  end
+
+  @doc """
+  The transfer history, newest first: `{:ok, %{records: [record], damaged: [%{file, offset,
+  why}]}}` (damaged parts are skipped and logged, never read as a record). Options:
+  `:program` (a program name: only its transfers), `:limit` (the newest n).
+  """
+  @spec history(lib, keyword) ::
+          {:ok, %{records: [History.record()], damaged: [map]}} | {:error, term}
+  def history(lib, opts \\ []) do
+    with {:ok, dir} <- dir(lib),
+         {:ok, program} <-
+           (case opts[:program] do
+              nil -> {:ok, nil}
+              p -> name(p)
+            end) do
+      %{records: records, damaged: damaged} = History.read(history_dir(dir))
+
+      records =
+        records
+        |> Enum.reverse()
+        |> Enum.filter(&(program == nil or &1.program == program))
+        |> then(&if(opts[:limit], do: Enum.take(&1, opts[:limit]), else: &1))
+
+      {:ok, %{records: records, damaged: damaged}}
+    end
+  end
+
+  @doc "Where the transfer history of library directory `dir` lives."
+  @spec history_dir(Path.t()) :: Path.t()
+  def history_dir(dir), do: Path.join(dir, "history")
 
   @doc """
   Removes temporary files left by stores that crashed (older than `min_age_s`, default one hour:
