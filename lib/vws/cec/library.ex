@@ -85,7 +85,7 @@ defmodule Vws.CEC.Library do
   @max_bytes Vws.Links.DNC.Program.max_stored_bytes()
   @machine "MACHINE.DIR"
 
-  alias Vws.CEC.Library.{Check, Files, History, Version}
+  alias Vws.CEC.Library.{Check, Diff, Files, History, Search, Version, Workflow}
 
   @typedoc "A workstation id, or `{:dir, path}` for a library directory itself."
   @type lib :: term | {:dir, Path.t()}
@@ -167,7 +167,8 @@ defmodule Vws.CEC.Library do
 
   Options: `:source` — who or what stored it (`"wc"`, `"cli"`, `"from the machine"`, `"iex"`;
   default `"iex"`; lower-case letters, digits, blanks, `.`, `-`, `_`, at most 32; a version
-  whose source is `"from the machine"` is not released, `released?/1`), `:at` (a `DateTime`,
+  whose source is `"from the machine"` is not released, `released?/1`), `:state` (`:draft`: a
+  draft, never sent by `DOWNLOAD_GE(nnnnnn.PRO)`; default released), `:comment`, `:at` (a `DateTime`,
   default now), `:only_if_changed` — when the latest released version holds exactly these bytes
   (the same SHA-256 digest, and its file reads whole), store nothing and answer that version
   (default false), `:only_if_new` — likewise when any version holds them (the one `same_as/2`
@@ -184,7 +185,27 @@ defmodule Vws.CEC.Library do
 
     case dedupe && existing(lib, name, digest(bytes), dedupe) do
       {:ok, v} -> {:ok, v}
-      _ -> store_new(lib, name, bytes, opts)
+      _ -> with {:ok, v} <- store_new(lib, name, bytes, opts), do: initial_state(lib, v, opts)
+    end
+  end
+
+  # a version stored as a draft, or with a comment, gets its state file (Workflow)
+  defp initial_state(lib, v, opts) do
+    draft? = opts[:state] == :draft
+
+    if draft? or opts[:comment] do
+      {:ok, dir} = dir(lib)
+      by = Keyword.get(opts, :source, "iex")
+
+      with {:ok, s} <-
+             Workflow.change(dir, v, by, "stored", fn s ->
+               %{s | state: if(draft?, do: :draft, else: s.state), comment: opts[:comment]}
+             end),
+           do:
+             {:ok,
+              Map.merge(v, %{state: s.state, released: s.state == :released, comment: s.comment})}
+    else
+      {:ok, Map.merge(v, %{state: Workflow.default(v).state, comment: nil})}
     end
   end
 
@@ -251,28 +272,169 @@ defmodule Vws.CEC.Library do
   defdelegate digest(bytes), to: Version
 
   @doc """
-  True for a version that `:latest` may name — every version but those the operator sent from
-  the machine (source `"from the machine"`): such a version is sent to a machine only by a
-  `DOWNLOAD_GE(nnnnnn.PRO/v)` that names it, until `release/4` stores it as a released version.
+  True for a released version — one `:latest` may name and `DOWNLOAD_GE(nnnnnn.PRO/v)` sends:
+  its workflow state (`Vws.CEC.Library.Workflow`) says so; without one, every version but those
+  the operator sent from the machine (source `"from the machine"`), which are drafts until
+  `release/4`. A draft goes to a machine only by `DOWNLOAD_GE(nnnnnn.PRO/v/FORCE)`.
   """
   @spec released?(map) :: boolean
   defdelegate released?(version), to: Version
 
   @doc """
-  Releases version `which` of `name`: stores its bytes as a new, released version (source
-  `"<source> release of v<n>"`, `opts[:source]` default `"iex"`) — the version the next
-  `DOWNLOAD_GE(nnnnnn.PRO)` sends. When the latest released version already holds exactly these
-  bytes nothing is stored and that version is the answer. `{:ok, version}` or `{:error, reason}`
-  (`:not_found`, `:damaged`, …).
+  Releases version `which` of `name`. A draft stored in the library (`store/4` with `state:
+  :draft`, or unreleased) is released in place; a version from the machine has its bytes stored
+  as a new, released version (source `"<source> release of v<n>"`, `opts[:source]` default
+  `"iex"`) — unless the latest released version already holds exactly these bytes: then that
+  version is the answer. `{:ok, version}` or `{:error, reason}` (`:not_found`, `:damaged`, …).
   """
   @spec release(lib, term, pos_integer | :latest | :newest, keyword) ::
           {:ok, version} | {:error, term}
   def release(lib, name, which, opts \\ []) do
-    with {:ok, bytes, v} <- read(lib, name, which) do
+    with {:ok, bytes, v} <- read(lib, name, which),
+         :copy <- release_in_place(lib, v, opts) do
       source = "#{Keyword.get(opts, :source, "iex")} release of v#{v.version}"
       store(lib, name, bytes, source: source, only_if_changed: true)
     end
   end
+
+  defp release_in_place(lib, v, opts) do
+    if v.source == "from the machine" do
+      :copy
+    else
+      set_state(lib, v, opts, "released", &%{&1 | state: :released})
+    end
+  end
+
+  defp set_state(lib, v, opts, what, fun) do
+    with {:ok, dir} <- dir(lib),
+         {:ok, s} <- Workflow.change(dir, v, Keyword.get(opts, :source, "iex"), what, fun),
+         do:
+           {:ok,
+            Map.merge(v, %{state: s.state, released: s.state == :released, comment: s.comment})}
+  end
+
+  @doc """
+  Makes version `n` of `name` a draft (`DOWNLOAD_GE(nnnnnn.PRO)` no longer sends it; `:latest`
+  names the released version before it). `{:ok, version}` or `{:error, reason}`.
+  """
+  @spec unrelease(lib, term, pos_integer, keyword) :: {:ok, version} | {:error, term}
+  def unrelease(lib, name, n, opts \\ []) do
+    with {:ok, v} <- version(lib, name, n),
+         do: set_state(lib, v, opts, "unreleased", &%{&1 | state: :draft})
+  end
+
+  @doc "Sets the comment of version `n` of `name` (at most 200 printable characters)."
+  @spec comment(lib, term, pos_integer, String.t(), keyword) :: {:ok, version} | {:error, term}
+  def comment(lib, name, n, text, opts \\ []) do
+    with true <-
+           (String.printable?(text) and String.length(text) <= 200) || {:error, :bad_comment},
+         {:ok, v} <- version(lib, name, n),
+         do: set_state(lib, v, opts, "comment", &%{&1 | comment: text})
+  end
+
+  @doc """
+  Deletes version `n` of `name`, keeping its tombstone (`tombstones/2`: what it was, when and
+  by whom it was deleted, `why`): its bytes are removed, its number is never given again, and
+  the transfer history still names it. `{:ok, tombstone}` or `{:error, reason}`.
+  """
+  @spec delete(lib, term, pos_integer, keyword) :: {:ok, map} | {:error, term}
+  def delete(lib, name, n, opts \\ []) do
+    with {:ok, dir} <- dir(lib),
+         {:ok, v} <- version(lib, name, n),
+         gone = Map.take(v, [:size, :crc, :digest, :source, :at, :state]),
+         why = opts[:why] || "deleted",
+         {:ok, s} <-
+           Workflow.change(dir, v, Keyword.get(opts, :source, "iex"), why, fn s ->
+             %{s | state: :deleted, deleted: gone}
+           end),
+         :ok <- File.rm(Path.join(dir, v.file)),
+         :ok <- Files.sync_dir(dir) do
+      {:ok, Map.merge(s, %{name: v.name, version: v.version})}
+    end
+  end
+
+  @doc "The tombstones of deleted versions (of `name` only, when given), by name and version."
+  @spec tombstones(lib, term) :: {:ok, [map]} | {:error, term}
+  def tombstones(lib, name \\ nil) do
+    with {:ok, dir} <- dir(lib),
+         {:ok, name} <- if(name, do: name(name), else: {:ok, nil}),
+         do: {:ok, Workflow.tombstones(dir, name)}
+  end
+
+  @doc """
+  Finds versions by program number, comment and text (case-insensitive): `{:ok, [%{name,
+  version, matched: [:name | :comment | :text], line}]}` — `line` the first line of its text that
+  holds `query` (nil when only its name or comment did). Option `:in` (default all three).
+  """
+  @spec search(lib, String.t(), keyword) :: {:ok, [map]} | {:error, term}
+  def search(lib, query, opts \\ []) do
+    where = Keyword.get(opts, :in, [:name, :comment, :text])
+
+    with {:ok, programs} <- list(lib) do
+      {:ok, Search.run(programs, query, where, &read(lib, &1, &2))}
+    end
+  end
+
+  ## What the machine holds: read-backs and line diffs (issue 27)
+
+  @doc """
+  Keeps the bytes a read-back (`COMPARE_GE(nnnnnn.PRO)`) found on the machine, whole, in
+  `machine/<name>` of the library: what `diff_machine/3` compares.
+  """
+  @spec record_read_back(lib, term, binary) :: :ok | {:error, term}
+  def record_read_back(lib, name, bytes) do
+    with {:ok, dir} <- dir(lib), {:ok, name} <- name(name) do
+      machine = Path.join(dir, "machine")
+
+      with :ok <- File.mkdir_p(machine),
+           :ok <-
+             Files.write_whole(Files.tmp_path(machine, name), Path.join(machine, name), bytes),
+           do: Files.sync_dir(machine)
+    end
+  end
+
+  @doc """
+  The line diff of version `which` of `name` (default the latest released, else the newest)
+  against what the machine held at the last read-back: `{:ok, %{version, read_at, diff,
+  summary}}` (`Vws.CEC.Library.Diff`), or `{:error, :not_read_back}` when none was made.
+  """
+  @spec diff_machine(lib, term, pos_integer | :latest) :: {:ok, map} | {:error, term}
+  def diff_machine(lib, name, which \\ :latest) do
+    with {:ok, dir} <- dir(lib),
+         {:ok, name} <- name(name),
+         path = Path.join([dir, "machine", name]),
+         {:ok, machine} <- File.read(path) |> not_read_back(),
+         {:ok, %{mtime: mtime}} <- File.stat(path, time: :posix),
+         {:ok, v} <- reference_version(lib, name, which),
+         {:ok, text, v} <- read(lib, name, v.version) do
+      diff = Diff.lines(text, machine)
+
+      {:ok,
+       %{
+         version: v,
+         read_at: DateTime.from_unix!(mtime),
+         diff: diff,
+         summary: Diff.summary(diff)
+       }}
+    end
+  end
+
+  defp not_read_back({:error, :enoent}), do: {:error, :not_read_back}
+  defp not_read_back(other), do: other
+
+  @doc """
+  The version a compare of `name` is shown against: `which` when it is a number; else the latest
+  released, or the newest when none is released.
+  """
+  @spec reference_version(lib, term, pos_integer | :latest) :: {:ok, version} | {:error, term}
+  def reference_version(lib, name, :latest) do
+    case version(lib, name, :latest) do
+      {:error, :not_released} -> version(lib, name, :newest)
+      other -> other
+    end
+  end
+
+  def reference_version(lib, name, n), do: version(lib, name, n)
 
   defp check_source(source) when is_binary(source) do
     if source =~ ~r/^[a-z0-9][a-z0-9 ._-]{0,31}$/, do: :ok, else: {:error, :bad_source}
@@ -405,7 +567,8 @@ defmodule Vws.CEC.Library do
       case files
            |> Enum.filter(&String.starts_with?(&1, name <> "~"))
            |> Files.parse_files()
-           |> Files.with_digests(dir) do
+           |> Files.with_digests(dir)
+           |> Workflow.apply_states(dir) do
         [] -> {:error, :not_found}
         vs -> {:ok, Enum.sort_by(vs, & &1.version)}
       end
@@ -434,10 +597,14 @@ defmodule Vws.CEC.Library do
       with {:ok, target} <- :file.read_link(Files.number_link(dir, name, n)),
            [v] <- Files.parse_files([target |> to_string() |> Path.basename()]),
            true <- v.name == name and v.version == n,
-           true <- File.regular?(Path.join(dir, v.file)) do
-        {:ok, hd(Files.with_digests([v], dir))}
+           true <- File.regular?(Path.join(dir, v.file)),
+           [v] <- Workflow.apply_states(Files.with_digests([v], dir), dir) do
+        {:ok, v}
       else
-        _ -> {:error, :not_found}
+        _ ->
+          if match?({:ok, %{state: :deleted}}, Workflow.state(dir, name, n)),
+            do: {:error, :deleted},
+            else: {:error, :not_found}
       end
     end
   end
@@ -487,11 +654,7 @@ defmodule Vws.CEC.Library do
   def diff(lib, name, a, b) do
     with {:ok, text_a, _} <- read(lib, name, a),
          {:ok, text_b, _} <- read(lib, name, b) do
-      {:ok,
-       List.myers_difference(
-         Vws.Links.DNC.Program.from_text(text_a),
-         Vws.Links.DNC.Program.from_text(text_b)
-       )}
+      {:ok, Diff.lines(text_a, text_b)}
     end
   end
 
@@ -642,8 +805,12 @@ defmodule Vws.CEC.Library do
   defp all_versions(lib) do
     with {:ok, dir} <- dir(lib) do
       case Files.ls(dir) do
-        {:ok, files} -> {:ok, files |> Files.parse_files() |> Files.with_digests(dir)}
-        error -> error
+        {:ok, files} ->
+          {:ok,
+           files |> Files.parse_files() |> Files.with_digests(dir) |> Workflow.apply_states(dir)}
+
+        error ->
+          error
       end
     end
   end

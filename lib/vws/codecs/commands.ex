@@ -23,7 +23,8 @@ defmodule Vws.Codecs.Commands do
       `{:trans, name, [x, y, z, 90.0, -90.0, t]}`
     * monarch: `:cycle_start`, `:release_table`, `:status`, `:download_hp`,
       `{:download_hp, crc}` (ours, issue 24: the whole-program check), `:download_ge`,
-      `{:download_ge, "NNNNNN.PRO" | "NNNNNN.GSU", :latest | version}`, `:compare_ge`,
+      `{:download_ge, "NNNNNN.PRO" | "NNNNNN.GSU", :latest | version | {:force, version}}`
+      (`DOWNLOAD_GE(nnnnnn.PRO/v/FORCE)`, issue 27: a draft too), `:compare_ge`,
       `{:compare_ge, "NNNNNN.PRO" | "NNNNNN.GSU"}` (the last three ours, issue 18: the library),
       `{:upload_ge, "NNNNNN.PRO" | "NNNNNN.GSU"}`, `:upload_sun`, `{:table, [line]}`,
       `{:program_select, "NNNNNN"}`, `{:program_delete, "NNNNNN.PRO" | "NNNNNN.GSU"}`
@@ -215,6 +216,15 @@ defmodule Vws.Codecs.Commands do
           with {:ok, file} <- program_file(file) do
             case Integer.parse(v) do
               {n, ""} when n in 1..999_999 -> {:ok, {:download_ge, file, n}}
+              _ -> {:error, "BAD VERSION #{v}"}
+            end
+          end
+
+        # ours (issue 27): a version sent whatever its workflow state, draft included
+        [file, v, "FORCE"] ->
+          with {:ok, file} <- program_file(file) do
+            case Integer.parse(v) do
+              {n, ""} when n in 1..999_999 -> {:ok, {:download_ge, file, {:force, n}}}
               _ -> {:error, "BAD VERSION #{v}"}
             end
           end

@@ -105,6 +105,7 @@ defmodule Vws.Partitions.Monarch do
   alias Vws.Links.DNC.{Frame, LinkError, Program, Report}
   alias Vws.Links.DNC.Frame.Command
   alias Vws.CEC.{Interlock, Mailbox}
+  alias Vws.Partitions.Monarch.Transfers
 
   @monarch_location 8
   @tli_location 6
@@ -125,6 +126,12 @@ defmodule Vws.Partitions.Monarch do
   @impl true
   def execute(command, ctx)
 
+  # every transfer a command makes is recorded at its end, with its result (issue 27: the one
+  # home of the transfer history, Vws.Partitions.Monarch.Transfers); then the command runs
+  def execute(command, ctx) when not is_map_key(ctx, :transfers) do
+    Transfers.command(ctx, fn -> execute(command, Map.put(ctx, :transfers, :recorded)) end)
+  end
+
   def execute(command, _ctx) when command in [:download_hp, :upload_sun],
     do: {:error, "#{command |> to_string() |> String.upcase()} IS CARRIED OUT BY SUN_COMM"}
 
@@ -140,7 +147,7 @@ defmodule Vws.Partitions.Monarch do
   end
 
   def execute({:download_ge, file, which}, ctx) do
-    with {:ok, text} <- library_program(ctx.workstation, file, which),
+    with {:ok, text} <- library_program(ctx.workstation, file, which, :to_send),
          :ok <- Program.check_size(text),
          :ok <- if(Program.complete?(text), do: :ok, else: {:error, "#{file} HAS NO CLOSING %"}),
          :ok <-
@@ -172,17 +179,22 @@ defmodule Vws.Partitions.Monarch do
     with {:ok, versions} <- library_versions(ctx.workstation, file),
          {:ok, entries} <- directory(ctx) do
       case Vws.CEC.Library.on_machine(versions, Map.get(entries, file)) do
+        # nothing to read back: said in words, nothing sent
         :absent ->
           {:error, "PROGRAM ABSENT #{file}"}
 
-        :differs ->
-          {:error, "PROGRAM DIFFERS #{file}"}
-
-        _same_or_ambiguous ->
+        # the same, ambiguous, or different: read back, and a difference said line by line
+        _ ->
           case read_back(ctx, file, versions) do
-            {:same, _n} -> :done
-            :differs -> {:error, "PROGRAM DIFFERS #{file}"}
-            {:error, _} = error -> error
+            {:same, n} ->
+              Transfers.note("same as v#{n}")
+              :done
+
+            :differs ->
+              differs(ctx.workstation, file)
+
+            {:error, _} = error ->
+              error
           end
       end
     end
@@ -341,11 +353,38 @@ defmodule Vws.Partitions.Monarch do
     end
   end
 
+  # What differs, in a status the WC can take (94 characters at most): the line counts and
+  # the first line; the whole line diff is the history's note's and `mix vws.library diff
+  # --machine`'s (docs/program-library.md "Line diff").
+  defp differs(ws, file) do
+    case Vws.CEC.Library.diff_machine(ws, file) do
+      {:ok, %{version: v, summary: %{removed: 0, added: 0}}} ->
+        Transfers.note("differs from v#{v.version} in its bytes, not its lines")
+        {:error, "PROGRAM DIFFERS #{file} FROM V#{v.version} IN BYTES NOT LINES"}
+
+      {:ok, %{version: v, summary: %{removed: r, added: a, first_line: l}}} ->
+        Transfers.note(
+          "differs from v#{v.version}: #{r} lines removed, #{a} added, first at line #{l}"
+        )
+
+        {:error, "PROGRAM DIFFERS #{file} FROM V#{v.version} LINES -#{r} +#{a} AT LINE #{l}"}
+
+      _ ->
+        {:error, "PROGRAM DIFFERS #{file}"}
+    end
+  end
+
   # RNS → every byte of the file: `{:same, n}` for the version of the library that holds exactly
   # these bytes (the same SHA-256 digest, and its file reads whole), else `:differs`.
   defp read_back(ctx, file, versions) do
     with {:ok, blocks} <- request(ctx, :receive, :part_program, file, []) do
-      digest = Vws.CEC.Library.digest(IO.iodata_to_binary(blocks))
+      bytes = IO.iodata_to_binary(blocks)
+      digest = Vws.CEC.Library.digest(bytes)
+
+      # what the machine holds, kept for the line diff (Library.diff_machine/3)
+      with {:error, reason} <- Vws.CEC.Library.record_read_back(ctx.workstation, file, bytes) do
+        Logger.error("program library: the read-back of #{file} not kept: #{inspect(reason)}")
+      end
 
       case Vws.CEC.Library.same_as(versions, digest) do
         {:ok, v} ->
@@ -358,10 +397,22 @@ defmodule Vws.Partitions.Monarch do
     end
   end
 
-  defp library_program(ws, file, which) do
+  defp library_program(ws, file, which, purpose \\ :to_compare)
+
+  # DOWNLOAD_GE(nnnnnn.PRO/v/FORCE): version v whatever its workflow state (issue 27)
+  defp library_program(ws, file, {:force, n}, _purpose), do: library_program(ws, file, n)
+
+  defp library_program(ws, file, which, purpose) do
     case Vws.CEC.Library.read(ws, file, which) do
-      {:ok, text, _version} -> {:ok, text}
-      {:error, reason} -> {:error, library_error(file, which, reason)}
+      # only released versions go to a machine unless the command says FORCE
+      {:ok, _text, %{released: false}} when purpose == :to_send ->
+        {:error, "#{file} VERSION #{which} NOT RELEASED"}
+
+      {:ok, text, _version} ->
+        {:ok, text}
+
+      {:error, reason} ->
+        {:error, library_error(file, which, reason)}
     end
   end
 
@@ -377,6 +428,7 @@ defmodule Vws.Partitions.Monarch do
   defp library_error(file, :latest, :not_released), do: "#{file} HAS NO RELEASED VERSION"
   defp library_error(file, n, :not_found), do: "#{file} VERSION #{n} NOT IN LIBRARY"
   defp library_error(file, _which, :damaged), do: "LIBRARY FILE OF #{file} DAMAGED"
+  defp library_error(file, n, :deleted), do: "#{file} VERSION #{n} DELETED"
 
   defp library_error(file, _which, reason),
     do: "#{file} NOT READ FROM LIBRARY #{words(reason)}"
@@ -470,17 +522,20 @@ defmodule Vws.Partitions.Monarch do
   `store_from_machine/3`, which keeps it in the program library as a version from the machine,
   not released — and counted (`[:vws, :monarch, :program_received]`, `from: :machine`); anything
   else is refused and logged. This is the one place a received program is handed over. It never
-  touches NC_UP: that is what the WC's `UPLOAD_GE` brought, and only that.
+  touches NC_UP: that is what the WC's `UPLOAD_GE` brought, and only that. Recorded in the
+  transfer history (`Vws.Partitions.Monarch.Transfers.received/5`; `blocks`, the text blocks it
+  came in), whatever became of it.
   """
   @spec received_program(
           Mailbox.workstation(),
           String.t(),
           binary,
           (term, String.t(), [binary] ->
-             :ok | {:error, term})
+             :ok | {:error, term}),
+          non_neg_integer
         ) ::
           :ok | {:error, String.t()}
-  def received_program(ws, name, text, store \\ &store_from_machine/3) do
+  def received_program(ws, name, text, store \\ &store_from_machine/3, blocks \\ 0) do
     lines = Program.from_text(text)
 
     result =
@@ -498,11 +553,15 @@ defmodule Vws.Partitions.Monarch do
       result: if(result == :ok, do: :ok, else: :error)
     })
 
-    case result do
-      :ok -> :ok
-      {:error, reason} when is_binary(reason) -> {:error, reason}
-      {:error, reason} -> {:error, "NOT STORED #{Vws.Codecs.WC.Words.of(reason)}"}
-    end
+    result =
+      case result do
+        :ok -> :ok
+        {:error, reason} when is_binary(reason) -> {:error, reason}
+        {:error, reason} -> {:error, "NOT STORED #{Vws.Codecs.WC.Words.of(reason)}"}
+      end
+
+    Transfers.received(ws, name, text, blocks, result)
+    result
   end
 
   @doc """
@@ -585,7 +644,10 @@ defmodule Vws.Partitions.Monarch do
     }
 
     timeout = Keyword.get(ctx.options, :request_timeout, :infinity)
-    send_request(ctx, command, blocks, timeout, @request_tries)
+
+    Transfers.carried(ctx, command, blocks, fn ->
+      send_request(ctx, command, blocks, timeout, @request_tries)
+    end)
   end
 
   # A transmission the line broke off left nothing behind (a DNC receiver never keeps part of
@@ -606,6 +668,7 @@ defmodule Vws.Partitions.Monarch do
           reason: reason
         })
 
+        Transfers.again()
         send_request(ctx, command, blocks, timeout, tries - 1)
 
       {:error, %LinkError{} = e} ->

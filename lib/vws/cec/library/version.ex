@@ -36,14 +36,18 @@ defmodule Vws.CEC.Library.Version do
   @spec digest(binary) :: String.t()
   def digest(bytes), do: :crypto.hash(:sha256, bytes) |> Base.encode16(case: :lower)
 
-  @doc "False for a version from the machine (`Vws.CEC.Library.released?/1`)."
+  @doc """
+  Whether a version is released (`Vws.CEC.Library.released?/1`): its `released` field once the
+  workflow's state is applied (`Vws.CEC.Library.Workflow`), else false only for one from the machine.
+  """
   @spec released?(map) :: boolean
+  def released?(%{released: released}) when is_boolean(released), do: released
   def released?(%{source: source}), do: source != @from_machine
 
   @doc "A version with its `origin` and `released` as its source says."
   @spec with_origin(map) :: t
   def with_origin(v) do
-    released = released?(v)
+    released = released?(Map.delete(v, :released))
     Map.merge(v, %{origin: if(released, do: :library, else: :machine), released: released})
   end
 

@@ -62,7 +62,7 @@ defmodule Vws.Partitions.Monarch.Monitor do
     name = String.trim(command.text)
     text = IO.iodata_to_binary(blocks)
 
-    case Monarch.received_program(ws, name, text, store) do
+    case Monarch.received_program(ws, name, text, store, length(blocks)) do
       :ok -> :ok
       {:error, reason} -> Logger.warning("MONARCH: program #{name} from the machine: #{reason}")
     end

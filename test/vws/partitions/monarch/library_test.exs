@@ -158,7 +158,10 @@ defmodule Vws.Partitions.Monarch.LibraryTest do
 
     # from the WC: COMPARE_GE(name) reads the program back whole
     assert monarch(peer, 1, "COMPARE_GE(000001.PRO)") == "DONE"
-    assert monarch(peer, 2, "COMPARE_GE(000002.PRO)") == "ERROR PROGRAM DIFFERS 000002.PRO"
+    # read back, and what differs said in lines (issue 27)
+    assert monarch(peer, 2, "COMPARE_GE(000002.PRO)") ==
+             "ERROR PROGRAM DIFFERS 000002.PRO FROM V1 LINES -1 +1 AT LINE 3"
+
     assert monarch(peer, 3, "COMPARE_GE(000003.PRO)") == "ERROR PROGRAM ABSENT 000003.PRO"
     assert monarch(peer, 4, "COMPARE_GE(000008.PRO)") == "ERROR 000008.PRO NOT IN LIBRARY"
     assert monarch(peer, 5, "COMPARE_GE") == "DONE"
@@ -172,7 +175,9 @@ defmodule Vws.Partitions.Monarch.LibraryTest do
     assert hd(c.programs).on_machine == {:same, 1}
     {:ok, c} = Monarch.compare(ws, read_back: ["000001.PRO"])
     assert %{on_machine: :differs, read_back: :differs} = hd(c.programs)
-    assert monarch(peer, 6, "COMPARE_GE(000001.PRO)") == "ERROR PROGRAM DIFFERS 000001.PRO"
+
+    assert monarch(peer, 6, "COMPARE_GE(000001.PRO)") ==
+             "ERROR PROGRAM DIFFERS 000001.PRO FROM V1 LINES -1 +1 AT LINE 3"
   end
 
   # "%\nO1\nN10 Xd.dddddd\n%\n" text of the same length and CRC-16/ARC as `text`
@@ -234,7 +239,12 @@ defmodule Vws.Partitions.Monarch.LibraryTest do
              "ERROR 000100.PRO HAS NO RELEASED VERSION"
 
     assert GE2000.program(sim, "000100.PRO") == "%\nO100\n%\n"
-    assert monarch(peer, 3, "DOWNLOAD_GE(000100.PRO/1)") == "DONE"
+    # a draft goes to a machine only when the command says FORCE (issue 27)
+    assert monarch(peer, 2, "DOWNLOAD_GE(000100.PRO/1)") ==
+             "ERROR 000100.PRO VERSION 1 NOT RELEASED"
+
+    assert GE2000.program(sim, "000100.PRO") == "%\nO100\n%\n"
+    assert monarch(peer, 3, "DOWNLOAD_GE(000100.PRO/1/FORCE)") == "DONE"
     assert GE2000.program(sim, "000100.PRO") == text
   end
 
@@ -266,7 +276,7 @@ defmodule Vws.Partitions.Monarch.LibraryTest do
 
     assert monarch(peer, 1, "DOWNLOAD_GE(004321.PRO)") == "DONE"
     assert GE2000.program(sim, "004321.PRO") == released
-    assert monarch(peer, 2, "DOWNLOAD_GE(004321.PRO/2)") == "DONE"
+    assert monarch(peer, 2, "DOWNLOAD_GE(004321.PRO/2/FORCE)") == "DONE"
     assert GE2000.program(sim, "004321.PRO") == edited
     # the directory shows the machine holds v2, which came from the machine
     {:ok, c} = Library.compare(ws)
@@ -306,6 +316,8 @@ defmodule Vws.Partitions.Monarch.LibraryTest do
     GE2000.put_program(sim, "000077.PRO", c)
     {:ok, %{programs: [row]}} = Monarch.compare(ws)
     assert {row.on_machine, row.read_back} == {:differs, :differs}
-    assert monarch(peer, 3, "COMPARE_GE(000077.PRO)") == "ERROR PROGRAM DIFFERS 000077.PRO"
+
+    assert monarch(peer, 3, "COMPARE_GE(000077.PRO)") =~
+             ~r/^ERROR PROGRAM DIFFERS 000077.PRO FROM V2 LINES -\d+ \+\d+ AT LINE \d+$/
   end
 end
