@@ -257,10 +257,14 @@ defmodule Vws.Partitions.Monarch.Transfers do
 
   defp requester(_ctx), do: "iex"
 
-  # NAKs, ENQs and copies the link made (Vws.Links.DNC.info/1's counters)
+  # Blocks sent again, NAKs sent, and ENQs beyond one bid a transmission (polls for a lost
+  # reply, bids again): from the link's counters (Vws.Links.DNC.info/1), which a status read of
+  # the monitor's between two of MONARCH's requests leaves even
   defp link_retries(ctx) do
     c = Vws.Links.DNC.info(ctx.link).counters
-    Map.get(c, :retransmissions, 0) + Map.get(c, :naks_sent, 0) + Map.get(c, :enqs_sent, 0)
+
+    Map.get(c, :retransmissions, 0) + Map.get(c, :naks_sent, 0) + Map.get(c, :enqs_sent, 0) -
+      Map.get(c, :transmissions, 0)
   catch
     :exit, _ -> 0
   end
