@@ -793,12 +793,17 @@ defmodule Vws.CEC.Library do
   end
 
   @doc """
-  What a version is, in words, for listings: `"released"` or `"from the machine, not
-  released"`.
+  What a version is, in words, for listings: `"released"`, `"from the machine, not
+  released"` or `"draft, not released"`.
   """
   @spec release_text(map) :: String.t()
-  def release_text(v),
-    do: if(released?(v), do: "released", else: "from the machine, not released")
+  def release_text(v) do
+    cond do
+      released?(v) -> "released"
+      v.source == "from the machine" -> "from the machine, not released"
+      true -> "draft, not released"
+    end
+  end
 
   ## Files
 

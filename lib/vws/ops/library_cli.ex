@@ -45,6 +45,13 @@ defmodule Vws.Ops.LibraryCLI do
     source: :string,
     refresh: :boolean,
     endpoint: :string,
+    machine: :boolean,
+    cached: :boolean,
+    draft: :boolean,
+    comment: :string,
+    why: :string,
+    in: :string,
+    limit: :pos_integer,
     help: :boolean
   ]
 
@@ -99,6 +106,14 @@ defmodule Vws.Ops.LibraryCLI do
 
             mark = if marks == [], do: "", else: "  <- " <> Enum.join(marks, ", ")
             IO.puts("  v#{v.version}  #{line(v)}#{mark}")
+            if v[:comment], do: IO.puts("        comment: #{v.comment}")
+          end
+
+          {:ok, tombstones} = Library.tombstones(lib, row.name)
+
+          for t <- tombstones do
+            last = List.last(t.changes)
+            IO.puts("  v#{t.version}  deleted #{last.at} by #{last.by} (#{last.what})")
           end
 
           IO.puts(
@@ -120,7 +135,10 @@ defmodule Vws.Ops.LibraryCLI do
 
   defp run(["import", path], opts, lib) do
     store_opts =
-      [source: opts[:source] || "cli"] ++ if(opts[:name], do: [name: opts[:name]], else: [])
+      [source: opts[:source] || "cli"] ++
+        if(opts[:name], do: [name: opts[:name]], else: []) ++
+        if(opts[:draft], do: [state: :draft], else: []) ++
+        if(opts[:comment], do: [comment: opts[:comment]], else: [])
 
     case Library.import_file(lib, path, store_opts) do
       {:ok, v} ->
@@ -145,6 +163,13 @@ defmodule Vws.Ops.LibraryCLI do
       error ->
         result(error, name)
     end
+  end
+
+  # the library's version against what the machine holds, read back (COMPARE_GE as its WC)
+  defp run(["diff", name], opts, lib) do
+    if opts[:machine],
+      do: diff_machine(name, opts, lib),
+      else: usage_error("diff NAME needs V1 [V2], or --machine")
   end
 
   defp run(["diff", name, a | b], _opts, lib) when length(b) <= 1 do
@@ -174,13 +199,68 @@ defmodule Vws.Ops.LibraryCLI do
     |> result(name)
   end
 
+  defp run(["unrelease", name, which], opts, lib) do
+    with {:ok, n} <- version_arg(which),
+         {:ok, v} <- Library.unrelease(lib, name, n, source: opts[:source] || "cli") do
+      IO.puts("#{v.name} v#{v.version} is a draft: DOWNLOAD_GE(#{v.name}) no longer sends it")
+      0
+    end
+    |> result(name)
+  end
+
+  defp run(["comment", name, which | words], opts, lib) when words != [] do
+    with {:ok, n} <- version_arg(which),
+         {:ok, v} <-
+           Library.comment(lib, name, n, Enum.join(words, " "), source: opts[:source] || "cli") do
+      IO.puts("#{v.name} v#{v.version}: #{v.comment}")
+      0
+    end
+    |> result(name)
+  end
+
+  defp run(["delete", name, which], opts, lib) do
+    with {:ok, n} <- version_arg(which),
+         {:ok, t} <-
+           Library.delete(lib, name, n, source: opts[:source] || "cli", why: opts[:why]) do
+      IO.puts("deleted #{t.name} v#{t.version} (its tombstone and the history keep it)")
+      0
+    end
+    |> result(name)
+  end
+
+  defp run(["search" | words], opts, lib) when words != [] do
+    where =
+      case opts[:in] do
+        nil -> [:name, :comment, :text]
+        list -> list |> String.split(",", trim: true) |> Enum.map(&search_field/1)
+      end
+
+    with true <- Enum.all?(where, &is_atom/1) || {:error, {:bad_field, opts[:in]}},
+         {:ok, hits} <- Library.search(lib, Enum.join(words, " "), in: where) do
+      for h <- hits do
+        IO.puts(
+          "#{h.name} v#{h.version}  (#{Enum.join(h.matched, ", ")})" <>
+            if(h.line, do: "  #{h.line}", else: "")
+        )
+      end
+
+      if hits == [], do: 1, else: 0
+    end
+    |> result("search")
+  end
+
+  defp run(["history" | name], opts, lib) when length(name) <= 1 do
+    with {:ok, h} <- Library.history(lib, program: List.first(name), limit: opts[:limit]) do
+      lines = LibraryText.format_history(h)
+      if lines == [], do: IO.puts("no transfers recorded"), else: Enum.each(lines, &IO.puts/1)
+      0
+    end
+    |> result(List.first(name, "history"))
+  end
+
   defp run(["compare"], opts, lib) do
     if opts[:refresh] do
-      endpoint = opts[:endpoint] || "tcp://127.0.0.1:7070"
-
-      status =
-        Vws.Peers.WC.CLI.main(["--endpoint", endpoint, "--command", "M COMPARE_GE", "--quiet"])
-
+      status = wc(opts, "M COMPARE_GE", [])
       if status == 0, do: print_compare(lib), else: status
     else
       print_compare(lib)
@@ -188,6 +268,58 @@ defmodule Vws.Ops.LibraryCLI do
   end
 
   defp run(args, _opts, _lib), do: usage_error("unknown command #{Enum.join(args, " ")}")
+
+  # the library's version against what the machine holds, read back (COMPARE_GE as its WC)
+  # (the WC's answer is printed by Vws.Peers.WC.CLI: DONE when the machine holds a version,
+  # ERROR PROGRAM DIFFERS … with the read-back kept, or an ERROR that read nothing back)
+  defp diff_machine(name, opts, lib) do
+    asked_at = System.os_time(:second)
+
+    refreshed =
+      if opts[:cached],
+        do: 0,
+        else: wc(opts, "M COMPARE_GE(#{String.trim(name)})", [])
+
+    case refreshed do
+      status when status in [0, 1] ->
+        with {:ok, which} <- version_arg(to_string(opts[:version] || "latest")),
+             {:ok, d} <- Library.diff_machine(lib, name, which),
+             true <-
+               opts[:cached] || DateTime.to_unix(d.read_at) >= asked_at || {:error, :not_read_now} do
+          v = d.version
+          read = DateTime.to_iso8601(d.read_at)
+
+          case LibraryText.format_diff(d.diff) do
+            [] ->
+              IO.puts("#{v.name}: the machine holds v#{v.version} exactly (read back #{read})")
+
+            lines ->
+              IO.puts(
+                "--- #{v.name} v#{v.version} (library)\n+++ #{v.name} on the machine (read back #{read})"
+              )
+
+              Enum.each(lines, &IO.puts/1)
+          end
+
+          0
+        end
+        |> result(name)
+
+      status ->
+        status
+    end
+  end
+
+  # one command as the WC (Vws.Peers.WC.CLI): its exit status, 0 DONE, 1 ERROR (printed)
+  defp wc(opts, command, _extra) do
+    endpoint = opts[:endpoint] || "tcp://127.0.0.1:7070"
+    Vws.Peers.WC.CLI.main(["--endpoint", endpoint, "--command", command, "--quiet"])
+  end
+
+  defp search_field("name"), do: :name
+  defp search_field("comment"), do: :comment
+  defp search_field("text"), do: :text
+  defp search_field(other), do: other
 
   defp print_compare(lib) do
     case Library.compare(lib) do
@@ -220,6 +352,9 @@ defmodule Vws.Ops.LibraryCLI do
 
   defp result({:error, {:bad_version, text}}, _what), do: usage_error("bad version #{text}")
 
+  defp result({:error, {:bad_field, text}}, _what),
+    do: usage_error("--in #{text}: name, comment, text")
+
   defp result({:error, reason}, what) do
     IO.puts(:stderr, "#{what}: #{reason_text(reason)}")
     1
@@ -235,6 +370,15 @@ defmodule Vws.Ops.LibraryCLI do
     do: "larger than #{Library.max_bytes()} bytes, the most the GE-2000's directory can say"
 
   defp reason_text(:enoent), do: "no such file"
+  defp reason_text(:deleted), do: "that version was deleted (its tombstone: show)"
+
+  defp reason_text(:not_read_back),
+    do: "the machine's copy was never read back (COMPARE_GE, or diff --machine without --cached)"
+
+  defp reason_text(:not_read_now),
+    do: "nothing was read back from the machine (the WC's answer above says why)"
+
+  defp reason_text(:bad_comment), do: "a comment is at most 200 printable characters"
   defp reason_text({:not_a_program, why}), do: LibraryText.program_refusal(why)
   defp reason_text({:not_a_file, type}), do: "not a regular file (#{type})"
   defp reason_text(reason), do: inspect(reason)
@@ -249,10 +393,16 @@ defmodule Vws.Ops.LibraryCLI do
     usage: mix vws.library [--id ID | --library DIR] COMMAND
       list
       show NAME [--version V]
-      import FILE [--name NAME] [--source SOURCE]
+      import FILE [--name NAME] [--source SOURCE] [--draft] [--comment TEXT]
       export NAME FILE [--version V]
       diff NAME V1 [V2]
       release NAME V [--source SOURCE]
+      unrelease NAME V
+      comment NAME V TEXT…
+      delete NAME V [--why TEXT]
+      search TEXT… [--in name,comment,text]
+      history [NAME] [--limit N]
+      diff --machine NAME [--version V] [--endpoint tcp://127.0.0.1:7070] [--cached]
       compare [--refresh [--endpoint tcp://127.0.0.1:7070]]\
     """
   end

@@ -27,9 +27,10 @@ defmodule Vws.Ops.LibraryText do
   def on_machine_text({:same, n}, latest, _) when n == latest, do: "same"
 
   def on_machine_text({:same, n}, _latest, versions) do
-    if Enum.any?(versions, &(&1.version == n and not Library.released?(&1))),
-      do: "same as v#{n} (from the machine, not released)",
-      else: "same as v#{n} (not the latest)"
+    case Enum.find(versions, &(&1.version == n and not Library.released?(&1))) do
+      nil -> "same as v#{n} (not the latest)"
+      v -> "same as v#{n} (#{Library.release_text(v)})"
+    end
   end
 
   def on_machine_text({:ambiguous, ns}, _, _) do
@@ -101,6 +102,39 @@ defmodule Vws.Ops.LibraryText do
     case Library.compare(lib) do
       {:ok, result} -> print_compare(result)
       {:error, reason} -> IO.puts("no library: #{inspect(reason)}")
+    end
+  end
+
+  @doc """
+  The transfer history (`Vws.CEC.Library.history/2`) as text lines, one a transfer, as `mix
+  vws.library history` prints them: when, program and version, direction, what it was, bytes
+  and blocks, duration and rate, retries, result, who asked, what a compare found — then one
+  line for each damaged part that was skipped.
+  """
+  @spec format_history(%{records: [map], damaged: [map]}) :: [String.t()]
+  def format_history(%{records: records, damaged: damaged}) do
+    rows =
+      for r <- records do
+        version = if r.version, do: "v#{r.version}", else: "(no library version)"
+
+        "#{r.at}  #{r.program || "?"} #{version}  #{r.direction}  #{r.command}  " <>
+          "#{r.bytes} bytes #{r.blocks} blocks  #{Float.round(r.duration_ms / 1000, 1)} s " <>
+          "#{r.chars_per_s} B/s  retries #{r.retries}  #{r.result}  by #{r.requester}" <>
+          if(r.note, do: "  — #{r.note}", else: "")
+      end
+
+    rows ++
+      for d <- damaged do
+        "DAMAGED: #{d.file} from byte #{d.offset} (#{d.why}): a record there was skipped"
+      end
+  end
+
+  @doc "Prints the transfer history of `lib` (iex): options as `Vws.CEC.Library.history/2`."
+  @spec print_history(Library.lib(), keyword) :: :ok
+  def print_history(lib, opts \\ []) do
+    case Library.history(lib, opts) do
+      {:ok, h} -> Enum.each(format_history(h), &IO.puts/1)
+      {:error, reason} -> IO.puts("no history: #{inspect(reason)}")
     end
   end
 

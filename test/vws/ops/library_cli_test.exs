@@ -42,4 +42,92 @@ defmodule Vws.Ops.LibraryCLITest do
     assert {1, _} = cli(["--library", dir, "release", "20", "9"])
     assert {2, _} = cli(["--library", dir, "release", "20", "x"])
   end
+
+  @tag :tmp_dir
+  test "the workflow on the command line: import a draft with a comment, release, unrelease, " <>
+         "comment, search, delete with a tombstone, history",
+       %{tmp_dir: dir} do
+    lib = {:dir, dir}
+    {:ok, _} = Library.store(lib, "30", "%\nO30\nN1 G01 X1\n%\n", source: "wc")
+    file = Path.join(dir, "p30.nc")
+    File.write!(file, "%\nO30\nN1 G01 X2 (TRY SPINDLE 900)\n%\n")
+
+    {0, out} = cli(["--library", dir, "import", file, "--draft", "--comment", "try X2"])
+    assert out =~ "stored 000030.PRO v2"
+    assert {:ok, %{version: 1}} = Library.version(lib, "30", :latest)
+
+    {0, out} = cli(["--library", dir, "show", "30"])
+    assert out =~ ~r/v1 .*<- latest released\n/
+    assert out =~ ~r/v2 .*<- draft, not released\n +comment: try X2\n/
+
+    {0, out} = cli(["--library", dir, "search", "spindle"])
+    assert out =~ "000030.PRO v2  (text)  N1 G01 X2 (TRY SPINDLE 900)"
+    {0, out} = cli(["--library", dir, "search", "TRY", "--in", "comment"])
+    assert out == "000030.PRO v2  (comment)\n"
+    {0, out} = cli(["--library", dir, "search", "30", "--in", "name"])
+    assert out =~ "000030.PRO v1  (name)" and out =~ "000030.PRO v2  (name)"
+    {1, ""} = cli(["--library", dir, "search", "nowhere"])
+    {2, _} = cli(["--library", dir, "search", "x", "--in", "colour"])
+
+    # released in place: no new version
+    {0, _} = cli(["--library", dir, "release", "30", "2"])
+    assert {:ok, %{version: 2, released: true, comment: "try X2"}} = Library.version(lib, "30")
+    {0, out} = cli(["--library", dir, "unrelease", "30", "2"])
+    assert out =~ "v2 is a draft"
+    assert {:ok, %{version: 1}} = Library.version(lib, "30")
+    {0, _} = cli(["--library", dir, "comment", "30", "1", "proven", "on", "part", "7"])
+    assert {:ok, %{comment: "proven on part 7"}} = Library.version(lib, "30", 1)
+
+    # deleted: gone from the versions, its number never given again, its tombstone shown
+    {0, out} = cli(["--library", dir, "delete", "30", "2", "--why", "scrapped"])
+    assert out =~ "deleted 000030.PRO v2"
+    assert {:ok, [%{version: 1}]} = Library.versions(lib, "30")
+    assert Library.version(lib, "30", 2) == {:error, :deleted}
+    assert Library.read(lib, "30", 2) == {:error, :deleted}
+    {0, out} = cli(["--library", dir, "show", "30"])
+    assert out =~ ~r/v2  deleted \S+ by cli \(scrapped\)/
+    {1, _} = cli(["--library", dir, "show", "30", "--version", "2"])
+    assert {:ok, %{version: 3}} = Library.store(lib, "30", "%\nO30\nN3\n%\n")
+    assert {:ok, [%{version: 2, deleted: %{source: "cli"}}]} = Library.tombstones(lib, "30")
+
+    # the transfer history names the deleted version still
+    :ok =
+      Library.record_transfer(lib,
+        program: "000030.PRO",
+        version: 2,
+        command: "DOWNLOAD_GE(000030.PRO/2/FORCE)",
+        direction: "to machine",
+        bytes: 30,
+        blocks: 1,
+        result: "DONE",
+        requester: "WC string 0001 M0001"
+      )
+
+    {0, out} = cli(["--library", dir, "history", "30"])
+
+    assert out =~
+             ~r/000030.PRO v2  to machine  DOWNLOAD_GE\(000030.PRO\/2\/FORCE\)  30 bytes 1 blocks .* DONE  by WC string 0001 M0001/
+
+    {0, "no transfers recorded\n"} = cli(["--library", dir, "history", "31"])
+    {1, _} = cli(["--library", dir, "diff", "30", "--machine", "--cached"])
+    {2, _} = cli(["--library", dir, "diff", "30"])
+  end
+
+  @tag :tmp_dir
+  test "a damaged state file makes its version a draft, said loudly", %{tmp_dir: dir} do
+    lib = {:dir, dir}
+    {:ok, _} = Library.store(lib, "40", "%\nO40\nN1\n%\n", source: "wc")
+    {:ok, _} = Library.store(lib, "40", "%\nO40\nN2\n%\n", source: "wc", comment: "ok")
+    path = Vws.CEC.Library.Workflow.path(dir, "000040.PRO", 2)
+    bin = File.read!(path)
+    File.write!(path, binary_part(bin, 0, byte_size(bin) - 20) <> "xxxxxxxxxxxxxxxxxxxx")
+
+    log =
+      ExUnit.CaptureLog.capture_log(fn ->
+        assert {:ok, %{version: 1}} = Library.version(lib, "40", :latest)
+        assert {:ok, %{released: false}} = Library.version(lib, "40", 2)
+      end)
+
+    assert log =~ "the state of 000040.PRO v2 is damaged: taken as a draft"
+  end
 end
