@@ -101,6 +101,11 @@ defmodule Vws.Acceptance.ReleaseTest do
 
     assert {0, out} = library.(["list"])
     assert out =~ ~r/004711\.PRO  v1 of 1 .* cli .* on the machine: same$/m
+    # and the transfer recorded in its history (issue 27)
+    assert {0, out} = library.(["history", "004711.PRO"])
+
+    assert out =~
+             ~r/004711\.PRO v1  to machine  DOWNLOAD_GE\(004711\.PRO\) .* DONE  by WC string 0003 M0001$/m
 
     Acceptance.signal(proc, "TERM")
     status = Acceptance.await_exit(proc, 30_000)

@@ -8,6 +8,8 @@ defmodule Vws.Ops.Inspect do
       iex> Vws.Ops.Inspect.partitions("VWS")          # state, current command, done/errors, restarts
       iex> Vws.Ops.Inspect.links("VWS")               # each device link: state, counters, last error
       iex> Vws.Ops.Inspect.interlocks("VWS")          # who holds the table, the trays, …
+      iex> Vws.Ops.Inspect.transfers("VWS")           # the transfer history (issue 27), newest first
+      iex> Vws.Ops.Inspect.transfers("VWS", program: "4711", limit: 10)
       iex> Vws.Ops.Inspect.watch("VWS", :robot)       # a partition's traffic live, until Enter
       iex> Vws.Ops.Inspect.watch("VWS", :wc, timeout: 10_000)   # the WC dialogue for ten seconds
 
@@ -413,6 +415,13 @@ defmodule Vws.Ops.Inspect do
 
   defp cell_id(id) when is_binary(id), do: id
   defp cell_id(id), do: inspect(id)
+
+  @doc """
+  Prints the transfer history of `ws`'s program library (`Vws.CEC.Library.history/2`: options
+  `:program`, `:limit`), newest first, and any damaged part that was skipped.
+  """
+  @spec transfers(workstation, keyword) :: :ok
+  def transfers(ws, opts \\ []), do: Vws.Ops.LibraryText.print_history(ws, opts)
 
   @doc "Prints the partitions table."
   @spec partitions(workstation) :: :ok

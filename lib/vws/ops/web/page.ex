@@ -277,6 +277,19 @@ defmodule Vws.Ops.Web.Page do
     return d;
   }
 
+  function transferHistory(ws) {
+    const h = ws.library && ws.library.history;
+    if (!h) return el("p", "no program library", "muted");
+    const d = el("div");
+    if (h.damaged) d.appendChild(el("div", h.damaged + " damaged part(s) of the history skipped (see the log)", "bad"));
+    if (h.rows.length === 0) { d.appendChild(el("p", "no transfers recorded yet", "muted")); return d; }
+    d.appendChild(table(["when", "program", "direction", "command", "bytes", "blocks", "s", "B/s", "retries", "result", "by", "found"],
+      h.rows.map(r => [r.at, r.program, r.direction, r.command, {text: r.bytes, cls: "num"}, {text: r.blocks, cls: "num"},
+        {text: r.seconds, cls: "num"}, {text: r.chars_per_s, cls: "num"}, {text: r.retries, cls: "num"},
+        {text: r.result, cls: r.severity === "ok" ? "" : "bad"}, r.requester, r.note]), "transfer-history-" + ws.id));
+    return d;
+  }
+
   function alerts(ws) {
     const log = errors[ws.id] || [];
     const now = Date.now();
@@ -322,6 +335,7 @@ defmodule Vws.Ops.Web.Page do
     const right = el("div");
     right.appendChild(box("NC transfers", transfers(ws)));
     right.appendChild(box("Program library", library(ws)));
+    right.appendChild(box("Transfer history (newest first)", transferHistory(ws)));
     right.appendChild(box("Interlock leases", ws.interlocks.length === 0 ? el("p", "none held", "muted") :
       table(["volume", "holder", "for", "held"], ws.interlocks.map(i => [i.what, i.holder, i.reasons, age(i.age_ms)]), "interlocks-" + ws.id)));
     const hist = (ws.history || []).slice().reverse();

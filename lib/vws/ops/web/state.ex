@@ -265,11 +265,46 @@ defmodule Vws.Ops.Web.State do
               on_machine: words.(p),
               on_machine_class: on_machine_class(p.on_machine)
             }
-          end)
+          end),
+        history: transfer_history(lib)
       }
     else
       false -> nil
       {:error, reason} -> %{error: "could not be read: #{Inspect.words(reason)}"}
+    end
+  end
+
+  @history_rows 10
+
+  # the newest transfers of the library's history (issue 27), and the damaged parts skipped
+  defp transfer_history(lib) do
+    case Vws.CEC.Library.history(lib, limit: @history_rows) do
+      {:ok, %{records: records, damaged: damaged}} ->
+        %{
+          damaged: length(damaged),
+          rows:
+            for r <- records do
+              %{
+                at: r.at,
+                program:
+                  "#{r.program} #{if r.version, do: "v#{r.version}", else: "(not in library)"}",
+                direction: r.direction,
+                command: r.command,
+                bytes: r.bytes,
+                blocks: r.blocks,
+                seconds: Float.round(r.duration_ms / 1000, 1),
+                chars_per_s: r.chars_per_s,
+                retries: r.retries,
+                result: r.result,
+                severity: if(String.starts_with?(r.result, "DONE"), do: "ok", else: "error"),
+                requester: r.requester,
+                note: r.note || ""
+              }
+            end
+        }
+
+      {:error, _} ->
+        %{damaged: 0, rows: []}
     end
   end
 
