@@ -105,14 +105,14 @@ defmodule Vws.Acceptance.LibraryWorkflowTest do
              ~r/004711\.PRO v2  to machine  DOWNLOAD_GE\(004711\.PRO\/2\/FORCE\) .* DONE/
 
     assert Enum.at(lines, 3) =~
-             ~r/004711\.PRO v1  to machine  DOWNLOAD_GE\(004711\.PRO\) \d+ bytes 1 blocks/
+             ~r/004711\.PRO v1  to machine  DOWNLOAD_GE\(004711\.PRO\)  \d+ bytes 1 blocks/
 
     if Vws.Test.Browser.chromium() do
       text = dashboard_text("http://127.0.0.1:#{http}/")
       assert text =~ "Transfer history (newest first)"
 
       assert text =~
-               ~r/004711\.PRO v2 from machine COMPARE_GE\(004711\.PRO\) \d+ \d+ [\d.]+ \d+ 0 DONE WC string \d{4} M\d{4} same as v2/
+               ~r/004711\.PRO v2 from machine COMPARE_GE\(004711\.PRO\) \d+ \d+ \d+ \d+ 0 DONE WC string \d{4} M\d{4} same as v2/
     end
 
     # killed with kill -9, started again on the same data: the history is all there, and grows

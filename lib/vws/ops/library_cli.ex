@@ -275,10 +275,13 @@ defmodule Vws.Ops.LibraryCLI do
   defp diff_machine(name, opts, lib) do
     asked_at = System.os_time(:second)
 
+    # the WC's command names the file as the library does (1234 → 001234.PRO)
     refreshed =
-      if opts[:cached],
-        do: 0,
-        else: wc(opts, "M COMPARE_GE(#{String.trim(name)})", [])
+      case {opts[:cached], Library.name(name)} do
+        {true, _} -> 0
+        {_, {:ok, file}} -> wc(opts, "M COMPARE_GE(#{file})", [])
+        {_, error} -> error
+      end
 
     case refreshed do
       status when status in [0, 1] ->
@@ -304,6 +307,9 @@ defmodule Vws.Ops.LibraryCLI do
           0
         end
         |> result(name)
+
+      {:error, _} = error ->
+        result(error, name)
 
       status ->
         status

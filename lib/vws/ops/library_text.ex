@@ -118,7 +118,7 @@ defmodule Vws.Ops.LibraryText do
         version = if r.version, do: "v#{r.version}", else: "(no library version)"
 
         "#{r.at}  #{r.program || "?"} #{version}  #{r.direction}  #{r.command}  " <>
-          "#{r.bytes} bytes #{r.blocks} blocks  #{Float.round(r.duration_ms / 1000, 1)} s " <>
+          "#{r.bytes} bytes #{r.blocks} blocks  #{r.duration_ms} ms " <>
           "#{r.chars_per_s} B/s  retries #{r.retries}  #{r.result}  by #{r.requester}" <>
           if(r.note, do: "  — #{r.note}", else: "")
       end

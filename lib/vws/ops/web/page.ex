@@ -283,9 +283,9 @@ defmodule Vws.Ops.Web.Page do
     const d = el("div");
     if (h.damaged) d.appendChild(el("div", h.damaged + " damaged part(s) of the history skipped (see the log)", "bad"));
     if (h.rows.length === 0) { d.appendChild(el("p", "no transfers recorded yet", "muted")); return d; }
-    d.appendChild(table(["when", "program", "direction", "command", "bytes", "blocks", "s", "B/s", "retries", "result", "by", "found"],
+    d.appendChild(table(["when", "program", "direction", "command", "bytes", "blocks", "ms", "B/s", "retries", "result", "by", "found"],
       h.rows.map(r => [r.at, r.program, r.direction, r.command, {text: r.bytes, cls: "num"}, {text: r.blocks, cls: "num"},
-        {text: r.seconds, cls: "num"}, {text: r.chars_per_s, cls: "num"}, {text: r.retries, cls: "num"},
+        {text: r.ms, cls: "num"}, {text: r.chars_per_s, cls: "num"}, {text: r.retries, cls: "num"},
         {text: r.result, cls: r.severity === "ok" ? "" : "bad"}, r.requester, r.note]), "transfer-history-" + ws.id));
     return d;
   }

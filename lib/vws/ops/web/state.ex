@@ -292,7 +292,7 @@ defmodule Vws.Ops.Web.State do
                 command: r.command,
                 bytes: r.bytes,
                 blocks: r.blocks,
-                seconds: Float.round(r.duration_ms / 1000, 1),
+                ms: r.duration_ms,
                 chars_per_s: r.chars_per_s,
                 retries: r.retries,
                 result: r.result,
