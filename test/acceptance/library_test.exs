@@ -22,9 +22,7 @@ defmodule Vws.Acceptance.LibraryTest do
 
   # `mix vws.library ARGS` to its end: {exit status, output}
   defp library(data, args) do
-    proc = Acceptance.start(["mix", "vws.library" | args], env: env(data))
-    status = Acceptance.await_exit(proc, 120_000)
-    {status, Acceptance.output(proc)}
+    Acceptance.run(["mix", "vws.library" | args], env: env(data))
   end
 
   defp command(client, text) do

@@ -21,9 +21,7 @@ defmodule Vws.Acceptance.LibraryWorkflowTest do
   defp env(data), do: [{"MIX_ENV", "dev"}, {"VWS_DATA_DIR", data}]
 
   defp library(data, args) do
-    proc = Acceptance.start(["mix", "vws.library" | args], env: env(data))
-    status = Acceptance.await_exit(proc, 120_000)
-    {status, Acceptance.output(proc)}
+    Acceptance.run(["mix", "vws.library" | args], env: env(data))
   end
 
   defp serve(data, wc, http) do
@@ -131,13 +129,11 @@ defmodule Vws.Acceptance.LibraryWorkflowTest do
     assert newest =~ ~r/004711\.PRO v1  to machine  DOWNLOAD_GE\(004711\.PRO\) .* DONE/
   end
 
-  defp dashboard_text(url) do
-    url
-    |> Vws.Test.Browser.dump_dom(3_000)
-    |> String.replace(~r{<script.*?</script>}s, "")
-    |> String.replace(~r{<style.*?</style>}s, "")
-    |> String.replace(~r{<[^>]+>}, " ")
-    |> String.replace("&amp;", "&")
-    |> String.replace(~r/\s+/, " ")
-  end
+  # the dashboard's visible text after 3 s of page time, all whitespace one blank
+  defp dashboard_text(url),
+    do:
+      url
+      |> Vws.Test.Browser.dump_dom(3_000)
+      |> Vws.Test.Browser.text()
+      |> String.replace(~r/\s+/, " ")
 end

@@ -237,6 +237,13 @@ defmodule Vws.Test.Acceptance do
     end
   end
 
+  @doc "Runs a command to its end (`start/2`'s `opts`): `{exit status, output}`."
+  def run(command, opts \\ [], timeout \\ 120_000) do
+    proc = start(command, opts)
+    status = await_exit(proc, timeout)
+    {status, output(proc)}
+  end
+
   @doc "Kills the process and everything in its group (SIGKILL); returns the output. Idempotent."
   def stop(proc) do
     if Process.alive?(proc) do

@@ -40,7 +40,7 @@ defmodule Vws.Partitions.Monarch.Transfers do
   Runs a command (`fun`) with its transfers recorded at its end, with its result. Returns `fun`'s
   result.
   """
-  @spec command(map, (-> result)) :: result when result: var
+  @spec command(map, (() -> result)) :: result when result: var
   def command(ctx, fun) do
     Process.put(@scope, %{requester: requester(ctx), records: []})
 
@@ -61,7 +61,7 @@ defmodule Vws.Partitions.Monarch.Transfers do
   Makes the request `fun` (`{:ok, blocks} | {:error, words}`) for DNC `command` with `blocks` to
   send, and records it when it carries a program (see the moduledoc).
   """
-  @spec carried(map, Vws.Links.DNC.Frame.Command.t(), [binary], (-> result)) :: result
+  @spec carried(map, Vws.Links.DNC.Frame.Command.t(), [binary], (() -> result)) :: result
         when result: var
   def carried(ctx, command, blocks, fun) do
     if program?(command.operation) do
@@ -87,19 +87,18 @@ defmodule Vws.Partitions.Monarch.Transfers do
           _ -> 0
         end
 
-      record =
-        %{
-          program: program_name(command.text, text),
-          bytes: byte_size(text),
-          blocks: count,
-          duration_ms: ms,
-          chars_per_s: if(ms > 0, do: div(byte_size(text) * 1000, ms), else: 0),
-          retries: retries,
-          operation: operation_text(command),
-          direction: if(command.direction == :send, do: "to machine", else: "from machine"),
-          command: Map.get(ctx, :text) || "",
-          text: text
-        }
+      record = %{
+        program: program_name(command.text, text),
+        bytes: byte_size(text),
+        blocks: count,
+        duration_ms: ms,
+        chars_per_s: if(ms > 0, do: div(byte_size(text) * 1000, ms), else: 0),
+        retries: retries,
+        operation: operation_text(command),
+        direction: if(command.direction == :send, do: "to machine", else: "from machine"),
+        command: Map.get(ctx, :text) || "",
+        text: text
+      }
 
       case Process.get(@scope) do
         %{records: records} = scope ->

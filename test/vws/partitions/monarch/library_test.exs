@@ -3,76 +3,32 @@ defmodule Vws.Partitions.Monarch.LibraryTest do
   # MONARCH → DNC link → simulated GE-2000, the library a real directory.
   use ExUnit.Case, async: true
 
-  alias Vws.Links.DNC
-  alias Vws.CEC.Workstation
   alias Vws.CEC.Library
   alias Vws.Partitions.Monarch
   alias Vws.Sim.GE2000
-  alias Vws.Test.WCPeer
+  alias Vws.Test.{MonarchWC, WCPeer}
   import Vws.Test.Eventually
 
-  @link_opts [reply_timeout: 300, wack_delay: 50, backoff_min: 10, backoff_max: 50]
   @lines ["%", "O4711 (LIBRARY)", "N10 G90 G00 X0 Y0", "N20 G01 X10 F300", "N30 M30", "%"]
 
   setup do
-    dir = Path.join(System.tmp_dir!(), "vws-monarch-lib-#{System.unique_integer([:positive])}")
-    on_exit(fn -> File.rm_rf!(dir) end)
-
-    sim = start_supervised!({GE2000, link: @link_opts, cycle_time: 60_000})
-
-    %{ws: ws, wc: wc} =
-      Vws.Test.Workstation.start(
-        devices: [ge2000: [endpoint: GE2000.endpoint(sim), status_interval: nil] ++ @link_opts],
-        library: dir
-      )
-
-    link = Workstation.whereis(ws, :ge2000)
-    assert eventually(fn -> DNC.info(link).state == :idle end)
-    {:ok, peer} = WCPeer.connect(wc)
-    %{ws: ws, peer: peer, sim: sim, dir: dir}
+    MonarchWC.start("vws-monarch-lib")
   end
-
-  defp seq, do: rem(System.unique_integer([:positive]), 10_000)
 
   defp monarch(peer, number, text) do
-    s = seq()
-    WCPeer.send_string(peer, s, [{"M", number, text}])
-    assert Vws.Codecs.WC.Reply.decode(WCPeer.recv_line(peer)) == {:ok, {:ack, s}}
-    finished(peer)
-  end
-
-  # the command's status without its number
-  defp finished(peer) do
-    <<_number::binary-4, status::binary>> =
-      WCPeer.await_status(peer, seq(), "MONARCH_CMD", &(not (&1 =~ "EXECUTING")), 30_000)
-
-    status
-  end
-
-  defp download_hp(peer, number, lines) do
-    s = seq()
-    WCPeer.send_string(peer, s, [{"M", number, "DOWNLOAD_HP"}])
-    assert Vws.Codecs.WC.Reply.decode(WCPeer.recv_line(peer)) == {:ok, {:ack, s}}
-
-    for {line, n} <- Enum.with_index(lines, 1) do
-      WCPeer.send_raw(peer, Vws.Codecs.WC.Reply.encode({:line, n, line}))
-
-      assert Vws.Codecs.WC.Reply.decode(WCPeer.recv_line(peer)) ==
-               {:ok, WCPeer.download_answer(lines, n)}
-    end
-
-    finished(peer)
+    MonarchWC.send_monarch(peer, number, text)
+    MonarchWC.finished(peer)
   end
 
   test "DOWNLOAD_HP stores every program the WC sends as a new version, source wc", %{
     ws: ws,
     peer: peer
   } do
-    assert download_hp(peer, 1, @lines) == "DONE"
+    assert MonarchWC.download_hp(peer, 1, @lines) == "DONE"
     changed = List.replace_at(@lines, 3, "N20 G01 X12 F300")
-    assert download_hp(peer, 2, changed) == "DONE"
+    assert MonarchWC.download_hp(peer, 2, changed) == "DONE"
     # the same program again is not a new version
-    assert download_hp(peer, 3, changed) == "DONE"
+    assert MonarchWC.download_hp(peer, 3, changed) == "DONE"
 
     {:ok, [v1, v2]} = Library.versions(ws, "004711.PRO")
     assert {v1.version, v1.source, v2.version} == {1, "wc", 2}
@@ -114,7 +70,7 @@ defmodule Vws.Partitions.Monarch.LibraryTest do
 
     assert monarch(peer, 5, "DOWNLOAD_GE(../../x)") =~ "ERROR BAD PROGRAM FILE"
 
-    assert download_hp(peer, 6, @lines) == "DONE"
+    assert MonarchWC.download_hp(peer, 6, @lines) == "DONE"
     assert monarch(peer, 7, "DOWNLOAD_GE") == "DONE"
     assert GE2000.program(sim, "004711.PRO") == Vws.Links.DNC.Program.to_text(@lines)
   end
@@ -193,11 +149,11 @@ defmodule Vws.Partitions.Monarch.LibraryTest do
   end
 
   defp upload_sun(peer, number) do
-    s = seq()
+    s = MonarchWC.seq()
     WCPeer.send_string(peer, s, [{"M", number, "UPLOAD_SUN"}])
     assert Vws.Codecs.WC.Reply.decode(WCPeer.recv_line(peer)) == {:ok, {:ack, s}}
     lines = WCPeer.upload_lines(peer)
-    {lines, finished(peer)}
+    {lines, MonarchWC.finished(peer)}
   end
 
   test "a program the operator sends from the machine is a library version from the machine, " <>

@@ -4,14 +4,11 @@ defmodule Vws.Partitions.Monarch.TransferHistoryTest do
   use ExUnit.Case, async: true
 
   alias Vws.CEC.Library
-  alias Vws.CEC.Workstation
-  alias Vws.Links.DNC
   alias Vws.Partitions.Monarch
   alias Vws.Sim.GE2000
-  alias Vws.Test.WCPeer
+  alias Vws.Test.MonarchWC
   import Vws.Test.Eventually
 
-  @link_opts [reply_timeout: 300, wack_delay: 50, backoff_min: 10, backoff_max: 50]
   @nc ["%", "O100 (NC FILE)", "N10 G90 G00 X0 Y0", "N20 G01 X10 F300", "N30 M30", "%"]
   @v1 "%\nO100 (V1)\nN10 G90 G00 X0 Y0\nN20 G01 X10 F300\nN30 M30\n%\n"
   @v2 "%\nO100 (V2 DRAFT)\nN10 G90 G00 X0 Y0\nN20 G01 X12 F300\nN30 M30\n%\n"
@@ -41,51 +38,12 @@ defmodule Vws.Partitions.Monarch.TransferHistoryTest do
   ]
 
   setup do
-    dir = Path.join(System.tmp_dir!(), "vws-history-e2e-#{System.unique_integer([:positive])}")
-    on_exit(fn -> File.rm_rf!(dir) end)
-    sim = start_supervised!({GE2000, link: @link_opts, cycle_time: 60_000})
-
-    %{ws: ws, wc: wc} =
-      Vws.Test.Workstation.start(
-        devices: [ge2000: [endpoint: GE2000.endpoint(sim), status_interval: nil] ++ @link_opts],
-        library: dir
-      )
-
-    link = Workstation.whereis(ws, :ge2000)
-    assert eventually(fn -> DNC.info(link).state == :idle end)
-    {:ok, peer} = WCPeer.connect(wc)
-    %{ws: ws, peer: peer, sim: sim, dir: dir}
+    MonarchWC.start("vws-history-e2e")
   end
-
-  defp seq, do: rem(System.unique_integer([:positive]), 10_000)
 
   defp monarch(peer, number, text) do
-    s = seq()
-    WCPeer.send_string(peer, s, [{"M", number, text}])
-    assert Vws.Codecs.WC.Reply.decode(WCPeer.recv_line(peer)) == {:ok, {:ack, s}}
-    {s, finished(peer)}
-  end
-
-  defp finished(peer) do
-    <<_number::binary-4, status::binary>> =
-      WCPeer.await_status(peer, seq(), "MONARCH_CMD", &(not (&1 =~ "EXECUTING")), 30_000)
-
-    status
-  end
-
-  defp download_hp(peer, number, lines) do
-    s = seq()
-    WCPeer.send_string(peer, s, [{"M", number, "DOWNLOAD_HP"}])
-    assert Vws.Codecs.WC.Reply.decode(WCPeer.recv_line(peer)) == {:ok, {:ack, s}}
-
-    for {line, n} <- Enum.with_index(lines, 1) do
-      WCPeer.send_raw(peer, Vws.Codecs.WC.Reply.encode({:line, n, line}))
-
-      assert Vws.Codecs.WC.Reply.decode(WCPeer.recv_line(peer)) ==
-               {:ok, WCPeer.download_answer(lines, n)}
-    end
-
-    finished(peer)
+    s = MonarchWC.send_monarch(peer, number, text)
+    {s, MonarchWC.finished(peer)}
   end
 
   defp records(ws) do
@@ -136,7 +94,7 @@ defmodule Vws.Partitions.Monarch.TransferHistoryTest do
 
     {:ok, _} = Library.store(ws, "100", @v1, source: "wc")
     {:ok, _} = Library.store(ws, "100", @v2, source: "cli", state: :draft)
-    assert download_hp(peer, 1, @nc) == "DONE"
+    assert MonarchWC.download_hp(peer, 1, @nc) == "DONE"
     watch_transfers(ws)
 
     moved =
