@@ -845,7 +845,9 @@ defmodule Vws.CEC.Library do
               nil -> {:ok, nil}
               p -> name(p)
             end) do
-      %{records: records, damaged: damaged} = History.read(history_dir(dir))
+      # the newest files only, when they are enough
+      newest = if program == nil, do: opts[:limit]
+      %{records: records, damaged: damaged} = History.read(history_dir(dir), newest)
 
       records =
         records

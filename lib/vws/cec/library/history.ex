@@ -196,13 +196,14 @@ defmodule Vws.CEC.Library.History do
   defp rotated(i), do: "transfers.#{i}.log"
 
   @doc """
-  Every record of the history in `dir`, oldest first, with what could not be read:
+  Every record of the history in `dir` (with `newest`, the files holding the newest that many at
+  least), oldest first, with what could not be read:
   `%{records: [record], damaged: [%{file, offset, why}]}` — `why` one of `:bad_header`,
   `:bad_checksum`, `:cut_short`, `:no_end_mark` (the frame's) or `:not_a_record` (a whole
   frame whose contents are not a transfer record). Every damaged part is also logged.
   """
-  @spec read(Path.t()) :: %{records: [record], damaged: [map]}
-  def read(dir) do
+  @spec read(Path.t(), pos_integer | nil) :: %{records: [record], damaged: [map]}
+  def read(dir, newest \\ nil) do
     files =
       case File.ls(dir) do
         {:ok, names} ->
@@ -219,16 +220,22 @@ defmodule Vws.CEC.Library.History do
           []
       end
 
+    # newest file first, until `newest` records are read (all files without it)
     {records, damaged} =
-      Enum.reduce(files, {[], []}, fn file, {records, damaged} ->
-        case File.read(Path.join(dir, file)) do
-          {:ok, bin} ->
-            {r, d} = parse(bin)
-            {records ++ r, damaged ++ Enum.map(d, &Map.put(&1, :file, file))}
+      files
+      |> Enum.reverse()
+      |> Enum.reduce_while({[], []}, fn file, {records, damaged} ->
+        acc =
+          case File.read(Path.join(dir, file)) do
+            {:ok, bin} ->
+              {r, d} = parse(bin)
+              {r ++ records, Enum.map(d, &Map.put(&1, :file, file)) ++ damaged}
 
-          {:error, reason} ->
-            {records, damaged ++ [%{file: file, offset: 0, why: reason}]}
-        end
+            {:error, reason} ->
+              {records, [%{file: file, offset: 0, why: reason} | damaged]}
+          end
+
+        if newest && length(elem(acc, 0)) >= newest, do: {:halt, acc}, else: {:cont, acc}
       end)
 
     for d <- damaged do

@@ -67,6 +67,7 @@ defmodule Vws.Partitions.Monarch.Transfers do
     if program?(command.operation) do
       retries_before = link_retries(ctx)
       Process.put({__MODULE__, :again}, 0)
+      began = DateTime.utc_now() |> DateTime.truncate(:millisecond) |> DateTime.to_iso8601()
       started = System.monotonic_time(:millisecond)
       result = fun.()
       ms = System.monotonic_time(:millisecond) - started
@@ -88,6 +89,7 @@ defmodule Vws.Partitions.Monarch.Transfers do
         end
 
       record = %{
+        at: began,
         program: program_name(command.text, text),
         bytes: byte_size(text),
         blocks: count,

@@ -84,6 +84,11 @@ defmodule Vws.CEC.Library.HistoryTest do
     assert List.last(ids) == 200
     assert ids == Enum.to_list(hd(ids)..200)
     assert length(ids) >= 16
+
+    # the newest n read from the newest files only
+    %{records: newest} = History.read(dir, 3)
+    assert length(newest) < length(records)
+    assert Enum.take(Enum.map(newest, & &1.bytes), -3) == [198, 199, 200]
   end
 
   test "the default bound is documented and one record is far below it" do
