@@ -31,6 +31,29 @@ defmodule Vws.Codecs.CommandsTest do
     assert parse(:robot, "DO FLY") == {:error, :unknown}
   end
 
+  test "DOWNLOAD_GE of a library version, and FORCE for a draft (ours, issues 18 and 27)" do
+    assert parse(:monarch, "DOWNLOAD_GE(004321.PRO)") ==
+             {:ok, {:download_ge, "004321.PRO", :latest}}
+
+    assert parse(:monarch, "DOWNLOAD_GE(004321.PRO/7)") == {:ok, {:download_ge, "004321.PRO", 7}}
+
+    assert parse(:monarch, "DOWNLOAD_GE(004321.PRO/7/FORCE)") ==
+             {:ok, {:download_ge, "004321.PRO", {:force, 7}}}
+
+    assert parse(:monarch, "download_ge(004321.pro/7/force)") ==
+             {:ok, {:download_ge, "004321.PRO", {:force, 7}}}
+
+    # FORCE names a version: never "the latest", never anything else
+    assert parse(:monarch, "DOWNLOAD_GE(004321.PRO/FORCE)") == {:error, "BAD VERSION FORCE"}
+    assert parse(:monarch, "DOWNLOAD_GE(004321.PRO/0/FORCE)") == {:error, "BAD VERSION 0"}
+
+    assert parse(:monarch, "DOWNLOAD_GE(004321.PRO/7/FORCE/X)") ==
+             {:error, "BAD PROGRAM FILE 004321.PRO/7/FORCE/X"}
+
+    assert parse(:monarch, "DOWNLOAD_GE(004321.PRO/7/NOW)") ==
+             {:error, "BAD PROGRAM FILE 004321.PRO/7/NOW"}
+  end
+
   test "the Monarch set of App. I A" do
     assert parse(:monarch, "CYCLE_START") == {:ok, :cycle_start}
     assert parse(:monarch, "UPLOAD_GE(001234.PRO)") == {:ok, {:upload_ge, "001234.PRO"}}
