@@ -383,14 +383,12 @@ defmodule Vws.CEC.Library do
   """
   @spec record_read_back(lib, term, binary) :: :ok | {:error, term}
   def record_read_back(lib, name, bytes) do
-    with {:ok, dir} <- dir(lib), {:ok, name} <- name(name) do
-      machine = Path.join(dir, "machine")
-
-      with :ok <- File.mkdir_p(machine),
-           :ok <-
-             Files.write_whole(Files.tmp_path(machine, name), Path.join(machine, name), bytes),
-           do: Files.sync_dir(machine)
-    end
+    with {:ok, dir} <- dir(lib),
+         {:ok, name} <- name(name),
+         machine = Path.join(dir, "machine"),
+         :ok <- File.mkdir_p(machine),
+         :ok <- Files.write_whole(Files.tmp_path(machine, name), Path.join(machine, name), bytes),
+         do: Files.sync_dir(machine)
   end
 
   @doc """
@@ -408,33 +406,20 @@ defmodule Vws.CEC.Library do
          {:ok, v} <- reference_version(lib, name, which),
          {:ok, text, v} <- read(lib, name, v.version) do
       diff = Diff.lines(text, machine)
-
-      {:ok,
-       %{
-         version: v,
-         read_at: DateTime.from_unix!(mtime),
-         diff: diff,
-         summary: Diff.summary(diff)
-       }}
+      read_at = DateTime.from_unix!(mtime)
+      {:ok, %{version: v, read_at: read_at, diff: diff, summary: Diff.summary(diff)}}
     end
   end
 
   defp not_read_back({:error, :enoent}), do: {:error, :not_read_back}
   defp not_read_back(other), do: other
 
-  @doc """
-  The version a compare of `name` is shown against: `which` when it is a number; else the latest
-  released, or the newest when none is released.
-  """
-  @spec reference_version(lib, term, pos_integer | :latest) :: {:ok, version} | {:error, term}
-  def reference_version(lib, name, :latest) do
-    case version(lib, name, :latest) do
-      {:error, :not_released} -> version(lib, name, :newest)
-      other -> other
-    end
+  # what a compare is shown against: version n; else the latest released, or the newest
+  defp reference_version(lib, name, :latest) do
+    with {:error, :not_released} <- version(lib, name, :latest), do: version(lib, name, :newest)
   end
 
-  def reference_version(lib, name, n), do: version(lib, name, n)
+  defp reference_version(lib, name, n), do: version(lib, name, n)
 
   defp check_source(source) when is_binary(source) do
     if source =~ ~r/^[a-z0-9][a-z0-9 ._-]{0,31}$/, do: :ok, else: {:error, :bad_source}
@@ -872,7 +857,14 @@ defmodule Vws.CEC.Library do
     with {:ok, dir} <- dir(lib), {:ok, files} <- Files.ls(dir) do
       limit = System.os_time(:second) - min_age_s
 
-      for file <- files, Files.tmp?(file) do
+      # (the workflow's state files and the machine's read-backs are written the same way)
+      more =
+        for sub <- [".state", "machine"],
+            {:ok, names} <- [Files.ls(Path.join(dir, sub))],
+            name <- names,
+            do: Path.join(sub, name)
+
+      for file <- files ++ more, Files.tmp?(Path.basename(file)) do
         path = Path.join(dir, file)
 
         case File.stat(path, time: :posix) do

@@ -75,19 +75,22 @@ defmodule Vws.Ops.LibraryText do
             {:error, reason} -> ", read back failed: #{reason}"
           end
 
-        unreleased =
-          for u <- p.versions, not Library.released?(u), latest == nil or u.version > latest do
-            "v#{u.version}"
-          end
+        newer =
+          for u <- p.versions,
+              not Library.released?(u),
+              latest == nil or u.version > latest,
+              do: u
 
-        "#{p.name}  v#{v.version} of #{length(p.versions)}#{if latest, do: "", else: " (from the machine, not released)"}" <>
+        unreleased = Enum.map(newer, &"v#{&1.version}")
+
+        "#{p.name}  v#{v.version} of #{length(p.versions)}#{if latest, do: "", else: " (#{not_released_text(newer)})"}" <>
           "  #{DateTime.to_iso8601(v.at)}  " <>
           "#{v.source}  #{v.size} bytes  CRC #{hex4(v.crc)}  on the machine: " <>
           on_machine_text(p.on_machine, latest, p.versions) <>
           back <>
           if(unreleased == [] or latest == nil,
             do: "",
-            else: "  (newer, from the machine, not released: #{Enum.join(unreleased, ", ")})"
+            else: "  (newer, #{not_released_text(newer)}: #{Enum.join(unreleased, ", ")})"
           )
       end
 
@@ -102,6 +105,24 @@ defmodule Vws.Ops.LibraryText do
     case Library.compare(lib) do
       {:ok, result} -> print_compare(result)
       {:error, reason} -> IO.puts("no library: #{inspect(reason)}")
+    end
+  end
+
+  @doc """
+  How versions that are not released are said: `"from the machine, not released"` (every one
+  was sent from the machine), `"draft, not released"` (none was), else `"not released"`.
+
+      iex> Vws.Ops.LibraryText.not_released_text([%{source: "from the machine"}])
+      "from the machine, not released"
+      iex> Vws.Ops.LibraryText.not_released_text([%{source: "cli"}])
+      "draft, not released"
+  """
+  @spec not_released_text([map]) :: String.t()
+  def not_released_text(versions) do
+    case Enum.uniq(Enum.map(versions, &(&1.source == "from the machine"))) do
+      [true] -> "from the machine, not released"
+      [false] -> "draft, not released"
+      _ -> "not released"
     end
   end
 

@@ -236,24 +236,27 @@ defmodule Vws.Ops.Web.State do
           |> Enum.map(fn p ->
             v = shown.(p)
 
-            unreleased =
+            newer =
               for u <- p.versions,
                   not u.released,
                   p.latest == nil or u.version > p.latest.version,
-                  do: "v#{u.version}"
+                  do: u
+
+            unreleased = Enum.map(newer, &"v#{&1.version}")
+            not_released = Vws.Ops.LibraryText.not_released_text(newer)
 
             %{
               name: p.name,
               versions: length(p.versions),
               latest: v.version,
-              # versions the operator sent from the machine: not released
+              # versions the operator sent from the machine, and drafts: not released
               note:
                 cond do
                   p.latest == nil ->
-                    "from the machine, not released"
+                    not_released
 
                   unreleased != [] ->
-                    "#{Enum.join(unreleased, ", ")} from the machine, not released"
+                    "#{Enum.join(unreleased, ", ")} #{not_released}"
 
                   true ->
                     ""
