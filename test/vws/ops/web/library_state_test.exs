@@ -79,4 +79,53 @@ defmodule Vws.Ops.Web.LibraryStateTest do
     :ets.insert(cache, {key, shown, at - 600_001, 60_000})
     assert %{programs: 2} = Vws.Ops.Web.State.library(lib, cache)
   end
+
+  @tag :tmp_dir
+  test "the transfer history's newest records, drafts said as drafts, damage counted", %{
+    tmp_dir: dir
+  } do
+    lib = {:dir, dir}
+    {:ok, _} = Library.store(lib, "3", "%\nO3\nN1\n%\n", source: "wc")
+    {:ok, _} = Library.store(lib, "3", "%\nO3\nN2\n%\n", source: "cli", state: :draft)
+
+    for i <- 1..12 do
+      :ok =
+        Library.record_transfer(lib,
+          program: "000003.PRO",
+          version: 1,
+          command: "DOWNLOAD_GE(000003.PRO)",
+          direction: "to machine",
+          bytes: i,
+          blocks: 1,
+          duration_ms: 20,
+          chars_per_s: 50,
+          result: if(i == 12, do: "ERROR PROGRAM VERIFY FAILED 000003.PRO", else: "DONE"),
+          requester: "WC string 000#{rem(i, 10)} M0001"
+        )
+    end
+
+    l = Vws.Ops.Web.State.library(lib)
+    assert [%{note: "v2 draft, not released"}] = l.rows
+    %{damaged: 0, rows: rows} = l.history
+    assert length(rows) == 10
+    assert Enum.map(rows, & &1.bytes) == Enum.to_list(12..3//-1)
+
+    assert %{
+             program: "000003.PRO v1",
+             result: "ERROR PROGRAM VERIFY FAILED 000003.PRO",
+             severity: "error",
+             ms: 20
+           } = hd(rows)
+
+    # a damaged record: skipped, counted
+    path = Path.join([dir, "history", "transfers.log"])
+    bin = File.read!(path)
+    <<pre::binary-100, b, post::binary>> = bin
+    File.write!(path, <<pre::binary, Bitwise.bxor(b, 1), post::binary>>)
+
+    ExUnit.CaptureLog.capture_log(fn ->
+      assert %{damaged: 1, rows: rows} = Vws.Ops.Web.State.library(lib).history
+      assert length(rows) == 10
+    end)
+  end
 end
