@@ -457,12 +457,14 @@ defmodule Vws.Partitions.Monarch do
   directory entry has the size and CRC-16 of versions that differ (`{:ambiguous, [n]}`) is
   always read back. `Vws.Ops.LibraryText.print_compare/1` prints the result.
 
-  Options: `:link` (default the workstation's GE-2000 link), `:check`, `:request_timeout`.
+  Options: `:link` (default the workstation's GE-2000 link), `:check`, `:request_timeout`,
+  `:requester` (who asked, for the transfer history: default `"iex"`).
   """
   @spec compare(Mailbox.workstation(), keyword) :: {:ok, map} | {:error, term}
   def compare(ws, opts \\ []) do
     link = Keyword.get_lazy(opts, :link, fn -> Vws.Names.whereis(ws, :ge2000) end)
-    ctx = %{workstation: ws, link: link, options: opts}
+    # (who asked, for the transfer history of its read-backs)
+    ctx = %{workstation: ws, link: link, options: opts, requester: opts[:requester] || "iex"}
 
     with :ok <- if(link, do: :ok, else: {:error, "NO LINK TO GE-2000"}),
          :ok <-

@@ -16,9 +16,11 @@ defmodule Vws.Partitions.Monarch.Transfers do
   result. So a new transfer path is recorded without code of its own as long as its program goes
   through `request/5`.
 
-  Who asked: `ctx.requester` when given; else the WC string that carried the command (`WC
-  string 0042 M0007`, from the last string when it holds that command), else `WC M0007`; a
-  request outside a command, `iex`. A program from the machine: `machine panel`.
+  Who asked: `ctx.requester` when given (`Vws.Partitions.Monarch.compare/2` says `iex`; a path
+  that is no WC command — a request from the machine's panel — names itself there); else the
+  WC string that carried the command (`WC string 0042 M0007`, from the last string when it holds
+  that command), else `WC M0007`; without either, `CEC`. A program sent from the machine:
+  `machine panel`.
 
   Without a program library nothing is recorded (the history lives in the library). A record
   that cannot be written is logged as an error; the command's result stays what it was.
@@ -107,7 +109,7 @@ defmodule Vws.Partitions.Monarch.Transfers do
           Process.put(@scope, %{scope | records: records ++ [record]})
 
         nil ->
-          write(ctx, record, "iex", transfer_result(result))
+          write(ctx, record, requester(ctx), transfer_result(result))
       end
 
       result
@@ -239,7 +241,10 @@ defmodule Vws.Partitions.Monarch.Transfers do
   defp result_words({:error, words}) when is_binary(words), do: "ERROR " <> words
   defp result_words(other), do: "ERROR " <> Vws.Codecs.WC.Words.of(other)
 
-  # who asked for the command: the WC string that carried it, when the last string holds it
+  # who asked: the caller's word (ctx.requester), else the WC string that carried the command,
+  # when the last string holds it, else the CEC itself
+  defp requester(%{requester: requester}) when is_binary(requester), do: requester
+
   defp requester(%{number: number} = ctx) when is_integer(number) do
     tag = "M" <> Vws.Codecs.WC.Command.pad4(number)
 
@@ -256,7 +261,7 @@ defmodule Vws.Partitions.Monarch.Transfers do
     ArgumentError -> "WC"
   end
 
-  defp requester(_ctx), do: "iex"
+  defp requester(_ctx), do: "CEC"
 
   # Blocks sent again, NAKs sent, and ENQs beyond one bid a transmission (polls for a lost
   # reply, bids again): from the link's counters (Vws.Links.DNC.info/1), which a status read of
