@@ -254,7 +254,8 @@ defmodule Vws.CEC.Journal do
   # The program a reference names, read back from the library: the version must read whole and
   # be the very bytes recorded (its digest), else nothing is restored, loudly.
   defp from_library(ws, path, key, name, version, digest) do
-    case Vws.CEC.Library.read(ws, name, version) do
+    # (a version deleted from the library since still holds the NC file's bytes)
+    case Vws.CEC.Library.read(ws, name, version, deleted: true) do
       {:ok, bytes, %{digest: ^digest}} ->
         Vws.Links.DNC.Program.from_text(bytes)
 

@@ -334,8 +334,10 @@ defmodule Vws.CEC.Library do
 
   @doc """
   Deletes version `n` of `name`, keeping its tombstone (`tombstones/2`: what it was, when and
-  by whom it was deleted, `why`): its bytes are removed, its number is never given again, and
-  the transfer history still names it. `{:ok, tombstone}` or `{:error, reason}`.
+  by whom it was deleted, `why`): it leaves every listing, search, compare and `DOWNLOAD_GE`, its
+  number is never given again, and the transfer history still names it. Its bytes stay on disk
+  (`read/4` with `deleted: true`): the journal may name it as the NC file's program.
+  `{:ok, tombstone}` or `{:error, reason}`.
   """
   @spec delete(lib, term, pos_integer, keyword) :: {:ok, map} | {:error, term}
   def delete(lib, name, n, opts \\ []) do
@@ -346,9 +348,7 @@ defmodule Vws.CEC.Library do
          {:ok, s} <-
            Workflow.change(dir, v, Keyword.get(opts, :source, "iex"), why, fn s ->
              %{s | state: :deleted, deleted: gone}
-           end),
-         :ok <- File.rm(Path.join(dir, v.file)),
-         :ok <- Files.sync_dir(dir) do
+           end) do
       {:ok, Map.merge(s, %{name: v.name, version: v.version})}
     end
   end
@@ -613,17 +613,33 @@ defmodule Vws.CEC.Library do
   @doc """
   The bytes of a version (`:latest` by default, see `version/3`): `{:ok, bytes, version}`;
   `{:error, :damaged}` when the file's size, CRC or SHA-256 digest is not the one it was stored
-  with.
+  with; `{:error, :deleted}` for a deleted version, unless `opts[:deleted]` (what the journal's
+  reference to the NC file's version needs: a deleted version's bytes stay on disk).
   """
-  @spec read(lib, term, pos_integer | :latest | :newest) ::
+  @spec read(lib, term, pos_integer | :latest | :newest, keyword) ::
           {:ok, binary, version} | {:error, term}
-  def read(lib, name, which \\ :latest) do
+  def read(lib, name, which \\ :latest, opts \\ []) do
     with {:ok, dir} <- dir(lib),
-         {:ok, v} <- version(lib, name, which),
+         {:ok, v} <- version_to_read(lib, dir, name, which, opts[:deleted]),
          {:ok, bytes} <- File.read(Path.join(dir, v.file)) do
       if whole?(bytes, v), do: {:ok, bytes, v}, else: {:error, :damaged}
     end
   end
+
+  defp version_to_read(lib, dir, name, n, true) when is_integer(n) do
+    with {:error, :deleted} <- version(lib, name, n),
+         {:ok, name} <- name(name),
+         {:ok, target} <- :file.read_link(Files.number_link(dir, name, n)),
+         [v] <- Files.parse_files([target |> to_string() |> Path.basename()]) do
+      {:ok, Map.merge(hd(Files.with_digests([v], dir)), %{state: :deleted, released: false})}
+    else
+      {:error, _} = error -> error
+      {:ok, v} -> {:ok, v}
+      _ -> {:error, :not_found}
+    end
+  end
+
+  defp version_to_read(lib, _dir, name, which, _deleted), do: version(lib, name, which)
 
   defp whole?(bytes, v) do
     byte_size(bytes) == v.size and Vws.Codecs.CRC16.compute(bytes) == v.crc and

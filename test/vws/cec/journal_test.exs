@@ -144,6 +144,13 @@ defmodule Vws.CEC.JournalTest do
     start_supervised!({Workstation, opts.("library")}, id: id)
     assert Mailbox.nc_file(id) == program
 
+    # that version deleted from the library (issue 27): its bytes stay, the NC file is restored
+    {:ok, _} = Vws.CEC.Library.delete(id, "004711.PRO", v.version)
+    assert Vws.CEC.Library.read(id, "004711.PRO", v.version) == {:error, :deleted}
+    :ok = stop_supervised(id)
+    start_supervised!({Workstation, opts.("library")}, id: id)
+    assert Mailbox.nc_file(id) == program
+
     # a library that does not hold that version: no NC file, in the log
     :ok = stop_supervised(id)
 
