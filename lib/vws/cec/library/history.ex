@@ -21,7 +21,7 @@ defmodule Vws.CEC.Library.History do
   record (a newer version's, or a CRC-32 collision) is skipped and told the same way.
 
   **Bounded** (decision): when the current file would grow past `max_bytes` (default 1 MiB,
-  about 4,000 records) it is renamed `transfers.1.log` (the older ones move up one, the one past
+  about 2,700 records) it is renamed `transfers.1.log` (the older ones move up one, the one past
   `keep`, default 4, is removed) and a new one is begun: at most `(keep + 1) × max_bytes` on disk,
   the newest records always kept. A file whose last bytes are not an end mark (the workstation
   was killed in the middle of an append) is rotated the same way before the next append, so
