@@ -18,14 +18,19 @@ defmodule Vws.Test.DNCWire do
       it (its buffer drains at that rate, giving credit back), default unlimited
     * `:latency_ms` — time a chunk takes on the line (1)
     * `:baud` — when given, a chunk also takes its characters' time at 10 bits a character
+    * `:start_fill` — bytes `:b` buffers before it starts to run (0), as `Vws.Sim.GE2000` does
+    * `:tick_ms` — the machine's step while it runs (default one character's time of `:feed`);
+      `:max_steps` — a run that takes more events than this raises (200 000)
 
   The run goes on until nothing is on the line and no timer is armed (so a receiver that
   waits for an EOT the line lost times out).
 
-  Returns `%{reply, received, blocks, time_ms, starved_ms, max_fill}`: the request's result,
-  what `:b`'s owner was handed (`{:received, command, blocks}` etc.), the blocks `:b` ran (an E
-  reception), the simulated time, the time `:b`'s buffer was empty while an `E` reception was
-  under way after its first block, and the most its buffer held.
+  Returns `%{reply, received, blocks, time_ms, starved_ms, underruns, max_fill, counters}`: the
+  request's result, what `:b`'s owner was handed (`{:received, command, blocks}` etc.), the
+  blocks `:b` ran (an E reception), the simulated time (`drained_ms`: when the machine had run
+  its buffer empty the last time), the time `:b`'s buffer was empty while
+  an `E` reception was under way after its machine started, how often it ran empty so, the most
+  its buffer held, and `:a`'s session counters.
   """
 
   alias Vws.Links.DNC.Session
@@ -57,6 +62,12 @@ defmodule Vws.Test.DNCWire do
       latency: Keyword.get(opts, :latency_ms, 1),
       char_us: if(baud = opts[:baud], do: div(10 * 1_000_000, baud)),
       feed: Keyword.get(opts, :feed),
+      start_fill: Keyword.get(opts, :start_fill, 0),
+      running: false,
+      tick: Keyword.get(opts, :tick_ms),
+      max_steps: Keyword.get(opts, :max_steps, 200_000),
+      underruns: 0,
+      drained_ms: 0,
       reply: nil,
       received: [],
       ran: [],
@@ -78,17 +89,23 @@ defmodule Vws.Test.DNCWire do
       blocks: Enum.reverse(w.ran),
       time_ms: w.now,
       starved_ms: w.starved_ms,
-      max_fill: w.max_fill
+      underruns: w.underruns,
+      drained_ms: w.drained_ms,
+      max_fill: w.max_fill,
+      counters: Session.counters(w.ends.a.s)
     }
   end
 
-  defp loop(%{steps: steps}) when steps > 200_000, do: raise("the wire does not settle")
+  defp loop(%{steps: steps, max_steps: max}) when steps > max,
+    do: raise("the wire does not settle")
 
   defp loop(w) do
     next_line = Enum.min_by(w.line, &{elem(&1, 0), elem(&1, 1)}, fn -> nil end)
     timers = for {who, %{timer: {at, tag}}} <- w.ends, do: {at, who, tag}
     next_timer = Enum.min(timers, fn -> nil end)
-    next_feed = if w.feed && w.fill > 0, do: w.now + max(div(1000, w.feed), 1)
+
+    next_feed =
+      if w.feed && w.fill > 0 && running?(w), do: w.now + (w.tick || max(div(1000, w.feed), 1))
 
     candidates =
       [
@@ -131,20 +148,26 @@ defmodule Vws.Test.DNCWire do
     elapsed = at - w.now
 
     w =
-      if w.streaming and w.fill == 0 and elapsed > 0,
+      if w.streaming and w.running and w.fill == 0 and elapsed > 0,
         do: %{w | starved_ms: w.starved_ms + elapsed},
         else: w
 
-    w = %{w | now: at}
+    w = %{w | now: at, running: w.running or running?(w)}
 
-    if w.feed && w.fill > 0 && elapsed > 0 do
+    if w.feed && w.fill > 0 && w.running && elapsed > 0 do
       ran = min(w.fill, div(w.feed * at, 1000) - div(w.feed * (at - elapsed), 1000))
       b = Session.grant(w.ends.b.s, ran)
-      put_in(%{w | fill: w.fill - ran}.ends.b.s, b)
+      w = put_in(%{w | fill: w.fill - ran}.ends.b.s, b)
+      w = if w.fill == 0, do: %{w | drained_ms: at}, else: w
+      # ran empty while the feed goes on: the machine dwells
+      if w.fill == 0 and w.streaming, do: %{w | underruns: w.underruns + 1}, else: w
     else
       w
     end
   end
+
+  # the machine runs once start_fill bytes are in (or the whole program: the feed ended)
+  defp running?(w), do: w.running or w.fill >= w.start_fill or not w.streaming
 
   defp apply_result(w, who, {s, output, events}) do
     old = w.ends[who].s.state
@@ -205,7 +228,7 @@ defmodule Vws.Test.DNCWire do
   end
 
   defp event(w, :b, {:notify, {:received, _, _} = msg}),
-    do: %{w | received: [msg | w.received], streaming: false}
+    do: %{w | received: [msg | w.received], streaming: false, running: false}
 
   defp event(w, :b, {:notify, msg}), do: %{w | received: [msg | w.received]}
   defp event(w, _who, _other), do: w

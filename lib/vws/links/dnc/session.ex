@@ -41,7 +41,7 @@ defmodule Vws.Links.DNC.Session do
   @doc false
   def telemetry_prefix, do: @telemetry_prefix
 
-  alias Vws.Links.DNC.{Frame, LinkError, Transfer}
+  alias Vws.Links.DNC.{Frame, LinkError, Pace, Transfer}
   alias Vws.Links.DNC.Frame.{Command, Text}
 
   @counters [
@@ -295,6 +295,8 @@ defmodule Vws.Links.DNC.Session do
       ack == expected_ack(block) ->
         text = tx.text_acked + elem(tx.sizes, block - 1)
         sent = tx.bytes_acked + IO.iodata_length(elem(tx.frames, block - 1))
+        # room again after a WACK: what the machine ran since the last time (Pace)
+        pace = if tx.wacked, do: Pace.released(tx.pace, ms(now), text), else: tx.pace
 
         tx = %{
           tx
@@ -306,7 +308,8 @@ defmodule Vws.Links.DNC.Session do
             wacks: 0,
             polled: false,
             confirm: nil,
-            wacked: false
+            wacked: false,
+            pace: pace
         }
 
         send_next(%{s | tx: tx}, now)
@@ -338,8 +341,8 @@ defmodule Vws.Links.DNC.Session do
       s = send_control(s, :eot)
       %{fail(s, :wack_limit, tx.acked + 1, wacks, now) | state: :idle}
     else
-      s = %{s | tx: %{s.tx | wacks: wacks, wacked: true}}
-      state_timeout(s, s.limits.wack_delay, :poll_after_wack)
+      {tx, ms} = pause(s, %{s.tx | wacks: wacks, wacked: true}, tx.wacked)
+      state_timeout(%{s | tx: tx}, ms, :poll_after_wack)
     end
   end
 
@@ -548,6 +551,16 @@ defmodule Vws.Links.DNC.Session do
 
   defp drip_feed?(%{req: %{command: %Command{operation: :download_execute}}}), do: true
   defp drip_feed?(_s), do: false
+
+  # After a WACK, ENQ at the machine's pace in a drip feed (Pace), else after wack_delay.
+  defp pause(s, tx, again?) do
+    if drip_feed?(s) do
+      {pace, ms} = Pace.wait(tx.pace, again?, s.limits)
+      {%{tx | pace: pace}, ms}
+    else
+      {tx, s.limits.wack_delay}
+    end
+  end
 
   # Our EOT is sent: a request of direction S is done; one of direction R turns the line round.
   defp finish_tx(%{tx: tx} = s, now) do

@@ -50,6 +50,8 @@ defmodule Vws.Links.DNC.Transfer do
       polled: false,
       confirm: nil,
       wacked: false,
+      # when to ask again after a WACK (a drip feed's, Vws.Links.DNC.Pace)
+      pace: Vws.Links.DNC.Pace.new(),
       retries: 0,
       pauses: 0,
       started: now,

@@ -272,6 +272,34 @@ defmodule Vws.Links.DNC.SessionTest do
       assert r.starved_ms < 100
     end
 
+    # issue 27 item 5: the ENQ after a WACK comes at the machine's pace (Vws.Links.DNC.Pace),
+    # not after a fixed wack_delay: with a buffer holding less than wack_delay of the feed, the
+    # fixed wait ran it dry at every pause
+    for {feed, buffer} <- [{100, 1_024}, {400, 1_024}, {240, 2_048}, {400, 8_192}] do
+      test "paced by the machine (#{feed} bytes/s, #{buffer}-byte buffer): never dry, no block skipped or repeated, ≥ 95 % of its rate" do
+        blocks = blocks(program(300, 11))
+        total = blocks |> Enum.map(&byte_size/1) |> Enum.sum()
+
+        r =
+          DNCWire.run(
+            command: @sce,
+            blocks: blocks,
+            receive_buffer: unquote(buffer),
+            start_fill: div(unquote(buffer), 2),
+            feed: unquote(feed),
+            baud: 4800,
+            tick_ms: 20,
+            max_steps: 1_000_000
+          )
+
+        assert r.reply == {:ok, []}
+        assert r.blocks == blocks
+        assert r.underruns == 0
+        assert r.max_fill <= unquote(buffer)
+        assert total * 1000 / r.drained_ms >= 0.95 * unquote(feed)
+      end
+    end
+
     test "a WACK outside an E transmission still counts against max_wacks" do
       s = Session.new(limits: DNCWire.limits()) |> Session.connected()
       {s, _, _} = Session.request(s, @scs, ["N1\n"], 0)
