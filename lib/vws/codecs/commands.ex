@@ -26,6 +26,8 @@ defmodule Vws.Codecs.Commands do
       `{:download_ge, "NNNNNN.PRO" | "NNNNNN.GSU", :latest | version | {:force, version}}`
       (`DOWNLOAD_GE(nnnnnn.PRO/v/FORCE)`, issue 27: a draft too), `:compare_ge`,
       `{:compare_ge, "NNNNNN.PRO" | "NNNNNN.GSU"}` (the last three ours, issue 18: the library),
+      `{:drip_feed, "NNNNNN.PRO", :latest | version, line}` (ours, issue 27: `DRIP_FEED(nnnnnn.PRO[/v][/Nk])`,
+      a library program drip-fed from line k, 1 its first),
       `{:upload_ge, "NNNNNN.PRO" | "NNNNNN.GSU"}`, `:upload_sun`, `{:table, [line]}`,
       `{:program_select, "NNNNNN"}`, `{:program_delete, "NNNNNN.PRO" | "NNNNNN.GSU"}`
     * gripper: `:open`, `:close`, `{:rotate, 0 | 90 | 180 | 270}`
@@ -235,6 +237,28 @@ defmodule Vws.Codecs.Commands do
     end
   end
 
+  # ours (issue 27): a program of the library drip-fed, its latest released version or version
+  # v, from its first line or restarted at line k (`/Nk`, the modal state restored)
+  defp do_parse(:monarch, "DRIP_FEED" <> arg) do
+    with {:ok, inner} <- parenthesised(arg) do
+      case String.split(inner, "/") do
+        [file | rest] when length(rest) <= 2 ->
+          with {:ok, file} <- program_file(file),
+               :ok <-
+                 if(String.ends_with?(file, ".PRO"),
+                   do: :ok,
+                   else: {:error, "BAD PROGRAM FILE #{file}"}
+                 ),
+               {:ok, which, line} <- drip_from(rest) do
+            {:ok, {:drip_feed, file, which, line}}
+          end
+
+        _ ->
+          {:error, "BAD PROGRAM FILE #{inner}"}
+      end
+    end
+  end
+
   defp do_parse(:monarch, "COMPARE_GE"), do: {:ok, :compare_ge}
 
   defp do_parse(:monarch, "COMPARE_GE" <> arg) do
@@ -347,6 +371,38 @@ defmodule Vws.Codecs.Commands do
     case Float.parse(text) do
       {v, ""} -> {:ok, v}
       _ -> :error
+    end
+  end
+
+  defp drip_from([]), do: {:ok, :latest, 1}
+  defp drip_from(["N" <> k]), do: with({:ok, k} <- restart_line(k), do: {:ok, :latest, k})
+
+  defp drip_from([v | line]) do
+    case {Integer.parse(v), line} do
+      {{n, ""}, []} when n in 1..999_999 ->
+        {:ok, n, 1}
+
+      {{n, ""}, ["N" <> k]} when n in 1..999_999 ->
+        with({:ok, k} <- restart_line(k), do: {:ok, n, k})
+
+      {{n, ""}, [other]} when n in 1..999_999 ->
+        {:error, "BAD RESTART LINE " <> Vws.Codecs.WC.Words.of(other)}
+
+      _ ->
+        {:error, "BAD VERSION #{v}"}
+    end
+  end
+
+  defp restart_line(k) do
+    case Integer.parse(k) do
+      {n, ""} when n in 1..9_999_999 ->
+        {:ok, n}
+
+      _ ->
+        {:error,
+         String.trim_trailing(
+           "BAD RESTART LINE N" <> if(k == "", do: "", else: Vws.Codecs.WC.Words.of(k))
+         )}
     end
   end
 

@@ -20,6 +20,7 @@ defmodule Vws.Partitions.Monarch do
   | command | on the link | result |
   |---------|-------------|--------|
   | `DOWNLOAD_GE(nnnnnn.PRO)` / `DOWNLOAD_GE(nnnnnn.PRO/v)` | `SCS`/`SNS` with the file name as command text + the program, then `RNL`, `RNF` | the library's latest released version (or version v, whatever its origin) filed under that name, verified like DOWNLOAD_GE; `ERROR nnnnnn.PRO HAS NO RELEASED VERSION` when every version came from the machine |
+  | `DRIP_FEED(nnnnnn.PRO[/v][/Nk])` | `SCE` + the program from line k, then `RNL` | drip feed of the library's latest released version (or version v) — no copy through the WC link — restarted at line k with the modal state of the lines before it restored (`restart/4`, `Vws.Codecs.NCModal`; logged before it is sent); `ERROR RESTART LINE k BEYOND THE END …`, `… INSIDE A CANNED CYCLE …` send nothing |
   | `COMPARE_GE` | `RNF` | the machine's directory recorded in the library: each program `same`/`differs`/`absent` |
   | `COMPARE_GE(nnnnnn.PRO)` | `RNF`, then `RNS` + file name | DONE only when the machine holds exactly a version of the program, every byte read back (its SHA-256 digest that of a version); else `ERROR PROGRAM ABSENT nnnnnn.PRO`, `ERROR PROGRAM DIFFERS nnnnnn.PRO` |
 
@@ -167,6 +168,19 @@ defmodule Vws.Partitions.Monarch do
     with {:ok, file, text} <- nc_file_program(ctx.workstation),
          :ok <- send_program(ctx, :download_execute, file, text, "DRIP FEED OF #{file} FAILED"),
          do: :done
+  end
+
+  # Ours (issue 27): a library program drip-fed — no copy through the WC link — from its first
+  # line or restarted at line k with the modal state of the lines before it restored
+  # (Vws.Codecs.NCModal); the restored preamble is logged before a byte is sent.
+  def execute({:drip_feed, file, which, line}, ctx) do
+    with {:ok, lines, version, preamble} <- restart(ctx.workstation, file, which, line) do
+      if line > 1, do: log_restart(ctx.workstation, file, version, line, preamble)
+      text = Program.to_text(lines)
+
+      with :ok <- send_program(ctx, :download_execute, file, text, "DRIP FEED OF #{file} FAILED"),
+           do: :done
+    end
   end
 
   def execute(:compare_ge, ctx) do
@@ -413,6 +427,48 @@ defmodule Vws.Partitions.Monarch do
 
       {:error, reason} ->
         {:error, library_error(file, which, reason)}
+    end
+  end
+
+  @doc """
+  The drip feed `DRIP_FEED(file[/v]/Nline)` would send, before it is sent (iex, `mix vws.library`):
+  `{:ok, lines, version, preamble}` — the program restarted at `line` (`Vws.Codecs.NCModal.restart/2`),
+  the library version it comes from, and the lines that restore the modal state — or
+  `{:error, words}` as the command would end.
+  """
+  @spec restart(Mailbox.workstation(), String.t(), :latest | pos_integer, pos_integer) ::
+          {:ok, [String.t()], pos_integer, [String.t()]} | {:error, String.t()}
+  def restart(ws, file, which, line) do
+    with {:ok, text, v} <- library_read(ws, file, which),
+         :ok <- if(Program.complete?(text), do: :ok, else: {:error, "#{file} HAS NO CLOSING %"}),
+         :ok <-
+           if(Program.sendable?(text),
+             do: :ok,
+             else: {:error, "#{file} HOLDS A CONTROL CHARACTER"}
+           ),
+         {:ok, preamble, lines} <- Vws.Codecs.NCModal.restart(Program.from_text(text), line) do
+      {:ok, lines, v.version, preamble}
+    end
+  end
+
+  defp log_restart(ws, file, version, line, preamble) do
+    Logger.info(
+      "MONARCH: DRIP_FEED of #{file} version #{version} restarted at line #{line}, " <>
+        "modal state restored by: #{Enum.join(preamble, " / ")}"
+    )
+
+    Vws.Telemetry.execute([:vws, :monarch, :drip_restart], %{line: line}, %{
+      workstation: ws,
+      program: file,
+      version: version,
+      preamble: preamble
+    })
+  end
+
+  defp library_read(ws, file, which) do
+    case Vws.CEC.Library.read(ws, file, which) do
+      {:ok, text, v} -> {:ok, text, v}
+      {:error, reason} -> {:error, library_error(file, which, reason)}
     end
   end
 

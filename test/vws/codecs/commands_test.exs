@@ -126,6 +126,69 @@ defmodule Vws.Codecs.CommandsTest do
     assert_property(other, 300)
   end
 
+  test "DRIP_FEED(nnnnnn.PRO[/v][/Nk]): a library program drip-fed, restarted at line k (issue 27)" do
+    assert parse(:monarch, "DRIP_FEED") == {:ok, :drip_feed}
+
+    assert parse(:monarch, "DRIP_FEED(000100.PRO)") ==
+             {:ok, {:drip_feed, "000100.PRO", :latest, 1}}
+
+    assert parse(:monarch, "DRIP_FEED(000100.PRO/3)") == {:ok, {:drip_feed, "000100.PRO", 3, 1}}
+
+    assert parse(:monarch, "drip_feed( 000100.PRO/N41000 )") ==
+             {:ok, {:drip_feed, "000100.PRO", :latest, 41_000}}
+
+    assert parse(:monarch, "DRIP_FEED(000100.PRO/3/N41000)") ==
+             {:ok, {:drip_feed, "000100.PRO", 3, 41_000}}
+
+    assert parse(:monarch, "DRIP_FEED(000100.GSU)") == {:error, "BAD PROGRAM FILE 000100.GSU"}
+    assert parse(:monarch, "DRIP_FEED(100.PRO)") == {:error, "BAD PROGRAM FILE 100.PRO"}
+    assert parse(:monarch, "DRIP_FEED(000100.PRO/0)") == {:error, "BAD VERSION 0"}
+    assert parse(:monarch, "DRIP_FEED(000100.PRO/N0)") == {:error, "BAD RESTART LINE N0"}
+    assert parse(:monarch, "DRIP_FEED(000100.PRO/3/N)") == {:error, "BAD RESTART LINE N"}
+    assert parse(:monarch, "DRIP_FEED(000100.PRO/3/4)") == {:error, "BAD RESTART LINE 4"}
+
+    assert parse(:monarch, "DRIP_FEED(000100.PRO/N10000000)") ==
+             {:error, "BAD RESTART LINE N10000000"}
+
+    assert parse(:monarch, "DRIP_FEED(000100.PRO/1/N2/3)") ==
+             {:error, "BAD PROGRAM FILE 000100.PRO/1/N2/3"}
+
+    assert parse(:monarch, "DRIP_FEED(000100.PRO") == {:error, :unknown}
+  end
+
+  test "property: every DRIP_FEED form is read back; anything else after DRIP_FEED is an error in words, never a crash" do
+    forms =
+      :proper.forall(
+        {:proper_types.range(0, 999_999),
+         :proper_types.oneof([:latest, :proper_types.range(1, 999_999)]),
+         :proper_types.range(1, 9_999_999)},
+        fn {p, v, k} ->
+          file = String.pad_leading(Integer.to_string(p), 6, "0") <> ".PRO"
+          version = if v == :latest, do: "", else: "/#{v}"
+          line = if k == 1, do: "", else: "/N#{k}"
+
+          parse(:monarch, "DRIP_FEED(#{file}#{version}#{line})") ==
+            {:ok, {:drip_feed, file, v, k}}
+        end
+      )
+
+    assert_property(forms, 300)
+
+    other =
+      :proper.forall(:proper_types.list(:proper_types.range(32, 126)), fn chars ->
+        text = "DRIP_FEED" <> List.to_string(chars)
+
+        case parse(:monarch, text) do
+          {:ok, :drip_feed} -> true
+          {:ok, {:drip_feed, file, _v, k}} -> file =~ ~r/^\d{6}\.PRO$/ and k >= 1
+          {:error, :unknown} -> true
+          {:error, words} -> words =~ ~r/^[A-Z0-9 .\/()_:,;-]+$/ or words =~ ~r/^BAD /
+        end
+      end)
+
+    assert_property(other, 500)
+  end
+
   test "gripper, vise, vacuum and hydraulic sets" do
     assert parse(:gripper, "CLOSE") == {:ok, :close}
     assert parse(:gripper, "ROTATE_270") == {:ok, {:rotate, 270}}
