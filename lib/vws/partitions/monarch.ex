@@ -440,14 +440,37 @@ defmodule Vws.Partitions.Monarch do
           {:ok, [String.t()], pos_integer, [String.t()]} | {:error, String.t()}
   def restart(ws, file, which, line) do
     with {:ok, text, v} <- library_read(ws, file, which),
-         :ok <- if(Program.complete?(text), do: :ok, else: {:error, "#{file} HAS NO CLOSING %"}),
-         :ok <-
-           if(Program.sendable?(text),
-             do: :ok,
-             else: {:error, "#{file} HOLDS A CONTROL CHARACTER"}
-           ),
+         :ok <- whole_and_sendable(file, text),
          {:ok, preamble, lines} <- Vws.Codecs.NCModal.restart(Program.from_text(text), line) do
       {:ok, lines, v.version, preamble}
+    end
+  end
+
+  @doc """
+  The program a machine may be sent unasked by the WC (a remote request from the machine's panel,
+  `Vws.Partitions.Monarch.RemoteRequest`): the library's latest released version of `file`, or
+  version `which` only if it is released — `{:ok, text, version}`, or `{:error, words}` (no such
+  program or version, not released, too large, not whole, a control character).
+  """
+  @spec released_program(Mailbox.workstation(), String.t(), :latest | pos_integer) ::
+          {:ok, binary, pos_integer} | {:error, String.t()}
+  def released_program(ws, file, which) do
+    with {:ok, text, v} <- library_read(ws, file, which),
+         :ok <-
+           if(Vws.CEC.Library.latest_released([v]) == {:ok, v},
+             do: :ok,
+             else: {:error, "#{file} VERSION #{v.version} NOT RELEASED"}
+           ),
+         :ok <- Program.check_size(text),
+         :ok <- whole_and_sendable(file, text),
+         do: {:ok, text, v.version}
+  end
+
+  defp whole_and_sendable(file, text) do
+    cond do
+      not Program.complete?(text) -> {:error, "#{file} HAS NO CLOSING %"}
+      not Program.sendable?(text) -> {:error, "#{file} HOLDS A CONTROL CHARACTER"}
+      true -> :ok
     end
   end
 

@@ -23,7 +23,9 @@ defmodule Vws.Sim.GE2000 do
   machine is active, 4 cycle start without a selected program, 5 operation not supported,
   6 bad file name, 7 program incomplete (no closing `%`: the transmission was cut short),
   8 program too large (over 999,999 bytes, PROTOCOLS.md §2 "Program size limit": the
-  directory's six-digit size field could not say its size; the old file stays).
+  directory's six-digit size field could not say its size; the old file stays), 9 a remote
+  request refused by the CEC (its message, on the operator's screen, says why: `state/1`'s
+  `messages`).
 
   The cycle-start button (`cycle_start/1`; `cycle_start_input/2` is the input the DAQ #1 relay
   drives, as on the real machine) runs the
@@ -94,7 +96,8 @@ defmodule Vws.Sim.GE2000 do
     unsupported: 5,
     bad_name: 6,
     incomplete: 7,
-    too_large: 8
+    too_large: 8,
+    refused: 9
   }
 
   @doc false
@@ -151,6 +154,37 @@ defmodule Vws.Sim.GE2000 do
   end
 
   @doc """
+  The operator at the machine asks the CEC for program `number` (an integer, `"100"`,
+  `"000100"` or `"000100.PRO"`), its latest released version or `version` (remote request, ours:
+  docs/dnc-drip-feed.md): the GE-2000 bids with `ENQ DEL` and sends `RCS` + `000100.PRO` (or
+  `000100.PRO/3`); the CEC becomes master and sends the program, which is filed as `000100.PRO`
+  (whole, ending with its `%` line, as any part program) — or a message block
+  `(MSG,REQUEST REFUSED …)`, which goes on the operator's screen (`state/1`'s `messages`) with
+  alarm 9. Returns `:ok` (filed), `{:error, {:refused, words}}`, `{:error, {:alarm, n}}`,
+  `{:error, :bad_name}` or the link's error. From iex under `mix vws.serve`:
+  `Vws.Sim.GE2000.request_program(Vws.Sim.Floor.ge2000("ws1"), 100)`.
+  """
+  @spec request_program(GenServer.server(), integer | String.t(), pos_integer | nil, timeout) ::
+          :ok | {:error, term}
+  def request_program(sim, number, version \\ nil, timeout \\ 60_000) do
+    case GenServer.call(sim, {:program_request, number, version}) do
+      {:ok, link, command} ->
+        connected(link, System.monotonic_time(:millisecond) + min(timeout, 5_000))
+
+        case DNC.request(link, command, [], timeout) do
+          {:ok, blocks} ->
+            GenServer.call(sim, {:requested_program, command, IO.iodata_to_binary(blocks)})
+
+          error ->
+            error
+        end
+
+      error ->
+        error
+    end
+  end
+
+  @doc """
   The drip feed under way or the last one (nil if none): `%{program, state, received, ran,
   fill, max_fill, memory, feed_rate, blocks, underruns, starved_ms, crc}` —
   `state` `:feeding` (the program runs while it arrives), `:draining` (all arrived, the buffer
@@ -182,10 +216,11 @@ defmodule Vws.Sim.GE2000 do
   def end_cycle(sim), do: GenServer.call(sim, :end_cycle)
 
   @doc """
-  The machine's state: `%{state, selected, alarm, directory, cycles, downloads, drips}` —
+  The machine's state: `%{state, selected, alarm, directory, cycles, downloads, drips, messages}` —
   `cycles` the cycles started, `downloads` the part programs received and filed (`SNS`/`SCS`),
   `drips` the drip feeds started (`SNE`/`SCE`), so a test can count what the machine was made
-  to do.
+  to do; `messages` what the CEC said on the operator's screen (a refused remote request),
+  newest first.
   """
   @spec state(GenServer.server()) :: map
   def state(sim), do: GenServer.call(sim, :state)
@@ -259,6 +294,8 @@ defmodule Vws.Sim.GE2000 do
       cycles: 0,
       downloads: 0,
       drips: 0,
+      # the operator's screen: messages from the CEC, newest first
+      messages: [],
       cycle_time: Keyword.get(opts, :cycle_time, 5_000),
       plant: Keyword.get(opts, :plant),
       # false: a machine that files whatever arrived (as the old one did), for tests that show
@@ -374,6 +411,36 @@ defmodule Vws.Sim.GE2000 do
     end
   end
 
+  def handle_call({:program_request, number, version}, _from, s) do
+    with {:ok, file} <- file_name(request_number(number)),
+         true <-
+           String.ends_with?(file, ".PRO") and
+             (version == nil or (is_integer(version) and version > 0)) do
+      text = if version, do: "#{file}/#{version}", else: file
+      command = %Command{direction: :receive, check: :crc, operation: :part_program, text: text}
+      {:reply, {:ok, s.link, command}, s}
+    else
+      _ -> {:reply, {:error, :bad_name}, s}
+    end
+  end
+
+  # The CEC's answer: the program, filed as a part program sent to the machine is — or its
+  # message, shown to the operator.
+  def handle_call({:requested_program, command, text}, _from, s) do
+    file = command.text |> String.split("/") |> hd()
+
+    case Regex.run(~r/^\(MSG,([^)\n]*)\)\n?$/, text) do
+      [_, words] ->
+        Logger.warning("GE-2000 simulator: operator message: #{words}")
+        s = %{alarm(s, :refused) | messages: Enum.take([words | s.messages], 20)}
+        {:reply, {:error, {:refused, words}}, s}
+
+      nil ->
+        s = received(%Command{command | direction: :send, text: file}, text, s)
+        {:reply, if(s.alarm == 0, do: :ok, else: {:error, {:alarm, s.alarm}}), s}
+    end
+  end
+
   def handle_call(:baud, _from, s), do: {:reply, s.baud, s}
 
   def handle_call({:set_fault, {:file_as, fun}}, _from, s) when is_function(fun, 1),
@@ -402,7 +469,8 @@ defmodule Vws.Sim.GE2000 do
        directory: s.programs |> Map.keys() |> Enum.sort(),
        cycles: s.cycles,
        downloads: s.downloads,
-       drips: s.drips
+       drips: s.drips,
+       messages: s.messages
      }, s}
   end
 
@@ -618,6 +686,14 @@ defmodule Vws.Sim.GE2000 do
     Logger.warning("GE-2000 simulator: #{inspect(command)} not supported")
     {"", alarm(s, :unsupported)}
   end
+
+  # what the operator keys in: 100, "100", "000100" or "000100.PRO"
+  defp request_number(n) when is_integer(n) and n >= 0, do: request_number(Integer.to_string(n))
+
+  defp request_number(n) when is_binary(n),
+    do: Regex.replace(~r/^\d{1,5}$/, n, &String.pad_leading(&1, 6, "0"))
+
+  defp request_number(_n), do: ""
 
   defp file_name(name) do
     name = String.trim(name)

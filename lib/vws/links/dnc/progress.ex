@@ -62,8 +62,9 @@ defmodule Vws.Links.DNC.Progress do
     }
   end
 
+  # (a remote request's nnnnnn.PRO/v names the file nnnnnn.PRO)
   defp program(%{text: text}) when is_binary(text) do
-    case String.trim(text) do
+    case text |> String.split("/") |> hd() |> String.trim() do
       "" -> nil
       name -> name
     end

@@ -172,7 +172,10 @@ defmodule Vws.Links.DNC.Session do
   def answer(%{state: :answering, rx: %{ref: ref, command: command}} = s, ref, blocks, now) do
     case encode_texts_safe(blocks, command.check, s) do
       {:ok, frames} ->
-        %{s | rx: nil, tx: Transfer.new_tx(:answer, frames, sizes(blocks), now)}
+        # (the answer's progress names the peer's command: the program it asked for)
+        tx = Map.put(Transfer.new_tx(:answer, frames, sizes(blocks), now), :command, command)
+
+        %{s | rx: nil, tx: tx}
         |> bid()
         |> done()
 
@@ -227,7 +230,8 @@ defmodule Vws.Links.DNC.Session do
 
   @doc "The transfer under way (`Vws.Links.DNC.Transfer.view/3`), or nil."
   @spec transfer(t) :: Transfer.view() | nil
-  def transfer(s), do: Transfer.view(s.tx, s.rx, s.req && s.req.command)
+  def transfer(s),
+    do: Transfer.view(s.tx, s.rx, (s.req && s.req.command) || (s.tx && s.tx[:command]))
 
   ## Frames, by state
 

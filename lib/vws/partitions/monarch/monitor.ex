@@ -13,7 +13,9 @@ defmodule Vws.Partitions.Monarch.Monitor do
 
   It is also the link's owner: a program the operator sends from the machine unasked
   (auto-receive) is handed to `Vws.Partitions.Monarch.received_program/4` with the `:store`
-  function (default `Vws.Partitions.Monarch.store_from_machine/3`).
+  function (default `Vws.Partitions.Monarch.store_from_machine/3`), and a program the operator
+  asks for from the machine's panel (an `R` command) is answered by
+  `Vws.Partitions.Monarch.RemoteRequest`.
 
   Started by `Vws.CEC.Workstation.device_links/3` with the GE-2000's link. Options: `:workstation`,
   `:link`, `:interval` (1 000 ms; `nil`: no status reads, the monitor only owns the link, so that
@@ -66,6 +68,13 @@ defmodule Vws.Partitions.Monarch.Monitor do
       :ok -> :ok
       {:error, reason} -> Logger.warning("MONARCH: program #{name} from the machine: #{reason}")
     end
+  end
+
+  # The operator asks for a program from the machine's panel (an R command): answered at once,
+  # within the link's answer_timeout (Vws.Partitions.Monarch.RemoteRequest).
+  defp dnc({:dnc, link, {:request, ref, %{operation: :part_program} = command, _}}, ws, _store) do
+    Vws.Partitions.Monarch.RemoteRequest.answer(ws, link, ref, command)
+    :ok
   end
 
   # A transfer's progress, told by the link: the workstation's event :dnc_progress

@@ -1,0 +1,129 @@
+defmodule Vws.Partitions.Monarch.RemoteRequest do
+  @moduledoc """
+  A remote request from the GE-2000's panel (ours, issue 27 item 1; docs/dnc-drip-feed.md
+  "Remote request"): the operator asks for a program by number, and optionally version. The
+  GE-2000 bids and sends the `R` command `RCS`/`RNS` + `nnnnnn.PRO` or `nnnnnn.PRO/v` — an
+  `UPLOAD_GE` the other way round — and the CEC, master after its EOT, answers:
+
+    * the library's latest released version, or version `v` if it is released
+      (`Vws.Partitions.Monarch.released_program/3`), as text blocks: the machine files it as
+      `nnnnnn.PRO`, whole or not at all, as any part program;
+    * or one message block, `(MSG,REQUEST REFUSED <words>)` LF — not a program (no `%` line), so
+      the machine files nothing and shows the words to the operator.
+
+  It is the `DOWNLOAD_GE(nnnnnn.PRO[/v])` of the WC's set, asked from the machine: the request's
+  text is read by that command's grammar (`Vws.Codecs.Commands`) and the interlock is decided by
+  the one interlock table for that command (`Vws.CEC.Interlock.Rules.acquire/3`, MONARCH's
+  rule for `DOWNLOAD_GE`). Every request is logged and told as telemetry
+  `[:vws, :monarch, :remote_request]` (`bytes`; `workstation, program, version, result` —
+  `:sent`, `:refused` with `reason`, or `:failed` when the answer could not be given); the
+  answer's transfer is the link's, with its progress and end like every other.
+
+  Called by `Vws.Partitions.Monarch.Monitor` (the link's owner) within the link's
+  `answer_timeout`.
+  """
+  require Logger
+
+  alias Vws.CEC.Interlock.Rules
+  alias Vws.Links.DNC
+  alias Vws.Links.DNC.Frame
+  alias Vws.Partitions.Monarch
+
+  @doc """
+  Answers the GE-2000's `R` command `command` (announced as `{:request, ref, command, blocks}` by
+  `link`) for workstation `ws`: the program, or the refusal's message. Returns what was told:
+  `{:sent, file, version}`, `{:refused, words}` or `{:failed, reason}`.
+  """
+  @spec answer(term, DNC.link(), reference, Frame.Command.t(), keyword) ::
+          {:sent, String.t(), pos_integer} | {:refused, String.t()} | {:failed, term}
+  def answer(ws, link, ref, command, options \\ []) do
+    asked = String.trim(command.text)
+    {outcome, text} = program(ws, asked, options)
+    blocks = Frame.split_text(text, DNC.max_text(link))
+
+    outcome =
+      case DNC.answer(link, ref, blocks) do
+        :ok -> outcome
+        {:error, reason} -> {:failed, reason}
+      end
+
+    tell(ws, asked, outcome, byte_size(text))
+    outcome
+  catch
+    :exit, reason -> {:failed, reason}
+  end
+
+  @doc "The refusal's message block for `words` (upper-case words and numbers)."
+  @spec refusal(String.t()) :: String.t()
+  def refusal(words), do: "(MSG,REQUEST REFUSED #{words})\n"
+
+  defp program(ws, asked, options) do
+    # the request's text read as DOWNLOAD_GE's argument: nnnnnn.PRO or nnnnnn.PRO/v
+    with {:ok, {:download_ge, file, which} = download} <- parse(asked),
+         {:ok, taken} <- interlock(ws, download, options) do
+      result = Monarch.released_program(ws, file, which)
+      ctx = ctx(ws, options)
+
+      :ok =
+        Rules.finish(
+          download,
+          taken,
+          ctx,
+          if(match?({:ok, _, _}, result), do: :done, else: result)
+        )
+
+      case result do
+        {:ok, text, version} -> {{:sent, file, version}, text}
+        {:error, words} -> {{:refused, words}, refusal(words)}
+      end
+    else
+      {:error, words} -> {{:refused, words}, refusal(words)}
+    end
+  end
+
+  defp parse(asked) do
+    case Vws.Codecs.Commands.parse(:monarch, "DOWNLOAD_GE(#{asked})") do
+      {:ok, {:download_ge, file, which}} when binary_part(file, 7, 3) == "PRO" ->
+        {:ok, {:download_ge, file, which}}
+
+      _ when asked == "" ->
+        {:error, "NO PROGRAM NUMBER"}
+
+      _ ->
+        {:error, "BAD PROGRAM FILE #{Vws.Codecs.WC.Words.of(asked)}"}
+    end
+  end
+
+  defp interlock(ws, download, options),
+    do: Rules.acquire(Monarch, download, ctx(ws, options))
+
+  defp ctx(ws, options), do: %{workstation: ws, partition: :monarch, options: options}
+
+  defp tell(ws, asked, outcome, bytes) do
+    {program, version, result, reason} =
+      case outcome do
+        {:sent, file, v} -> {file, v, :sent, nil}
+        {:refused, words} -> {asked, nil, :refused, words}
+        {:failed, reason} -> {asked, nil, :failed, reason}
+      end
+
+    case outcome do
+      {:sent, file, v} ->
+        Logger.info("MONARCH: the machine asked for #{asked}: sent #{file} version #{v}")
+
+      {:refused, words} ->
+        Logger.warning("MONARCH: the machine asked for #{asked}: refused, #{words}")
+
+      {:failed, reason} ->
+        Logger.warning("MONARCH: the machine asked for #{asked}: no answer (#{inspect(reason)})")
+    end
+
+    Vws.Telemetry.execute([:vws, :monarch, :remote_request], %{bytes: bytes}, %{
+      workstation: ws,
+      program: program,
+      version: version,
+      result: result,
+      reason: reason
+    })
+  end
+end

@@ -1,0 +1,134 @@
+defmodule Vws.Partitions.Monarch.RemoteRequestTest do
+  # The operator at the GE-2000 asks for a program from the machine's panel (issue 27 item 1),
+  # end to end over the DNC wire: simulated GE-2000 (RCS + nnnnnn.PRO[/v]) → DNC link → MONARCH's
+  # monitor → the program library, and the answer back the same way.
+  use ExUnit.Case, async: true
+
+  alias Vws.CEC.{Interlock, Library, Workstation}
+  alias Vws.Links.DNC
+  alias Vws.Partitions.Monarch
+  alias Vws.Sim.GE2000
+  import Vws.Test.Eventually
+
+  @link_opts [reply_timeout: 300, wack_delay: 50, backoff_min: 10, backoff_max: 50]
+  @v1 "%\nO55 (FIRST)\nN10 G01 X1 F100\nN20 M30\n%\n"
+  @v2 "%\nO55 (SECOND)\nN10 G01 X2 F100\nN20 M30\n%\n"
+
+  setup do
+    dir = Path.join(System.tmp_dir!(), "vws-remote-request-#{System.unique_integer([:positive])}")
+    on_exit(fn -> File.rm_rf!(dir) end)
+    sim = start_supervised!({GE2000, link: @link_opts, cycle_time: 60_000})
+
+    %{ws: ws} =
+      Vws.Test.Workstation.start(
+        devices: [ge2000: [endpoint: GE2000.endpoint(sim), status_interval: nil] ++ @link_opts],
+        library: dir
+      )
+
+    link = Workstation.whereis(ws, :ge2000)
+    assert eventually(fn -> DNC.info(link).state == :idle end)
+
+    me = self()
+    id = "remote-request-#{System.unique_integer([:positive])}"
+
+    :ok =
+      Vws.Telemetry.attach(
+        id,
+        [:vws, :monarch, :remote_request],
+        fn _, m, md, _ -> if md.workstation == ws, do: send(me, {:remote_request, m, md}) end,
+        nil
+      )
+
+    on_exit(fn -> Vws.Telemetry.detach(id) end)
+    %{ws: ws, sim: sim}
+  end
+
+  test "the latest released version is sent and filed; a named released version too; logged",
+       %{ws: ws, sim: sim} do
+    {:ok, _} = Library.store(ws, "55", @v1, source: "iex")
+    {:ok, _} = Library.store(ws, "55", @v2, source: "iex")
+    :ok = Vws.CEC.Events.subscribe(ws, :dnc_progress)
+
+    assert GE2000.request_program(sim, 55) == :ok
+    assert GE2000.program(sim, "000055.PRO") == @v2
+    assert GE2000.state(sim).alarm == 0
+    bytes = byte_size(@v2)
+
+    assert_receive {:remote_request, %{bytes: ^bytes},
+                    %{program: "000055.PRO", version: 2, result: :sent}}
+
+    # the answer is a transfer of the link like any other: its progress names the program
+    assert_receive {:vws_event, ^ws, :dnc_progress,
+                    %{program: "000055.PRO", direction: :out, ended: :ok}},
+                   5_000
+
+    assert GE2000.request_program(sim, "000055", 1) == :ok
+    assert GE2000.program(sim, "000055.PRO") == @v1
+    assert_receive {:remote_request, _, %{version: 1, result: :sent}}
+    # (the version the operator named is not part of the file's name)
+    assert_receive {:vws_event, ^ws, :dnc_progress, %{program: "000055.PRO", ended: :ok}}, 5_000
+
+    # what the machine holds is what the library says it holds
+    {:ok, compare} = Monarch.compare(ws)
+    assert [%{name: "000055.PRO", on_machine: {:same, 1}}] = compare.programs
+  end
+
+  test "refused in words the operator sees: nothing filed, alarm 9, the message on the screen",
+       %{ws: ws, sim: sim} do
+    {:ok, _} = Library.store(ws, "55", @v1, source: "iex")
+    # version 2 came from the machine: not released
+    :ok = Monarch.store_from_machine(ws, "000055.PRO", Vws.Links.DNC.Program.from_text(@v2))
+    :ok = Monarch.store_from_machine(ws, "000056.PRO", Vws.Links.DNC.Program.from_text(@v2))
+
+    cases = [
+      {{"000055.PRO", 2}, "000055.PRO VERSION 2 NOT RELEASED"},
+      {{"000056.PRO", nil}, "000056.PRO HAS NO RELEASED VERSION"},
+      {{57, nil}, "000057.PRO NOT IN LIBRARY"},
+      {{55, 9}, "000055.PRO VERSION 9 NOT IN LIBRARY"}
+    ]
+
+    for {{number, version}, words} <- cases do
+      assert GE2000.request_program(sim, number, version) ==
+               {:error, {:refused, "REQUEST REFUSED " <> words}}
+
+      assert GE2000.state(sim).alarm == 9
+      assert hd(GE2000.state(sim).messages) == "REQUEST REFUSED " <> words
+      assert_receive {:remote_request, _, %{result: :refused, reason: ^words}}
+    end
+
+    assert GE2000.directory(sim) == []
+    assert GE2000.state(sim).downloads == 0
+    assert GE2000.request_program(sim, "12.PRO") == {:error, :bad_name}
+  end
+
+  test "the interlock is DOWNLOAD_GE's, decided by the one table: a program goes to the machine " <>
+         "while the robot holds the table (nothing moves); the table stays the robot's",
+       %{ws: ws, sim: sim} do
+    assert Vws.CEC.Interlock.Rules.rule(:monarch, {:download_ge, "000055.PRO", :latest}) ==
+             {:ok, :none}
+
+    {:ok, _} = Library.store(ws, "55", @v1, source: "iex")
+    :ok = Interlock.acquire(ws, :table, :robot, 0)
+    assert GE2000.request_program(sim, 55) == :ok
+    assert GE2000.program(sim, "000055.PRO") == @v1
+    assert Interlock.holds?(ws, :table, :robot)
+  end
+
+  test "the CEC answers with the wire's own words: RCS + nnnnnn.PRO/v, then the program's blocks" do
+    # the GE's command block as it goes on the line, and the refusal as the machine reads it
+    command = %Vws.Links.DNC.Frame.Command{
+      direction: :receive,
+      check: :crc,
+      operation: :part_program,
+      text: "000055.PRO/2"
+    }
+
+    assert <<0x01, "RCS", 0x02, "000055.PRO/2", 0x03, _crc::binary-2>> =
+             IO.iodata_to_binary(Vws.Links.DNC.Frame.encode(command))
+
+    assert Monarch.RemoteRequest.refusal("000055.PRO NOT IN LIBRARY") ==
+             "(MSG,REQUEST REFUSED 000055.PRO NOT IN LIBRARY)\n"
+
+    refute Vws.Links.DNC.Program.complete?(Monarch.RemoteRequest.refusal("X"))
+  end
+end
