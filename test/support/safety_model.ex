@@ -6,8 +6,9 @@ defmodule Vws.Test.SafetyModel do
   (`Vws.Test.SafetyFloor`, a fresh floor per sequence).
 
   The commands cover every kind of every set (`texts/0`, checked against
-  `Vws.Codecs.Commands.kinds/0`), ours included — `DRIP_FEED`, `DOWNLOAD_GE(nnnnnn.PRO/v)`,
-  `COMPARE_GE` — and the operator sends programs from the machine (`from_machine/1`).
+  `Vws.Codecs.Commands.kinds/0`), ours included — `DRIP_FEED`, `DRIP_FEED(nnnnnn.PRO/v/Nk)`, `DOWNLOAD_GE(nnnnnn.PRO/v)`,
+  `COMPARE_GE` — and the operator sends programs from the machine (`from_machine/1`) and asks
+  for them from its panel (`remote_request/2`).
 
   Commands are handed to the partitions as SUN_COMM hands them over, without waiting for them
   to finish — so several partitions run at once and race for the work volumes; a partition whose
@@ -67,6 +68,7 @@ defmodule Vws.Test.SafetyModel do
     {1, "UPLOAD_GE(000100.PRO)"},
     {1, "DOWNLOAD_GE"},
     {3, "DRIP_FEED"},
+    {1, "DRIP_FEED(000100.PRO/1/N3)"},
     {1, "DOWNLOAD_GE(000100.PRO/1)"},
     {1, "DOWNLOAD_GE(000100.PRO)"},
     {1, "COMPARE_GE"},
@@ -123,6 +125,9 @@ defmodule Vws.Test.SafetyModel do
        {:call, __MODULE__, :mhs, [:proper_types.oneof([1, 2]), :proper_types.oneof([:in, :out])]}},
       {1,
        {:call, __MODULE__, :from_machine, [:proper_types.oneof(["000100.PRO", "000200.PRO"])]}},
+      {1,
+       {:call, __MODULE__, :remote_request,
+        [:proper_types.oneof([100, 200]), :proper_types.oneof([nil, 1, 2])]}},
       {3, {:call, __MODULE__, :fault, [:proper_types.oneof(@faults)]}},
       {2, {:call, __MODULE__, :heal, []}},
       {3, {:call, __MODULE__, :pause, [:proper_types.oneof([1, 5, 20, 40])]}},
@@ -239,6 +244,16 @@ defmodule Vws.Test.SafetyModel do
     f = floor()
     _ = GE2000.put_program(f.ge2000, "000200.PRO", "%\nO200\nN10 M30\n%\n")
     spawn(fn -> GE2000.send_program(f.ge2000, name, 2_000) end)
+    no_collisions(f)
+  end
+
+  @doc """
+  The operator asks the CEC for a program from the machine's panel (a remote request: it is
+  filed, never started). In a process of its own, as `from_machine/1`.
+  """
+  def remote_request(number, version) do
+    f = floor()
+    spawn(fn -> GE2000.request_program(f.ge2000, number, version, 2_000) end)
     no_collisions(f)
   end
 

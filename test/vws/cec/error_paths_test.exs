@@ -172,6 +172,8 @@ defmodule Vws.CEC.ErrorPathsTest do
       "COMPARE_GE",
       "COMPARE_GE(000055.PRO)",
       "DRIP_FEED",
+      "DRIP_FEED(000055.PRO)",
+      "DRIP_FEED(000055.PRO/2/N3)",
       "RELEASE_TABLE"
     ]
 
