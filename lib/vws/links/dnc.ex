@@ -27,7 +27,8 @@ defmodule Vws.Links.DNC do
     * **No reply** within `reply_timeout` → ENQ ("repeat your reply"), at most `max_enqs` times.
       If the repeated reply is the previous acknowledgement, the block was lost: it is sent again
       (counted like a NAK). An acknowledgement of the wrong parity out of the blue is a lost reply.
-    * **WACK** → wait `wack_delay`, then ENQ; at most `max_wacks` WACKs running.
+    * **WACK** → wait `wack_delay`, then ENQ; at most `max_wacks` WACKs running (a drip feed's
+      wait is the machine's pace, at most `wack_delay`: see Drip feed).
     * When a limit is reached the link sends EOT and the request ends `{:error, %Vws.Links.DNC.LinkError{}}`.
       A transmission either completes with every block acknowledged or ends with an error; a
       receiver never hands on a partial transmission.
@@ -124,8 +125,9 @@ defmodule Vws.Links.DNC do
   meters them against `receive_buffer` (bytes, option; `:infinity` — no flow control — by
   default): once less than `max_text` of it is left, the block is acknowledged WACK, and so is
   an ENQ, until the owner gives room back with `grant/2`. The sending link waits out any number
-  of WACKs in an `E` transmission (`wack_delay` apart); in any other, `max_wacks` holds. See
-  docs/dnc-drip-feed.md.
+  of WACKs in an `E` transmission, asking again with ENQ when the machine has run about one block
+  at the consumption rate it measured (`Vws.Links.DNC.Pace`; at most `wack_delay`); in any
+  other, `max_wacks` holds, `wack_delay` apart. See docs/dnc-drip-feed.md.
 
   `workstation` is the id in a `Vws.CEC.Workstation` name given as `:name` (`Vws.Names.id_of/1`), else nil.
 
