@@ -70,6 +70,23 @@ defmodule Vws.Test.WCPeer do
     end
   end
 
+  @doc """
+  Sends the Monarch command `text` as command `number` in a string of its own, and polls
+  `MONARCH_CMD` until it is no longer EXECUTING (within `timeout` ms): its status without the
+  command's number (`"DONE"`, `"ERROR …"`).
+  """
+  def monarch(peer, number, text, timeout \\ 60_000) do
+    seq = fn -> rem(System.unique_integer([:positive]), 10_000) end
+    s = seq.()
+    send_string(peer, s, [{"M", number, text}])
+    {:ok, {:ack, ^s}} = Vws.Codecs.WC.Reply.decode(recv_line(peer))
+
+    <<_number::binary-4, status::binary>> =
+      await_status(peer, seq.(), "MONARCH_CMD", &(not (&1 =~ "EXECUTING")), timeout)
+
+    status
+  end
+
   def close(peer), do: GenServer.stop(peer)
 
   @doc """

@@ -376,33 +376,32 @@ defmodule Vws.Codecs.Commands do
 
   defp drip_from([]), do: {:ok, :latest, 1}
   defp drip_from(["N" <> k]), do: with({:ok, k} <- restart_line(k), do: {:ok, :latest, k})
+  defp drip_from([v]), do: with({:ok, n} <- version(v), do: {:ok, n, 1})
 
-  defp drip_from([v | line]) do
-    case {Integer.parse(v), line} do
-      {{n, ""}, []} when n in 1..999_999 ->
-        {:ok, n, 1}
+  defp drip_from([v, "N" <> k]) do
+    with {:ok, n} <- version(v), {:ok, k} <- restart_line(k), do: {:ok, n, k}
+  end
 
-      {{n, ""}, ["N" <> k]} when n in 1..999_999 ->
-        with({:ok, k} <- restart_line(k), do: {:ok, n, k})
+  defp drip_from([v, other]) do
+    with {:ok, _n} <- version(v),
+         do: {:error, bad("BAD RESTART LINE ", other)}
+  end
 
-      {{n, ""}, [other]} when n in 1..999_999 ->
-        {:error, "BAD RESTART LINE " <> Vws.Codecs.WC.Words.of(other)}
-
-      _ ->
-        {:error, "BAD VERSION #{v}"}
+  defp version(v) do
+    case Integer.parse(v) do
+      {n, ""} when n in 1..999_999 -> {:ok, n}
+      _ -> {:error, bad("BAD VERSION ", v)}
     end
   end
 
+  # what the WC wrote, in words (an ERROR text, PROTOCOLS.md §1)
+  defp bad(what, ""), do: String.trim(what)
+  defp bad(what, text), do: what <> Vws.Codecs.WC.Words.of(text)
+
   defp restart_line(k) do
     case Integer.parse(k) do
-      {n, ""} when n in 1..9_999_999 ->
-        {:ok, n}
-
-      _ ->
-        {:error,
-         String.trim_trailing(
-           "BAD RESTART LINE N" <> if(k == "", do: "", else: Vws.Codecs.WC.Words.of(k))
-         )}
+      {n, ""} when n in 1..9_999_999 -> {:ok, n}
+      _ -> {:error, bad("BAD RESTART LINE N", k)}
     end
   end
 

@@ -146,6 +146,8 @@ defmodule Vws.Codecs.CommandsTest do
     assert parse(:monarch, "DRIP_FEED(000100.PRO/N0)") == {:error, "BAD RESTART LINE N0"}
     assert parse(:monarch, "DRIP_FEED(000100.PRO/3/N)") == {:error, "BAD RESTART LINE N"}
     assert parse(:monarch, "DRIP_FEED(000100.PRO/3/4)") == {:error, "BAD RESTART LINE 4"}
+    assert parse(:monarch, "DRIP_FEED(000100.PRO/3/)") == {:error, "BAD RESTART LINE"}
+    assert parse(:monarch, "DRIP_FEED(000100.PRO/)") == {:error, "BAD VERSION"}
 
     assert parse(:monarch, "DRIP_FEED(000100.PRO/N10000000)") ==
              {:error, "BAD RESTART LINE N10000000"}

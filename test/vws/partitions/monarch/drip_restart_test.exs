@@ -51,18 +51,7 @@ defmodule Vws.Partitions.Monarch.DripRestartTest do
     %{ws: ws, peer: peer, sim: sim}
   end
 
-  defp seq, do: rem(System.unique_integer([:positive]), 10_000)
-
-  defp monarch(peer, number, text) do
-    s = seq()
-    WCPeer.send_string(peer, s, [{"M", number, text}])
-    assert Vws.Codecs.WC.Reply.decode(WCPeer.recv_line(peer)) == {:ok, {:ack, s}}
-
-    <<_number::binary-4, status::binary>> =
-      WCPeer.await_status(peer, seq(), "MONARCH_CMD", &(not (&1 =~ "EXECUTING")), 60_000)
-
-    status
-  end
+  defp monarch(peer, number, text), do: WCPeer.monarch(peer, number, text)
 
   defp assert_ran(sim, text) do
     assert eventually(fn -> GE2000.drip(sim).state == :done end, 30_000)
