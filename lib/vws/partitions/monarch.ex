@@ -466,6 +466,21 @@ defmodule Vws.Partitions.Monarch do
          do: {:ok, text, v.version}
   end
 
+  @doc """
+  After a program went to the machine other than by `DOWNLOAD_GE` (a remote request): the same
+  check as `DOWNLOAD_GE`'s — the status report (no alarm), then the directory entry of `file`
+  has the size and CRC-16 of `text` (the directory is recorded in the library). `:ok` or
+  `{:error, words}`. Options as the partition's (`:check`, `:request_timeout`, `:verify`).
+  """
+  @spec verify_download(Mailbox.workstation(), DNC.link(), String.t(), binary, keyword) ::
+          :ok | {:error, String.t()}
+  def verify_download(ws, link, file, text, options \\ []) do
+    ctx = %{workstation: ws, link: link, options: options}
+
+    with {:ok, _report} <- verify(ctx, "DOWNLOAD OF #{file} FAILED", fn _ -> true end),
+         do: verify_directory(ctx, file, text)
+  end
+
   defp whole_and_sendable(file, text) do
     cond do
       not Program.complete?(text) -> {:error, "#{file} HAS NO CLOSING %"}

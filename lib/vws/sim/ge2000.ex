@@ -118,7 +118,9 @@ defmodule Vws.Sim.GE2000 do
   @spec endpoint(GenServer.server()) :: String.t()
   def endpoint(sim), do: GenServer.call(sim, :endpoint)
 
-  defp connected(link, deadline) do
+  @doc false
+  # (an operator acts once the CEC's connection has reached the machine's link)
+  def connected(link, deadline) do
     if DNC.info(link).state == :disconnected and System.monotonic_time(:millisecond) < deadline do
       Process.sleep(10)
       connected(link, deadline)
@@ -153,36 +155,9 @@ defmodule Vws.Sim.GE2000 do
     end
   end
 
-  @doc """
-  The operator at the machine asks the CEC for program `number` (an integer, `"100"`,
-  `"000100"` or `"000100.PRO"`), its latest released version or `version` (remote request, ours:
-  docs/dnc-drip-feed.md): the GE-2000 bids with `ENQ DEL` and sends `RCS` + `000100.PRO` (or
-  `000100.PRO/3`); the CEC becomes master and sends the program, which is filed as `000100.PRO`
-  (whole, ending with its `%` line, as any part program) — or a message block
-  `(MSG,REQUEST REFUSED …)`, which goes on the operator's screen (`state/1`'s `messages`) with
-  alarm 9. Returns `:ok` (filed), `{:error, {:refused, words}}`, `{:error, {:alarm, n}}`,
-  `{:error, :bad_name}` or the link's error. From iex under `mix vws.serve`:
-  `Vws.Sim.GE2000.request_program(Vws.Sim.Floor.ge2000("ws1"), 100)`.
-  """
-  @spec request_program(GenServer.server(), integer | String.t(), pos_integer | nil, timeout) ::
-          :ok | {:error, term}
-  def request_program(sim, number, version \\ nil, timeout \\ 60_000) do
-    case GenServer.call(sim, {:program_request, number, version}) do
-      {:ok, link, command} ->
-        connected(link, System.monotonic_time(:millisecond) + min(timeout, 5_000))
-
-        case DNC.request(link, command, [], timeout) do
-          {:ok, blocks} ->
-            GenServer.call(sim, {:requested_program, command, IO.iodata_to_binary(blocks)})
-
-          error ->
-            error
-        end
-
-      error ->
-        error
-    end
-  end
+  @doc "The operator asks the CEC for a program from the panel: `Vws.Sim.GE2000.Panel.request_program/4`."
+  defdelegate request_program(sim, number, version \\ nil, timeout \\ 60_000),
+    to: Vws.Sim.GE2000.Panel
 
   @doc """
   The drip feed under way or the last one (nil if none): `%{program, state, received, ran,
@@ -296,6 +271,9 @@ defmodule Vws.Sim.GE2000 do
       drips: 0,
       # the operator's screen: messages from the CEC, newest first
       messages: [],
+      # a remote request under way, and the CEC's R commands that wait for its answer's filing
+      requesting: false,
+      deferred: [],
       cycle_time: Keyword.get(opts, :cycle_time, 5_000),
       plant: Keyword.get(opts, :plant),
       # false: a machine that files whatever arrived (as the old one did), for tests that show
@@ -411,34 +389,20 @@ defmodule Vws.Sim.GE2000 do
     end
   end
 
-  def handle_call({:program_request, number, version}, _from, s) do
-    with {:ok, file} <- file_name(request_number(number)),
-         true <-
-           String.ends_with?(file, ".PRO") and
-             (version == nil or (is_integer(version) and version > 0)) do
-      text = if version, do: "#{file}/#{version}", else: file
-      command = %Command{direction: :receive, check: :crc, operation: :part_program, text: text}
-      {:reply, {:ok, s.link, command}, s}
-    else
-      _ -> {:reply, {:error, :bad_name}, s}
-    end
-  end
+  # a remote request (Vws.Sim.GE2000.Panel) goes out: the CEC's R commands wait until its answer
+  # is filed, as a control files a program before it answers the next bid
+  def handle_call({:program_request, _command}, _from, s),
+    do: {:reply, {:ok, s.link}, %{s | requesting: true}}
 
-  # The CEC's answer: the program, filed as a part program sent to the machine is — or its
-  # message, shown to the operator.
-  def handle_call({:requested_program, command, text}, _from, s) do
-    file = command.text |> String.split("/") |> hd()
+  def handle_call({:requested_program, file, answer}, _from, s) do
+    {reply, s} =
+      case answer do
+        {:ok, text} -> requested_program(file, text, s)
+        _failed -> {answer, s}
+      end
 
-    case Regex.run(~r/^\(MSG,([^)\n]*)\)\n?$/, text) do
-      [_, words] ->
-        Logger.warning("GE-2000 simulator: operator message: #{words}")
-        s = %{alarm(s, :refused) | messages: Enum.take([words | s.messages], 20)}
-        {:reply, {:error, {:refused, words}}, s}
-
-      nil ->
-        s = received(%Command{command | direction: :send, text: file}, text, s)
-        {:reply, if(s.alarm == 0, do: :ok, else: {:error, {:alarm, s.alarm}}), s}
-    end
+    Enum.each(Enum.reverse(s.deferred), &send(self(), &1))
+    {:reply, reply, %{s | requesting: false, deferred: []}}
   end
 
   def handle_call(:baud, _from, s), do: {:reply, s.baud, s}
@@ -524,6 +488,9 @@ defmodule Vws.Sim.GE2000 do
 
     {:noreply, s}
   end
+
+  def handle_info({:dnc, link, {:request, _, _, _}} = msg, %{link: link, requesting: true} = s),
+    do: {:noreply, %{s | deferred: [msg | s.deferred]}}
 
   def handle_info({:dnc, link, {:request, ref, command, _blocks}}, %{link: link} = s) do
     {text, s} = requested(command, s)
@@ -687,13 +654,21 @@ defmodule Vws.Sim.GE2000 do
     {"", alarm(s, :unsupported)}
   end
 
-  # what the operator keys in: 100, "100", "000100" or "000100.PRO"
-  defp request_number(n) when is_integer(n) and n >= 0, do: request_number(Integer.to_string(n))
+  # The CEC's answer to a remote request: the program, filed as any part program sent to the
+  # machine — or its message, shown to the operator.
+  defp requested_program(file, text, s) do
+    case Regex.run(~r/^\(MSG,([^)\n]*)\)\n?$/, text) do
+      [_, words] ->
+        Logger.warning("GE-2000 simulator: operator message: #{words}")
 
-  defp request_number(n) when is_binary(n),
-    do: Regex.replace(~r/^\d{1,5}$/, n, &String.pad_leading(&1, 6, "0"))
+        {{:error, {:refused, words}},
+         %{alarm(s, :refused) | messages: Enum.take([words | s.messages], 20)}}
 
-  defp request_number(_n), do: ""
+      nil ->
+        s = received(%Command{operation: :part_program, text: file}, text, s)
+        {if(s.alarm == 0, do: :ok, else: {:error, {:alarm, s.alarm}}), s}
+    end
+  end
 
   defp file_name(name) do
     name = String.trim(name)

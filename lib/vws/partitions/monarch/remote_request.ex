@@ -16,8 +16,11 @@ defmodule Vws.Partitions.Monarch.RemoteRequest do
   the one interlock table for that command (`Vws.CEC.Interlock.Rules.acquire/3`, MONARCH's
   rule for `DOWNLOAD_GE`). Every request is logged and told as telemetry
   `[:vws, :monarch, :remote_request]` (`bytes`; `workstation, program, version, result` —
-  `:sent`, `:refused` with `reason`, or `:failed` when the answer could not be given); the
-  answer's transfer is the link's, with its progress and end like every other.
+  `:sent`, `:refused` with `reason`, or `:failed` when the answer could not be given — and
+  `verified`). A program sent is then checked as after any `DOWNLOAD_GE`
+  (`Vws.Partitions.Monarch.verify_download/5`: the status report without alarm, the directory
+  entry's size and CRC-16 those of the bytes sent): `verified` is `:ok` or `{:error, words}`.
+  The answer's transfer is the link's, with its progress and end like every other.
 
   Called by `Vws.Partitions.Monarch.Monitor` (the link's owner) within the link's
   `answer_timeout`.
@@ -47,7 +50,14 @@ defmodule Vws.Partitions.Monarch.RemoteRequest do
         {:error, reason} -> {:failed, reason}
       end
 
-    tell(ws, asked, outcome, byte_size(text))
+    # as after any DOWNLOAD_GE: the machine's report and directory must say it holds the bytes
+    verified =
+      case outcome do
+        {:sent, file, _v} -> Monarch.verify_download(ws, link, file, text, options)
+        _ -> nil
+      end
+
+    tell(ws, asked, outcome, verified, byte_size(text))
     outcome
   catch
     :exit, reason -> {:failed, reason}
@@ -99,7 +109,7 @@ defmodule Vws.Partitions.Monarch.RemoteRequest do
 
   defp ctx(ws, options), do: %{workstation: ws, partition: :monarch, options: options}
 
-  defp tell(ws, asked, outcome, bytes) do
+  defp tell(ws, asked, outcome, verified, bytes) do
     {program, version, result, reason} =
       case outcome do
         {:sent, file, v} -> {file, v, :sent, nil}
@@ -108,8 +118,17 @@ defmodule Vws.Partitions.Monarch.RemoteRequest do
       end
 
     case outcome do
+      {:sent, file, v} when verified == :ok ->
+        Logger.info(
+          "MONARCH: the machine asked for #{asked}: sent #{file} version #{v}, verified"
+        )
+
       {:sent, file, v} ->
-        Logger.info("MONARCH: the machine asked for #{asked}: sent #{file} version #{v}")
+        {:error, words} = verified
+
+        Logger.warning(
+          "MONARCH: the machine asked for #{asked}: sent #{file} version #{v}, NOT verified: #{words}"
+        )
 
       {:refused, words} ->
         Logger.warning("MONARCH: the machine asked for #{asked}: refused, #{words}")
@@ -123,7 +142,8 @@ defmodule Vws.Partitions.Monarch.RemoteRequest do
       program: program,
       version: version,
       result: result,
-      reason: reason
+      reason: reason,
+      verified: verified
     })
   end
 end

@@ -54,8 +54,10 @@ defmodule Vws.Partitions.Monarch.RemoteRequestTest do
     assert GE2000.state(sim).alarm == 0
     bytes = byte_size(@v2)
 
+    # checked as after any DOWNLOAD_GE: the report and the directory say the machine holds it
     assert_receive {:remote_request, %{bytes: ^bytes},
-                    %{program: "000055.PRO", version: 2, result: :sent}}
+                    %{program: "000055.PRO", version: 2, result: :sent, verified: :ok}},
+                   5_000
 
     # the answer is a transfer of the link like any other: its progress names the program
     assert_receive {:vws_event, ^ws, :dnc_progress,
@@ -64,13 +66,24 @@ defmodule Vws.Partitions.Monarch.RemoteRequestTest do
 
     assert GE2000.request_program(sim, "000055", 1) == :ok
     assert GE2000.program(sim, "000055.PRO") == @v1
-    assert_receive {:remote_request, _, %{version: 1, result: :sent}}
+    assert_receive {:remote_request, _, %{version: 1, result: :sent, verified: :ok}}, 5_000
     # (the version the operator named is not part of the file's name)
     assert_receive {:vws_event, ^ws, :dnc_progress, %{program: "000055.PRO", ended: :ok}}, 5_000
 
     # what the machine holds is what the library says it holds
     {:ok, compare} = Monarch.compare(ws)
     assert [%{name: "000055.PRO", on_machine: {:same, 1}}] = compare.programs
+  end
+
+  test "a machine that files other bytes than it was sent: the request is logged NOT verified",
+       %{ws: ws, sim: sim} do
+    {:ok, _} = Library.store(ws, "55", @v1, source: "iex")
+    :ok = GE2000.set_fault(sim, {:file_as, &String.replace(&1, "X1", "X9")})
+    assert GE2000.request_program(sim, 55) == :ok
+
+    assert_receive {:remote_request, _,
+                    %{result: :sent, verified: {:error, "PROGRAM VERIFY FAILED 000055.PRO"}}},
+                   5_000
   end
 
   test "refused in words the operator sees: nothing filed, alarm 9, the message on the screen",
