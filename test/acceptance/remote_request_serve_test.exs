@@ -42,12 +42,12 @@ defmodule Vws.Acceptance.RemoteRequestServeTest do
 
     # the operator asks for 100 (released: stored from iex) and for 101 (not in the library)
     sim = ~s|Vws.Sim.Floor.ge2000("VWS")|
-    Acceptance.tmux_send(t, ~s|{Vws.Sim.GE2000.request_program(#{sim}, 100), :asked}|)
+    Acceptance.tmux_send(t, ~s|{Vws.Sim.GE2000.Panel.request_program(#{sim}, 100), :asked}|)
     Acceptance.tmux_await(t, ~r/^\{:ok, :asked\}$/m, 30_000)
     Acceptance.tmux_send(t, ~s|Vws.Sim.GE2000.program(#{sim}, "000100.PRO") == #{program}|)
     Acceptance.tmux_await(t, ~r/^true$/m)
 
-    Acceptance.tmux_send(t, ~s|Vws.Sim.GE2000.request_program(#{sim}, 101)|)
+    Acceptance.tmux_send(t, ~s|Vws.Sim.GE2000.Panel.request_program(#{sim}, 101)|)
     Acceptance.tmux_await(t, ~r/REQUEST REFUSED 000101\.PRO NOT IN LIBRARY"\}\}/, 30_000)
     Acceptance.tmux_send(t, ~s|hd(Vws.Sim.GE2000.state(#{sim}).messages)|)
     Acceptance.tmux_await(t, ~r/^"REQUEST REFUSED 000101\.PRO NOT IN LIBRARY"$/m)

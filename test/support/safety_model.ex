@@ -253,7 +253,7 @@ defmodule Vws.Test.SafetyModel do
   """
   def remote_request(number, version) do
     f = floor()
-    spawn(fn -> GE2000.request_program(f.ge2000, number, version, 2_000) end)
+    spawn(fn -> GE2000.Panel.request_program(f.ge2000, number, version, 2_000) end)
     no_collisions(f)
   end
 

@@ -178,8 +178,10 @@ defmodule Vws.Partitions.Monarch do
       if line > 1, do: log_restart(ctx.workstation, file, version, line, preamble)
       text = Program.to_text(lines)
 
-      with :ok <- send_program(ctx, :download_execute, file, text, "DRIP FEED OF #{file} FAILED"),
-           do: :done
+      result = send_program(ctx, :download_execute, file, text, "DRIP FEED OF #{file} FAILED")
+      # the history's record says what the bytes are: no version holds them
+      if line > 1, do: Transfers.note("version #{version} restarted at line #{line}")
+      with :ok <- result, do: :done
     end
   end
 
@@ -439,7 +441,7 @@ defmodule Vws.Partitions.Monarch do
   @spec restart(Mailbox.workstation(), String.t(), :latest | pos_integer, pos_integer) ::
           {:ok, [String.t()], pos_integer, [String.t()]} | {:error, String.t()}
   def restart(ws, file, which, line) do
-    with {:ok, text, v} <- library_read(ws, file, which),
+    with {:ok, text, v} <- released_read(ws, file, which),
          :ok <- whole_and_sendable(file, text),
          {:ok, preamble, lines} <- Vws.Codecs.NCModal.restart(Program.from_text(text), line) do
       {:ok, lines, v.version, preamble}
@@ -455,12 +457,7 @@ defmodule Vws.Partitions.Monarch do
   @spec released_program(Mailbox.workstation(), String.t(), :latest | pos_integer) ::
           {:ok, binary, pos_integer} | {:error, String.t()}
   def released_program(ws, file, which) do
-    with {:ok, text, v} <- library_read(ws, file, which),
-         :ok <-
-           if(Vws.CEC.Library.latest_released([v]) == {:ok, v},
-             do: :ok,
-             else: {:error, "#{file} VERSION #{v.version} NOT RELEASED"}
-           ),
+    with {:ok, text, v} <- released_read(ws, file, which),
          :ok <- Program.check_size(text),
          :ok <- whole_and_sendable(file, text),
          do: {:ok, text, v.version}
@@ -501,6 +498,18 @@ defmodule Vws.Partitions.Monarch do
       version: version,
       preamble: preamble
     })
+  end
+
+  # a version that may go to a machine: released (the latest released one for :latest), as
+  # DOWNLOAD_GE(nnnnnn.PRO/v) without FORCE
+  defp released_read(ws, file, which) do
+    case library_read(ws, file, which) do
+      {:ok, _text, %{released: false} = v} ->
+        {:error, "#{file} VERSION #{v.version} NOT RELEASED"}
+
+      other ->
+        other
+    end
   end
 
   defp library_read(ws, file, which) do

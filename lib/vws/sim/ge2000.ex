@@ -58,7 +58,7 @@ defmodule Vws.Sim.GE2000 do
   into the block buffer and run out of it at `feed_rate`; when the buffer has less than a
   block's room the link answers WACK, and acknowledges once the program has run enough of it
   (`drip/1`). `send_program/2` is the operator sending a program from the control panel to the
-  CEC, unasked.
+  CEC, unasked; `Vws.Sim.GE2000.Panel.request_program/4` the operator asking the CEC for one.
 
   ## Faults (`set_fault/2`, at run time)
 
@@ -154,10 +154,6 @@ defmodule Vws.Sim.GE2000 do
         error
     end
   end
-
-  @doc "The operator asks the CEC for a program from the panel: `Vws.Sim.GE2000.Panel.request_program/4`."
-  defdelegate request_program(sim, number, version \\ nil, timeout \\ 60_000),
-    to: Vws.Sim.GE2000.Panel
 
   @doc """
   The drip feed under way or the last one (nil if none): `%{program, state, received, ran,

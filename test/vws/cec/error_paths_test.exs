@@ -145,7 +145,8 @@ defmodule Vws.CEC.ErrorPathsTest do
     defp fake_loop(script) do
       receive do
         {:"$gen_call", from, :info} ->
-          GenServer.reply(from, %{max_text: 256})
+          # (with its counters, as Vws.Links.DNC.info/1: the transfer history reads them)
+          GenServer.reply(from, %{max_text: 256, counters: %{}})
           fake_loop(script)
 
         # Vws.Links.DNC.request/4 casts the request with the caller's deadline and a reply

@@ -20,7 +20,11 @@ defmodule Vws.Partitions.Monarch.RemoteRequest do
   `verified`). A program sent is then checked as after any `DOWNLOAD_GE`
   (`Vws.Partitions.Monarch.verify_download/5`: the status report without alarm, the directory
   entry's size and CRC-16 those of the bytes sent): `verified` is `:ok` or `{:error, words}`.
-  The answer's transfer is the link's, with its progress and end like every other.
+  The answer's transfer is the link's, with its progress and end like every other, and it is
+  recorded in the transfer history through its one home (`Vws.Partitions.Monarch.Transfers`):
+  requester `machine panel`, command `REQUESTED FROM THE MACHINE nnnnnn.PRO[/v]`, result `DONE`
+  (sent and verified), the verify's `ERROR` words, or `ERROR REQUEST REFUSED <words>` (nothing
+  sent: 0 bytes).
 
   Called by `Vws.Partitions.Monarch.Monitor` (the link's owner) within the link's
   `answer_timeout`.
@@ -31,6 +35,7 @@ defmodule Vws.Partitions.Monarch.RemoteRequest do
   alias Vws.Links.DNC
   alias Vws.Links.DNC.Frame
   alias Vws.Partitions.Monarch
+  alias Vws.Partitions.Monarch.Transfers
 
   @doc """
   Answers the GE-2000's `R` command `command` (announced as `{:request, ref, command, blocks}` by
@@ -50,18 +55,49 @@ defmodule Vws.Partitions.Monarch.RemoteRequest do
         {:error, reason} -> {:failed, reason}
       end
 
-    # as after any DOWNLOAD_GE: the machine's report and directory must say it holds the bytes
-    verified =
+    # recorded in the transfer history through its one home, as MONARCH's own transfers: the
+    # program sent (a refusal or a failure sends none), and its end — as after any DOWNLOAD_GE,
+    # the machine's report and directory must say it holds the bytes
+    history = %{
+      workstation: ws,
+      link: link,
+      options: options,
+      requester: "machine panel",
+      text:
+        String.trim(
+          "REQUESTED FROM THE MACHINE " <>
+            if(asked == "", do: "", else: Vws.Codecs.WC.Words.of(asked))
+        )
+    }
+
+    {file, sent} =
       case outcome do
-        {:sent, file, _v} -> Monarch.verify_download(ws, link, file, text, options)
-        _ -> nil
+        {:sent, file, _v} -> {file, blocks}
+        _ -> {asked |> String.split("/") |> hd(), []}
       end
+
+    command = %Frame.Command{direction: :send, check: :crc, operation: :part_program, text: file}
+
+    result =
+      Transfers.carried(history, command, sent, fn -> ended(ws, link, outcome, text, options) end)
+
+    verified =
+      if match?({:sent, _, _}, outcome), do: if(result == {:ok, []}, do: :ok, else: result)
 
     tell(ws, asked, outcome, verified, byte_size(text))
     outcome
   catch
     :exit, reason -> {:failed, reason}
   end
+
+  defp ended(ws, link, {:sent, file, _v}, text, options) do
+    with :ok <- Monarch.verify_download(ws, link, file, text, options), do: {:ok, []}
+  end
+
+  defp ended(_ws, _link, {:refused, words}, _text, _options),
+    do: {:error, "REQUEST REFUSED " <> words}
+
+  defp ended(_ws, _link, {:failed, _}, _text, _options), do: {:error, "NO ANSWER"}
 
   @doc "The refusal's message block for `words` (upper-case words and numbers)."
   @spec refusal(String.t()) :: String.t()

@@ -18,7 +18,7 @@ defmodule Vws.Sim.GE2000.Panel do
   released version or `version`. Returns when the answer is filed or shown: `:ok` (filed),
   `{:error, {:refused, words}}`, `{:error, {:alarm, n}}` (not filed: the machine's alarm),
   `{:error, :bad_name}` (nothing sent) or the link's error. From iex under `mix vws.serve`:
-  `Vws.Sim.GE2000.request_program(Vws.Sim.Floor.ge2000("ws1"), 100)` (the workstation's id).
+  `Vws.Sim.GE2000.Panel.request_program(Vws.Sim.Floor.ge2000("ws1"), 100)` (the workstation's id).
   """
   @spec request_program(GenServer.server(), integer | String.t(), pos_integer | nil, timeout) ::
           :ok | {:error, term}

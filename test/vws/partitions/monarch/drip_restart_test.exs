@@ -110,6 +110,12 @@ defmodule Vws.Partitions.Monarch.DripRestartTest do
             %{program: "000077.PRO", version: 1, preamble: ^preamble}} = Enum.at(messages, told)
 
     assert is_integer(first_text) and told < first_text
+
+    # the history's record says what the bytes are: version 1 restarted at line 600
+    {:ok, %{records: [r]}} = Library.history(ws)
+
+    assert {r.program, r.version, r.note, r.result} ==
+             {"000077.PRO", nil, "version 1 restarted at line 600", "DONE"}
   end
 
   test "bad input ends ERROR in words and sends nothing", %{ws: ws, peer: peer, sim: sim} do
@@ -134,6 +140,13 @@ defmodule Vws.Partitions.Monarch.DripRestartTest do
     # a program that only ever came from the machine has no released version
     :ok = Vws.Partitions.Monarch.store_from_machine(ws, "000079.PRO", program())
     assert monarch(peer, 8, "DRIP_FEED(000079.PRO)") == "ERROR 000079.PRO HAS NO RELEASED VERSION"
+
+    # a draft version goes to no machine (DOWNLOAD_GE's rule without FORCE)
+    {:ok, _} =
+      Library.store(ws, "77", Program.to_text(program() ++ ["%"]), source: "cli", state: :draft)
+
+    assert monarch(peer, 10, "DRIP_FEED(000077.PRO/2/N600)") ==
+             "ERROR 000077.PRO VERSION 2 NOT RELEASED"
 
     assert GE2000.state(sim).drips == 0
     assert GE2000.drip(sim) == nil

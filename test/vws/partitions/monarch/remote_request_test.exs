@@ -43,13 +43,16 @@ defmodule Vws.Partitions.Monarch.RemoteRequestTest do
     %{ws: ws, sim: sim}
   end
 
+  defp file(n) when is_integer(n), do: String.pad_leading("#{n}", 6, "0") <> ".PRO"
+  defp file(name), do: name
+
   test "the latest released version is sent and filed; a named released version too; logged",
        %{ws: ws, sim: sim} do
     {:ok, _} = Library.store(ws, "55", @v1, source: "iex")
     {:ok, _} = Library.store(ws, "55", @v2, source: "iex")
     :ok = Vws.CEC.Events.subscribe(ws, :dnc_progress)
 
-    assert GE2000.request_program(sim, 55) == :ok
+    assert GE2000.Panel.request_program(sim, 55) == :ok
     assert GE2000.program(sim, "000055.PRO") == @v2
     assert GE2000.state(sim).alarm == 0
     bytes = byte_size(@v2)
@@ -64,11 +67,20 @@ defmodule Vws.Partitions.Monarch.RemoteRequestTest do
                     %{program: "000055.PRO", direction: :out, ended: :ok}},
                    5_000
 
-    assert GE2000.request_program(sim, "000055", 1) == :ok
+    assert GE2000.Panel.request_program(sim, "000055", 1) == :ok
     assert GE2000.program(sim, "000055.PRO") == @v1
     assert_receive {:remote_request, _, %{version: 1, result: :sent, verified: :ok}}, 5_000
     # (the version the operator named is not part of the file's name)
     assert_receive {:vws_event, ^ws, :dnc_progress, %{program: "000055.PRO", ended: :ok}}, 5_000
+
+    # both in the transfer history, through its one home, as the machine panel's
+    {:ok, %{records: [second, first], damaged: []}} = Library.history(ws)
+
+    assert {first.program, first.version, first.result, first.requester, first.direction} ==
+             {"000055.PRO", 2, "DONE", "machine panel", "to machine"}
+
+    assert {first.command, first.bytes} == {"REQUESTED FROM THE MACHINE 000055.PRO", bytes}
+    assert {second.version, second.command} == {1, "REQUESTED FROM THE MACHINE 000055.PRO/1"}
 
     # what the machine holds is what the library says it holds
     {:ok, compare} = Monarch.compare(ws)
@@ -79,11 +91,14 @@ defmodule Vws.Partitions.Monarch.RemoteRequestTest do
        %{ws: ws, sim: sim} do
     {:ok, _} = Library.store(ws, "55", @v1, source: "iex")
     :ok = GE2000.set_fault(sim, {:file_as, &String.replace(&1, "X1", "X9")})
-    assert GE2000.request_program(sim, 55) == :ok
+    assert GE2000.Panel.request_program(sim, 55) == :ok
 
     assert_receive {:remote_request, _,
                     %{result: :sent, verified: {:error, "PROGRAM VERIFY FAILED 000055.PRO"}}},
                    5_000
+
+    {:ok, %{records: [r]}} = Library.history(ws)
+    assert {r.result, r.version} == {"ERROR PROGRAM VERIFY FAILED 000055.PRO", 1}
   end
 
   test "refused in words the operator sees: nothing filed, alarm 9, the message on the screen",
@@ -101,7 +116,7 @@ defmodule Vws.Partitions.Monarch.RemoteRequestTest do
     ]
 
     for {{number, version}, words} <- cases do
-      assert GE2000.request_program(sim, number, version) ==
+      assert GE2000.Panel.request_program(sim, number, version) ==
                {:error, {:refused, "REQUEST REFUSED " <> words}}
 
       assert GE2000.state(sim).alarm == 9
@@ -111,7 +126,14 @@ defmodule Vws.Partitions.Monarch.RemoteRequestTest do
 
     assert GE2000.directory(sim) == []
     assert GE2000.state(sim).downloads == 0
-    assert GE2000.request_program(sim, "12.PRO") == {:error, :bad_name}
+
+    # each refusal in the history: nothing sent, the words the operator saw
+    {:ok, %{records: records}} = Library.history(ws)
+
+    assert Enum.map(Enum.reverse(records), &{&1.program, &1.bytes, &1.result}) ==
+             for({{n, _v}, words} <- cases, do: {file(n), 0, "ERROR REQUEST REFUSED " <> words})
+
+    assert GE2000.Panel.request_program(sim, "12.PRO") == {:error, :bad_name}
   end
 
   test "the interlock is DOWNLOAD_GE's, decided by the one table: a program goes to the machine " <>
@@ -122,7 +144,7 @@ defmodule Vws.Partitions.Monarch.RemoteRequestTest do
 
     {:ok, _} = Library.store(ws, "55", @v1, source: "iex")
     :ok = Interlock.acquire(ws, :table, :robot, 0)
-    assert GE2000.request_program(sim, 55) == :ok
+    assert GE2000.Panel.request_program(sim, 55) == :ok
     assert GE2000.program(sim, "000055.PRO") == @v1
     assert Interlock.holds?(ws, :table, :robot)
   end

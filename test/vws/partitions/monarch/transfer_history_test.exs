@@ -29,7 +29,12 @@ defmodule Vws.Partitions.Monarch.TransferHistoryTest do
       "DOWNLOAD_GE(000100.PRO/2)",
       "DOWNLOAD_GE(000100.PRO/2/FORCE)"
     ],
-    drip_feed: ["DRIP_FEED"],
+    drip_feed: [
+      "DRIP_FEED",
+      "DRIP_FEED(000100.PRO)",
+      "DRIP_FEED(000100.PRO/1/N3)",
+      "DRIP_FEED(000100.PRO/2)"
+    ],
     compare_ge: ["COMPARE_GE", "COMPARE_GE(000100.PRO)"],
     upload_ge: ["UPLOAD_GE(000100.PRO)"],
     program_select: ["PROGRAM_SELECT(000100)"],
@@ -136,8 +141,13 @@ defmodule Vws.Partitions.Monarch.TransferHistoryTest do
       assert {text, 1} in moved, "#{text}: #{inspect(moved)}"
     end
 
+    # from the library, and restarted at a line (issue 27)
+    assert {"DRIP_FEED(000100.PRO)", 1} in moved, inspect(moved)
+    assert {"DRIP_FEED(000100.PRO/1/N3)", 1} in moved, inspect(moved)
+
     # the draft without FORCE: nothing sent, nothing recorded
     assert {"DOWNLOAD_GE(000100.PRO/2)", 0} in moved
+    assert {"DRIP_FEED(000100.PRO/2)", 0} in moved
 
     # a program sent from the machine's panel
     before = length(records(ws))
