@@ -3,7 +3,8 @@ defmodule Vws.Partitions.Monarch.Transfers do
   The one home of MONARCH's transfer history (issue 27): every NC program that goes over the
   DNC link for MONARCH — `DOWNLOAD_GE` in its forms, `UPLOAD_GE`, `DRIP_FEED`, the read-back of
   `COMPARE_GE(nnnnnn.PRO)` and of `Vws.Partitions.Monarch.compare/2`, a program the operator
-  sends from the machine — is recorded in the program library's history
+  sends from the machine, one the operator asks for from the machine's panel
+  (`Vws.Partitions.Monarch.RemoteRequest`, through `carried/4`) — is recorded in the program library's history
   (`Vws.CEC.Library.record_transfer/2`, `Vws.CEC.Library.History`).
 
   MONARCH's requests all pass `carried/4` (`Vws.Partitions.Monarch`'s `request/5`): a request
