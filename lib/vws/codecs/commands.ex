@@ -215,21 +215,15 @@ defmodule Vws.Codecs.Commands do
           with {:ok, file} <- program_file(file), do: {:ok, {:download_ge, file, :latest}}
 
         [file, v] ->
-          with {:ok, file} <- program_file(file) do
-            case Integer.parse(v) do
-              {n, ""} when n in 1..999_999 -> {:ok, {:download_ge, file, n}}
-              _ -> {:error, "BAD VERSION #{v}"}
-            end
-          end
+          with {:ok, file} <- program_file(file),
+               {:ok, n} <- version(v),
+               do: {:ok, {:download_ge, file, n}}
 
         # ours (issue 27): a version sent whatever its workflow state, draft included
         [file, v, "FORCE"] ->
-          with {:ok, file} <- program_file(file) do
-            case Integer.parse(v) do
-              {n, ""} when n in 1..999_999 -> {:ok, {:download_ge, file, {:force, n}}}
-              _ -> {:error, "BAD VERSION #{v}"}
-            end
-          end
+          with {:ok, file} <- program_file(file),
+               {:ok, n} <- version(v),
+               do: {:ok, {:download_ge, file, {:force, n}}}
 
         _ ->
           {:error, "BAD PROGRAM FILE #{inner}"}
