@@ -113,8 +113,9 @@ defmodule Vws.Partitions.HydraulicTest do
   end
 
   test "a command on a controller still EXECUTING waits for it, then runs" do
-    # the controller runs a CLAMP_PALLET that another CEC sent; its X ram is stuck
-    floor = HydraulicFloor.controller(controller: [step_timeout_ms: 800])
+    # the controller runs a CLAMP_PALLET that another CEC sent; its X ram is stuck (DAQ #2 given
+    # 1.5 s to answer: its 300 ms default failed one loaded run with NOT ANSWERING)
+    floor = HydraulicFloor.controller(controller: [step_timeout_ms: 800, timeout_ms: 1_500])
     :ok = Plant.inject_fault(floor.plant, :stuck_valve, actuator: :ram_x_valve)
     other_cec = HydraulicFloor.hpib(floor.endpoint)
     :ok = Vws.Links.HPIB.write(other_cec, :clamp_pallet)
