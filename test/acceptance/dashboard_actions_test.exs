@@ -54,7 +54,11 @@ defmodule Vws.Acceptance.DashboardActionsTest do
 
     # a program into the library, as a WC stores one (DOWNLOAD_HP)
     socket = connect(wc)
-    program = ["%", "O1234"] ++ for(i <- 1..20, do: "N#{i} G01 X#{i}.0 Y0 F100") ++ ["M30", "%"]
+
+    program =
+      ["%", "O1234", "G21 G17 G90 G54", "T1 M6", "S1200 M3", "M8"] ++
+        for(i <- 1..20, do: "N#{i} G01 X#{i}.0 Y0 F100") ++ ["M9", "M30", "%"]
+
     assert "05A0001" <> _ = request(socket, Acceptance.wc_frame("*0001*M0001DOWNLOAD_HP*"))
 
     for {line, n} <- Enum.with_index(program, 1), do: request(socket, nc_line(n, line))
@@ -70,6 +74,24 @@ defmodule Vws.Acceptance.DashboardActionsTest do
     assert "DONE" = action(url, "M", "COMPARE_GE(001234.PRO)")
     assert "DONE" = action(url, "M", "UPLOAD_GE(001234.PRO)")
     assert "DONE" = action(url, "M", "DRIP_FEED")
+
+    # the library's program restarted at line 16 (N10) from the page (issue 27): the preamble
+    # restoring the modal state of lines 1-15 is shown on the page, and was told before it went
+    assert "DONE" = action(url, "M", "DRIP_FEED(001234.PRO/1/N16)")
+    page = text(dump_dom(url, 2_000))
+    assert page =~ "Drip-feed restart (MONARCH)"
+    assert page =~ ~r/001234.PRO version 1 restarted at line 16 .* UTC — restored preamble/
+
+    assert page =~
+             ~r/sent before line 16:\s+G21 G17 G90 G54\s+T1 M6\s+S1200 M3\s+M8\s+G01 F100\s/
+
+    assert page =~
+             "MONARCH: DRIP_FEED of 001234.PRO version 1 restarts at line 16, restored preamble: " <>
+               "G21 G17 G90 G54 / T1 M6 / S1200 M3 / M8 / G01 F100"
+
+    # past the end: refused in words on the page, nothing sent
+    assert action(url, "M", "DRIP_FEED(001234.PRO/N99)") ==
+             "ERROR RESTART LINE 99 BEYOND THE END (LAST BLOCK 28)"
 
     # MONARCH keeps the table after its program: released from the page
     assert text(dump_dom(url, 2_000)) =~ ~r/table monarch/

@@ -9,6 +9,9 @@ defmodule Vws.Ops.Web.Command do
 
     * `M DOWNLOAD_GE(nnnnnn.PRO/v)` (or without `/v`: the latest) — a library version to the machine;
     * `M COMPARE_GE(nnnnnn.PRO)`, `M UPLOAD_GE(nnnnnn.PRO)`, `M DRIP_FEED`;
+    * `M DRIP_FEED(nnnnnn.PRO)`, `M DRIP_FEED(nnnnnn.PRO/v)`, `M DRIP_FEED(nnnnnn.PRO/Nk)`,
+      `M DRIP_FEED(nnnnnn.PRO/v/Nk)` — a library program drip-fed, restarted at line k
+      (issue 27; the restored preamble is shown on the dashboard before it is sent);
     * `R RELEASE_TABLE`, `F RELEASE_TABLE`, `M RELEASE_TABLE`, `R RELEASE_TRAY1`, `R RELEASE_TRAY2` —
       a lease left held after a failed cycle.
 
@@ -26,6 +29,7 @@ defmodule Vws.Ops.Web.Command do
     {"M", ~r/^COMPARE_GE\(#{@program}\)$/},
     {"M", ~r/^UPLOAD_GE\(#{@program}\)$/},
     {"M", ~r/^DRIP_FEED$/},
+    {"M", ~r/^DRIP_FEED\(#{@program}(\/\d{1,6})?(\/N\d{1,7})?\)$/},
     {"M", ~r/^RELEASE_TABLE$/},
     {"R", ~r/^RELEASE_TABLE$/},
     {"R", ~r/^RELEASE_TRAY[12]$/},

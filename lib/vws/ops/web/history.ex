@@ -8,7 +8,11 @@ defmodule Vws.Ops.Web.History do
 
     * every command status change the mailbox writes (`Vws.CEC.Mailbox`'s change notices, which
       carry the system time of the write): `R 0007 EXECUTING ROBOT_PICK(…)`, `F 9001 DONE`, …;
-    * every control action of the dashboard (`Vws.Ops.Web.Command`): sent, or refused and why.
+    * every control action of the dashboard (`Vws.Ops.Web.Command`): sent, or refused and why;
+    * every drip feed restarted at a line (issue 27; MONARCH's telemetry
+      `[:vws, :monarch, :drip_restart]`, told before the first block is sent): the program, the
+      version, the line and the preamble that restores the modal state — and the last one per
+      workstation is kept whole for the dashboard's "Drip-feed restart" box (`restart/1`).
 
   One process per node (named `#{inspect(__MODULE__)}`, started with the first web server); it
   subscribes to the workstations it finds (looked for again every second). An event is
@@ -71,6 +75,37 @@ defmodule Vws.Ops.Web.History do
     :ok
   end
 
+  @doc """
+  The last drip-feed restart told on this node for `ws`, nil if none: `%{time, program, version,
+  line, preamble}` — `preamble` the lines sent before line `line` (`Vws.Codecs.NCModal`).
+  """
+  @spec restart(term) :: map | nil
+  def restart(ws) do
+    case :ets.whereis(__MODULE__) do
+      :undefined ->
+        nil
+
+      _ ->
+        case :ets.lookup(__MODULE__, {:restart, ws, :last}) do
+          [{_, shown}] -> shown
+          [] -> nil
+        end
+    end
+  rescue
+    ArgumentError -> nil
+  end
+
+  @doc false
+  # MONARCH's [:vws, :monarch, :drip_restart], in the process that is about to send the program:
+  # handed to the history at once, with the moment it was told.
+  def drip_restart(_event, %{line: line}, meta, _config) do
+    if pid = Process.whereis(__MODULE__) do
+      send(pid, {:drip_restart, meta.workstation, System.system_time(:microsecond), meta, line})
+    end
+
+    :ok
+  end
+
   @doc "Makes sure the workstation's events are recorded from now on (they are within a second anyway)."
   @spec watch(term) :: :ok
   def watch(ws) do
@@ -87,6 +122,17 @@ defmodule Vws.Ops.Web.History do
     # look every second finds any the cell did not tell of)
     _ = :pg.monitor_scope(Vws.CEC.Cell.scope())
     send(self(), :look)
+    # the handler of a history started before this one is replaced (its process is gone)
+    Vws.Telemetry.detach({__MODULE__, :drip_restart})
+
+    :ok =
+      Vws.Telemetry.attach(
+        {__MODULE__, :drip_restart},
+        [:vws, :monarch, :drip_restart],
+        &__MODULE__.drip_restart/4,
+        nil
+      )
+
     {:ok, %{watched: MapSet.new(), seq: 0, counts: %{}}}
   end
 
@@ -122,6 +168,28 @@ defmodule Vws.Ops.Web.History do
   def handle_info({:record, ws, at, where, text, severity}, s),
     do: {:noreply, put(s, ws, at, where, text, severity)}
 
+  def handle_info({:drip_restart, ws, at, meta, line}, s) do
+    preamble = Enum.map(meta.preamble, &to_string/1)
+    program = to_string(meta.program)
+
+    text =
+      "DRIP_FEED of #{program} version #{meta.version} restarts at line #{line}, " <>
+        "restored preamble: #{Enum.join(preamble, " / ")}"
+
+    s = put(s, ws, at, "MONARCH", text, "ok")
+
+    shown = %{
+      time: time(at),
+      program: program,
+      version: meta.version,
+      line: line,
+      preamble: preamble
+    }
+
+    :ets.insert(__MODULE__, {{:restart, ws, :last}, shown})
+    {:noreply, s}
+  end
+
   def handle_info({_ref, :join, {:workstation, ws}, _pids}, s) do
     if MapSet.member?(s.watched, ws) do
       {:noreply, s}
@@ -136,15 +204,9 @@ defmodule Vws.Ops.Web.History do
   defp put(s, ws, at_us, where, text, severity) do
     seq = s.seq + 1
 
-    time =
-      at_us
-      |> DateTime.from_unix!(:microsecond)
-      |> DateTime.truncate(:millisecond)
-      |> DateTime.to_iso8601()
-
     :ets.insert(
       __MODULE__,
-      {{ws, seq}, %{time: time, where: where, text: text, severity: severity}}
+      {{ws, seq}, %{time: time(at_us), where: where, text: text, severity: severity}}
     )
 
     count = Map.get(s.counts, ws, 0) + 1
@@ -159,5 +221,12 @@ defmodule Vws.Ops.Web.History do
       end
 
     %{s | seq: seq, counts: Map.put(s.counts, ws, count)}
+  end
+
+  defp time(at_us) do
+    at_us
+    |> DateTime.from_unix!(:microsecond)
+    |> DateTime.truncate(:millisecond)
+    |> DateTime.to_iso8601()
   end
 end

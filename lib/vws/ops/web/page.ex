@@ -8,6 +8,7 @@ defmodule Vws.Ops.Web.Page do
   150 polls); the device statuses as the WC reads them; every link (the WC link, DAQ #1,
   the hydraulic controller, the GE-2000, the VAL II) with its state, counters, retries and last
   error; the interlock leases; NC transfers under way with their progress, rate and ETA; the
+  last drip feed restarted at a line, with the preamble that restores its modal state; the
   recent WC dialogue and the node's recent events (`Vws.Ops.Web.History`: command status changes
   and operator actions, each with the node's time, so a reload keeps them). Below them the equipment on this
   node outside any workstation (the hydraulic controller with its link to DAQ #2), and, on a
@@ -259,6 +260,21 @@ defmodule Vws.Ops.Web.Page do
     }), "transfers-" + ws.id);
   }
 
+  // The last drip feed restarted at a line: the preamble that restores the modal state of the
+  // lines before it, told by MONARCH before the first block went (issue 27).
+  function restart(ws) {
+    const r = ws.restart;
+    const d = el("div");
+    d.id = "restart-" + ws.id;
+    d.appendChild(el("div", r.program + " version " + r.version + " restarted at line " + r.line + " — " +
+      r.time.replace("T", " ").replace("Z", "") + " UTC — restored preamble, sent before line " + r.line + ":", "muted"));
+    const pre = el("div", null, "dialogue");
+    pre.classList.add("changes");
+    (r.preamble.length ? r.preamble : ["(none: the program's head only)"]).forEach(l => pre.appendChild(el("div", l)));
+    d.appendChild(pre);
+    return d;
+  }
+
   function library(ws) {
     const l = ws.library;
     if (!l) return el("p", "no program library", "muted");
@@ -334,6 +350,7 @@ defmodule Vws.Ops.Web.Page do
         {text: age(d.age_ms), cls: "nowrap"}]), "devices-" + ws.id)));
     const right = el("div");
     right.appendChild(box("NC transfers", transfers(ws)));
+    if (ws.restart) right.appendChild(box("Drip-feed restart (MONARCH)", restart(ws)));
     right.appendChild(box("Program library", library(ws)));
     right.appendChild(box("Transfer history (newest first)", transferHistory(ws)));
     right.appendChild(box("Interlock leases", ws.interlocks.length === 0 ? el("p", "none held", "muted") :
@@ -436,7 +453,7 @@ defmodule Vws.Ops.Web.Page do
   // command's status location (from /api/state) until it ends DONE or ERROR.
   const PARTITION = {M: "MONARCH", R: "ROBOT", F: "FIXTURE"};
   const PRESETS = [["M", "DOWNLOAD_GE(000000.PRO/1)"], ["M", "COMPARE_GE(000000.PRO)"], ["M", "UPLOAD_GE(000000.PRO)"],
-    ["M", "DRIP_FEED"], ["R", "RELEASE_TABLE"], ["F", "RELEASE_TABLE"], ["M", "RELEASE_TABLE"], ["R", "RELEASE_TRAY1"], ["R", "RELEASE_TRAY2"]];
+    ["M", "DRIP_FEED"], ["M", "DRIP_FEED(000000.PRO)"], ["M", "DRIP_FEED(000000.PRO/1/N1)"], ["R", "RELEASE_TABLE"], ["F", "RELEASE_TABLE"], ["M", "RELEASE_TABLE"], ["R", "RELEASE_TRAY1"], ["R", "RELEASE_TRAY2"]];
   let pending = null;  // {ws, set, number, text, status}
 
   function showPending(state) {

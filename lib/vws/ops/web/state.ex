@@ -20,6 +20,9 @@ defmodule Vws.Ops.Web.State do
       programs and versions, when the machine's directory was last read, how many programs are
       the same / differ / are absent on the machine, and the 30 programs stored last with
       their latest version and where they stand on the machine;
+    * `restart` — the last drip feed restarted at a line (issue 27), nil if none since the node
+      started: `%{time, program, version, line, preamble}`, the preamble being the lines that
+      restore the modal state, told before the first block went (`Vws.Ops.Web.History.restart/1`);
     * `alerts` — what is wrong now: commands ended in error, devices without data, links down
       or with a last error.
 
@@ -139,7 +142,8 @@ defmodule Vws.Ops.Web.State do
       alerts: [%{where: label(ws), text: "could not be read", severity: "error"}],
       last_sequence: nil,
       events: [],
-      history: Vws.Ops.Web.History.recent(ws)
+      history: Vws.Ops.Web.History.recent(ws),
+      restart: Vws.Ops.Web.History.restart(ws)
     }
   end
 
@@ -180,7 +184,8 @@ defmodule Vws.Ops.Web.State do
       alerts: alerts(partitions, devices, links, wc, sensors),
       last_sequence: number(snapshot.mailboxes.last_sequence),
       events: for({e, n} <- snapshot.mailboxes.events, do: %{event: Inspect.words(e), count: n}),
-      history: Vws.Ops.Web.History.recent(ws)
+      history: Vws.Ops.Web.History.recent(ws),
+      restart: Vws.Ops.Web.History.restart(ws)
     }
   end
 

@@ -84,6 +84,8 @@ defmodule Vws.Partitions.Monarch.DripRestartTest do
     )
 
     on_exit(fn -> Vws.Telemetry.detach(id) end)
+    # the dashboard's node history (one per node) shows it too
+    :ok = Vws.Ops.Web.History.ensure_started()
 
     # line 600: in the second body, after the canned cycle ended, tool 5 in the spindle
     n = 600
@@ -110,6 +112,22 @@ defmodule Vws.Partitions.Monarch.DripRestartTest do
             %{program: "000077.PRO", version: 1, preamble: ^preamble}} = Enum.at(messages, told)
 
     assert is_integer(first_text) and told < first_text
+
+    # the dashboard's state: the restart and its preamble, and an event recorded before the DONE
+    assert eventually(fn -> Vws.Ops.Web.History.restart(ws) != nil end)
+
+    assert [%{restart: %{program: "000077.PRO", version: 1, line: 600, preamble: ^preamble}}] =
+             Vws.Ops.Web.State.build(workstations: [ws]).workstations
+
+    texts = Enum.map(Vws.Ops.Web.History.recent(ws), &"#{&1.where}: #{&1.text}")
+
+    told_at =
+      Enum.find_index(
+        texts,
+        &(&1 =~ "restarts at line 600, restored preamble: G21 G17 G90 G54 / T5 M6")
+      )
+
+    assert is_integer(told_at) and told_at < Enum.find_index(texts, &(&1 =~ "MONARCH: 0002 DONE"))
 
     # the history's record says what the bytes are: version 1 restarted at line 600
     {:ok, %{records: [r]}} = Library.history(ws)
