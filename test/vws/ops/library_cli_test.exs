@@ -108,6 +108,10 @@ defmodule Vws.Ops.LibraryCLITest do
     assert out =~
              ~r/000030.PRO v2  to machine  DOWNLOAD_GE\(000030.PRO\/2\/FORCE\)  30 bytes 1 blocks .* DONE  by WC string 0001 M0001/
 
+    # the same lines in iex (Vws.Ops.Inspect.transfers/2, issue 27's "readable in iex")
+    assert ExUnit.CaptureIO.capture_io(fn -> Vws.Ops.Inspect.transfers(lib, program: "30") end) ==
+             out
+
     {0, "no transfers recorded\n"} = cli(["--library", dir, "history", "31"])
     {1, _} = cli(["--library", dir, "diff", "30", "--machine", "--cached"])
     {2, _} = cli(["--library", dir, "diff", "30"])
