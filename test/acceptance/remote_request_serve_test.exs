@@ -52,6 +52,22 @@ defmodule Vws.Acceptance.RemoteRequestServeTest do
     Acceptance.tmux_send(t, ~s|hd(Vws.Sim.GE2000.state(#{sim}).messages)|)
     Acceptance.tmux_await(t, ~r/^"REQUEST REFUSED 000101\.PRO NOT IN LIBRARY"$/m)
 
+    # and for version 2 of 100, a draft (not released): refused on the machine's screen too
+    Acceptance.tmux_send(
+      t,
+      ~s|{:ok, _} = Vws.CEC.Library.store("VWS", "100", "%\\nO100\\nX9\\nM30\\n%\\n", source: "iex", state: :draft); :draft|
+    )
+
+    Acceptance.tmux_await(t, ~r/^:draft$/m)
+    Acceptance.tmux_send(t, ~s|Vws.Sim.GE2000.Panel.request_program(#{sim}, 100, 2)|)
+    Acceptance.tmux_await(t, ~r/REQUEST REFUSED 000100\.PRO VERSION 2 NOT RELEASED"\}\}/, 30_000)
+    Acceptance.tmux_send(t, ~s|{hd(Vws.Sim.GE2000.state(#{sim}).messages), :on_screen}|)
+
+    Acceptance.tmux_await(
+      t,
+      ~r/^\{"REQUEST REFUSED 000100\.PRO VERSION 2 NOT RELEASED", :on_screen\}$/m
+    )
+
     # the WC: a drip feed of the library program restarted at line 7 ("X2"), and one past the end
     assert Acceptance.wc_request(wc, "*0001*M0001DRIP_FEED(000100.PRO/N7)*") =~ ~r/^05A0001\d{3}$/
     deadline = System.monotonic_time(:millisecond) + 60_000
