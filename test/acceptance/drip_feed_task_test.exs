@@ -101,4 +101,26 @@ defmodule Vws.Acceptance.DripFeedTaskTest do
       refute output =~ "drip feed of"
     end
   end
+
+  test "mix vws.drip_feed --program: a long library program (the most the library keeps, " <>
+         "999,999 bytes) through an 8 KiB buffer",
+       %{tmp_dir: dir} do
+    library = Path.join(dir, "library")
+    # "%", "O88", 55,554 blocks of 18 bytes, "M30", "%": 999,987 bytes
+    body = for i <- 1..55_554, do: "N#{rem(i, 9000) + 1000} G01 X#{rem(i, 900) + 100}.5\n"
+    text = IO.iodata_to_binary(["%\nO88\n", body, "M30\n%\n"])
+    assert byte_size(text) <= Library.max_bytes() and byte_size(text) > 990_000
+    {:ok, _} = Library.store({:dir, library}, "88", text, source: "cli")
+
+    args = ~w(--program 88 --library #{library} --memory 8192 --feed-rate 5000000)
+    proc = Acceptance.start(["mix", "vws.drip_feed" | args], env: [{"MIX_ENV", "dev"}])
+    on_exit(fn -> Acceptance.stop(proc) end)
+    assert Acceptance.await_exit(proc, 300_000) == 0, Acceptance.output(proc)
+    output = Acceptance.output(proc)
+    assert output =~ "000088.PRO version 1 from the library"
+    crc = Integer.to_string(Vws.Codecs.CRC16.compute(text), 16)
+
+    assert output =~
+             ~r/received #{byte_size(text)} bytes, ran #{byte_size(text)}, buffer \d+\/8192 at most, .* CRC #{crc}, state done/
+  end
 end
