@@ -44,7 +44,7 @@ defmodule Vws.Acceptance.DashboardActionsTest do
        %{proc: proc, wc: wc, url: url} do
     # a healthy idle floor: nothing red (not read yet is not an error); without the token typed,
     # the page offers no action
-    dom = dump_dom(url, 2_000)
+    dom = page(url)
     page = text(dom)
     assert page =~ "no errors seen"
     assert page =~ ~r/NO DATA \((GE-2000|VAL II) NOT READ YET\)/
@@ -78,7 +78,7 @@ defmodule Vws.Acceptance.DashboardActionsTest do
     # the library's program restarted at line 16 (N10) from the page (issue 27): the preamble
     # restoring the modal state of lines 1-15 is shown on the page, and was told before it went
     assert "DONE" = action(url, "M", "DRIP_FEED(001234.PRO/1/N16)")
-    page = text(dump_dom(url, 2_000))
+    page = text(page(url))
     assert page =~ "Drip-feed restart (MONARCH)"
     assert page =~ ~r/001234.PRO version 1 restarted at line 16 .* UTC — restored preamble/
 
@@ -94,27 +94,27 @@ defmodule Vws.Acceptance.DashboardActionsTest do
              "ERROR RESTART LINE 99 BEYOND THE END (LAST BLOCK 28)"
 
     # MONARCH keeps the table after its program: released from the page
-    assert text(dump_dom(url, 2_000)) =~ ~r/table monarch/
+    assert text(page(url)) =~ ~r/table monarch/
     assert "DONE" = action(url, "M", "RELEASE_TABLE")
-    refute text(dump_dom(url, 2_000)) =~ ~r/table monarch/
+    refute text(page(url)) =~ ~r/table monarch/
 
     # leases a failed cycle would leave: taken by the WC's commands, released from the page
     run(client, "R", "DISABLE_TRAY1")
     run(client, "R", "DISABLE_TABLE")
-    page = text(dump_dom(url, 2_000))
+    page = text(page(url))
     assert page =~ ~r/tray1 robot disabled/
     assert page =~ ~r/table robot disabled/
 
     assert "DONE" = action(url, "R", "RELEASE_TRAY1")
     assert "DONE" = action(url, "R", "RELEASE_TABLE")
-    page = text(dump_dom(url, 2_000))
+    page = text(page(url))
     refute page =~ ~r/tray1 robot disabled/
     refute page =~ ~r/table robot disabled/
 
     run(client, "F", "DISABLE_TABLE")
-    assert text(dump_dom(url, 2_000)) =~ ~r/table fixture disabled/
+    assert text(page(url)) =~ ~r/table fixture disabled/
     assert "DONE" = action(url, "F", "RELEASE_TABLE")
-    refute text(dump_dom(url, 2_000)) =~ ~r/table fixture disabled/
+    refute text(page(url)) =~ ~r/table fixture disabled/
 
     # the same path as a WC's command: MONARCH busy with the WC's DOWNLOAD_HP (held open half-way)
     # refuses the page's command as it would a WC's
@@ -135,43 +135,40 @@ defmodule Vws.Acceptance.DashboardActionsTest do
     :gen_tcp.close(socket)
 
     # not an operator command: refused by the server, nothing runs
-    dom = dump_dom(url <> "#token=#{@token}&set=R&text=DO%20MOVE%20NOWHERE", 3_000)
+    dom = page(url <> "#token=#{@token}&set=R&text=DO%20MOVE%20NOWHERE")
     assert text(dom) =~ "refused: not an operator command: R DO MOVE NOWHERE"
 
     # a wrong token: refused
-    dom = dump_dom(url <> "#token=wrong&set=M&text=DRIP_FEED", 3_000)
+    dom = page(url <> "#token=wrong&set=M&text=DRIP_FEED")
     assert text(dom) =~ "refused: control needs the right x-vws-token"
 
     # after a reload the node's history still has the page's commands, with the node's time
-    page = text(dump_dom(url, 2_000))
+    page = text(page(url))
     assert page =~ ~r/\d\d:\d\d:\d\d\.\d{3}\s+OPERATOR: R9\d{3} RELEASE_TRAY1 sent/
     assert page =~ ~r/\d\d:\d\d:\d\d\.\d{3}\s+MONARCH: 9\d{3} DONE/
 
     refute Acceptance.output(proc) =~ "FunctionClauseError"
   end
 
-  # Sends one action from the page and follows it there: the page's own answer line first, then
-  # (the command taking longer than one page load) the node's history, reloaded, until it ends.
+  # Sends one action from the page and follows it there: the page's answer line, which the page
+  # itself keeps following (from its polls of the node's state) until the command ends.
   defp action(url, set, text) do
     fragment = "#token=#{@token}&set=#{set}&text=#{URI.encode_www_form(text)}"
-    page = text(dump_dom(url <> fragment, 4_000))
-    re = ~r/#{set}(9\d{3}) #{Regex.escape(text)}: (DONE|EXECUTING|ERROR[A-Z0-9 #.,()\/-]*)/
-    assert [_, number, status] = Regex.run(re, page), "no answer for #{set} #{text}:\n#{page}"
 
-    if status == "EXECUTING", do: await_end(url, set, number, 60), else: status
-  end
+    ended = ~S"""
+    /: (DONE|ERROR)|^refused|status location now/.test((document.getElementById('command-status') || {}).textContent || '')
+    """
 
-  @partition %{"M" => "MONARCH", "R" => "ROBOT", "F" => "FIXTURE"}
+    dom = page(url <> fragment, until: ended, timeout: 90_000)
 
-  defp await_end(_url, set, number, 0), do: flunk("#{set}#{number} never ended")
+    assert [_, line] = Regex.run(~r/<span[^>]*id="command-status"[^>]*>([^<]*)</, dom),
+           "no answer for #{set} #{text}: #{Regex.run(~r/id="command-answer".{0,400}/s, dom)}"
 
-  defp await_end(url, set, number, tries) do
-    page = text(dump_dom(url, 1_500))
-    re = ~r/#{@partition[set]}: #{number} (DONE|ERROR[A-Z0-9 #.,()\/-]*)/
+    re = ~r/^#{set}9\d{3} #{Regex.escape(text)}: (DONE|ERROR[A-Z0-9 #.,()\/-]*)$/
 
-    case Regex.run(re, page) do
-      [_, status] -> String.trim(status)
-      nil -> await_end(url, set, number, tries - 1)
+    case Regex.run(re, text(line)) do
+      [_, status] -> status
+      nil -> flunk("no end for #{set} #{text}: #{line}")
     end
   end
 
@@ -179,8 +176,6 @@ defmodule Vws.Acceptance.DashboardActionsTest do
     {:ok, [{^letter, n}]} = Client.send_commands(client, [{letter, text}])
     assert :done = Client.await_command(client, letter, n, timeout), "#{letter} #{text}"
   end
-
-  defp pad4(n), do: Vws.Codecs.WC.Command.pad4(n)
 
   defp connect(port) do
     {:ok, socket} =
@@ -198,6 +193,6 @@ defmodule Vws.Acceptance.DashboardActionsTest do
 
   defp nc_line(n, text), do: IO.iodata_to_binary(Reply.encode({:line, n, text}))
 
-  defdelegate dump_dom(url, budget_ms), to: Vws.Test.Browser
+  defdelegate page(url, opts \\ []), to: Vws.Test.Browser
   defdelegate text(dom), to: Vws.Test.Browser
 end

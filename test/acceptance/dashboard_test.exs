@@ -55,7 +55,7 @@ defmodule Vws.Acceptance.DashboardTest do
     for {line, n} <- Enum.with_index(first, 1),
         do: assert({:ok, {:line_ack, ^n}} = Reply.decode(request(socket, nc_line(n, line))))
 
-    page = text(dump_dom(url, 3_000))
+    page = text(page(url))
     assert page =~ ~r/DOWNLOAD_HP 0001 WC .* 12 lines, \d+ bytes \d+ B\/s unknown/
     screenshot(url, "dashboard-download.png")
 
@@ -78,8 +78,11 @@ defmodule Vws.Acceptance.DashboardTest do
     assert :done = Client.await_command(client, "M", 1, 10_000)
 
     # the program on to the GE-2000 over the DNC link (paced at 2400 Bd: ~8 s), read meanwhile
+    # (read once the transfer's rate and time to go are known: after its first blocks)
     {:ok, [{"M", ge}]} = Client.send_commands(client, [{"M", "DOWNLOAD_GE"}])
-    page = text(dump_dom(url, 2_000))
+
+    page =
+      text(Vws.Test.Browser.page(url, until: ~S{/B\/s\s+[\d.]+ s/.test(document.body.innerText)}))
 
     assert page =~
              ~r/DOWNLOAD_GE #{Vws.Codecs.WC.Command.pad4(ge)} \d{6}\.PRO v\d+ GE-2000 \(DNC\) .*\d+ % \d+ of \d+ blocks, \d+ of \d+ bytes \d+ B\/s [\d.]+ s/
@@ -91,8 +94,8 @@ defmodule Vws.Acceptance.DashboardTest do
     {:ok, [{"R", bad}]} = Client.send_commands(client, [{"R", "DO MOVE NOWHERE"}])
     assert {:error, _} = Client.await_command(client, "R", bad, 30_000)
 
-    # 3. the page, after its scripts polled a few times
-    dom = dump_dom(url, 4_000)
+    # 3. the page, once its script has drawn what it polled a few times (the trends)
+    dom = Vws.Test.Browser.page(url, updates: 4)
     page = text(dom)
 
     assert page =~ "Workstation VWS"
@@ -162,16 +165,14 @@ defmodule Vws.Acceptance.DashboardTest do
 
   defp nc_line(n, text), do: IO.iodata_to_binary(Reply.encode({:line, n, text}))
 
-  defdelegate dump_dom(url, budget_ms), to: Vws.Test.Browser
+  defdelegate page(url), to: Vws.Test.Browser
 
   defp screenshot(url, name) do
     File.mkdir_p!(@shots)
     path = Path.join(@shots, name)
     File.rm(path)
 
-    Vws.Test.Browser.run(3_000, ["--window-size=1400,2400", "--screenshot=#{path}", url],
-      cd: @shots
-    )
+    Vws.Test.Browser.screenshot(url, path, {1400, 2400})
 
     assert File.stat!(path).size > 10_000
     path

@@ -150,7 +150,7 @@ defmodule Vws.Acceptance.LibraryTest do
   # The dashboard's visible text after the page ran 3 s in headless Chromium.
   # (all whitespace one blank: the table's cells on one line)
   defp dashboard_text(url) do
-    dom = Vws.Test.Browser.dump_dom(url, 3_000)
+    dom = Vws.Test.Browser.page(url)
 
     dom
     |> String.replace(~r{<script.*?</script>}s, "")

@@ -133,7 +133,7 @@ defmodule Vws.Acceptance.LibraryWorkflowTest do
   defp dashboard_text(url),
     do:
       url
-      |> Vws.Test.Browser.dump_dom(3_000)
+      |> Vws.Test.Browser.page()
       |> Vws.Test.Browser.text()
       |> String.replace(~r/\s+/, " ")
 end

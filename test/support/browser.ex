@@ -40,6 +40,43 @@ defmodule Vws.Test.Browser do
   @doc "The DOM Chromium ends with after `budget_ms` of page time on `url`."
   def dump_dom(url, budget_ms), do: run(budget_ms, ["--dump-dom", url])
 
+  # A page has drawn: loaded; the dashboard polled the node at least `updates` times (its
+  # `updates` counter); a command sent from the link's fragment (`#token=…&text=…`) answered.
+  defp drawn(updates) do
+    """
+    (document.readyState === 'complete' &&
+     (!document.getElementById('updates') || +document.getElementById('updates').textContent >= #{updates}) &&
+     (!/[#&]text=/.test(location.hash) || !!document.getElementById('command-status')))
+    """
+  end
+
+  @doc """
+  The DOM of `url` once the page has drawn (loaded; the dashboard's first poll of the node drawn;
+  a command sent from the link's fragment answered), read from the test run's one Chromium
+  (`Vws.Test.Browser.CDP`): a fresh tab, so what it shows was fetched after the call. Options:
+  `:updates` (the dashboard's polls drawn, 1: its trends need a few), `:until` (a JavaScript
+  expression to wait for instead), `:timeout` (ms, 30 000).
+  """
+  def page(url, opts \\ []) do
+    Vws.Test.Browser.CDP.read(url, until(opts), Keyword.get(opts, :timeout, 30_000), :dom)
+  end
+
+  @doc "A PNG of the whole page `url` at `width` × `height` once it has drawn (`page/2`), at `path`."
+  def screenshot(url, path, {width, height}, opts \\ []) do
+    png =
+      Vws.Test.Browser.CDP.read(
+        url,
+        until(opts),
+        Keyword.get(opts, :timeout, 30_000),
+        {:screenshot, width, height}
+      )
+
+    File.write!(path, png)
+  end
+
+  defp until(opts),
+    do: Keyword.get_lazy(opts, :until, fn -> drawn(Keyword.get(opts, :updates, 1)) end)
+
   @doc "The visible text of a DOM, roughly as a person reads it (a line per block element)."
   def text(dom) do
     dom

@@ -464,9 +464,16 @@ defmodule Vws.Ops.Web.Page do
     const p = ws && ws.partitions.find(x => x.name === PARTITION[pending.set]);
     if (!p) return;
     if (p.number === pending.number) pending.status = p.status;
-    else if (p.number !== pending.number && pending.status === "EXECUTING") pending.status = "(status location now " + p.number + ")";
+    else if (pending.status === "EXECUTING" && later(p.number, pending.number)) pending.status = "(status location now " + p.number + ")";
     pending.ended = /^(DONE|ERROR)/.test(pending.status);
     drawPending();
+  }
+
+  // A number after `than` (4 digits, wrapping): a state read before the command was taken still
+  // shows the number before it, and must not end the following.
+  function later(number, than) {
+    const d = (parseInt(number, 10) - parseInt(than, 10) + 10000) % 10000;
+    return d > 0 && d < 5000;
   }
 
   function drawPending() {
