@@ -339,11 +339,13 @@ end
 window = fn fun ->
   c0 = os_cpu.()
   u0 = :scheduler.sample()
+  {r0, _} = :erlang.statistics(:exact_reductions)
   t0 = System.monotonic_time(:microsecond)
   result = fun.()
   wall = System.monotonic_time(:microsecond) - t0
+  {r1, _} = :erlang.statistics(:exact_reductions)
   busy = Bench.normal_utilization(u0) * System.schedulers_online() * wall
-  %{cpu: os_cpu.() - c0, busy: busy, wall: wall, result: result}
+  %{cpu: os_cpu.() - c0, busy: busy, wall: wall, reds: r1 - r0, result: result}
 end
 
 split = fn ids ->
@@ -575,12 +577,20 @@ costs =
         b: %{r.b | cpu: r.b.cpu - idle_rate * r.b.wall, busy: r.b.busy - idle_busy * r.b.wall}
     }
 
+    # reductions: the BEAM's count of work done, which the machine's other load does not change
+    idle_reds = idle.reds / idle.wall
+    reds_poll = (r.a.reds - idle_reds * r.a.wall) / max(r.pa.polls, 1)
+
+    reds_exchange =
+      (r.b.reds - idle_reds * r.b.wall - r.pb.polls * reds_poll) / max(length(r.rtts), 1)
+
     cpu_a = r.a.cpu
     rate_a = r.a.cpu / r.a.wall
     busy_rate_a = r.a.busy / r.a.wall
     exchanges = length(r.rtts)
-    wc_cpu = r.b.cpu - rate_a * r.b.wall
-    wc_busy = r.b.busy - busy_rate_a * r.b.wall
+    # B's own polls charged at A's cost per poll (an overloaded node makes fewer of them)
+    wc_cpu = r.b.cpu - r.pb.polls * cpu_a / max(r.pa.polls, 1)
+    wc_busy = r.b.busy - r.pb.polls * r.a.busy / max(r.pa.polls, 1)
     due = fn p -> p.polls + p.missed end
     pct = fn a, b -> if b > 0, do: "#{Float.round(a * 100 / b, 1)} %", else: "-" end
 
@@ -598,7 +608,7 @@ costs =
           ),
           line.(
             "  per poll",
-            "#{per.(cpu_a, r.pa.polls)} µs CPU (busy #{per.(r.a.busy, r.pa.polls)} µs)"
+            "#{per.(cpu_a, r.pa.polls)} µs CPU (busy #{per.(r.a.busy, r.pa.polls)} µs), #{round(reds_poll)} reductions"
           ),
           line.(
             "  period error",
@@ -615,7 +625,7 @@ costs =
           ),
           line.(
             "  per exchange",
-            "#{per.(wc_cpu, exchanges)} µs CPU (busy #{per.(wc_busy, exchanges)} µs) above A's rate"
+            "#{per.(wc_cpu, exchanges)} µs CPU (busy #{per.(wc_busy, exchanges)} µs), #{round(reds_exchange)} reductions (B's polls charged at A's cost)"
           ),
           line.(
             "  WC round trip",

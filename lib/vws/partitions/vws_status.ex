@@ -536,8 +536,14 @@ defmodule Vws.Partitions.VwsStatus do
             )
 
           texts = DeviceStatus.texts(readings, min_force_n: s.min_force_n)
-          Enum.each(texts, fn {loc, text} -> Mailbox.put_device(s.workstation, loc, text) end)
-          put_sensors(s.workstation, readings)
+
+          # the texts, then location 11 and the event that wakes whoever awaits a reading (await/4)
+          Mailbox.put_devices(
+            s.workstation,
+            Enum.to_list(texts) ++ [{Sensors.sensors_location(), readings}]
+          )
+
+          Vws.CEC.Events.cause(s.workstation, :sensors)
 
           # the stale readings' warning ends here, with how often it was repeated
           Vws.LogLimit.clear(:stale, "VWS_STATUS: #{@device} answers again")
@@ -616,12 +622,6 @@ defmodule Vws.Partitions.VwsStatus do
 
   defp write_no_data(ws, why) do
     for {loc, value} <- Sensors.no_data(why), do: Mailbox.put_device(ws, loc, value)
-    Vws.CEC.Events.cause(ws, :sensors)
-  end
-
-  # Location 11, and the event that wakes whoever awaits a reading (await/4).
-  defp put_sensors(ws, value) do
-    Mailbox.put_device(ws, Sensors.sensors_location(), value)
     Vws.CEC.Events.cause(ws, :sensors)
   end
 
