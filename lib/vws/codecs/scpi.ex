@@ -528,10 +528,21 @@ defmodule Vws.Codecs.SCPI do
 
   defp digits(text), do: digits(text, 0)
 
+  # eight at a time where it can: a DAQ's readings have eight digits after the point
+  defguardp digit(d) when d in ?0..?9
+
   defp digits(text, n) do
     case text do
-      <<_::binary-size(n), d, _::binary>> when d in ?0..?9 -> digits(text, n + 1)
-      <<ds::binary-size(n), rest::binary>> -> {ds, rest}
+      <<_::binary-size(n), a, b, c, d, e, f, g, h, _::binary>>
+      when digit(a) and digit(b) and digit(c) and digit(d) and digit(e) and digit(f) and
+             digit(g) and digit(h) ->
+        digits(text, n + 8)
+
+      <<_::binary-size(n), d, _::binary>> when digit(d) ->
+        digits(text, n + 1)
+
+      <<ds::binary-size(n), rest::binary>> ->
+        {ds, rest}
     end
   end
 
@@ -658,7 +669,16 @@ defmodule Vws.Codecs.SCPI do
     if printable?(line), do: :ok, else: {:error, :bad_character}
   end
 
-  defp printable?(<<c, rest::binary>>) when c in 0x20..0x7E or c == ?\t, do: printable?(rest)
+  defguardp printable_byte(c) when c in 0x20..0x7E or c == ?\t
+
+  # eight bytes at a time where it can (a poll's answer is ~270 bytes)
+  defp printable?(<<a, b, c, d, e, f, g, h, rest::binary>>)
+       when printable_byte(a) and printable_byte(b) and printable_byte(c) and printable_byte(d) and
+              printable_byte(e) and
+              printable_byte(f) and printable_byte(g) and printable_byte(h),
+       do: printable?(rest)
+
+  defp printable?(<<c, rest::binary>>) when printable_byte(c), do: printable?(rest)
   defp printable?(<<>>), do: true
   defp printable?(_), do: false
 
