@@ -125,6 +125,8 @@ defmodule Vws.Telemetry do
      "the readings went stale: NO DATA written"},
     {[:vws, :vws_status, :actuation_retry], [:count], [:workstation, :reason, :try],
      "relays set again after a read-back not as commanded"},
+    {[:vws, :vws_status, :shedding], [:stretch], [:pool, :due, :late, :missed],
+     "the polls of a pool stretched or relaxed: each polls every `stretch` periods (load shedding)"},
     {[:vws, :hydraulic_controller, :relay_corrected], [:count], [:device],
      "a DAQ #2 slot read back not as intended, set right"},
     {[:vws, :interlock, :acquired], [:wait_ms, :tries], [:workstation, :volume, :holder, :reason],
