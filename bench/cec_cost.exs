@@ -25,10 +25,14 @@
 #   The CEC's CPU is its OS process's user + system time (/proc/self/stat), and the schedulers'
 #   busy time (`:scheduler.sample/0`; it leaves out the schedulers' spinning when idle: run with
 #   the ELIXIR_ERL_OPTIONS above so the OS figure leaves it out too).
-#   VWS_STATUS period error: |time between two polls of a workstation - poll period|, from the
+#   VWS_STATUS period error: |time between two polls of a workstation - the period in force|
+#   (k · poll period, k the nearest whole number ≥ 1: shedding stretches the period), from the
 #   `[:vws, :vws_status, :poll]` event of up to 50 workstations (a handler on so few costs the
 #   CEC little); p50/p99 of those, and the counts of missed and failed polls of all of them.
 #   Memory per workstation: the workstation's processes and ETS tables (as bench/scale.exs).
+#   Fairness: each workstation's polls per second in the window (lowest, median, highest), the
+#   periods in force (`VwsStatus.stats/1`'s period_ms) and how many workstations read NO DATA
+#   at the end. --no-shedding turns VWS_STATUS's load shedding off, to compare.
 #
 # With --cycles N1,…: for each, N workstations with their whole simulated floors
 # (`Vws.Sim.Floor` at ×20: plant, both DAQs, the hydraulic controller, the GE-2000 on DNC, the
@@ -55,7 +59,8 @@ alias Vws.Partitions.VwsStatus
       daq: :string,
       pin: :boolean,
       cycles: :string,
-      cycle_seconds: :integer
+      cycle_seconds: :integer,
+      shedding: :boolean
     ]
   )
 
@@ -69,6 +74,9 @@ daq_kind = Keyword.get(opts, :daq, "canned")
 pin = Keyword.get(opts, :pin, false)
 cycle_counts = ints.(Keyword.get(opts, :cycles, ""))
 cycle_seconds = Keyword.get(opts, :cycle_seconds, 30)
+
+# --no-shedding: every VWS_STATUS polls at its period or misses (Vws.Partitions.VwsStatus.Shedding)
+shedding = if Keyword.get(opts, :shedding, true), do: [], else: [shedding: false]
 
 # The floor nodes' code: compiled here, loaded there (a module of a script has no .beam file).
 floor_host = ~S"""
@@ -250,11 +258,14 @@ defmodule Bench.FloorHost do
           |> IO.iodata_to_binary()
 
         t0 = System.monotonic_time(:microsecond)
-        :ok = :gen_tcp.send(s, line)
-        ok = recv_reply(s, "")
-        dt = System.monotonic_time(:microsecond) - t0
-        acc = if ok, do: [dt | acc], else: [:lost | acc]
-        status_loop(s, rem(seq, 9_999) + 1, at + period, period, stop, acc)
+
+        if :gen_tcp.send(s, line) == :ok and recv_reply(s, "") do
+          dt = System.monotonic_time(:microsecond) - t0
+          status_loop(s, rem(seq, 9_999) + 1, at + period, period, stop, [dt | acc])
+        else
+          # the connection is gone: this WC stops here
+          [:lost | acc]
+        end
     end
   end
 
@@ -377,14 +388,32 @@ end
 wc_endpoint = fn ws -> Vws.Links.Endpoint.to_string(Vws.CEC.SunComm.listening(ws)) end
 
 poll_stats = fn ids ->
-  for ws <- ids, reduce: %{polls: 0, missed: 0, failed: 0} do
-    acc ->
-      s = VwsStatus.stats(ws)
-      %{polls: acc.polls + s.polls, missed: acc.missed + s.missed, failed: acc.failed + s.failed}
-  end
+  stats = Map.new(ids, &{&1, VwsStatus.stats(&1)})
+
+  %{
+    polls: Enum.sum(for {_, st} <- stats, do: st.polls),
+    missed: Enum.sum(for {_, st} <- stats, do: st.missed),
+    failed: Enum.sum(for {_, st} <- stats, do: st.failed),
+    per: Map.new(stats, fn {ws, st} -> {ws, st.polls} end),
+    periods: Enum.frequencies(for {_, st} <- stats, do: st.period_ms),
+    no_data:
+      Enum.count(
+        ids,
+        &String.starts_with?(Vws.CEC.SunComm.Status.answer(&1, "GRIPPER"), "NO DATA")
+      )
+  }
 end
 
-diff = fn a, b -> Map.new(a, fn {k, v} -> {k, b[k] - v} end) end
+diff = fn a, b ->
+  %{
+    polls: b.polls - a.polls,
+    missed: b.missed - a.missed,
+    failed: b.failed - a.failed,
+    per: Enum.map(b.per, fn {ws, n} -> n - a.per[ws] end),
+    periods: b.periods,
+    no_data: b.no_data
+  }
+end
 
 # poll start times of the sampled workstations
 samples = :ets.new(:samples, [:public, :duplicate_bag, write_concurrency: true])
@@ -409,7 +438,13 @@ period_errors = fn ->
     polls
     |> Enum.sort()
     |> Enum.chunk_every(2, 1, :discard)
-    |> Enum.map(fn [{_, a}, {_, b}] -> abs(b - a - poll_ms * 1_000) end)
+    # against the period in force: shedding polls every k periods (k = the nearest multiple);
+    # a slot missed altogether is counted as missed, not here
+    |> Enum.map(fn [{_, a}, {_, b}] ->
+      p = poll_ms * 1_000
+      k = max(round((b - a) / p), 1)
+      abs(b - a - k * p)
+    end)
   end)
 end
 
@@ -444,7 +479,7 @@ step = fn n ->
     end
 
   for {ws, endpoint} <- daqs do
-    w = VwsStatus.wiring(ws, endpoint, vws_status: [poll_ms: poll_ms])
+    w = VwsStatus.wiring(ws, endpoint, vws_status: [poll_ms: poll_ms] ++ shedding)
 
     {:ok, _} =
       Vws.CEC.Workstation.start(
@@ -607,6 +642,10 @@ costs =
             "#{Bench.thousands(r.pa.polls / (r.a.wall / 1.0e6))}/s, missed #{pct.(r.pa.missed, due.(r.pa))}, failed #{r.pa.failed}; CEC CPU #{Float.round(rate_a * 100, 1)} % of a core (busy #{Float.round(busy_rate_a * 100, 1)} %)"
           ),
           line.(
+            "  fairness",
+            "polls per workstation per second p0 #{Float.round(Enum.min(r.pa.per) / (r.a.wall / 1.0e6), 1)}, p50 #{Float.round(Bench.pct(r.pa.per, 0.5) / (r.a.wall / 1.0e6), 1)}, max #{Float.round(Enum.max(r.pa.per) / (r.a.wall / 1.0e6), 1)}; periods in force (ms => workstations) #{inspect(r.pa.periods)}; GRIPPER NO DATA on #{r.pa.no_data} of #{n} at the end"
+          ),
+          line.(
             "  per poll",
             "#{per.(cpu_a, r.pa.polls)} µs CPU (busy #{per.(r.a.busy, r.pa.polls)} µs), #{round(reds_poll)} reductions"
           ),
@@ -621,11 +660,11 @@ costs =
           ),
           line.(
             "  B + WC",
-            "#{Bench.thousands(exchanges / (r.b.wall / 1.0e6))} exchanges/s (#{r.lost} lost), polls missed #{pct.(r.pb.missed, due.(r.pb))}, failed #{r.pb.failed}; CEC CPU #{Float.round(r.b.cpu / r.b.wall * 100, 1)} % of a core"
+            "#{Bench.thousands(exchanges / (r.b.wall / 1.0e6))} exchanges/s (#{r.lost} lost), polls missed #{pct.(r.pb.missed, due.(r.pb))}, failed #{r.pb.failed}; CEC CPU #{Float.round(r.b.cpu / r.b.wall * 100, 1)} % of a core; polls per workstation per second p0 #{Float.round(Enum.min(r.pb.per) / (r.b.wall / 1.0e6), 1)}, max #{Float.round(Enum.max(r.pb.per) / (r.b.wall / 1.0e6), 1)}; periods #{inspect(r.pb.periods)}; GRIPPER NO DATA on #{r.pb.no_data}"
           ),
           line.(
             "  per exchange",
-            "#{per.(wc_cpu, exchanges)} µs CPU (busy #{per.(wc_busy, exchanges)} µs), #{round(reds_exchange)} reductions (B's polls charged at A's cost)"
+            "#{per.(wc_cpu, exchanges)} µs CPU (busy #{per.(wc_busy, exchanges)} µs), #{if exchanges > 0, do: round(reds_exchange), else: "-"} reductions (B's polls charged at A's cost)"
           ),
           line.(
             "  WC round trip",

@@ -9,11 +9,14 @@ defmodule Vws.Partitions.VwsStatus.Shedding do
   *stretch* `k` ≥ 1: each polls every `k · poll_ms`. Each VWS_STATUS counts its due polls, the
   ones it made late (more than `:late_after_us` after their slot) and the ones it missed
   (`count/4`); the pool's governor (`start_link/1`, one per pool, started with the node for
-  `:node`) reads and clears the counts every `:interval_ms` and sets the stretch by `next/3`:
+  `:node`) reads and clears the counts every `:interval_ms` and sets the stretch by `next/3`.
+  A poll counts late here when it starts more than half a period after its slot: the node
+  could not get to it, where a poll a few ms late is only the OS waking a thread late.
 
     * more than `:high` (default 10 %) of the due polls late or missed: the stretch grows by
       half (at least by one), up to `:max_stretch`;
-    * under `:low` (default 2 %) for `:calm` samples in a row (default 4): it shrinks by one;
+    * under `:low` (default 2 %) for `:calm` samples in a row (default 6, 3 s): it shrinks by
+      one;
     * otherwise, or with no poll due, it stays.
 
   `:max_stretch` is `div(max_period_ms, poll_ms)` as VWS_STATUS applies it: a workstation polls
@@ -29,7 +32,7 @@ defmodule Vws.Partitions.VwsStatus.Shedding do
   """
   use GenServer
 
-  @defaults [interval_ms: 500, high: 0.10, low: 0.02, calm: 4, max_stretch: 5]
+  @defaults [interval_ms: 500, high: 0.10, low: 0.02, calm: 6, max_stretch: 5]
 
   @typedoc "The governor's memory between samples: the stretch and the calm samples in a row."
   @type state :: %{stretch: pos_integer, calm: non_neg_integer}
@@ -115,7 +118,7 @@ defmodule Vws.Partitions.VwsStatus.Shedding do
     end
   end
 
-  @doc "Counts polls of one workstation: `due` slots, of which `late` made late and `missed` not made."
+  @doc "Counts polls of one workstation: `due` slots, `late` of them made half a period late, `missed` not made."
   @spec count(term, non_neg_integer, non_neg_integer, non_neg_integer) :: :ok
   def count(pool, due, late, missed) do
     case :persistent_term.get({__MODULE__, pool}, nil) do
