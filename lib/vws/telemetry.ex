@@ -224,6 +224,17 @@ defmodule Vws.Telemetry do
     end
   end
 
+  @doc """
+  Whether any handler is attached to `event`: for an event emitted so often (a poll every 20 ms
+  per workstation) that building its measurements for nobody is worth a look first.
+  """
+  @spec listened?(event_name) :: boolean
+  def listened?(event) do
+    if telemetry?(),
+      do: apply(:telemetry, :list_handlers, [event]) |> Enum.any?(&(&1.event_name == event)),
+      else: :persistent_term.get({__MODULE__, event}, []) != []
+  end
+
   @doc "Emits an event (`:telemetry.execute/3`)."
   @spec execute(event_name, map, map) :: :ok
   def execute(event, measurements, metadata \\ %{}) do
