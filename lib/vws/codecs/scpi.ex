@@ -513,6 +513,31 @@ defmodule Vws.Codecs.SCPI do
 
     with false <- int == "" and frac == "",
          {:ok, exp} <- exponent_part(rest) do
+      to_float(sign, int, frac, exp)
+    else
+      _ -> :error
+    end
+  end
+
+  @powers_of_ten List.to_tuple(for n <- 0..22, do: :math.pow(10, n))
+
+  # Up to 15 digits and a scale within 10^±22: the digits and the power of ten are both exact
+  # doubles, so one multiplication or division rounds correctly, as strtod does (Clinger's fast
+  # path) — a DAQ's "+1.23456789E+00" is always this case, and binary_to_float/1 takes ~2 µs.
+  defp to_float(sign, int, frac, exp) do
+    digits = int <> frac
+    scale = if(exp == "", do: 0, else: String.to_integer(exp)) - byte_size(frac)
+
+    if byte_size(digits) <= 15 and scale in -22..22 do
+      m = :erlang.binary_to_integer(digits) * 1.0
+
+      value =
+        if scale >= 0,
+          do: m * elem(@powers_of_ten, scale),
+          else: m / elem(@powers_of_ten, -scale)
+
+      {:ok, if(sign == "-", do: -value, else: value)}
+    else
       float_text = sign <> default(int, "0") <> "." <> default(frac, "0") <> exponent(exp)
 
       try do
@@ -521,8 +546,6 @@ defmodule Vws.Codecs.SCPI do
         # out of a double's range
         ArgumentError -> :error
       end
-    else
-      _ -> :error
     end
   end
 
