@@ -158,16 +158,24 @@ defmodule Vws.CEC.Mailbox do
 
   @doc """
   Writes several device-status locations at once, `[{loc, value}]`, as `put_device/3` does each
-  (one look-up of the table: VWS_STATUS writes seven at every poll of DAQ #1).
+  (one look-up of the table: VWS_STATUS writes seven at every poll of DAQ #1). An entry
+  `{loc, value, :changed}` is a value its writer knows to be new (a reading with its own sequence
+  number): announced without reading the old one back to compare.
   """
-  @spec put_devices(workstation, [{1..14, term}]) :: :ok
+  @spec put_devices(workstation, [{1..14, term} | {1..14, term, :changed}]) :: :ok
   def put_devices(ws, values) do
     table = table(ws)
     now = now()
 
     changes =
-      for {loc, value} <- values, loc in 1..14 do
-        changed? = :ets.lookup_element(table, {:device, loc}, 2) != value
+      for entry <- values do
+        {loc, value, changed?} =
+          case entry do
+            {loc, value, :changed} -> {loc, value, true}
+            {loc, value} -> {loc, value, :ets.lookup_element(table, {:device, loc}, 2) != value}
+          end
+
+        true = loc in 1..14
         :ets.insert(table, {{:device, loc}, value, now})
         changed? && {:device, loc, value}
       end

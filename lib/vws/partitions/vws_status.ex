@@ -566,7 +566,7 @@ defmodule Vws.Partitions.VwsStatus do
           # the texts, then location 11 and the event that wakes whoever awaits a reading (await/4)
           Mailbox.put_devices(
             s.workstation,
-            Enum.to_list(texts) ++ [{Sensors.sensors_location(), readings}]
+            Enum.to_list(texts) ++ [{Sensors.sensors_location(), readings, :changed}]
           )
 
           Vws.CEC.Events.cause(s.workstation, :sensors)
