@@ -395,7 +395,7 @@ poll_stats = fn ids ->
     missed: Enum.sum(for {_, st} <- stats, do: st.missed),
     failed: Enum.sum(for {_, st} <- stats, do: st.failed),
     per: Map.new(stats, fn {ws, st} -> {ws, st.polls} end),
-    periods: Enum.frequencies(for {_, st} <- stats, do: st.period_ms),
+    periods: Enum.frequencies(for {_, st} <- stats, do: Map.get(st, :period_ms, poll_ms)),
     no_data:
       Enum.count(
         ids,
