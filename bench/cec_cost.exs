@@ -38,9 +38,11 @@
 # (`Vws.Sim.Floor` at ×20: plant, both DAQs, the hydraulic controller, the GE-2000 on DNC, the
 # VAL II on DDCMP, the MHS) in the floor nodes, each WC running `priv/sims/machining_cycle.vws`
 # again and again for --cycle-seconds. It counts what crossed the CEC's links (telemetry: DDCMP
-# frames, DNC blocks, WC strings, polls) and gives the CPU left per DDCMP/DNC message once the
-# polls and WC strings are charged at A's and B's rates — an upper bound: it also holds the
-# hydraulic controller's HPIB, the partitions' own work and the journal.
+# frames, DNC blocks, WC strings, polls) and shares the CEC's CPU out by the reductions of the
+# workstations' processes by role (the DDCMP link and VAL connection, the DNC link, the HPIB
+# devices, VWS_STATUS, SUN_COMM, the rest): the CPU per DDCMP frame, per DNC block, per poll and
+# per WC string, on the assumption that a reduction costs the same wherever it is spent (the
+# kernel's work for each socket is shared out the same way).
 
 Code.require_file("support.exs", __DIR__)
 Logger.configure(level: :error)
@@ -602,94 +604,127 @@ IO.puts(
   )
 )
 
-costs =
-  for n <- counts do
-    r = step.(n)
+for n <- counts do
+  r = step.(n)
 
-    r = %{
-      r
-      | a: %{r.a | cpu: r.a.cpu - idle_rate * r.a.wall, busy: r.a.busy - idle_busy * r.a.wall},
-        b: %{r.b | cpu: r.b.cpu - idle_rate * r.b.wall, busy: r.b.busy - idle_busy * r.b.wall}
-    }
+  r = %{
+    r
+    | a: %{r.a | cpu: r.a.cpu - idle_rate * r.a.wall, busy: r.a.busy - idle_busy * r.a.wall},
+      b: %{r.b | cpu: r.b.cpu - idle_rate * r.b.wall, busy: r.b.busy - idle_busy * r.b.wall}
+  }
 
-    # reductions: the BEAM's count of work done, which the machine's other load does not change
-    idle_reds = idle.reds / idle.wall
-    reds_poll = (r.a.reds - idle_reds * r.a.wall) / max(r.pa.polls, 1)
+  # reductions: the BEAM's count of work done, which the machine's other load does not change
+  idle_reds = idle.reds / idle.wall
+  reds_poll = (r.a.reds - idle_reds * r.a.wall) / max(r.pa.polls, 1)
 
-    reds_exchange =
-      (r.b.reds - idle_reds * r.b.wall - r.pb.polls * reds_poll) / max(length(r.rtts), 1)
+  reds_exchange =
+    (r.b.reds - idle_reds * r.b.wall - r.pb.polls * reds_poll) / max(length(r.rtts), 1)
 
-    cpu_a = r.a.cpu
-    rate_a = r.a.cpu / r.a.wall
-    busy_rate_a = r.a.busy / r.a.wall
-    exchanges = length(r.rtts)
-    # B's own polls charged at A's cost per poll (an overloaded node makes fewer of them)
-    wc_cpu = r.b.cpu - r.pb.polls * cpu_a / max(r.pa.polls, 1)
-    wc_busy = r.b.busy - r.pb.polls * r.a.busy / max(r.pa.polls, 1)
-    due = fn p -> p.polls + p.missed end
-    pct = fn a, b -> if b > 0, do: "#{Float.round(a * 100 / b, 1)} %", else: "-" end
+  cpu_a = r.a.cpu
+  rate_a = r.a.cpu / r.a.wall
+  busy_rate_a = r.a.busy / r.a.wall
+  exchanges = length(r.rtts)
+  # B's own polls charged at A's cost per poll (an overloaded node makes fewer of them)
+  wc_cpu = r.b.cpu - r.pb.polls * cpu_a / max(r.pa.polls, 1)
+  wc_busy = r.b.busy - r.pb.polls * r.a.busy / max(r.pa.polls, 1)
+  due = fn p -> p.polls + p.missed end
+  pct = fn a, b -> if b > 0, do: "#{Float.round(a * 100 / b, 1)} %", else: "-" end
 
-    IO.puts(
-      Enum.join(
-        [
-          "  N = #{n}#{if r.ready != :ok, do: " (not all ready in time)", else: ""}   load average #{r.load0} at the start, #{r.load1} at the end",
-          line.(
-            "  memory",
-            "#{:erlang.float_to_binary(Enum.sum(r.mem) / n / 1_048_576, decimals: 3)} MB per workstation (max #{:erlang.float_to_binary(Enum.max(r.mem) / 1_048_576, decimals: 3)} MB)"
-          ),
-          line.(
-            "  A polls",
-            "#{Bench.thousands(r.pa.polls / (r.a.wall / 1.0e6))}/s, missed #{pct.(r.pa.missed, due.(r.pa))}, failed #{r.pa.failed}; CEC CPU #{Float.round(rate_a * 100, 1)} % of a core (busy #{Float.round(busy_rate_a * 100, 1)} %)"
-          ),
-          line.(
-            "  fairness",
-            "polls per workstation per second p0 #{Float.round(Enum.min(r.pa.per) / (r.a.wall / 1.0e6), 1)}, p50 #{Float.round(Bench.pct(r.pa.per, 0.5) / (r.a.wall / 1.0e6), 1)}, max #{Float.round(Enum.max(r.pa.per) / (r.a.wall / 1.0e6), 1)}; periods in force (ms => workstations) #{inspect(r.pa.periods)}; GRIPPER NO DATA on #{r.pa.no_data} of #{n} at the end"
-          ),
-          line.(
-            "  per poll",
-            "#{per.(cpu_a, r.pa.polls)} µs CPU (busy #{per.(r.a.busy, r.pa.polls)} µs), #{round(reds_poll)} reductions"
-          ),
-          line.(
-            "  period error",
-            if(r.errors_a == [],
-              do: "-",
-              else:
-                Bench.summary(r.errors_a) <>
-                  " µs (#{length(r.errors_a)} periods of #{min(n, 50)} workstations)"
-            )
-          ),
-          line.(
-            "  B + WC",
-            "#{Bench.thousands(exchanges / (r.b.wall / 1.0e6))} exchanges/s (#{r.lost} lost), polls missed #{pct.(r.pb.missed, due.(r.pb))}, failed #{r.pb.failed}; CEC CPU #{Float.round(r.b.cpu / r.b.wall * 100, 1)} % of a core; polls per workstation per second p0 #{Float.round(Enum.min(r.pb.per) / (r.b.wall / 1.0e6), 1)}, max #{Float.round(Enum.max(r.pb.per) / (r.b.wall / 1.0e6), 1)}; periods #{inspect(r.pb.periods)}; GRIPPER NO DATA on #{r.pb.no_data}"
-          ),
-          line.(
-            "  per exchange",
-            "#{per.(wc_cpu, exchanges)} µs CPU (busy #{per.(wc_busy, exchanges)} µs), #{if exchanges > 0, do: round(reds_exchange), else: "-"} reductions (B's polls charged at A's cost)"
-          ),
-          line.(
-            "  WC round trip",
-            if(r.rtts == [], do: "-", else: Bench.summary(r.rtts) <> " µs")
-          ),
-          line.(
-            "  period error",
-            if(r.errors_b == [], do: "-", else: Bench.summary(r.errors_b) <> " µs (with the WCs)")
-          ),
-          line.(
-            "  every poll",
-            if(r.pa.missed + r.pb.missed + r.pa.failed + r.pb.failed == 0 and r.lost == 0,
-              do: "made and answered, every WC string answered",
-              else: "NO: polls missed or failed, or WC strings lost (above)"
-            )
+  IO.puts(
+    Enum.join(
+      [
+        "  N = #{n}#{if r.ready != :ok, do: " (not all ready in time)", else: ""}   load average #{r.load0} at the start, #{r.load1} at the end",
+        line.(
+          "  memory",
+          "#{:erlang.float_to_binary(Enum.sum(r.mem) / n / 1_048_576, decimals: 3)} MB per workstation (max #{:erlang.float_to_binary(Enum.max(r.mem) / 1_048_576, decimals: 3)} MB)"
+        ),
+        line.(
+          "  A polls",
+          "#{Bench.thousands(r.pa.polls / (r.a.wall / 1.0e6))}/s, missed #{pct.(r.pa.missed, due.(r.pa))}, failed #{r.pa.failed}; CEC CPU #{Float.round(rate_a * 100, 1)} % of a core (busy #{Float.round(busy_rate_a * 100, 1)} %)"
+        ),
+        line.(
+          "  fairness",
+          "polls per workstation per second p0 #{Float.round(Enum.min(r.pa.per) / (r.a.wall / 1.0e6), 1)}, p50 #{Float.round(Bench.pct(r.pa.per, 0.5) / (r.a.wall / 1.0e6), 1)}, max #{Float.round(Enum.max(r.pa.per) / (r.a.wall / 1.0e6), 1)}; periods in force (ms => workstations) #{inspect(r.pa.periods)}; GRIPPER NO DATA on #{r.pa.no_data} of #{n} at the end"
+        ),
+        line.(
+          "  per poll",
+          "#{per.(cpu_a, r.pa.polls)} µs CPU (busy #{per.(r.a.busy, r.pa.polls)} µs), #{round(reds_poll)} reductions"
+        ),
+        line.(
+          "  period error",
+          if(r.errors_a == [],
+            do: "-",
+            else:
+              Bench.summary(r.errors_a) <>
+                " µs (#{length(r.errors_a)} periods of #{min(n, 50)} workstations)"
           )
-        ],
-        "\n"
-      )
+        ),
+        line.(
+          "  B + WC",
+          "#{Bench.thousands(exchanges / (r.b.wall / 1.0e6))} exchanges/s (#{r.lost} lost), polls missed #{pct.(r.pb.missed, due.(r.pb))}, failed #{r.pb.failed}; CEC CPU #{Float.round(r.b.cpu / r.b.wall * 100, 1)} % of a core; polls per workstation per second p0 #{Float.round(Enum.min(r.pb.per) / (r.b.wall / 1.0e6), 1)}, max #{Float.round(Enum.max(r.pb.per) / (r.b.wall / 1.0e6), 1)}; periods #{inspect(r.pb.periods)}; GRIPPER NO DATA on #{r.pb.no_data}"
+        ),
+        line.(
+          "  per exchange",
+          "#{per.(wc_cpu, exchanges)} µs CPU (busy #{per.(wc_busy, exchanges)} µs), #{if exchanges > 0, do: round(reds_exchange), else: "-"} reductions (B's polls charged at A's cost)"
+        ),
+        line.(
+          "  WC round trip",
+          if(r.rtts == [], do: "-", else: Bench.summary(r.rtts) <> " µs")
+        ),
+        line.(
+          "  period error",
+          if(r.errors_b == [], do: "-", else: Bench.summary(r.errors_b) <> " µs (with the WCs)")
+        ),
+        line.(
+          "  every poll",
+          if(r.pa.missed + r.pb.missed + r.pa.failed + r.pb.failed == 0 and r.lost == 0,
+            do: "made and answered, every WC string answered",
+            else: "NO: polls missed or failed, or WC strings lost (above)"
+          )
+        )
+      ],
+      "\n"
     )
+  )
+end
 
-    {n, %{poll: cpu_a / max(r.pa.polls, 1), exchange: wc_cpu / max(exchanges, 1)}}
+# The whole floors: the CPU per DDCMP/DNC message, per poll and per WC string, by role.
+# The reductions of the workstations' processes by role (their initial call), to share the
+# node's CPU out: a process's reductions are the BEAM's count of the work it did.
+roles = %{
+  Vws.Links.DDCMP.Link => "DDCMP",
+  Vws.Links.VAL.Connection => "DDCMP",
+  Vws.Links.DNC.Link => "DNC",
+  Vws.Links.HPIB.Device => "HPIB",
+  Vws.Partitions.VwsStatus => "VWS_STATUS",
+  Vws.CEC.SunComm.Server => "SUN_COMM"
+}
+
+reds_by_role = fn ids ->
+  walk = fn walk, sup ->
+    Enum.flat_map(Supervisor.which_children(sup), fn
+      {_, pid, :supervisor, _} when is_pid(pid) -> [pid | walk.(walk, pid)]
+      {_, pid, _, _} when is_pid(pid) -> [pid]
+      _ -> []
+    end)
   end
 
-# The whole floors: what is left per DDCMP/DNC message once polls and WC strings are charged.
+  for ws <- ids,
+      sup = Vws.CEC.Workstation.whereis(ws),
+      pid <- walk.(walk, sup),
+      {:reductions, r} <- [Process.info(pid, :reductions)],
+      reduce: %{} do
+    acc ->
+      role =
+        case :proc_lib.translate_initial_call(pid) do
+          {m, _, _} -> Map.get(roles, m, "the rest")
+          _ -> "the rest"
+        end
+
+      Map.update(acc, {role, pid}, r, &(&1 + r))
+  end
+end
+
 cycle_step = fn n ->
   ids = for i <- 1..n, do: "M#{n}-#{i}"
   Process.sleep(1_000)
@@ -744,6 +779,7 @@ cycle_step = fn n ->
     )
 
   targets = Enum.map(ids, &{&1, wc_endpoint.(&1)})
+  reds0 = reds_by_role.(ids)
 
   w =
     window.(fn ->
@@ -775,6 +811,18 @@ cycle_step = fn n ->
     end)
 
   :ok = Vws.Telemetry.detach(:bench_cec_cycles)
+  reds1 = reds_by_role.(ids)
+
+  # each process's reductions in the window (one started during it: all of its own), by role
+  by_role =
+    Enum.reduce(reds1, %{}, fn {{role, pid}, r}, acc ->
+      Map.update(
+        acc,
+        role,
+        r - Map.get(reds0, {role, pid}, 0),
+        &(&1 + r - Map.get(reds0, {role, pid}, 0))
+      )
+    end)
 
   counts =
     for {{kind, _}, i} <- Enum.with_index(kinds, 1),
@@ -784,7 +832,18 @@ cycle_step = fn n ->
   load1 = loadavg.()
   stop_workstations.(ids)
   runs = for {_ws, rs} <- w.result, r <- rs, do: r
-  %{n: n, ready: ready, mem: mem, w: w, counts: counts, runs: runs, load0: load0, load1: load1}
+
+  %{
+    n: n,
+    ready: ready,
+    mem: mem,
+    w: w,
+    counts: counts,
+    runs: runs,
+    load0: load0,
+    load1: load1,
+    by_role: by_role
+  }
 end
 
 for n <- cycle_counts do
@@ -795,12 +854,7 @@ for n <- cycle_counts do
     | w: %{r.w | cpu: r.w.cpu - idle_rate * r.w.wall, busy: r.w.busy - idle_busy * r.w.wall}
   }
 
-  {_, cost} =
-    Enum.min_by(costs, fn {m, _} -> abs(m - n) end, fn -> {0, %{poll: 0, exchange: 0}} end)
-
   c = r.counts
-  messages = c.ddcmp + c.dnc
-  left = r.w.cpu - c.poll * cost.poll - c.wc * cost.exchange
   done = Enum.count(r.runs, &(&1 == :completed))
 
   stopped =
@@ -832,8 +886,15 @@ for n <- cycle_counts do
           "#{Bench.thousands(c.poll)} polls, #{Bench.thousands(c.wc)} WC strings, #{Bench.thousands(c.ddcmp)} DDCMP frames, #{Bench.thousands(c.dnc)} DNC blocks"
         ),
         line.(
+          "  by role",
+          "the node's CPU shared out by the reductions of the workstations' processes (#{Bench.thousands(r.w.reds)} in all): " <>
+            Enum.map_join(Enum.sort_by(r.by_role, &(-elem(&1, 1))), ", ", fn {role, reds} ->
+              "#{role} #{Float.round(reds * 100 / max(r.w.reds, 1), 1)} %"
+            end)
+        ),
+        line.(
           "  per message",
-          "#{per.(left, messages)} µs CPU per DDCMP/DNC message, what is left after #{Bench.us(cost.poll)} µs per poll and #{Bench.us(cost.exchange)} µs per WC string (an upper bound)"
+          "by that share: DDCMP #{per.(r.w.cpu * Map.get(r.by_role, "DDCMP", 0) / max(r.w.reds, 1), c.ddcmp)} µs per frame, DNC #{per.(r.w.cpu * Map.get(r.by_role, "DNC", 0) / max(r.w.reds, 1), c.dnc)} µs per block, VWS_STATUS + HPIB #{per.(r.w.cpu * (Map.get(r.by_role, "VWS_STATUS", 0) + Map.get(r.by_role, "HPIB", 0)) / max(r.w.reds, 1), c.poll)} µs per poll (the hydraulic controller's HPIB too), SUN_COMM #{per.(r.w.cpu * Map.get(r.by_role, "SUN_COMM", 0) / max(r.w.reds, 1), c.wc)} µs per WC string"
         )
       ],
       "\n"
