@@ -340,6 +340,18 @@ loadavg = fn ->
   File.read!("/proc/loadavg") |> String.split() |> Enum.take(3) |> Enum.join(" ")
 end
 
+floor_pids = for {_, peer} <- floors, do: :peer.call(peer, :os, :getpid, [])
+
+# an OS process's CPU time, µs (user + system, every thread): the CEC's, or the floor nodes'
+os_cpu_of = fn pid ->
+  [_pid, rest] = String.split(File.read!("/proc/#{pid}/stat"), ") ", parts: 2)
+  fields = String.split(rest)
+  ticks = String.to_integer(Enum.at(fields, 11)) + String.to_integer(Enum.at(fields, 12))
+  div(ticks * 1_000_000, 100)
+end
+
+floor_cpu = fn -> Enum.sum(Enum.map(floor_pids, os_cpu_of)) end
+
 # the CEC's OS CPU time, µs (user + system, every thread)
 os_cpu = fn ->
   [_pid, rest] = String.split(File.read!("/proc/self/stat"), ") ", parts: 2)
@@ -351,6 +363,7 @@ end
 # a window: its OS CPU µs, the schedulers' busy µs, wall µs
 window = fn fun ->
   c0 = os_cpu.()
+  f0 = floor_cpu.()
   u0 = :scheduler.sample()
   {r0, _} = :erlang.statistics(:exact_reductions)
   t0 = System.monotonic_time(:microsecond)
@@ -358,7 +371,8 @@ window = fn fun ->
   wall = System.monotonic_time(:microsecond) - t0
   {r1, _} = :erlang.statistics(:exact_reductions)
   busy = Bench.normal_utilization(u0) * System.schedulers_online() * wall
-  %{cpu: os_cpu.() - c0, busy: busy, wall: wall, reds: r1 - r0, result: result}
+  floor = floor_cpu.() - f0
+  %{cpu: os_cpu.() - c0, busy: busy, wall: wall, reds: r1 - r0, floor: floor, result: result}
 end
 
 split = fn ids ->
@@ -640,7 +654,7 @@ for n <- counts do
         ),
         line.(
           "  A polls",
-          "#{Bench.thousands(r.pa.polls / (r.a.wall / 1.0e6))}/s, missed #{pct.(r.pa.missed, due.(r.pa))}, failed #{r.pa.failed}; CEC CPU #{Float.round(rate_a * 100, 1)} % of a core (busy #{Float.round(busy_rate_a * 100, 1)} %)"
+          "#{Bench.thousands(r.pa.polls / (r.a.wall / 1.0e6))}/s, missed #{pct.(r.pa.missed, due.(r.pa))}, failed #{r.pa.failed}; CEC CPU #{Float.round(rate_a * 100, 1)} % of a core (busy #{Float.round(busy_rate_a * 100, 1)} %), the floor nodes #{Float.round(r.a.floor / r.a.wall * 100, 1)} %"
         ),
         line.(
           "  fairness",
@@ -661,7 +675,7 @@ for n <- counts do
         ),
         line.(
           "  B + WC",
-          "#{Bench.thousands(exchanges / (r.b.wall / 1.0e6))} exchanges/s (#{r.lost} lost), polls missed #{pct.(r.pb.missed, due.(r.pb))}, failed #{r.pb.failed}; CEC CPU #{Float.round(r.b.cpu / r.b.wall * 100, 1)} % of a core; polls per workstation per second p0 #{Float.round(Enum.min(r.pb.per) / (r.b.wall / 1.0e6), 1)}, max #{Float.round(Enum.max(r.pb.per) / (r.b.wall / 1.0e6), 1)}; periods #{inspect(r.pb.periods)}; GRIPPER NO DATA on #{r.pb.no_data}"
+          "#{Bench.thousands(exchanges / (r.b.wall / 1.0e6))} exchanges/s (#{r.lost} lost), polls missed #{pct.(r.pb.missed, due.(r.pb))}, failed #{r.pb.failed}; CEC CPU #{Float.round(r.b.cpu / r.b.wall * 100, 1)} % of a core, the floor nodes #{Float.round(r.b.floor / r.b.wall * 100, 1)} %; polls per workstation per second p0 #{Float.round(Enum.min(r.pb.per) / (r.b.wall / 1.0e6), 1)}, max #{Float.round(Enum.max(r.pb.per) / (r.b.wall / 1.0e6), 1)}; periods #{inspect(r.pb.periods)}; GRIPPER NO DATA on #{r.pb.no_data}"
         ),
         line.(
           "  per exchange",
@@ -879,7 +893,7 @@ for n <- cycle_counts do
         ),
         line.(
           "  CEC CPU",
-          "#{Float.round(r.w.cpu / r.w.wall * 100, 1)} % of a core (busy #{Float.round(r.w.busy / r.w.wall * 100, 1)} %); #{if done > 0, do: Bench.thousands(r.w.cpu / done), else: "-"} µs per completed cycle"
+          "#{Float.round(r.w.cpu / r.w.wall * 100, 1)} % of a core (busy #{Float.round(r.w.busy / r.w.wall * 100, 1)} %), the floor nodes #{Float.round(r.w.floor / r.w.wall * 100, 1)} %; #{if done > 0, do: Bench.thousands(r.w.cpu / done), else: "-"} µs per completed cycle"
         ),
         line.(
           "  messages",
