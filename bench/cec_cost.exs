@@ -220,7 +220,7 @@ defmodule Bench.FloorHost do
         start = System.monotonic_time(:millisecond) + :rand.uniform(period)
         times = status_loop(s, 1, start, period, stop, [])
         :gen_tcp.close(s)
-        :ets.insert(:bench_wc, {ws, times})
+        :ets.insert(:bench_wc, {:status, ws, times})
       end)
     end
 
@@ -237,7 +237,13 @@ defmodule Bench.FloorHost do
     :ok
   end
 
-  def wc_results, do: :ets.tab2list(:bench_wc) |> tap(fn _ -> :ets.delete_all_objects(:bench_wc) end)
+  # what the WCs of one kind (:status, :cycles) put in, taken out: a WC still finishing a phase
+  # that is over does not count in the next
+  def wc_results(kind) do
+    rows = :ets.match_object(:bench_wc, {kind, :_, :_})
+    :ets.match_delete(:bench_wc, {kind, :_, :_})
+    for {_kind, ws, list} <- rows, do: {ws, list}
+  end
 
   defp status_loop(s, seq, at, period, stop, acc) do
     now = System.monotonic_time(:millisecond)
@@ -292,7 +298,7 @@ defmodule Bench.FloorHost do
         {:ok, client} = Vws.Peers.WC.Client.connect(endpoint)
         runs = cycle_loop(client, script, stop, [])
         Vws.Peers.WC.Client.close(client)
-        :ets.insert(:bench_wc, {ws, runs})
+        :ets.insert(:bench_wc, {:cycles, ws, runs})
       end)
     end
 
@@ -388,18 +394,7 @@ ready? = fn ws ->
     not String.starts_with?(Vws.CEC.SunComm.Status.answer(ws, "GRIPPER"), "NO DATA")
 end
 
-wait_until = fn fun, ms ->
-  deadline = System.monotonic_time(:millisecond) + ms
-
-  Stream.repeatedly(fn ->
-    cond do
-      fun.() -> :ok
-      System.monotonic_time(:millisecond) > deadline -> :timeout
-      true -> Process.sleep(50) && nil
-    end
-  end)
-  |> Enum.find(& &1)
-end
+wait_until = &Bench.wait_until/2
 
 wc_endpoint = fn ws -> Vws.Links.Endpoint.to_string(Vws.CEC.SunComm.listening(ws)) end
 
@@ -546,7 +541,9 @@ step = fn n ->
   Process.sleep(1_000)
 
   wc =
-    Enum.flat_map(floors, fn {_, peer} -> :peer.call(peer, host_mod, :wc_results, [], 60_000) end)
+    Enum.flat_map(floors, fn {_, peer} ->
+      :peer.call(peer, host_mod, :wc_results, [:status], 60_000)
+    end)
 
   rtts = for {_ws, times} <- wc, t <- times, is_integer(t), do: t
   lost = for {_ws, times} <- wc, :lost <- times, do: 1
@@ -679,7 +676,8 @@ for n <- counts do
         ),
         line.(
           "  per exchange",
-          "#{per.(wc_cpu, exchanges)} µs CPU (busy #{per.(wc_busy, exchanges)} µs), #{if exchanges > 0, do: round(reds_exchange), else: "-"} reductions (B's polls charged at A's cost)"
+          "#{per.(wc_cpu, exchanges)} µs CPU (busy #{per.(wc_busy, exchanges)} µs), #{if exchanges > 0, do: round(reds_exchange), else: "-"} reductions (B's polls charged at A's cost); " <>
+            "by reductions, #{if exchanges > 0 and r.pa.polls > 0, do: Bench.us(cpu_a / r.pa.polls * reds_exchange / max(reds_poll, 1)), else: "-"} µs (a poll's CPU × the exchange's share of its reductions: the subtraction is at the mercy of the machine's noise)"
         ),
         line.(
           "  WC round trip",
@@ -815,7 +813,7 @@ cycle_step = fn n ->
         Process.sleep(500)
 
         Enum.flat_map(floors, fn {_, peer} ->
-          :peer.call(peer, host_mod, :wc_results, [], 60_000)
+          :peer.call(peer, host_mod, :wc_results, [:cycles], 60_000)
         end)
       end)
       |> Enum.reduce_while([], fn got, acc ->

@@ -139,18 +139,7 @@ obedient =
   for p <- [:robot, :monarch, :gripper, :fixture, :vacuum, :hydraulic],
       do: {p, [module: Bench.Obedient, interlocks: :off, link: :none, options: [ms: command_ms]]}
 
-wait_until = fn fun, ms ->
-  deadline = System.monotonic_time(:millisecond) + ms
-
-  Stream.repeatedly(fn ->
-    cond do
-      fun.() -> :ok
-      System.monotonic_time(:millisecond) > deadline -> :timeout
-      true -> Process.sleep(50) && nil
-    end
-  end)
-  |> Enum.find(& &1)
-end
+wait_until = &Bench.wait_until/2
 
 ready? = fn ws ->
   Vws.CEC.SunComm.listening(ws) != nil and

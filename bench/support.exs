@@ -141,6 +141,20 @@ defmodule Vws.Bench do
     end
   end
 
+  @doc "Asks `fun` every 50 ms until it is true (`:ok`) or `ms` have passed (`:timeout`)."
+  def wait_until(fun, ms) do
+    deadline = System.monotonic_time(:millisecond) + ms
+
+    Stream.repeatedly(fn ->
+      cond do
+        fun.() -> :ok
+        System.monotonic_time(:millisecond) > deadline -> :timeout
+        true -> Process.sleep(50) && nil
+      end
+    end)
+    |> Enum.find(& &1)
+  end
+
   @doc "A number with thousands separators."
   def thousands(n) when is_float(n), do: thousands(round(n))
 
