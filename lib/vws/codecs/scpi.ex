@@ -493,9 +493,19 @@ defmodule Vws.Codecs.SCPI do
   defp parse_bit("0"), do: {:ok, false}
   defp parse_bit(_), do: :error
 
+  defguardp digit(d) when d in ?0..?9
+
   # SCPI NR1/NR2/NR3: [+-] digits [. digits] [E [+-] digits], or [+-] . digits [...]; at
   # most 4 exponent digits. Read by matching bytes (a DAQ #1 poll reads 17 numbers: a regex
   # and Float.parse/1 each were most of the CEC's cost of decoding it).
+  # the form every reading of ours has (number/1: "+1.23456789E+00"), matched at once
+  defp parse_number(<<s, i, ?., f1, f2, f3, f4, f5, f6, f7, f8, e, es, x1, x2>> = text)
+       when s in [?+, ?-] and digit(i) and digit(f1) and digit(f2) and digit(f3) and
+              digit(f4) and digit(f5) and digit(f6) and digit(f7) and digit(f8) and
+              e in [?E, ?e] and es in [?+, ?-] and digit(x1) and digit(x2) do
+    to_float(binary_part(text, 0, 1), <<i>>, binary_part(text, 3, 8), <<es, x1, x2>>)
+  end
+
   defp parse_number(text) do
     {sign, rest} =
       case text do
@@ -552,7 +562,6 @@ defmodule Vws.Codecs.SCPI do
   defp digits(text), do: digits(text, 0)
 
   # eight at a time where it can: a DAQ's readings have eight digits after the point
-  defguardp digit(d) when d in ?0..?9
 
   defp digits(text, n) do
     case text do
