@@ -106,49 +106,7 @@ gc_memory = fn ->
   :erlang.memory(:total)
 end
 
-# The CEC's own memory: the workstation's processes (its supervision tree and the workers they
-# started linked) and the ETS tables they own, in bytes.
-cec_memory = fn ws ->
-  walk = fn walk, sup, acc ->
-    Enum.reduce(Supervisor.which_children(sup), acc, fn
-      {_, pid, :supervisor, _}, acc when is_pid(pid) -> walk.(walk, pid, MapSet.put(acc, pid))
-      {_, pid, _worker, _}, acc when is_pid(pid) -> MapSet.put(acc, pid)
-      _, acc -> acc
-    end)
-  end
-
-  case Vws.CEC.Workstation.whereis(ws) do
-    nil ->
-      0
-
-    sup ->
-      tree = walk.(walk, sup, MapSet.new([sup]))
-
-      linked =
-        for pid <- tree,
-            {:links, links} <- [Process.info(pid, :links)],
-            other <- links,
-            is_pid(other),
-            not MapSet.member?(tree, other),
-            # not the node's shared processes (registry partitions, supervisors): named ones
-            Process.info(other, :registered_name) == {:registered_name, []},
-            into: MapSet.new(),
-            do: other
-
-      pids = MapSet.union(tree, linked)
-
-      procs = Enum.sum(for pid <- pids, {:memory, m} <- [Process.info(pid, :memory)], do: m)
-
-      tables =
-        Enum.sum(
-          for t <- :ets.all(),
-              MapSet.member?(pids, :ets.info(t, :owner)),
-              do: :ets.info(t, :memory) * :erlang.system_info(:wordsize)
-        )
-
-      procs + tables
-  end
-end
+cec_memory = &Bench.cec_memory/1
 
 ids = fn n -> for i <- 1..n, do: "S#{n}-#{String.pad_leading(Integer.to_string(i), 4, "0")}" end
 
@@ -181,18 +139,7 @@ obedient =
   for p <- [:robot, :monarch, :gripper, :fixture, :vacuum, :hydraulic],
       do: {p, [module: Bench.Obedient, interlocks: :off, link: :none, options: [ms: command_ms]]}
 
-wait_until = fn fun, ms ->
-  deadline = System.monotonic_time(:millisecond) + ms
-
-  Stream.repeatedly(fn ->
-    cond do
-      fun.() -> :ok
-      System.monotonic_time(:millisecond) > deadline -> :timeout
-      true -> Process.sleep(50) && nil
-    end
-  end)
-  |> Enum.find(& &1)
-end
+wait_until = &Bench.wait_until/2
 
 ready? = fn ws ->
   Vws.CEC.SunComm.listening(ws) != nil and

@@ -94,6 +94,67 @@ defmodule Vws.Bench do
     Enum.sum(normal) / max(length(normal), 1)
   end
 
+  @doc """
+  The CEC's own memory of a workstation, in bytes: the processes of its supervision tree, the
+  unnamed processes they are linked to (links, SUN_COMM's acceptor, command tasks) and the ETS
+  tables they own.
+  """
+  def cec_memory(ws) do
+    walk = fn walk, sup, acc ->
+      Enum.reduce(Supervisor.which_children(sup), acc, fn
+        {_, pid, :supervisor, _}, acc when is_pid(pid) -> walk.(walk, pid, MapSet.put(acc, pid))
+        {_, pid, _worker, _}, acc when is_pid(pid) -> MapSet.put(acc, pid)
+        _, acc -> acc
+      end)
+    end
+
+    case Vws.CEC.Workstation.whereis(ws) do
+      nil ->
+        0
+
+      sup ->
+        tree = walk.(walk, sup, MapSet.new([sup]))
+
+        linked =
+          for pid <- tree,
+              {:links, links} <- [Process.info(pid, :links)],
+              other <- links,
+              is_pid(other),
+              not MapSet.member?(tree, other),
+              # not the node's shared processes (registry partitions, supervisors): named ones
+              Process.info(other, :registered_name) == {:registered_name, []},
+              into: MapSet.new(),
+              do: other
+
+        pids = MapSet.union(tree, linked)
+
+        procs = Enum.sum(for pid <- pids, {:memory, m} <- [Process.info(pid, :memory)], do: m)
+
+        tables =
+          Enum.sum(
+            for t <- :ets.all(),
+                MapSet.member?(pids, :ets.info(t, :owner)),
+                do: :ets.info(t, :memory) * :erlang.system_info(:wordsize)
+          )
+
+        procs + tables
+    end
+  end
+
+  @doc "Asks `fun` every 50 ms until it is true (`:ok`) or `ms` have passed (`:timeout`)."
+  def wait_until(fun, ms) do
+    deadline = System.monotonic_time(:millisecond) + ms
+
+    Stream.repeatedly(fn ->
+      cond do
+        fun.() -> :ok
+        System.monotonic_time(:millisecond) > deadline -> :timeout
+        true -> Process.sleep(50) && nil
+      end
+    end)
+    |> Enum.find(& &1)
+  end
+
   @doc "A number with thousands separators."
   def thousands(n) when is_float(n), do: thousands(round(n))
 

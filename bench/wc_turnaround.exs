@@ -4,15 +4,20 @@
 #
 #     mix run bench/wc_turnaround.exs [--samples 2000] [--workstations 1000] [--poll-ms 100] [--seconds 10]
 #
-# 1. One workstation alone on the node: a raw TCP client (gen_tcp, passive, nodelay) and a raw
-#    loopback client, each sending `*0001*S0001ROBOT_CMD*…` every 2 ms, --samples times.
+# 1. Alone: one workstation served on TCP, one on loopback, and a bare echo process on each
+#    transport (the floor: what the machine and the transport cost); every 2 ms one status
+#    string (`*nnnn*S0001ROBOT_CMD*…`, a new sequence number each time) goes to each of the four
+#    in turn, the first rotating, --samples times: SUN_COMM and its floor sample by sample under
+#    the same load.
 # 2. --workstations on the node (loopback endpoints, no sockets), each with its own raw WC
 #    polling ROBOT_CMD every --poll-ms (the WC client's polling interval), at random phases,
-#    for --seconds; one of them is served on TCP instead and polled the same way.
+#    for --seconds; one of them is served on TCP instead and polled the same way, and so are two
+#    bare echoes (TCP, loopback): the floor under that load.
 #
 # The time measured is the client's round trip: it includes the transport both ways, so it is
 # an upper bound of SUN_COMM's own turnaround (last byte in → first byte out). Targets: p99 ≤
-# 100 µs alone, ≤ 1 ms (one character time at 9600 Bd) with 1,000 workstations.
+# 100 µs alone, ≤ 1 ms (one character time at 9600 Bd) with 1,000 workstations; and (issue 29)
+# p99 ≤ 1.5 × the floor's p99 measured beside it, alone and with the workstations.
 
 Code.require_file("support.exs", __DIR__)
 Logger.configure(level: :error)
@@ -31,13 +36,19 @@ poll_ms = Keyword.get(opts, :poll_ms, 100)
 seconds = Keyword.get(opts, :seconds, 10)
 machine = Bench.machine()
 
-status =
+# a new sequence number each time, as a WC sends them (the same string again would be a
+# retransmission, answered from SUN_COMM's memory of the last one)
+status_of = fn seq ->
   %Vws.Codecs.WC.CommandString{
-    sequence: 1,
+    sequence: seq,
     commands: [%Vws.Codecs.WC.Command{letter: "S", set: :status, number: 1, text: "ROBOT_CMD"}]
   }
   |> Vws.Codecs.WC.CommandString.encode()
   |> IO.iodata_to_binary()
+end
+
+statuses = List.to_tuple(for seq <- 1..9_999, do: status_of.(seq))
+status = elem(statuses, 0)
 
 defmodule Raw do
   @moduledoc false
@@ -94,8 +105,9 @@ defmodule Raw do
     end
   end
 
-  # Polls every `period` ms on an absolute schedule from `start` (monotonic ms) until `stop`.
-  def poll(conn, line, start, period, stop, acc \\ []) do
+  # Polls every `period` ms on an absolute schedule from `start` (monotonic ms) until `stop`,
+  # the lines of `lines` (a tuple) in turn.
+  def poll(conn, lines, start, period, stop, acc \\ [], k \\ 0) do
     now = System.monotonic_time(:millisecond)
 
     cond do
@@ -104,10 +116,11 @@ defmodule Raw do
 
       start > now ->
         Process.sleep(start - now)
-        poll(conn, line, start, period, stop, acc)
+        poll(conn, lines, start, period, stop, acc, k)
 
       true ->
-        poll(conn, line, start + period, period, stop, [exchange(conn, line) | acc])
+        line = elem(lines, rem(k, tuple_size(lines)))
+        poll(conn, lines, start + period, period, stop, [exchange(conn, line) | acc], k + 1)
     end
   end
 end
@@ -127,15 +140,23 @@ start_ws = fn id, wc ->
   wait_listening.(id)
 end
 
-alone = fn endpoint ->
-  conn = Raw.connect(endpoint)
+# Each sample one exchange with each endpoint, in turn (which goes first rotates): SUN_COMM and
+# the bare echo are measured under the same load, sample by sample.
+alone = fn endpoints ->
+  conns = Enum.map(endpoints, &Raw.connect/1)
   # warm up
-  for _ <- 1..100, do: Raw.exchange(conn, status)
+  for k <- 1..100, conn <- conns, do: Raw.exchange(conn, elem(statuses, k))
+  n = length(conns)
 
-  for _ <- 1..samples do
-    Process.sleep(2)
-    Raw.exchange(conn, status)
-  end
+  samples =
+    for k <- 1..samples do
+      Process.sleep(2)
+      order = Enum.map(0..(n - 1), &rem(&1 + k, n))
+      line = elem(statuses, rem(k + 100, 9_999))
+      Map.new(order, fn i -> {i, Raw.exchange(Enum.at(conns, i), line)} end)
+    end
+
+  for i <- 0..(n - 1), do: Enum.map(samples, & &1[i])
 end
 
 # The platform's floor: the same exchange against a process that echoes the bytes back over the
@@ -169,13 +190,13 @@ end
 
 # --- 1. alone -----------------------------------------------------------------------------------
 tcp_ep = start_ws.("ALONE-TCP", "tcp://127.0.0.1:0")
-alone_tcp = alone.(tcp_ep)
-Vws.CEC.Workstation.stop("ALONE-TCP")
 lo_ep = start_ws.("ALONE-LO", "loopback:alone")
-alone_lo = alone.(lo_ep)
+
+[alone_tcp, floor_tcp, alone_lo, floor_lo] =
+  alone.([tcp_ep, echo.("tcp://127.0.0.1:0"), lo_ep, echo.("loopback:echo")])
+
+Vws.CEC.Workstation.stop("ALONE-TCP")
 Vws.CEC.Workstation.stop("ALONE-LO")
-floor_tcp = alone.(echo.("tcp://127.0.0.1:0"))
-floor_lo = alone.(echo.("loopback:echo"))
 
 # --- 2. n_ws workstations -----------------------------------------------------------------------
 mem0 = :erlang.memory(:total)
@@ -202,13 +223,16 @@ now = System.monotonic_time(:millisecond) + 500
 stop = now + seconds * 1_000
 parent = self()
 
+# two bare echoes (TCP, loopback) polled the same way: the floor under this load
+floor_endpoints = [echo.("tcp://127.0.0.1:0"), echo.("loopback:echo-many")]
+
 pollers =
-  for {endpoint, i} <- Enum.with_index(endpoints) do
+  for {endpoint, i} <- Enum.with_index(endpoints ++ floor_endpoints) do
     spawn_link(fn ->
       conn = Raw.connect(endpoint)
       _ = Raw.exchange(conn, status)
       phase = :rand.uniform(poll_ms) - 1
-      send(parent, {:result, i, Raw.poll(conn, status, now + phase, poll_ms, stop)})
+      send(parent, {:result, i, Raw.poll(conn, statuses, now + phase, poll_ms, stop)})
     end)
   end
 
@@ -229,6 +253,10 @@ results =
 {cpu1, _} = :erlang.statistics(:runtime)
 total_util = Bench.normal_utilization(util0)
 
+floor_tcp_many = Enum.reject(results[n_ws], &(&1 == :timeout))
+floor_lo_many = Enum.reject(results[n_ws + 1], &(&1 == :timeout))
+results = Map.drop(results, [n_ws, n_ws + 1])
+
 {tcp_many, lo_many} =
   Enum.reduce(results, {[], []}, fn
     {0, list}, {t, l} -> {list ++ t, l}
@@ -248,21 +276,32 @@ verdict = fn list, target ->
   Bench.verdict(p <= target, "#{round(p - target)} µs (p99 #{round(p)} µs)")
 end
 
+# against the floor measured beside it: p99 ≤ 1.5 × the echo's p99
+ratio = fn list, floor ->
+  r = p99.(list) / max(p99.(floor), 1)
+
+  "#{:erlang.float_to_binary(r, decimals: 2)}× the floor's p99 (#{round(p99.(list))} / #{round(p99.(floor))} µs): " <>
+    Bench.verdict(r <= 1.5, "#{round(p99.(list) - 1.5 * p99.(floor))} µs")
+end
+
 IO.puts(
   Enum.join(
     ["WC turnaround (status string → first byte of the reply, raw client round trip)" | machine] ++
       [
         "  string         #{String.trim(status)} → 13S0001#{"0000NONE"}…, #{byte_size(status)} bytes in",
-        "  alone (1 workstation on the node, one string every 2 ms, #{samples} samples)",
+        "  alone (2 workstations on the node, one on TCP, one on loopback; every 2 ms one string to each and to each echo, in turn; #{samples} samples)",
         "    TCP          µs  #{Bench.summary(alone_tcp, fmt)}",
         "    loopback     µs  #{Bench.summary(alone_lo, fmt)}",
         "    floor, TCP   µs  #{Bench.summary(floor_tcp, fmt)}   (the same exchange with a bare echo process:",
         "    floor, loop. µs  #{Bench.summary(floor_lo, fmt)}    what the machine and the transport cost alone)",
         "    target       p99 ≤ 100 µs: TCP #{verdict.(alone_tcp, 100)}, loopback #{verdict.(alone_lo, 100)}",
+        "    vs floor     p99 ≤ 1.5× the echo's, sample by sample beside it: TCP #{ratio.(alone_tcp, floor_tcp)}; loopback #{ratio.(alone_lo, floor_lo)}",
         "  #{n_ws} workstations on the node (started in #{Float.round(started_s, 1)} s, #{procs} processes, #{Bench.mb(mem1 - mem0)} MB),",
         "  each polled every #{poll_ms} ms by its own raw WC for #{seconds} s: #{Bench.thousands(exchanges / seconds)} strings/s in all",
         "    loopback     µs  #{Bench.summary(lo_many, fmt)}   (#{Bench.thousands(length(lo_many))} exchanges, #{n_ws - 1} workstations)",
         "    TCP          µs  #{Bench.summary(tcp_many, fmt)}   (#{length(tcp_many)} exchanges, 1 workstation)",
+        "    floor        µs  TCP #{Bench.summary(floor_tcp_many, fmt)}, loopback #{Bench.summary(floor_lo_many, fmt)}   (bare echoes polled alike, under this load)",
+        "    vs floor     TCP #{ratio.(tcp_many, floor_tcp_many)}; loopback #{ratio.(lo_many, floor_lo_many)}",
         "    no reply     #{timeouts} within 5 s",
         "    CPU          #{round((cpu1 - cpu0) * 1_000 / max(exchanges, 1))} µs of BEAM CPU time per exchange (client, loopback pair, SUN_COMM); schedulers #{round(total_util * 100)} % busy",
         "    target       p99 ≤ 1 ms (one character at 9600 Bd): loopback #{verdict.(lo_many, 1_000)}, TCP #{verdict.(tcp_many, 1_000)}"

@@ -30,6 +30,8 @@ defmodule Vws.Application do
         Vws.CEC.Cell,
         # is the node doing its job: /health, bin/vws health (the workstations it must run)
         Vws.Ops.Health,
+        # VWS_STATUS's load shedding for every workstation of the node
+        Vws.Partitions.VwsStatus.Shedding,
         # equipment started beside the workstations on this node — a simulated floor
         # (`mix vws.serve`, `mix vws.demo`), a hydraulic controller of its own: it stops after
         # them, and before the registry its processes are named in

@@ -125,6 +125,8 @@ defmodule Vws.Telemetry do
      "the readings went stale: NO DATA written"},
     {[:vws, :vws_status, :actuation_retry], [:count], [:workstation, :reason, :try],
      "relays set again after a read-back not as commanded"},
+    {[:vws, :vws_status, :shedding], [:stretch], [:pool, :due, :late, :missed],
+     "the polls of a pool stretched or relaxed: each polls every `stretch` periods (load shedding)"},
     {[:vws, :hydraulic_controller, :relay_corrected], [:count], [:device],
      "a DAQ #2 slot read back not as intended, set right"},
     {[:vws, :interlock, :acquired], [:wait_ms, :tries], [:workstation, :volume, :holder, :reason],
@@ -220,6 +222,17 @@ defmodule Vws.Telemetry do
       loaded? ->
         loaded?
     end
+  end
+
+  @doc """
+  Whether any handler is attached to `event`: for an event emitted so often (a poll every 20 ms
+  per workstation) that building its measurements for nobody is worth a look first.
+  """
+  @spec listened?(event_name) :: boolean
+  def listened?(event) do
+    if telemetry?(),
+      do: apply(:telemetry, :list_handlers, [event]) |> Enum.any?(&(&1.event_name == event)),
+      else: :persistent_term.get({__MODULE__, event}, []) != []
   end
 
   @doc "Emits an event (`:telemetry.execute/3`)."

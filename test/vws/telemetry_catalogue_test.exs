@@ -91,6 +91,11 @@ defmodule Vws.TelemetryCatalogueTest do
       Code.ensure_loaded!(Vws.Telemetry)
       :erlang.trace_pattern({Vws.Telemetry, :execute, 3}, true, [:local])
       :erlang.trace(:all, true, [:call])
+      # VWS_STATUS builds its per-poll event only for a listener (Vws.Telemetry.listened?/1)
+      listener = make_ref()
+
+      :ok =
+        Vws.Telemetry.attach(listener, [:vws, :vws_status, :poll], fn _, _, _, _ -> :ok end, nil)
 
       try do
         capture_io(fn ->
@@ -109,6 +114,7 @@ defmodule Vws.TelemetryCatalogueTest do
       after
         :erlang.trace(:all, false, [:call])
         :erlang.trace_pattern({Vws.Telemetry, :execute, 3}, false, [:local])
+        Vws.Telemetry.detach(listener)
       end
 
       seen = collect(%{})

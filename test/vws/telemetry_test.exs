@@ -26,6 +26,17 @@ defmodule Vws.TelemetryTest do
     assert {:error, :not_found} = Telemetry.detach(id)
   end
 
+  test "listened? says whether an event has a handler, before and after" do
+    event = [:vws, :test, :listened]
+    id = make_ref()
+    refute Telemetry.listened?(event)
+    :ok = Telemetry.attach(id, event, fn _, _, _, _ -> :ok end, nil)
+    assert Telemetry.listened?(event)
+    refute Telemetry.listened?([:vws, :test, :other])
+    :ok = Telemetry.detach(id)
+    refute Telemetry.listened?(event)
+  end
+
   test "span emits start and stop, or exception" do
     me = self()
     id = make_ref()

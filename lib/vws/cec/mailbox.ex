@@ -156,6 +156,34 @@ defmodule Vws.CEC.Mailbox do
     :ok
   end
 
+  @doc """
+  Writes several device-status locations at once, `[{loc, value}]`, as `put_device/3` does each
+  (one look-up of the table: VWS_STATUS writes seven at every poll of DAQ #1). An entry
+  `{loc, value, :changed}` is a value its writer knows to be new (a reading with its own sequence
+  number): announced without reading the old one back to compare.
+  """
+  @spec put_devices(workstation, [{1..14, term} | {1..14, term, :changed}]) :: :ok
+  def put_devices(ws, values) do
+    table = table(ws)
+    now = now()
+
+    changes =
+      for entry <- values do
+        {loc, value, changed?} =
+          case entry do
+            {loc, value, :changed} -> {loc, value, true}
+            {loc, value} -> {loc, value, :ets.lookup_element(table, {:device, loc}, 2) != value}
+          end
+
+        true = loc in 1..14
+        :ets.insert(table, {{:device, loc}, value, now})
+        changed? && {:device, loc, value}
+      end
+
+    for change <- changes, change, do: changed(ws, change)
+    :ok
+  end
+
   # Change notices: the new value goes to whoever listens (`Vws.CEC.Events.notify/3`, event
   # `:mailbox`) with the system time of the write, after the write.
   defp changed(ws, change) do

@@ -51,10 +51,19 @@ defmodule Vws.Links.DAQ do
           ohm_channels: [pos_integer],
           sensors: %{pos_integer => map},
           actuators: %{signal => pos_integer},
-          threshold_volts: float
+          threshold_volts: float,
+          signal_channels: %{signal => pos_integer}
         }
 
-  defstruct [:daq, :volt_channels, :ohm_channels, :sensors, :actuators, :threshold_volts]
+  defstruct [
+    :daq,
+    :volt_channels,
+    :ohm_channels,
+    :sensors,
+    :actuators,
+    :threshold_volts,
+    :signal_channels
+  ]
 
   @schema [
     channel_map: [type: {:custom, &__MODULE__.__channel_map__/1}],
@@ -98,7 +107,15 @@ defmodule Vws.Links.DAQ do
       ohm_channels: Enum.sort(by_kind.([:gauge])),
       sensors: sensors,
       actuators: for({ch, %{kind: :actuator, signal: s}} <- entries, into: %{}, do: {s, ch}),
-      threshold_volts: config.switch.threshold_volts * 1.0
+      threshold_volts: config.switch.threshold_volts * 1.0,
+      # every reading carries it (Readings.channels): built once, not at every poll
+      signal_channels:
+        for(
+          {ch, %{kind: kind, signal: signal}} <- sensors,
+          kind != :spare,
+          into: %{},
+          do: {signal, ch}
+        )
     }
   end
 
@@ -130,12 +147,6 @@ defmodule Vws.Links.DAQ do
         {signal, value(entry, reading, daq.threshold_volts)}
       end
 
-    channels =
-      for {ch, %{kind: kind, signal: signal}} <- daq.sensors,
-          kind != :spare,
-          into: %{},
-          do: {signal, ch}
-
     %Readings{
       seq: Keyword.get(opts, :seq, 0),
       requested_at: Keyword.get(opts, :requested_at, 0),
@@ -143,7 +154,7 @@ defmodule Vws.Links.DAQ do
       volts: volts,
       ohms: ohms,
       values: values,
-      channels: channels
+      channels: daq.signal_channels
     }
   end
 

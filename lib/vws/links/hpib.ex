@@ -207,7 +207,13 @@ defmodule Vws.Links.HPIB do
   end
 
   defp request({_bus, _address}, commands, timeout) when is_list(commands) and commands != [] do
-    Enum.each(commands, &Vws.Codecs.SCPI.encode_command/1)
+    # every command must encode (a bad one raises here, in the caller); the caller's last
+    # request is remembered, so a poll sent again and again is encoded here only once
+    unless Process.get({__MODULE__, :checked}) == commands do
+      Enum.each(commands, &Vws.Codecs.SCPI.encode_command/1)
+      Process.put({__MODULE__, :checked}, commands)
+    end
+
     timeout = timeout && max(timeout, 0)
     {{:request, commands, timeout}, timeout || @default_wait}
   end

@@ -62,7 +62,20 @@ defmodule Vws.Partitions.VwsStatus do
   2000 µs takes that out of the poll period for about 8 % of one core per workstation — the
   setting for a workstation alone on its host (`config/runtime.exs`), not for hundreds on one
   node;
-  `:daq` — `Vws.Links.DAQ.new/1` options (`:channel_map`, `:switches`).
+  `:daq` — `Vws.Links.DAQ.new/1` options (`:channel_map`, `:switches`);
+  `:shedding` — the load-shedding pool it belongs to (default `:node`, or the application's
+  `:vws_status_shedding`; `false`: none) and
+  `:max_period_ms` (default 100), the longest period shedding may stretch its polls to, never
+  more than half of `:stale_after_ms` (`Vws.Partitions.VwsStatus.Shedding`).
+
+  ## Load shedding
+
+  When the node cannot make every workstation's polls on time, the polls of every workstation
+  are stretched alike (`Vws.Partitions.VwsStatus.Shedding`): each polls every `k · poll_ms`,
+  at least every `:max_period_ms`. The staleness rule above is unchanged: what could not be
+  read fresh in `:stale_after_ms` reads `NO DATA`, and `await/4` takes only readings requested
+  after its start, so a slower poll makes a command wait longer or end `ERROR`, never act on an
+  older reading. `stats/1` gives the period in force (`period_ms`).
 
   ## Sensors
 
@@ -83,7 +96,7 @@ defmodule Vws.Partitions.VwsStatus do
   alias Vws.Links.{DAQ, HPIB}
   alias Vws.CEC.Mailbox
   alias Vws.Links.DAQ.{DeviceStatus, Readings}
-  alias Vws.Partitions.VwsStatus.Sensors
+  alias Vws.Partitions.VwsStatus.{Sensors, Shedding}
 
   @device "DAQ #1"
   # how many times an actuation whose relays are not as commanded is sent again
@@ -95,7 +108,8 @@ defmodule Vws.Partitions.VwsStatus do
     stale_after_ms: 200,
     late_after_us: 1_000,
     min_force_n: 800,
-    wake_early_us: 0
+    wake_early_us: 0,
+    max_period_ms: 100
   ]
 
   @type workstation :: term
@@ -367,6 +381,11 @@ defmodule Vws.Partitions.VwsStatus do
         late_after_us: Keyword.fetch!(opts, :late_after_us),
         min_force_n: Keyword.fetch!(opts, :min_force_n),
         wake_early_ms: div(Keyword.fetch!(opts, :wake_early_us) + 999, 1000),
+        shedding:
+          Keyword.get_lazy(opts, :shedding, fn ->
+            Application.get_env(:vws, :vws_status_shedding, :node)
+          end),
+        max_period_ms: Keyword.fetch!(opts, :max_period_ms),
         next_slot: now + poll_ms,
         poll: nil,
         actuations: [],
@@ -431,7 +450,9 @@ defmodule Vws.Partitions.VwsStatus do
     do: {:reply, %{link: nil, stale: "NO LINK TO #{@device}"}, s}
 
   def handle_call(:stats, _from, s) do
-    {:reply, Map.merge(s.stats, %{stale: s.stale, poll_ms: s.poll_ms, link: s.link}), s}
+    {:reply,
+     Map.merge(s.stats, %{stale: s.stale, poll_ms: s.poll_ms, period_ms: period(s), link: s.link}),
+     s}
   end
 
   @impl true
@@ -488,6 +509,9 @@ defmodule Vws.Partitions.VwsStatus do
         seq = s.seq + 1
         late = if lateness > s.late_after_us, do: 1, else: 0
 
+        # the node overloaded, not the OS waking a thread a few ms late: half a period late
+        shed(s, 1, if(lateness * 2 > period(s) * 1000, do: 1, else: 0), 0)
+
         s
         |> Map.merge(%{
           poll: %{req: req, seq: seq, started: started, lateness: lateness, handling: 0},
@@ -505,12 +529,14 @@ defmodule Vws.Partitions.VwsStatus do
         do: release(s, MapSet.to_list(s.unreleased), nil),
         else: s
 
-    # the next slot still ahead of us; the ones already gone are missed
+    # the next slot still ahead of us, at the period the node's load allows (Shedding); the
+    # ones already gone are missed
+    period = period(s)
     now = System.monotonic_time(:millisecond)
-    next = s.next_slot + s.poll_ms
-    skipped = if next <= now, do: div(now - next, s.poll_ms) + 1, else: 0
+    next = s.next_slot + period
+    skipped = if next <= now, do: div(now - next, period) + 1, else: 0
     s = if skipped > 0, do: missed(s, :held_up, skipped), else: s
-    s = %{s | next_slot: next + skipped * s.poll_ms}
+    s = %{s | next_slot: next + skipped * period}
 
     s =
       if s.poll,
@@ -536,8 +562,14 @@ defmodule Vws.Partitions.VwsStatus do
             )
 
           texts = DeviceStatus.texts(readings, min_force_n: s.min_force_n)
-          Enum.each(texts, fn {loc, text} -> Mailbox.put_device(s.workstation, loc, text) end)
-          put_sensors(s.workstation, readings)
+
+          # the texts, then location 11 and the event that wakes whoever awaits a reading (await/4)
+          Mailbox.put_devices(
+            s.workstation,
+            Enum.to_list(texts) ++ [{Sensors.sensors_location(), readings, :changed}]
+          )
+
+          Vws.CEC.Events.cause(s.workstation, :sensors)
 
           # the stale readings' warning ends here, with how often it was repeated
           Vws.LogLimit.clear(:stale, "VWS_STATUS: #{@device} answers again")
@@ -553,18 +585,21 @@ defmodule Vws.Partitions.VwsStatus do
           |> check_stale(div(t0, 1000))
       end
 
-    handling = poll.handling + System.monotonic_time(:microsecond) - t0
+    # what each poll took, for whoever listens (bench/vws_status_poll.exs): not built for nobody
+    if Vws.Telemetry.listened?([:vws, :vws_status, :poll]) do
+      handling = poll.handling + System.monotonic_time(:microsecond) - t0
 
-    Vws.Telemetry.execute(
-      [:vws, :vws_status, :poll],
-      %{
-        started_at: poll.started,
-        lateness: poll.lateness,
-        duration: t0 - poll.started,
-        handling: handling
-      },
-      %{workstation: s.workstation, seq: poll.seq, result: poll_result(result)}
-    )
+      Vws.Telemetry.execute(
+        [:vws, :vws_status, :poll],
+        %{
+          started_at: poll.started,
+          lateness: poll.lateness,
+          duration: t0 - poll.started,
+          handling: handling
+        },
+        %{workstation: s.workstation, seq: poll.seq, result: poll_result(result)}
+      )
+    end
 
     s
   end
@@ -572,7 +607,21 @@ defmodule Vws.Partitions.VwsStatus do
   defp poll_result({:ok, _}), do: :ok
   defp poll_result({:error, %{reason: reason}}), do: {:error, reason}
 
+  defp period(%{shedding: false} = s), do: s.poll_ms
+
+  # never longer than half the time after which readings are shown stale: staleness is
+  # checked at every tick
+  defp period(s) do
+    max_period = min(s.max_period_ms, div(s.stale_after_ms, 2))
+    Shedding.period(s.poll_ms, Shedding.stretch(s.shedding), max_period)
+  end
+
+  defp shed(%{shedding: false}, _due, _late, _missed), do: :ok
+  defp shed(s, due, late, missed), do: Shedding.count(s.shedding, due, late, missed)
+
   defp missed(s, reason, n) do
+    shed(s, n, 0, n)
+
     Vws.Telemetry.execute([:vws, :vws_status, :missed], %{count: n}, %{
       workstation: s.workstation,
       reason: reason
@@ -616,12 +665,6 @@ defmodule Vws.Partitions.VwsStatus do
 
   defp write_no_data(ws, why) do
     for {loc, value} <- Sensors.no_data(why), do: Mailbox.put_device(ws, loc, value)
-    Vws.CEC.Events.cause(ws, :sensors)
-  end
-
-  # Location 11, and the event that wakes whoever awaits a reading (await/4).
-  defp put_sensors(ws, value) do
-    Mailbox.put_device(ws, Sensors.sensors_location(), value)
     Vws.CEC.Events.cause(ws, :sensors)
   end
 

@@ -325,6 +325,38 @@ defmodule Vws.Codecs.SCPITest do
     )
   end
 
+  test "property: a reading decodes to the double strtod gives its text (to the bit)" do
+    # the text of a reading as a DAQ sends it (nine digits), as a short float, and as any run of
+    # up to 17 digits with the point anywhere and an exponent: what Float.parse/1 makes of it
+    digits = :proper_types.non_empty(:proper_types.list(:proper_types.integer(?0, ?9)))
+
+    text_gen =
+      :proper_types.oneof([
+        :proper_types.bind(:proper_types.float(), &SCPI.number/1, false),
+        :proper_types.bind(:proper_types.float(), &:erlang.float_to_binary(&1, [:short]), false),
+        :proper_types.bind(
+          {:proper_types.oneof(["", "+", "-"]), digits, digits, :proper_types.integer(-40, 40)},
+          fn {sign, a, b, e} ->
+            sign <>
+              List.to_string(Enum.take(a, 9)) <>
+              "." <>
+              List.to_string(Enum.take(b, 8)) <>
+              "E" <> Integer.to_string(e)
+          end,
+          false
+        )
+      ])
+
+    assert_property(
+      :proper.forall(text_gen, fn text ->
+        {want, ""} = Float.parse(text)
+        {:ok, [got]} = SCPI.decode_response({:meas_res?, [101]}, text <> "\n")
+        got === want
+      end),
+      1_000
+    )
+  end
+
   test "property: lines cut anywhere come out whole, errors in place, buffer empty" do
     short_line =
       :proper_types.bind(

@@ -113,5 +113,8 @@ defmodule Vws.Codecs.WC.Status do
   defp number_text(nil), do: "0000"
   defp number_text(n), do: Command.pad4(n)
 
+  # no longer in bytes is no longer in characters: the slicing (which walks graphemes) only
+  # for a text that may be too long — an answer is read at every status query
+  defp cut(text) when byte_size(text) <= @max_text, do: text
   defp cut(text), do: String.slice(text, 0, @max_text)
 end

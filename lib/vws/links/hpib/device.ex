@@ -66,6 +66,8 @@ defmodule Vws.Links.HPIB.Device do
       # how long :disconnected waits before dialling again (the shell's back-off)
       retry_in: 0,
       decoder: SCPI.new(),
+      # the last request sent and its bytes (encoded/2)
+      encoded: nil,
       current: nil,
       queue: :queue.new(),
       was_connected: false,
@@ -226,7 +228,9 @@ defmodule Vws.Links.HPIB.Device do
   end
 
   defp send_request(data, actions, from, commands, {deadline, timeout, tries}) do
-    case Connection.send(data.wire, Enum.map(commands, &SCPI.encode_command/1)) do
+    {bytes, data} = encoded(data, commands)
+
+    case Connection.send(data.wire, bytes) do
       :ok ->
         case Enum.filter(commands, &SCPI.response?/1) do
           [] ->
@@ -256,6 +260,14 @@ defmodule Vws.Links.HPIB.Device do
         error = %Error{reason: :send_failed, address: data.address, detail: reason}
         lose_connection(data, {:send, reason}, actions ++ [{:reply, from, {:error, error}}])
     end
+  end
+
+  # The last request's bytes are kept: VWS_STATUS sends the same poll every 20 ms.
+  defp encoded(%{encoded: {commands, bytes}} = data, commands), do: {bytes, data}
+
+  defp encoded(data, commands) do
+    bytes = commands |> Enum.map(&SCPI.encode_command/1) |> IO.iodata_to_binary()
+    {bytes, %{data | encoded: {commands, bytes}}}
   end
 
   ## Bytes from the device
