@@ -106,8 +106,8 @@ defmodule Vws.Acceptance.DripFeedTaskTest do
          "999,999 bytes) through an 8 KiB buffer",
        %{tmp_dir: dir} do
     library = Path.join(dir, "library")
-    # "%", "O88", 55,554 blocks of 18 bytes, "M30", "%": 999,987 bytes
-    body = for i <- 1..55_554, do: "N#{rem(i, 9000) + 1000} G01 X#{rem(i, 900) + 100}.5\n"
+    # "%", "O88", 58,822 blocks of 17 bytes, "M30", "%": 999,986 bytes
+    body = for i <- 1..58_822, do: "N#{rem(i, 9000) + 1000} G01 X#{rem(i, 900) + 100}.5\n"
     text = IO.iodata_to_binary(["%\nO88\n", body, "M30\n%\n"])
     assert byte_size(text) <= Library.max_bytes() and byte_size(text) > 990_000
     {:ok, _} = Library.store({:dir, library}, "88", text, source: "cli")

@@ -32,7 +32,13 @@ for kind <- [:download, :upload] do
     test "#{kind}: random bursts", ctx do
       {to_target, to_client} = DNCFlip.traffic(ctx, @kind)
       burst = Vws.Test.FlipRelay.burst(to_target, to_client)
-      property = :proper.forall(burst, &(DNCFlip.check!(ctx, @kind, &1) in [:done, :error]))
+
+      property =
+        :proper.forall(
+          burst,
+          &checked(fn -> DNCFlip.check!(ctx, @kind, &1) in [:done, :error] end)
+        )
+
       assert_property(property, 120)
     end
   end
@@ -46,7 +52,13 @@ defmodule Vws.Reliability.DNCBitFlipTest.DripFeedBursts do
   test "drip feed: random bursts", ctx do
     {to_target, to_client} = DNCFlip.traffic(ctx, :drip_feed)
     burst = Vws.Test.FlipRelay.burst(to_target, to_client)
-    property = :proper.forall(burst, &(DNCFlip.check!(ctx, :drip_feed, &1) in [:done, :error]))
+
+    property =
+      :proper.forall(
+        burst,
+        &checked(fn -> DNCFlip.check!(ctx, :drip_feed, &1) in [:done, :error] end)
+      )
+
     assert_property(property, 60)
   end
 end
