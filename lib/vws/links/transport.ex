@@ -263,6 +263,7 @@ defmodule Vws.Links.Transport do
   @spec module_for(Endpoint.t()) :: module() | nil
   def module_for(%Endpoint{kind: :tcp}), do: Vws.Links.Transport.TCP
   def module_for(%Endpoint{kind: :tty}), do: Vws.Links.Transport.Serial
+  def module_for(%Endpoint{kind: :rfc2217}), do: Vws.Links.Transport.RFC2217
   def module_for(%Endpoint{kind: :loopback}), do: Vws.Links.Transport.Loopback
   def module_for(%Endpoint{kind: :cell}), do: nil
 

@@ -21,6 +21,8 @@ defmodule Vws.Links.Transport.Error do
       or is not a terminal device;
     * `:socat_not_found`, `{:socat_exit, status}` — the serial transport's `socat` is missing, or
       ended (the device could not be opened, or went away);
+    * `:device_gone` — the serial device went away while open (its path no longer exists: a USB
+      adapter pulled out, a cable server's pty closed);
     * `{:unknown_backend, backend}` — a serial backend other than `:socat` or `:circuits_uart`;
     * any other `:inet` error (`:etimedout`, `:econnreset`, `:ehostunreach`, `:nxdomain`, …), and
       a text where the transport could say more (an address that cannot be resolved).
@@ -76,6 +78,11 @@ defmodule Vws.Links.Transport.Error do
 
   defp words({:socat_exit, status}),
     do: "socat ended with status #{status}: the device could not be opened, or went away"
+
+  defp words(:device_gone),
+    do:
+      "the serial device went away (cable pulled or USB adapter removed); " <>
+        "it is reopened when it is back"
 
   defp words({:unknown_backend, backend}),
     do: "unknown serial backend #{inspect(backend)} (known: :socat, :circuits_uart)"
