@@ -247,6 +247,11 @@ defmodule Vws.Links.RS232.Link do
     {:keep_state_and_data, [{:reply, from, {:error, :unknown_call}}]}
   end
 
+  def handle_event(type, content, state, _data) do
+    Logger.debug("RS-232 link: #{inspect({type, content}, limit: 5)} unexpected in #{state}")
+    :keep_state_and_data
+  end
+
   ## What a request is on this line
 
   defp job(%Frame.Command{direction: :send, operation: op} = command, blocks, data)

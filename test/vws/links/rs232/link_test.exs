@@ -52,8 +52,7 @@ defmodule Vws.Links.RS232.LinkTest do
     assert RS232.info(link).xoffs == info.xoffs
   end
 
-  test "a sender that ignores XOFF is caught: the control drops bytes and its program differs",
-       ctx do
+  test "a sender that ignores XOFF is caught: the control drops bytes and its program differs" do
     sim = start_sim(buffer: 256, rate: 1_000)
     {:ok, conn} = Transport.connect(RS232Control.endpoint(sim))
     text = program(3_000)
@@ -167,8 +166,11 @@ defmodule Vws.Links.RS232.LinkTest do
   end
 
   test "bit flips on the line: a download is never DONE with other bytes", ctx do
-    # (a flip that breaks the framing leaves the control without a program: no read-back)
-    %{sim: sim, link: link} = start(ctx, [punch_after_load: true], read_back_timeout: 500)
+    # (a flip that breaks the framing leaves the control without a program: no read-back; one
+    # that makes a DC3 is an XOFF when the program is punched back, which no XON ends)
+    %{sim: sim, link: link} =
+      start(ctx, [punch_after_load: true], read_back_timeout: 500, xoff_timeout: 500)
+
     text = program(400)
 
     property =

@@ -1,0 +1,133 @@
+defmodule Vws.Partitions.Monarch.RS232Test do
+  # MONARCH on a plain RS-232 control (profile rs232-xonxoff), end to end: the WC (a raw WC
+  # peer) → SUN_COMM → MONARCH → Vws.Links.RS232 → the simulated control (Vws.Sim.RS232Control).
+  use ExUnit.Case, async: true
+
+  alias Vws.CEC.{Mailbox, Workstation}
+  alias Vws.Links.DNC.Program
+  alias Vws.Sim.RS232Control
+  alias Vws.Test.WCPeer
+  import Vws.Test.Eventually
+
+  @moduletag :tmp_dir
+
+  setup context do
+    sim_opts = Keyword.merge([buffer: 512, rate: 1_500], Map.get(context, :sim, []))
+    sim = start_supervised!({RS232Control, sim_opts})
+
+    port = [
+      endpoint: RS232Control.endpoint(sim),
+      profile: "rs232-xonxoff",
+      baud: 19_200,
+      backoff_min: 10,
+      read_back_timeout: 5_000,
+      upload_timeout: 10_000
+    ]
+
+    %{ws: ws, wc: wc} =
+      Vws.Test.Workstation.start(devices: [ge2000: port], library: context.tmp_dir)
+
+    link = Workstation.whereis(ws, :ge2000)
+    assert eventually(fn -> Vws.Links.RS232.info(link).state == :idle end)
+    {:ok, peer} = WCPeer.connect(wc)
+    %{ws: ws, peer: peer, sim: sim, link: link}
+  end
+
+  defp seq, do: rem(System.unique_integer([:positive]), 10_000)
+
+  defp send_monarch(peer, number, text) do
+    s = seq()
+    WCPeer.send_string(peer, s, [{"M", number, text}])
+    assert Vws.Codecs.WC.Reply.decode(WCPeer.recv_line(peer)) == {:ok, {:ack, s}}
+  end
+
+  defp finished(peer),
+    do: WCPeer.await_status(peer, seq(), "MONARCH_CMD", &(not (&1 =~ "EXECUTING")), 60_000)
+
+  defp monarch(peer, number, text) do
+    send_monarch(peer, number, text)
+    finished(peer)
+  end
+
+  defp program(bytes, number \\ "O4711") do
+    body =
+      for i <- 1..(div(bytes, 22) + 1), do: "N#{i} G01 X#{rem(i * 37, 1000)}.#{rem(i, 10)} F300"
+
+    ["%", number] ++ body ++ ["M30", "%"]
+  end
+
+  @tag sim: [punch_after_load: true]
+  test "DOWNLOAD_GE is DONE once the control's read-back is the program sent", ctx do
+    lines = program(3_000)
+    :ok = Mailbox.put_nc_file(ctx.ws, lines)
+    assert monarch(ctx.peer, 1, "DOWNLOAD_GE") == "0001DONE"
+    info = RS232Control.info(ctx.sim)
+    assert info.programs["004711.PRO"] == Program.to_text(lines)
+    assert info.xoffs > 0 and info.dropped == 0
+  end
+
+  test "DOWNLOAD_GE without a read-back is not DONE: it says why", ctx do
+    :ok = Mailbox.put_nc_file(ctx.ws, program(300))
+
+    assert monarch(ctx.peer, 1, "DOWNLOAD_GE") ==
+             "0001ERROR PROGRAM NOT VERIFIED NO READ BACK WITHIN 5 S"
+  end
+
+  @tag sim: [punch_after_load: true]
+  test "a bit flipped on the way to the control: DOWNLOAD_GE ends ERROR", ctx do
+    :ok = Mailbox.put_nc_file(ctx.ws, program(600))
+    :ok = RS232Control.set_fault(ctx.sim, {:flip, 40, 2})
+
+    assert monarch(ctx.peer, 1, "DOWNLOAD_GE") ==
+             "0001ERROR PROGRAM VERIFY FAILED READ BACK DIFFERS"
+  end
+
+  test "DRIP_FEED: every byte reaches the control under XON/XOFF", ctx do
+    lines = program(4_000)
+    :ok = Mailbox.put_nc_file(ctx.ws, lines)
+    assert monarch(ctx.peer, 1, "DRIP_FEED") == "0001DONE"
+    assert eventually(fn -> RS232Control.info(ctx.sim).last == Program.to_text(lines) end)
+    assert RS232Control.info(ctx.sim).dropped == 0
+    # a plain RS-232 control cannot say when it is idle: the table stays the machine's
+    assert monarch(ctx.peer, 2, "RELEASE_TABLE") ==
+             "0002ERROR NO STATUS REPORT FROM AN RS-232 CONTROL"
+  end
+
+  test "UPLOAD_GE takes the program the operator punches into NC_UP", ctx do
+    text = Program.to_text(program(800))
+    :ok = RS232Control.set_fault(ctx.sim, nil)
+    send_monarch(ctx.peer, 1, "UPLOAD_GE(004711.PRO)")
+    assert eventually(fn -> Vws.Links.RS232.info(ctx.link).state == :awaiting end)
+    # the operator's PUNCH of a program the control holds
+    :sys.replace_state(ctx.sim, &%{&1 | programs: %{"004711.PRO" => text}})
+    :ok = RS232Control.punch(ctx.sim, "004711.PRO")
+    assert finished(ctx.peer) == "0001DONE"
+    assert Mailbox.nc_up(ctx.ws) == Program.from_text(text)
+  end
+
+  test "what the control cannot do ends ERROR in words", ctx do
+    for {n, command, words} <- [
+          {1, "STATUS", "NO STATUS REPORT FROM AN RS-232 CONTROL"},
+          {2, "PROGRAM_SELECT(004711)", "NO REMOTE PROGRAM SELECT ON AN RS-232 CONTROL"},
+          {3, "PROGRAM_DELETE(004711.PRO)", "NO REMOTE DELETE ON AN RS-232 CONTROL"},
+          {4, "TABLE(1/2)", "NO TOOL-OFFSET TABLE FROM AN RS-232 CONTROL"},
+          {5, "COMPARE_GE", "NO DIRECTORY ON AN RS-232 CONTROL"}
+        ] do
+      number = String.pad_leading("#{n}", 4, "0")
+      assert monarch(ctx.peer, n, command) == "#{number}ERROR #{words}"
+    end
+  end
+
+  test "a program punched at the control unasked goes to the library, not released", ctx do
+    text = Program.to_text(program(300, "O77"))
+    :sys.replace_state(ctx.sim, &%{&1 | programs: %{"000077.PRO" => text}})
+    :ok = RS232Control.punch(ctx.sim, "000077.PRO")
+
+    assert eventually(fn ->
+             match?({:ok, [_]}, Vws.CEC.Library.versions(ctx.ws, "000077.PRO"))
+           end)
+
+    {:ok, [v]} = Vws.CEC.Library.versions(ctx.ws, "000077.PRO")
+    assert v.source == "from the machine"
+  end
+end
