@@ -76,6 +76,8 @@ defmodule Vws.Telemetry do
     {[:vws, :dnc, :connect_failed], [:count, :retry_in],
      [:link, :workstation, :role, :endpoint, :reason],
      "the DNC transport could not be opened (`retry_in` ms)"},
+    {[:vws, :rfc2217, :line_state], [:count], [:endpoint, :errors],
+     "an RFC 2217 terminal server reports line errors (overrun, parity, framing, break)"},
     {[:vws, :rs232, :connected], [:count], [:link, :workstation, :peer],
      "a plain RS-232 DNC port (`Vws.Links.RS232`) connected"},
     {[:vws, :rs232, :disconnected], [:count], [:link, :workstation, :peer, :reason],
