@@ -86,6 +86,7 @@ defmodule Vws.Sim.RS232Control do
       last: nil,
       buffer: <<>>,
       credit: 0.0,
+      last_tick: nil,
       xoff: false,
       fault: nil,
       conn: nil,
@@ -225,8 +226,11 @@ defmodule Vws.Sim.RS232Control do
       else: s
   end
 
+  # by the time that has passed, not the ticks counted: a late tick must not slow the control
   defp drain(s) do
-    credit = s.credit + s.rate * @tick / 1000
+    now = System.monotonic_time(:microsecond)
+    credit = s.credit + s.rate * (now - (s.last_tick || now - @tick * 1000)) / 1_000_000
+    s = %{s | last_tick: now}
     n = min(trunc(credit), byte_size(s.buffer))
     <<bytes::binary-size(n), rest::binary>> = s.buffer
     s = %{s | buffer: rest, credit: if(rest == <<>>, do: 0.0, else: credit - n)}
