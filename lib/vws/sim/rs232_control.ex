@@ -57,8 +57,12 @@ defmodule Vws.Sim.RS232Control do
   @spec info(GenServer.server()) :: map
   def info(sim), do: GenServer.call(sim, :info)
 
-  @doc "The operator's PUNCH: sends a kept program (`:last`, or its name) to the CEC."
-  @spec punch(GenServer.server(), :last | String.t()) :: :ok | {:error, :no_such_program}
+  @doc """
+  The operator's PUNCH: sends a kept program (`:last`, or its name) to the CEC;
+  `{:error, :not_connected}` while no CEC is connected.
+  """
+  @spec punch(GenServer.server(), :last | String.t()) ::
+          :ok | {:error, :no_such_program | :not_connected}
   def punch(sim, which \\ :last), do: GenServer.call(sim, {:punch, which})
 
   @doc "Sets a fault (see above), or none with `nil`."
@@ -139,10 +143,10 @@ defmodule Vws.Sim.RS232Control do
   def handle_call({:punch, which}, _from, s) do
     text = if which == :last, do: s.last, else: Map.get(s.programs, which)
 
-    if text do
-      {:reply, :ok, punch_text(s, text)}
-    else
-      {:reply, {:error, :no_such_program}, s}
+    cond do
+      s.conn == nil -> {:reply, {:error, :not_connected}, s}
+      text == nil -> {:reply, {:error, :no_such_program}, s}
+      true -> {:reply, :ok, punch_text(s, text)}
     end
   end
 

@@ -76,18 +76,6 @@ defmodule Vws.Codecs.RFC2217Test do
 
   ## Properties
 
-  defp split(bin, cuts) do
-    cuts = cuts |> Enum.map(&rem(&1, byte_size(bin) + 1)) |> Enum.sort() |> Enum.uniq()
-
-    {pieces, _, rest} =
-      Enum.reduce(cuts, {[], 0, bin}, fn cut, {acc, at, rest} ->
-        <<piece::binary-size(cut - at), rest::binary>> = rest
-        {[piece | acc], cut, rest}
-      end)
-
-    Enum.reverse([rest | pieces])
-  end
-
   defp decode_pieces(pieces) do
     {events, _} =
       Enum.reduce(pieces, {[], RFC2217.decoder()}, fn piece, {acc, d} ->
@@ -108,7 +96,7 @@ defmodule Vws.Codecs.RFC2217Test do
           # IACs made likely
           data = data <> :binary.copy(<<255>>, rem(byte_size(data), 3))
           wire = IO.iodata_to_binary(RFC2217.escape(data))
-          events = decode_pieces(split(wire, cuts))
+          events = decode_pieces(Vws.Test.Serial.split(wire, cuts))
           data_of(events) == data and Enum.all?(events, &match?({:data, _}, &1))
         end
       )
@@ -152,7 +140,7 @@ defmodule Vws.Codecs.RFC2217Test do
               end
             )
 
-          events = decode_pieces(split(wire, cuts))
+          events = decode_pieces(Vws.Test.Serial.split(wire, cuts))
 
           expected =
             for {data, s} <- items, e <- [{:data, data}, {:com_port, s}], e != {:data, ""}, do: e
@@ -181,7 +169,7 @@ defmodule Vws.Codecs.RFC2217Test do
           wire = IO.iodata_to_binary(pieces)
           whole = decode_pieces([wire])
           # the same events whole or in pieces (data merged), and each one well formed
-          merge(decode_pieces(split(wire, cuts))) == merge(whole) and
+          merge(decode_pieces(Vws.Test.Serial.split(wire, cuts))) == merge(whole) and
             Enum.all?(whole, fn
               {:data, d} -> is_binary(d)
               {verb, o} when verb in [:will, :wont, :do, :dont] -> o in 0..255

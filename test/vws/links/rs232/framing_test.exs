@@ -116,20 +116,6 @@ defmodule Vws.Links.RS232.FramingTest do
     )
   end
 
-  # a program's wire bytes cut in pieces at the given points
-  defp split(wire, cuts) do
-    cuts = cuts |> Enum.map(&rem(&1, byte_size(wire) + 1)) |> Enum.sort() |> Enum.uniq()
-
-    {pieces, last, rest} =
-      Enum.reduce(cuts, {[], 0, wire}, fn cut, {acc, at, rest} ->
-        <<piece::binary-size(cut - at), rest::binary>> = rest
-        {[piece | acc], cut, rest}
-      end)
-
-    _ = last
-    Enum.reverse([rest | pieces])
-  end
-
   test "round trip: every program in every framing, whole or split anywhere, comes back as it was" do
     property =
       :proper.forall(
@@ -139,7 +125,8 @@ defmodule Vws.Links.RS232.FramingTest do
           wire = IO.iodata_to_binary([Framing.encode(p1, f), Framing.encode(p2, f)])
 
           {events, _} =
-            Enum.reduce(split(wire, cuts), {[], Framing.decoder(f)}, fn piece, {acc, d} ->
+            Enum.reduce(Vws.Test.Serial.split(wire, cuts), {[], Framing.decoder(f)}, fn piece,
+                                                                                        {acc, d} ->
               {events, d} = Framing.decode(d, piece)
               {acc ++ events, d}
             end)

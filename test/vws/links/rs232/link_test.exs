@@ -12,13 +12,7 @@ defmodule Vws.Links.RS232.LinkTest do
   @send %Command{direction: :send, operation: :part_program}
   @drip %Command{direction: :send, operation: :download_execute}
 
-  # An NC program of at least `bytes` bytes, O4711
-  defp program(bytes, number \\ "O4711") do
-    body =
-      for i <- 1..(div(bytes, 22) + 1), do: "N#{i} G01 X#{rem(i * 37, 1000)}.#{rem(i, 10)} F300"
-
-    Enum.map_join(["%", number] ++ body ++ ["M30", "%"], "", &(&1 <> "\n"))
-  end
+  defp program(bytes, number \\ "O4711"), do: Vws.Test.Serial.program_text(bytes, number)
 
   defp start(ctx, sim_opts, link_opts \\ []) do
     sim = start_sim(Keyword.merge([buffer: 1024, rate: 4_000], sim_opts))
@@ -32,6 +26,8 @@ defmodule Vws.Links.RS232.LinkTest do
       )
 
     assert_receive {:dnc, ^link, :connected}, 5_000
+    # (the control takes the connection a moment after the link has it)
+    assert eventually(fn -> RS232Control.info(sim).connected end)
     Map.merge(ctx, %{sim: sim, link: link})
   end
 

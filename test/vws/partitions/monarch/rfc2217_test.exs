@@ -26,21 +26,9 @@ defmodule Vws.Partitions.Monarch.RFC2217Test do
     %{ws: ws, peer: peer, link: link}
   end
 
-  defp seq, do: rem(System.unique_integer([:positive]), 10_000)
+  import Vws.Test.Serial, only: [monarch: 3]
 
-  defp monarch(peer, number, text) do
-    s = seq()
-    WCPeer.send_string(peer, s, [{"M", number, text}])
-    assert Vws.Codecs.WC.Reply.decode(WCPeer.recv_line(peer)) == {:ok, {:ack, s}}
-    WCPeer.await_status(peer, seq(), "MONARCH_CMD", &(not (&1 =~ "EXECUTING")), 120_000)
-  end
-
-  defp program(bytes, number) do
-    body =
-      for i <- 1..(div(bytes, 22) + 1), do: "N#{i} G01 X#{rem(i * 37, 1000)}.#{rem(i, 10)} F300"
-
-    ["%", number] ++ body ++ ["M30", "%"]
-  end
+  defp program(bytes, number), do: Vws.Test.Serial.program_lines(bytes, number)
 
   defp stty(path) do
     {settings, 0} = System.cmd("stty", ["-F", path, "-a"])

@@ -29,32 +29,14 @@ defmodule Vws.Partitions.Monarch.RS232Test do
 
     link = Workstation.whereis(ws, :ge2000)
     assert eventually(fn -> Vws.Links.RS232.info(link).state == :idle end)
+    assert eventually(fn -> RS232Control.info(sim).connected end)
     {:ok, peer} = WCPeer.connect(wc)
     %{ws: ws, peer: peer, sim: sim, link: link}
   end
 
-  defp seq, do: rem(System.unique_integer([:positive]), 10_000)
+  import Vws.Test.Serial, only: [send_monarch: 3, finished: 1, monarch: 3]
 
-  defp send_monarch(peer, number, text) do
-    s = seq()
-    WCPeer.send_string(peer, s, [{"M", number, text}])
-    assert Vws.Codecs.WC.Reply.decode(WCPeer.recv_line(peer)) == {:ok, {:ack, s}}
-  end
-
-  defp finished(peer),
-    do: WCPeer.await_status(peer, seq(), "MONARCH_CMD", &(not (&1 =~ "EXECUTING")), 60_000)
-
-  defp monarch(peer, number, text) do
-    send_monarch(peer, number, text)
-    finished(peer)
-  end
-
-  defp program(bytes, number \\ "O4711") do
-    body =
-      for i <- 1..(div(bytes, 22) + 1), do: "N#{i} G01 X#{rem(i * 37, 1000)}.#{rem(i, 10)} F300"
-
-    ["%", number] ++ body ++ ["M30", "%"]
-  end
+  defp program(bytes, number \\ "O4711"), do: Vws.Test.Serial.program_lines(bytes, number)
 
   @tag sim: [punch_after_load: true]
   test "DOWNLOAD_GE is DONE once the control's read-back is the program sent", ctx do
@@ -115,6 +97,23 @@ defmodule Vws.Partitions.Monarch.RS232Test do
         ] do
       number = String.pad_leading("#{n}", 4, "0")
       assert monarch(ctx.peer, n, command) == "#{number}ERROR #{words}"
+    end
+  end
+
+  test "COMPARE_GE(nnnnnn.PRO) without a directory: the program the operator punches, compared",
+       ctx do
+    text = Program.to_text(program(600))
+    {:ok, _} = Vws.CEC.Library.store(ctx.ws, "004711.PRO", text, source: "test")
+
+    for {n, punched, status} <- [
+          {1, text, "0001DONE"},
+          {2, String.replace(text, "X37.1", "X37.2"), "0002ERROR PROGRAM DIFFERS 004711.PRO"}
+        ] do
+      :sys.replace_state(ctx.sim, &%{&1 | programs: %{"004711.PRO" => punched}})
+      send_monarch(ctx.peer, n, "COMPARE_GE(004711.PRO)")
+      assert eventually(fn -> Vws.Links.RS232.info(ctx.link).state == :awaiting end)
+      :ok = RS232Control.punch(ctx.sim, "004711.PRO")
+      assert finished(ctx.peer) == status
     end
   end
 
