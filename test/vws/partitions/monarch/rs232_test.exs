@@ -107,7 +107,8 @@ defmodule Vws.Partitions.Monarch.RS232Test do
 
     for {n, punched, status} <- [
           {1, text, "0001DONE"},
-          {2, String.replace(text, "X37.1", "X37.2"), "0002ERROR PROGRAM DIFFERS 004711.PRO"}
+          {2, String.replace(text, "X37.1", "X37.2"),
+           "0002ERROR PROGRAM DIFFERS 004711.PRO FROM V1 LINES -1 +1 AT LINE 3"}
         ] do
       :sys.replace_state(ctx.sim, &%{&1 | programs: %{"004711.PRO" => punched}})
       send_monarch(ctx.peer, n, "COMPARE_GE(004711.PRO)")
