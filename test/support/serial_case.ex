@@ -4,8 +4,6 @@ defmodule Vws.Test.Serial do
   bytes cut at given points, and a Monarch command run to its end from a raw WC peer.
   """
 
-  import ExUnit.Assertions
-
   alias Vws.Test.WCPeer
 
   @doc "The lines of an NC program of at least `bytes` bytes of short blocks, `number` (O4711)."
@@ -34,18 +32,19 @@ defmodule Vws.Test.Serial do
     Enum.reverse([rest | pieces])
   end
 
-  defp seq, do: rem(System.unique_integer([:positive]), 10_000)
-
   @doc "Sends Monarch command `number` with `text`; asserts the string's acknowledgement."
-  def send_monarch(peer, number, text) do
-    s = seq()
-    WCPeer.send_string(peer, s, [{"M", number, text}])
-    assert Vws.Codecs.WC.Reply.decode(WCPeer.recv_line(peer)) == {:ok, {:ack, s}}
-  end
+  defdelegate send_monarch(peer, number, text), to: Vws.Test.MonarchWC
 
   @doc "The MONARCH_CMD status once it is no longer EXECUTING."
   def finished(peer, timeout \\ 120_000),
-    do: WCPeer.await_status(peer, seq(), "MONARCH_CMD", &(not (&1 =~ "EXECUTING")), timeout)
+    do:
+      WCPeer.await_status(
+        peer,
+        Vws.Test.MonarchWC.seq(),
+        "MONARCH_CMD",
+        &(not (&1 =~ "EXECUTING")),
+        timeout
+      )
 
   @doc "A Monarch command run to its end: its status (`0001DONE`, `0001ERROR …`)."
   def monarch(peer, number, text) do
