@@ -87,6 +87,17 @@ defmodule Vws.Links.RS232.Link do
       {:error, message} -> raise ArgumentError, "RS-232 link: " <> message
     end
 
+    # the link must see the control's DC1/DC3 to bound an XOFF: a driver or terminal server
+    # doing XON/XOFF itself would take them (docs/serial.md)
+    with endpoint when endpoint != nil <- opts[:endpoint],
+         {:ok, %Endpoint{serial: serial}} <- Endpoint.parse(to_string(endpoint)),
+         :xonxoff <- serial[:flow] do
+      raise ArgumentError,
+            "RS-232 link: #{endpoint} has flow=xonxoff, which makes the tty driver or terminal " <>
+              "server take the control's XON/XOFF; this link does XON/XOFF itself (and bounds an " <>
+              "XOFF's wait): give flow=none"
+    end
+
     case Keyword.get(opts, :name) do
       nil -> :gen_statem.start_link(__MODULE__, opts, [])
       name -> :gen_statem.start_link(name, __MODULE__, opts, [])

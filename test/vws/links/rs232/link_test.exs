@@ -184,6 +184,12 @@ defmodule Vws.Links.RS232.LinkTest do
     assert_property(property, 30)
   end
 
+  test "an endpoint whose driver would take the XON/XOFF itself is refused, in words" do
+    assert_raise ArgumentError, ~r/has flow=xonxoff, .* give flow=none/, fn ->
+      RS232.start_link(endpoint: "rfc2217://127.0.0.1:2001?flow=xonxoff")
+    end
+  end
+
   test "unknown framing options are refused at start, in words" do
     assert_raise ArgumentError,
                  "RS-232 link: framing: eol is :lf, :cr or :crlf (got :lfcr)",
