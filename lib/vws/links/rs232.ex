@@ -38,6 +38,10 @@ defmodule Vws.Links.RS232 do
   `upload_timeout` (120 000 ms), `baud` (9600, when the endpoint has none), `chunk` (8 bytes),
   `max_text` (256), `connect_timeout`, `backoff_min`, `backoff_max`.
 
+  **Progress.** A program going out is told to the owner every 256 bytes and at its end as the
+  DNC link's `{:dnc, link, {:progress, payload}}` (the payload of `Vws.Links.DNC`'s
+  `:dnc_progress`; `pauses` counts the XOFFs).
+
   ## Telemetry
 
   `[:vws, :rs232, :transfer]` (`bytes`, `duration`; `link, direction, operation, result`) at the

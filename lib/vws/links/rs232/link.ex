@@ -339,6 +339,8 @@ defmodule Vws.Links.RS232.Link do
       :ok ->
         job = %{job | left: left, sent: job.sent + n}
         data = count(%{data | job: job}, :bytes_sent, n)
+        # the transfer's progress, every 256 bytes and at the last one
+        if div(job.sent, 256) != div(job.sent - n, 256) or left == <<>>, do: progress(data, false)
         # the next chunk when the line has carried this one (its pace since sending (re)started)
         due = job.paced_from + div((job.sent - job.paced_sent) * 1000, data.cps)
         {:keep_state, data, [{{:timeout, :pace}, max(due - now(), 0), :go}]}
@@ -405,8 +407,12 @@ defmodule Vws.Links.RS232.Link do
 
       {@dc3, :sending} ->
         # already stopped: the XOFF's wait keeps its first start
-        timer = if data.xoff, do: [], else: [{{:timeout, :xoff}, data.opts.xoff_timeout, :xoff}]
-        {%{data | xoff: true}, timer}
+        if data.xoff do
+          {data, []}
+        else
+          job = Map.update(data.job, :pauses, 1, &(&1 + 1))
+          {%{data | xoff: true, job: job}, [{{:timeout, :xoff}, data.opts.xoff_timeout, :xoff}]}
+        end
 
       {@dc3, _} ->
         {%{data | xoff: true}, []}
@@ -498,6 +504,10 @@ defmodule Vws.Links.RS232.Link do
   ## Ending a request
 
   defp reply(data, result) do
+    if data.job.kind != :upload do
+      progress(data, if(result == {:ok, []}, do: :ok, else: elem(result, 1)))
+    end
+
     {:next_state, :idle, %{data | job: nil}, [{:reply, data.job.from, result} | cancel_timers()]}
   end
 
@@ -510,6 +520,46 @@ defmodule Vws.Links.RS232.Link do
     # must not run as a whole one (documented: docs/serial.md)
     reply(data, {:error, words})
   end
+
+  # A program's transfer, told to the owner as the DNC link tells it (`{:progress, payload}`,
+  # the payload of the workstation's :dnc_progress event, documented in Vws.Links.DNC): MONARCH's
+  # monitor publishes it, and a drip feed's says the machine runs. Blocks are `max_text` bytes.
+  defp progress(%{job: %{text: text} = job} = data, ended) do
+    block = data.opts.max_text
+    total = job.sent + byte_size(job.left)
+    elapsed = max(now() - job.started, 1)
+    cps = div(job.sent * 1000, elapsed)
+
+    program =
+      case {job.command.text, Program.file_name(Program.from_text(text))} do
+        {"", {:ok, file}} -> file
+        {name, _} -> name
+      end
+
+    notify(
+      data,
+      {:progress,
+       %{
+         link: data.name,
+         program: program,
+         operation: job.command.operation,
+         direction: :out,
+         blocks: div(job.sent + block - 1, block),
+         total_blocks: div(total + block - 1, block),
+         bytes: job.sent,
+         total_bytes: total,
+         program_bytes: min(job.sent, byte_size(text)),
+         total_program_bytes: byte_size(text),
+         chars_per_s: cps,
+         eta_s: if(cps > 0, do: div(byte_size(job.left), cps), else: nil),
+         retries: 0,
+         pauses: Map.get(job, :pauses, 0),
+         ended: ended
+       }}
+    )
+  end
+
+  defp progress(_data, _ended), do: :ok
 
   defp cancel_timers,
     do: for(t <- [:pace, :xoff, :dc1, :program], do: {{:timeout, t}, :cancel})

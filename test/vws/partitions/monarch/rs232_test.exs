@@ -64,15 +64,36 @@ defmodule Vws.Partitions.Monarch.RS232Test do
              "0001ERROR PROGRAM VERIFY FAILED READ BACK DIFFERS"
   end
 
-  test "DRIP_FEED: every byte reaches the control under XON/XOFF", ctx do
+  test "DRIP_FEED: every byte reaches the control under XON/XOFF, its progress published", ctx do
     lines = program(4_000)
     :ok = Mailbox.put_nc_file(ctx.ws, lines)
+    :ok = Vws.CEC.Events.subscribe(ctx.ws, :dnc_progress)
     assert monarch(ctx.peer, 1, "DRIP_FEED") == "0001DONE"
+
+    progress = collect_progress([])
+    total = byte_size(Program.to_text(lines))
+    assert length(progress) > 10
+    assert %{ended: :ok, operation: :download_execute, program: "004711.PRO"} = hd(progress)
+    assert hd(progress).total_program_bytes == total and hd(progress).program_bytes == total
+    assert hd(progress).pauses > 0
+    # the machine runs the program as it arrives: MONARCH says so (and, no report to read, keeps
+    # saying so: a plain RS-232 control cannot tell when it is done)
+    assert elem(Mailbox.get_device(ctx.ws, 8), 0) == "ACTIVE"
+
     assert eventually(fn -> RS232Control.info(ctx.sim).last == Program.to_text(lines) end)
     assert RS232Control.info(ctx.sim).dropped == 0
     # a plain RS-232 control cannot say when it is idle: the table stays the machine's
     assert monarch(ctx.peer, 2, "RELEASE_TABLE") ==
              "0002ERROR NO STATUS REPORT FROM AN RS-232 CONTROL"
+  end
+
+  # newest first
+  defp collect_progress(acc) do
+    receive do
+      {:vws_event, _, :dnc_progress, payload} -> collect_progress([payload | acc])
+    after
+      500 -> acc
+    end
   end
 
   test "UPLOAD_GE takes the program the operator punches into NC_UP", ctx do
