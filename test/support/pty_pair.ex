@@ -7,9 +7,16 @@ defmodule Vws.Test.PtyPair do
   import ExUnit.Callbacks, only: [on_exit: 1]
   import ExUnit.Assertions, only: [flunk: 1]
 
-  @doc "Starts the pair; it is killed and its files removed when the test exits."
-  def start! do
-    dir = Path.join(System.tmp_dir!(), "vws-tty-#{System.unique_integer([:positive])}")
+  @doc """
+  Starts the pair; it is killed and its files removed when the test exits. `dir:` puts the two
+  links in a directory of the caller's (a cable plugged in again where it was).
+  """
+  def start!(opts \\ []) do
+    dir =
+      Keyword.get_lazy(opts, :dir, fn ->
+        Path.join(System.tmp_dir!(), "vws-tty-#{System.unique_integer([:positive])}")
+      end)
+
     File.mkdir_p!(dir)
     a = Path.join(dir, "a")
     b = Path.join(dir, "b")

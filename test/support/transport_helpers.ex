@@ -50,6 +50,7 @@ defmodule Vws.TransportHelpers do
   defp identity(%{module: Vws.Links.Transport.TCP, handle: socket}), do: socket
   defp identity(%{module: Vws.Links.Transport.Loopback, handle: %{ref: ref}}), do: ref
   defp identity(%{module: Vws.Links.Transport.Serial, handle: %{port: port}}), do: port
+  defp identity(%{module: Vws.Links.Transport.RFC2217, handle: %{pid: pid}}), do: pid
 
   @doc "Activates and expects the connection to be reported closed."
   def assert_closed(conn, timeout \\ 5000) do

@@ -60,6 +60,12 @@ defmodule Mix.Tasks.Vws.Serve do
       server's `tcp://host:port`). Without it a simulated GE-2000 (`Vws.Sim.GE2000`) is started on
       a free local port and connected; its cycle-start button stands in for the DAQ #1 relay.
     * `--ge2000-baud N` — pace the simulated GE-2000's line at N Bd (default: unpaced)
+    * `--dnc-profile PROFILE` — what the machine tool's DNC port speaks
+      (`Vws.Links.ProgramPort.Profile`): `ge2000-level2` (default) or `rs232-xonxoff`, a plain
+      RS-232 control under XON/XOFF (`Vws.Links.RS232`, docs/serial.md). Without `--ge2000`, the
+      latter starts a simulated control of that kind (`Vws.Sim.RS232Control`) instead of the
+      GE-2000, which punches every program it keeps back (the operator's read-back a download
+      needs to end DONE); with it, the real control's port is reached that way
     * `--hydraulic ENDPOINT` — the hydraulic controller's HPIB endpoint, e.g. one started on another
       node or machine with `mix vws.hydraulic`. Without it the hydraulic controller
       (`Vws.Peers.HydraulicController`) runs in this node on the simulated plant's DAQ #2.
@@ -80,6 +86,7 @@ defmodule Mix.Tasks.Vws.Serve do
     robot_time_scale: :positive_float,
     ge2000: :string,
     ge2000_baud: :pos_integer,
+    dnc_profile: :string,
     hydraulic: :string,
     http_port: :port_or_zero,
     http_bind: :string,
@@ -130,10 +137,11 @@ defmodule Mix.Tasks.Vws.Serve do
     with {:error, reason} <- Vws.Application.check_wc_port(wc),
          do: Mix.raise("workstation #{id} did not start: #{Vws.Ops.StartError.describe(reason)}")
 
+    opts = Keyword.put(opts, :dnc_profile, dnc_profile(opts[:dnc_profile]))
     floor = floor_devices(id, opts)
     robot = robot(id, opts)
     {ge2000, monarch} = ge2000(id, opts)
-    devices = [ge2000: ge2000, robot: robot] ++ floor
+    devices = [ge2000: [endpoint: ge2000, profile: opts[:dnc_profile]], robot: robot] ++ floor
 
     # a simulated GE-2000's own button is MONARCH's cycle start; else the DAQ #1 relay is
     case Vws.CEC.Workstation.start(
@@ -157,7 +165,7 @@ defmodule Mix.Tasks.Vws.Serve do
     :ok = Vws.Ops.Health.expect(id)
     listening = Vws.CEC.SunComm.await_listening(id, 1_000)
     Mix.shell().info("VWS workstation #{id}: SUN_COMM waits for the WC on #{listening || wc}")
-    Mix.shell().info("GE-2000 DNC link: #{ge2000}")
+    Mix.shell().info("GE-2000 DNC link: #{ge2000} (profile #{profile_name(opts[:dnc_profile])})")
 
     Mix.shell().info(
       "Journal: #{journal || "none (--no-journal): a restart forgets every command"}"
@@ -205,7 +213,9 @@ defmodule Mix.Tasks.Vws.Serve do
           daq2: sim_hydraulic && "tcp://127.0.0.1:0",
           hydraulic: sim_hydraulic && {Vws.Peers.HydraulicController, []},
           robot: opts[:robot] == nil && [time_scale: opts[:robot_time_scale] || 1.0],
-          ge2000: opts[:ge2000] == nil && [pace: opts[:ge2000_baud] || false]
+          ge2000:
+            opts[:ge2000] == nil and opts[:dnc_profile] == :ge2000_level2 &&
+              [pace: opts[:ge2000_baud] || false]
         )
 
       Mix.shell().info(
@@ -256,16 +266,40 @@ defmodule Mix.Tasks.Vws.Serve do
 
   # The real machine's endpoint, or the floor's simulator (its button stands in for the relay).
   defp ge2000(id, opts) do
-    case opts[:ge2000] do
-      nil ->
+    case {opts[:ge2000], opts[:dnc_profile]} do
+      {nil, :rs232_xonxoff} ->
+        # the operator stand-in: every program kept is punched back (a download's read-back)
+        {:ok, sim} =
+          DynamicSupervisor.start_child(
+            Vws.EquipmentSupervisor,
+            {Vws.Sim.RS232Control, punch_after_load: true}
+          )
+
+        endpoint = Vws.Sim.RS232Control.endpoint(sim)
+        Mix.shell().info("Simulated RS-232 control (XON/XOFF) on #{endpoint}")
+        {endpoint, []}
+
+      {nil, _} ->
         sim = Vws.Sim.Floor.ge2000(id)
         Mix.shell().info("Simulated GE-2000 on #{Vws.Sim.GE2000.endpoint(sim)}")
         {Vws.Sim.GE2000.endpoint(sim), [cycle_start: fn -> Vws.Sim.GE2000.cycle_start(sim) end]}
 
-      endpoint ->
+      {endpoint, _} ->
         {endpoint, []}
     end
   end
+
+  # an unknown profile is said before anything starts
+  defp dnc_profile(nil), do: :ge2000_level2
+
+  defp dnc_profile(name) do
+    case Vws.Links.ProgramPort.Profile.parse(name) do
+      {:ok, profile} -> profile
+      {:error, message} -> Mix.raise("--dnc-profile: " <> message)
+    end
+  end
+
+  defp profile_name(profile), do: profile |> Atom.to_string() |> String.replace("_", "-")
 
   defp journal_choice(opts) do
     Vws.Ops.DataDir.choice(opts)

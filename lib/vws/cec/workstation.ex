@@ -211,6 +211,10 @@ defmodule Vws.CEC.Workstation do
   @doc """
   The link children for the `devices:` option, and the partition options updated to use them.
 
+  `ge2000: [endpoint: …, profile: "rs232-xonxoff", …more Vws.Links.RS232 options]` adds a plain
+  RS-232 port instead (`Vws.Links.ProgramPort.Profile`; docs/serial.md): no status reads, and
+  MONARCH is told the profile (its option `:profile`).
+
   `ge2000: endpoint` (or `ge2000: [endpoint: …, …more Vws.Links.DNC options]`) adds a `Vws.Links.DNC` link
   registered as `{ws, :ge2000}` (`whereis(ws, :ge2000)`) and the `Vws.Partitions.Monarch.Monitor`
   that keeps the MONARCH status current through it (`status_interval:` ms, default 1 000;
@@ -234,15 +238,24 @@ defmodule Vws.CEC.Workstation do
       {:ge2000, spec}, {links, popts} ->
         link_opts = if is_binary(spec), do: [endpoint: spec], else: spec
         {interval, link_opts} = Keyword.pop(link_opts, :status_interval, 1_000)
+        # the port's profile names its link (Vws.Links.ProgramPort); a plain RS-232 control
+        # has no status report to read
+        {profile, link_opts} = port_profile(link_opts)
+        interval = if profile == :ge2000_level2, do: interval
         name = Names.via(ws, :ge2000)
-        link = {Vws.Links.DNC, [id: :ge2000, name: name] ++ link_opts}
+        module = Vws.Links.ProgramPort.Profile.link_module(profile)
+        link = {module, [id: :ge2000, name: name] ++ link_opts}
 
         # always there: it owns the link (programs from the machine); reads only with an interval
         monitor = [
           {Vws.Partitions.Monarch.Monitor, workstation: ws, link: name, interval: interval}
         ]
 
-        monarch = Keyword.put_new(Keyword.get(popts, :monarch, []), :link, name)
+        monarch =
+          Keyword.get(popts, :monarch, [])
+          |> Keyword.put_new(:link, name)
+          |> Keyword.update(:options, [profile: profile], &Keyword.put_new(&1, :profile, profile))
+
         {links ++ [link | monitor], Keyword.put(popts, :monarch, monarch)}
 
       {:robot, spec}, {links, popts} ->
@@ -272,6 +285,15 @@ defmodule Vws.CEC.Workstation do
         raise ArgumentError,
               "unknown device #{inspect(device)} (known: :ge2000, :robot, :daq1, :hydraulic)"
     end)
+  end
+
+  defp port_profile(link_opts) do
+    {profile, link_opts} = Keyword.pop(link_opts, :profile, :ge2000_level2)
+
+    case Vws.Links.ProgramPort.Profile.parse(profile) do
+      {:ok, profile} -> {profile, link_opts}
+      {:error, message} -> raise ArgumentError, "devices: ge2000: " <> message
+    end
   end
 
   # DAQ #1 on the HPIB: its link and the partition options that reach it.

@@ -132,7 +132,7 @@ defmodule Vws.Links.Connection do
 
         if c.label do
           level = if c.failures == 1, do: :warning, else: :debug
-          Logger.log(level, "#{c.label} cannot reach #{endpoint}: #{inspect(reason)}; retrying")
+          Logger.log(level, "#{c.label} cannot reach #{endpoint}: #{describe(reason)}; retrying")
         end
 
         emit(c, :connect_failed, %{count: 1, retry_in: wait}, %{
@@ -190,11 +190,16 @@ defmodule Vws.Links.Connection do
   @spec lost(t, term) :: {non_neg_integer, t}
   def lost(%__MODULE__{} = c, reason) do
     c = close(c)
-    if c.label, do: Logger.warning("#{c.label} to #{c.peer} lost: #{inspect(reason)}")
+    if c.label, do: Logger.warning("#{c.label} to #{c.peer} lost: #{describe(reason)}")
     emit(c, :disconnected, %{count: 1}, %{peer: c.peer, reason: reason})
     {wait, backoff} = Backoff.next(c.backoff)
     {wait, %{c | peer: nil, backoff: backoff, last_error: reason}}
   end
+
+  # a transport's error in its words (a tty pulled out says so), anything else as it is
+  defp describe(%Transport.Error{} = e), do: Exception.message(e)
+  defp describe({:transport, %Transport.Error{} = e}), do: Exception.message(e)
+  defp describe(reason), do: inspect(reason)
 
   @doc "Closes the connection, if any, quietly (the process ends, or starts afresh)."
   @spec close(t) :: t

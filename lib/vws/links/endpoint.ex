@@ -7,9 +7,15 @@ defmodule Vws.Links.Endpoint do
 
     * `tcp://host:port` — a host name or dotted IPv4 address and a port in `0..65535`
       (port `0` asks the system for an ephemeral port when listening);
-    * `tty:/dev/ttyS0?baud=9600&data_bits=8&parity=none&stop_bits=1` — a serial device. The query
-      is optional; each setting defaults to 9600 baud, 8 data bits, no parity, 1 stop bit. A bare
-      absolute path (`/dev/ttyUSB0`) means the same as `tty:/dev/ttyUSB0`;
+    * `tty:/dev/ttyS0?baud=9600&data_bits=8&parity=none&stop_bits=1&flow=none` — a serial device.
+      The query is optional; each setting defaults to 9600 baud, 8 data bits, no parity, 1 stop
+      bit, no flow control (`flow` is `none`, `xonxoff` or `rtscts`). A bare absolute path
+      (`/dev/ttyUSB0`) means the same as `tty:/dev/ttyUSB0`;
+    * `rfc2217://host:port?baud=4800&parity=even…` — a serial port behind a terminal server that
+      speaks RFC 2217 (Telnet COM Port Control, e.g. ser2net's `telnet(rfc2217)` accepter): the
+      same settings as a tty, which the CEC sets on the server's port
+      (`Vws.Links.Transport.RFC2217`). A plain `tcp://` endpoint carries bytes only: a serial
+      setting on it is refused, as it could never be applied;
     * `loopback:name` — an in-memory pair inside this node (see `Vws.Links.Transport.Loopback`);
     * `cell:id` — the WC link of workstation `id`, wherever it runs in the cell of connected
       nodes (see `Vws.CEC.Cell.connect/2`, which resolves it above the transports); it can be connected to, not listened on.
@@ -18,9 +24,11 @@ defmodule Vws.Links.Endpoint do
 
       iex> {:ok, e} = Vws.Links.Endpoint.parse("tty:/dev/ttyS1?parity=even&data_bits=7")
       iex> e.serial
-      [baud: 9600, data_bits: 7, parity: :even, stop_bits: 1]
+      [baud: 9600, data_bits: 7, parity: :even, stop_bits: 1, flow: :none]
       iex> to_string(e)
       "tty:/dev/ttyS1?baud=9600&data_bits=7&parity=even&stop_bits=1"
+      iex> to_string(Vws.Links.Endpoint.parse!("rfc2217://ts-1:2001?baud=4800&flow=xonxoff"))
+      "rfc2217://ts-1:2001?baud=4800&data_bits=8&parity=none&stop_bits=1&flow=xonxoff"
       iex> Vws.Links.Endpoint.parse!("tcp://127.0.0.1:5001")
       %Vws.Links.Endpoint{kind: :tcp, host: ~c"127.0.0.1", port: 5001, path: nil, name: nil, serial: []}
       iex> {:error, error} = Vws.Links.Endpoint.parse("tcp://vmc:70000")
@@ -38,13 +46,15 @@ defmodule Vws.Links.Endpoint do
   @enforce_keys [:kind]
   defstruct kind: nil, host: nil, port: nil, path: nil, name: nil, serial: []
 
-  @type kind :: :tcp | :tty | :loopback | :cell
+  @type kind :: :tcp | :tty | :rfc2217 | :loopback | :cell
   @type parity :: :none | :even | :odd
+  @type flow :: :none | :xonxoff | :rtscts
   @type serial :: [
           baud: pos_integer(),
           data_bits: 5..8,
           parity: parity(),
-          stop_bits: 1..2
+          stop_bits: 1..2,
+          flow: flow()
         ]
   @type t :: %__MODULE__{
           kind: kind(),
@@ -55,7 +65,7 @@ defmodule Vws.Links.Endpoint do
           serial: serial() | []
         }
 
-  @serial_defaults [baud: 9600, data_bits: 8, parity: :none, stop_bits: 1]
+  @serial_defaults [baud: 9600, data_bits: 8, parity: :none, stop_bits: 1, flow: :none]
   @serial_keys Keyword.keys(@serial_defaults)
 
   # The speeds termios (and so socat's b<rate> options and Circuits.UART) know on Linux.
@@ -101,7 +111,8 @@ defmodule Vws.Links.Endpoint do
   end
 
   @doc """
-  The canonical string form of an endpoint; `tty:` endpoints always list all four settings.
+  The canonical string form of an endpoint; `tty:` and `rfc2217:` endpoints always list baud,
+  data bits, parity and stop bits, and flow control when there is any.
 
       iex> Vws.Links.Endpoint.to_string(Vws.Links.Endpoint.parse!("/dev/ttyUSB0"))
       "tty:/dev/ttyUSB0?baud=9600&data_bits=8&parity=none&stop_bits=1"
@@ -110,14 +121,11 @@ defmodule Vws.Links.Endpoint do
   def to_string(%__MODULE__{kind: :tcp, host: host, port: port}),
     do: "tcp://#{host}:#{port}"
 
-  def to_string(%__MODULE__{kind: :tty, path: path, serial: serial}) do
-    settings = Keyword.merge(@serial_defaults, serial)
+  def to_string(%__MODULE__{kind: :tty, path: path, serial: serial}),
+    do: "tty:#{path}?#{query(serial)}"
 
-    query =
-      Enum.map_join(@serial_keys, "&", fn key -> "#{key}=#{Keyword.fetch!(settings, key)}" end)
-
-    "tty:#{path}?#{query}"
-  end
+  def to_string(%__MODULE__{kind: :rfc2217, host: host, port: port, serial: serial}),
+    do: "rfc2217://#{host}:#{port}?#{query(serial)}"
 
   def to_string(%__MODULE__{kind: :loopback, name: name}) when is_binary(name),
     do: "loopback:#{name}"
@@ -127,16 +135,50 @@ defmodule Vws.Links.Endpoint do
   def to_string(%__MODULE__{kind: :cell, name: id}) when is_binary(id), do: "cell:#{id}"
   def to_string(%__MODULE__{kind: :cell, name: id}), do: "cell:#{inspect(id)}"
 
+  # flow=none is left out: endpoints written before flow control existed keep their form
+  defp query(serial) do
+    settings = Keyword.merge(@serial_defaults, serial)
+
+    @serial_keys
+    |> Enum.reject(&(&1 == :flow and settings[:flow] == :none))
+    |> Enum.map_join("&", fn key -> "#{key}=#{Keyword.fetch!(settings, key)}" end)
+  end
+
   ## Parsing
 
   defp do_parse("tcp://" <> rest), do: parse_tcp(rest)
   defp do_parse("tty:" <> rest), do: parse_tty(rest)
+  defp do_parse("rfc2217://" <> rest), do: parse_rfc2217(rest)
   defp do_parse("/" <> _ = path), do: parse_tty(path)
   defp do_parse("loopback:" <> name), do: parse_loopback(name)
   defp do_parse("cell:" <> id), do: parse_cell(id)
   defp do_parse(_), do: {:error, :unknown_scheme, nil}
 
   defp parse_tcp(rest) do
+    case :binary.split(rest, "?") do
+      [_address, _query] ->
+        {:error, :serial_on_tcp, nil}
+
+      [address] ->
+        parse_host_port(address)
+    end
+  end
+
+  defp parse_rfc2217(rest) do
+    {address, query} =
+      case :binary.split(rest, "?") do
+        [address] -> {address, ""}
+        [address, query] -> {address, query}
+      end
+
+    with {:ok, %__MODULE__{host: host, port: port}} <- parse_host_port(address),
+         :ok <- if(port == 0, do: {:error, :bad_port, nil}, else: :ok),
+         {:ok, serial} <- parse_query(query) do
+      {:ok, %__MODULE__{kind: :rfc2217, host: host, port: port, serial: serial}}
+    end
+  end
+
+  defp parse_host_port(rest) do
     case :binary.split(rest, ":", [:global]) do
       [_host] ->
         {:error, :missing_port, nil}
@@ -254,6 +296,7 @@ defmodule Vws.Links.Endpoint do
       ["data_bits", value] -> setting(:data_bits, value, :bad_data_bits, &data_bits/1)
       ["parity", value] -> setting(:parity, value, :bad_parity, &parity/1)
       ["stop_bits", value] -> setting(:stop_bits, value, :bad_stop_bits, &stop_bits/1)
+      ["flow", value] -> setting(:flow, value, :bad_flow, &flow/1)
       [key, _value] -> {:error, :unknown_option, printable(key)}
       [_no_equals] -> {:error, :bad_option, printable(pair)}
     end
@@ -287,6 +330,11 @@ defmodule Vws.Links.Endpoint do
   defp stop_bits("1"), do: {:ok, 1}
   defp stop_bits("2"), do: {:ok, 2}
   defp stop_bits(_), do: :error
+
+  defp flow("none"), do: {:ok, :none}
+  defp flow("xonxoff"), do: {:ok, :xonxoff}
+  defp flow("rtscts"), do: {:ok, :rtscts}
+  defp flow(_), do: :error
 
   defp parse_loopback(""), do: {:error, :bad_name, "the name is empty"}
 

@@ -259,10 +259,14 @@ defmodule Vws.Links.Transport do
   @spec peer(Conn.t()) :: String.t()
   def peer(%Conn{module: module, handle: handle}), do: module.peer(handle)
 
-  @doc "The transport module serving an endpoint; nil for a `cell:` endpoint (resolved above)."
+  @doc """
+  The transport module serving an endpoint (`rfc2217:` — `Vws.Links.Transport.RFC2217`); nil for a
+  `cell:` endpoint (resolved above).
+  """
   @spec module_for(Endpoint.t()) :: module() | nil
   def module_for(%Endpoint{kind: :tcp}), do: Vws.Links.Transport.TCP
   def module_for(%Endpoint{kind: :tty}), do: Vws.Links.Transport.Serial
+  def module_for(%Endpoint{kind: :rfc2217}), do: Vws.Links.Transport.RFC2217
   def module_for(%Endpoint{kind: :loopback}), do: Vws.Links.Transport.Loopback
   def module_for(%Endpoint{kind: :cell}), do: nil
 

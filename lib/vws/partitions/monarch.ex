@@ -92,6 +92,16 @@ defmodule Vws.Partitions.Monarch do
     * `:poll_interval` — ms between status reports while waiting for it (100)
     * `:request_timeout` — bound on one DNC request (`:infinity`: the link's limits end it)
     * `:interlock` — `timeout` (ms, default 10 000) and `retry_ms` (250) of the table's lease
+    * `:profile` — the DNC port's profile (`Vws.Links.ProgramPort.Profile`, set by the
+      workstation's `devices:`): `:ge2000_level2` (default, `Vws.Links.DNC`) or `:rs232_xonxoff`
+      (`Vws.Links.RS232`, docs/serial.md). On a plain RS-232 control DOWNLOAD_GE,
+      DOWNLOAD_GE(nnnnnn.PRO[/v]), UPLOAD_GE, DRIP_FEED and programs from the machine work (a
+      download DONE only when the control's read-back is the bytes sent; there is no status
+      report, so `verify` defaults to false); COMPARE_GE(nnnnnn.PRO) compares the program the
+      control punches back; STATUS, PROGRAM_SELECT, PROGRAM_DELETE, TABLE, COMPARE_GE, CYCLE_START
+      and RELEASE_TABLE end `ERROR` with what the control cannot do (`NO STATUS REPORT FROM AN
+      RS-232 CONTROL`, …) — the table stays held after a drip feed until the machine's state can
+      be read.
   """
   # a request the line broke off is made again (see send_request/5): this many tries in all
   @request_tries 3
@@ -191,10 +201,13 @@ defmodule Vws.Partitions.Monarch do
 
   # The directory (size, CRC-16) finds the versions the machine may hold; the read-back's
   # SHA-256 digest says which one it holds, if any.
+  # A plain RS-232 control has no directory (Vws.Links.RS232): the program it punches back is
+  # compared whole.
   def execute({:compare_ge, file}, ctx) do
     with {:ok, versions} <- library_versions(ctx.workstation, file),
-         {:ok, entries} <- directory(ctx) do
-      case Vws.CEC.Library.on_machine(versions, Map.get(entries, file)) do
+         {:ok, entries} <-
+           if(profile(ctx) == :rs232_xonxoff, do: {:ok, :none}, else: directory(ctx)) do
+      case entries != :none and Vws.CEC.Library.on_machine(versions, Map.get(entries, file)) do
         # nothing to read back: said in words, nothing sent
         :absent ->
           {:error, "PROGRAM ABSENT #{file}"}
@@ -308,7 +321,7 @@ defmodule Vws.Partitions.Monarch do
 
   # Hardware handshaking after an S command: the machine's own report must agree.
   defp verify(ctx, what, ok?) do
-    if Keyword.get(ctx.options, :verify, true) do
+    if verify?(ctx) do
       with {:ok, report} <- status_report(ctx) do
         cond do
           report.alarm != 0 -> {:error, "#{what} GE-2000 ALARM #{report.alarm}"}
@@ -323,7 +336,7 @@ defmodule Vws.Partitions.Monarch do
 
   # The machine's directory must hold exactly the bytes sent under the file's name.
   defp verify_directory(ctx, file, text) do
-    if Keyword.get(ctx.options, :verify, true) do
+    if verify?(ctx) do
       sent = Report.entry(file, text)
 
       case read_directory(ctx) do
@@ -761,9 +774,13 @@ defmodule Vws.Partitions.Monarch do
   # most twice more. A delete is not (the second would find no file), nor a request refused
   # for good (a link down, the peer busy, a bad text).
   defp send_request(ctx, command, blocks, timeout, tries) do
-    case DNC.request(ctx.link, command, blocks, timeout) do
+    case port(ctx).request(ctx.link, command, blocks, timeout) do
       {:ok, blocks} ->
         {:ok, blocks}
+
+      # a port that answers in words (Vws.Links.RS232: what a plain RS-232 control cannot do)
+      {:error, words} when is_binary(words) ->
+        {:error, words}
 
       {:error, %LinkError{reason: reason}}
       when tries > 1 and reason in @broken_off and command.operation not in @not_again ->
@@ -781,8 +798,15 @@ defmodule Vws.Partitions.Monarch do
     end
   end
 
+  # The port's profile, and the link module that serves it (Vws.Links.ProgramPort): the
+  # GE-2000's DNC Level 2 unless the workstation's devices: say otherwise. A plain RS-232
+  # control has no status report nor directory to verify with: its link reads a download back.
+  defp profile(ctx), do: Keyword.get(ctx.options, :profile, :ge2000_level2)
+  defp port(ctx), do: Vws.Links.ProgramPort.Profile.link_module(profile(ctx))
+  defp verify?(ctx), do: Keyword.get(ctx.options, :verify, profile(ctx) == :ge2000_level2)
+
   defp max_text(ctx) do
-    {:ok, DNC.max_text(ctx.link)}
+    {:ok, port(ctx).max_text(ctx.link)}
   catch
     :exit, _ -> {:error, LinkError.status_text(%LinkError{reason: :link_down})}
   end

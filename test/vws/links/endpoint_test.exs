@@ -8,7 +8,7 @@ defmodule Vws.Links.EndpointTest do
   doctest Vws.Links.Endpoint
   doctest Vws.Links.Endpoint.Error
 
-  @tty_defaults [baud: 9600, data_bits: 8, parity: :none, stop_bits: 1]
+  @tty_defaults [baud: 9600, data_bits: 8, parity: :none, stop_bits: 1, flow: :none]
 
   describe "golden cases" do
     test "tcp with a host name, an IPv4 address, and port 0 for an ephemeral listener" do
@@ -34,7 +34,7 @@ defmodule Vws.Links.EndpointTest do
                 %Endpoint{
                   kind: :tty,
                   path: "/dev/ttyUSB1",
-                  serial: [baud: 4800, data_bits: 7, parity: :odd, stop_bits: 2]
+                  serial: [baud: 4800, data_bits: 7, parity: :odd, stop_bits: 2, flow: :none]
                 }}
 
       assert Endpoint.parse("/dev/serial/by-id/usb-FTDI_FT232R-if00-port0?baud=115200") ==
@@ -44,6 +44,52 @@ defmodule Vws.Links.EndpointTest do
                   path: "/dev/serial/by-id/usb-FTDI_FT232R-if00-port0",
                   serial: Keyword.put(@tty_defaults, :baud, 115_200)
                 }}
+    end
+
+    test "flow control, and the same settings on an RFC 2217 terminal server" do
+      assert {:ok, %Endpoint{serial: serial}} = Endpoint.parse("tty:/dev/ttyS0?flow=xonxoff")
+      assert serial[:flow] == :xonxoff
+      assert {:ok, %Endpoint{serial: serial}} = Endpoint.parse("/dev/ttyS0?flow=rtscts")
+      assert serial[:flow] == :rtscts
+
+      assert Endpoint.parse("rfc2217://ts-1:2001?baud=4800&parity=even&flow=xonxoff") ==
+               {:ok,
+                %Endpoint{
+                  kind: :rfc2217,
+                  host: ~c"ts-1",
+                  port: 2001,
+                  serial: [baud: 4800, data_bits: 8, parity: :even, stop_bits: 1, flow: :xonxoff]
+                }}
+
+      assert Endpoint.parse("rfc2217://127.0.0.1:7000") ==
+               {:ok,
+                %Endpoint{kind: :rfc2217, host: ~c"127.0.0.1", port: 7000, serial: @tty_defaults}}
+
+      assert to_string(Endpoint.parse!("tty:/dev/x?flow=rtscts")) ==
+               "tty:/dev/x?baud=9600&data_bits=8&parity=none&stop_bits=1&flow=rtscts"
+
+      assert to_string(Endpoint.parse!("rfc2217://h:1?parity=odd")) ==
+               "rfc2217://h:1?baud=9600&data_bits=8&parity=odd&stop_bits=1"
+    end
+
+    test "serial settings where they cannot apply, and unknown ones, are said in words" do
+      {:error, e} = Endpoint.parse("tcp://ts-1:2001?baud=4800")
+      assert e.reason == :serial_on_tcp
+      assert Exception.message(e) =~ "cannot set a serial port: use rfc2217://"
+
+      {:error, e} = Endpoint.parse("tty:/dev/ttyS0?flow=dtrdsr")
+      assert e.reason == :bad_flow
+      assert Exception.message(e) =~ ~s|flow must be none, xonxoff or rtscts (got "dtrdsr")|
+
+      {:error, e} = Endpoint.parse("rfc2217://h:2001?handshake=xon")
+      assert e.reason == :unknown_option
+
+      assert Exception.message(e) =~
+               ~s|the serial settings are baud, data_bits, parity, stop_bits and flow (got "handshake")|
+
+      assert {:error, %Error{reason: :bad_port}} = Endpoint.parse("rfc2217://h:0")
+      assert {:error, %Error{reason: :missing_port}} = Endpoint.parse("rfc2217://h")
+      assert {:error, %Error{reason: :bad_baud}} = Endpoint.parse("rfc2217://h:1?baud=4801")
     end
 
     test "loopback" do
@@ -134,7 +180,9 @@ defmodule Vws.Links.EndpointTest do
     end
 
     test "garbage never crashes, and whatever parses is canonical" do
-      prefixes = ["", "tcp://", "tty:", "tty:/dev/", "loopback:", "/", "tcp://h:", "tty:/x?"]
+      prefixes =
+        ["", "tcp://", "tty:", "tty:/dev/", "loopback:", "/", "tcp://h:", "tty:/x?"] ++
+          ["rfc2217://", "rfc2217://h:1?", "tty:/x?flow="]
 
       garbage =
         :proper_types.bind(
@@ -171,7 +219,7 @@ defmodule Vws.Links.EndpointTest do
   defp chars(list), do: :proper_types.elements(list)
 
   defp endpoint_gen do
-    :proper_types.oneof([tcp_gen(), tty_gen(), loopback_gen()])
+    :proper_types.oneof([tcp_gen(), tty_gen(), rfc2217_gen(), loopback_gen()])
   end
 
   defp tcp_gen do
@@ -225,14 +273,32 @@ defmodule Vws.Links.EndpointTest do
         :proper_types.elements(Endpoint.bauds()),
         :proper_types.integer(5, 8),
         :proper_types.elements([:none, :even, :odd]),
-        :proper_types.integer(1, 2)
+        :proper_types.integer(1, 2),
+        :proper_types.elements([:none, :xonxoff, :rtscts])
       ]),
-      fn {segments, baud, data_bits, parity, stop_bits} ->
+      fn {segments, baud, data_bits, parity, stop_bits, flow} ->
         %Endpoint{
           kind: :tty,
           path: "/" <> Enum.join(segments, "/"),
-          serial: [baud: baud, data_bits: data_bits, parity: parity, stop_bits: stop_bits]
+          serial: [
+            baud: baud,
+            data_bits: data_bits,
+            parity: parity,
+            stop_bits: stop_bits,
+            flow: flow
+          ]
         }
+      end,
+      false
+    )
+  end
+
+  # a terminal server's port: a tcp address (port 1 and up) with a tty's settings
+  defp rfc2217_gen do
+    :proper_types.bind(
+      :proper_types.tuple([tcp_gen(), tty_gen()]),
+      fn {tcp, tty} ->
+        %Endpoint{kind: :rfc2217, host: tcp.host, port: max(tcp.port, 1), serial: tty.serial}
       end,
       false
     )

@@ -1,7 +1,8 @@
 defmodule Vws.Links.Transport.Behaviour do
   @moduledoc """
   What a transport implements: TCP (`Vws.Links.Transport.TCP`), a serial tty
-  (`Vws.Links.Transport.Serial`), an in-memory loopback (`Vws.Links.Transport.Loopback`), a
+  (`Vws.Links.Transport.Serial`), a terminal server's port over RFC 2217
+  (`Vws.Links.Transport.RFC2217`), an in-memory loopback (`Vws.Links.Transport.Loopback`), a
   cluster's workstation (`Vws.CEC.Cell.Connection`).
 
   Protocol code calls the facade, `Vws.Links.Transport`, never a transport; the facade picks the

@@ -21,6 +21,11 @@ defmodule Vws.Links.Transport.Error do
       or is not a terminal device;
     * `:socat_not_found`, `{:socat_exit, status}` — the serial transport's `socat` is missing, or
       ended (the device could not be opened, or went away);
+    * `:com_port_refused`, `{:setting_refused, key, asked, answered}`, `:negotiation_timeout` —
+      an `rfc2217://` terminal server that will not do RFC 2217, would not set a setting of the
+      endpoint (it answered another value), or did not finish negotiating in time;
+    * `:device_gone` — the serial device went away while open (its path no longer exists: a USB
+      adapter pulled out, a cable server's pty closed);
     * `{:unknown_backend, backend}` — a serial backend other than `:socat` or `:circuits_uart`;
     * any other `:inet` error (`:etimedout`, `:econnreset`, `:ehostunreach`, `:nxdomain`, …), and
       a text where the transport could say more (an address that cannot be resolved).
@@ -76,6 +81,24 @@ defmodule Vws.Links.Transport.Error do
 
   defp words({:socat_exit, status}),
     do: "socat ended with status #{status}: the device could not be opened, or went away"
+
+  defp words(:device_gone),
+    do:
+      "the serial device went away (cable pulled or USB adapter removed); " <>
+        "it is reopened when it is back"
+
+  defp words(:com_port_refused),
+    do:
+      "the terminal server refused RFC 2217 (COM-PORT-OPTION): enable it there " <>
+        "(ser2net: telnet(rfc2217)), or use tcp:// without serial settings"
+
+  defp words({:setting_refused, key, asked, answered}),
+    do:
+      "the terminal server would not set #{key} to #{asked} " <>
+        "(it answered #{inspect(answered)}): its port cannot do that"
+
+  defp words(:negotiation_timeout),
+    do: "the terminal server did not finish RFC 2217 negotiation in time"
 
   defp words({:unknown_backend, backend}),
     do: "unknown serial backend #{inspect(backend)} (known: :socat, :circuits_uart)"

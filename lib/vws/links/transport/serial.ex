@@ -25,8 +25,10 @@ defmodule Vws.Links.Transport.Serial do
   ## Messages
 
   With socat the controlling process receives the port's messages: `{port, {:data, bytes}}`, and
-  `{port, {:exit_status, status}}` when socat ends (status 0 is `:closed`, any other
-  `{:error, {:socat_exit, status}}` — e.g. the device could not be opened or went away). A
+  `{port, {:exit_status, status}}` when socat ends: `{:error, :device_gone}` when the device's
+  path no longer exists (a USB adapter pulled out, a pty whose other side closed), else status
+  0 is `:closed` and any other `{:error, {:socat_exit, status}}`. A link with an endpoint
+  reopens the device when it is back (`Vws.Links.Connection`'s back-off). A
   process trapping exits also gets `{:EXIT, port, reason}`; `handle_message/2` classifies it too.
   With Circuits.UART: `{:circuits_uart, pid, bytes | {:error, reason}}`.
 
@@ -94,15 +96,20 @@ defmodule Vws.Links.Transport.Serial do
   those also reset the character size and parity, and socat does not promise to apply options
   in the order given. With parity on, bytes with a parity error are dropped (`inpck`, `ignpar`):
   a garbled byte is a lost byte, which the link protocols detect and recover from. Modem control
-  lines are ignored (`clocal`), hardware and software flow control are off, and the device does
-  not become socat's controlling terminal (`noctty`), so a hang-up ends socat with status 0 (seen
-  as `:closed`) instead of a SIGHUP.
+  lines are ignored (`clocal`), and the device does not become socat's controlling terminal
+  (`noctty`), so a hang-up ends socat instead of sending it a SIGHUP. Flow control is the
+  endpoint's `flow`: `xonxoff` lets the tty driver stop sending on the peer's XOFF and send XOFF
+  itself when its input fills (`ixon`, `ixoff`; the driver then keeps DC1/DC3 from the link),
+  `rtscts` uses the RTS/CTS lines (`crtscts`), `none` neither.
 
       iex> Vws.Links.Transport.Serial.socat_args(Vws.Links.Endpoint.parse!("tty:/dev/ttyS0?baud=4800&data_bits=7&parity=even"))
       ["-t", "0.05", "STDIO",
        "FILE:/dev/ttyS0,noctty,b4800,cs7,parenb=1,parodd=0,cstopb=0,inpck=1,ignpar=1," <>
          "echo=0,icanon=0,isig=0,iexten=0,opost=0,icrnl=0,inlcr=0,igncr=0,istrip=0," <>
-         "ixon=0,ixoff=0,brkint=0,ignbrk=0,parmrk=0,crtscts=0,clocal=1,min=1,time=0"]
+         "brkint=0,ignbrk=0,parmrk=0,clocal=1,min=1,time=0,ixon=0,ixoff=0,crtscts=0"]
+
+      iex> Vws.Links.Transport.Serial.socat_args(Vws.Links.Endpoint.parse!("tty:/dev/ttyS0?flow=xonxoff")) |> List.last() |> String.split(",") |> Enum.take(-3)
+      ["ixon=1", "ixoff=1", "crtscts=0"]
   """
   @spec socat_args(Endpoint.t()) :: [String.t()]
   def socat_args(%Endpoint{kind: :tty, path: path, serial: serial}) do
@@ -119,11 +126,16 @@ defmodule Vws.Links.Transport.Serial do
       "inpck=#{checked}",
       "ignpar=#{checked}",
       "echo=0,icanon=0,isig=0,iexten=0,opost=0,icrnl=0,inlcr=0,igncr=0,istrip=0",
-      "ixon=0,ixoff=0,brkint=0,ignbrk=0,parmrk=0,crtscts=0,clocal=1,min=1,time=0"
+      "brkint=0,ignbrk=0,parmrk=0,clocal=1,min=1,time=0",
+      flow(settings[:flow])
     ]
 
     ["-t", @socat_linger, "STDIO", Enum.join(["FILE:#{path}", "noctty" | termios], ",")]
   end
+
+  defp flow(:none), do: "ixon=0,ixoff=0,crtscts=0"
+  defp flow(:xonxoff), do: "ixon=1,ixoff=1,crtscts=0"
+  defp flow(:rtscts), do: "ixon=0,ixoff=0,crtscts=1"
 
   defp open_socat(%Endpoint{path: path} = endpoint, opts) do
     with {:ok, socat} <- find_socat(opts),
@@ -176,7 +188,12 @@ defmodule Vws.Links.Transport.Serial do
       data_bits: settings[:data_bits],
       parity: settings[:parity],
       stop_bits: settings[:stop_bits],
-      flow_control: :none,
+      flow_control:
+        case settings[:flow] do
+          :none -> :none
+          :xonxoff -> :software
+          :rtscts -> :hardware
+        end,
       active: true,
       id: :pid
     ]
@@ -253,11 +270,10 @@ defmodule Vws.Links.Transport.Serial do
   def activate(%__MODULE__{}), do: :ok
 
   @impl true
-  def handle_message(%__MODULE__{backend: :socat, port: port}, msg) do
+  def handle_message(%__MODULE__{backend: :socat, port: port, endpoint: endpoint}, msg) do
     case msg do
       {^port, {:data, data}} -> {:data, data}
-      {^port, {:exit_status, 0}} -> :closed
-      {^port, {:exit_status, status}} -> {:error, {:socat_exit, status}}
+      {^port, {:exit_status, status}} -> ended(endpoint, status)
       {:EXIT, ^port, :normal} -> :closed
       {:EXIT, ^port, reason} -> {:error, reason}
       _ -> :unknown
@@ -269,6 +285,16 @@ defmodule Vws.Links.Transport.Serial do
       {:circuits_uart, ^uart, {:error, reason}} -> {:error, reason}
       {:circuits_uart, ^uart, data} when is_binary(data) -> {:data, data}
       _ -> :unknown
+    end
+  end
+
+  # socat ended: a device whose path is gone was unplugged (a USB adapter pulled, the other end
+  # of a pty closed) — said as such, so the log tells it from a line that merely hung up
+  defp ended(%Endpoint{path: path}, status) do
+    cond do
+      not File.exists?(path) -> {:error, :device_gone}
+      status == 0 -> :closed
+      true -> {:error, {:socat_exit, status}}
     end
   end
 

@@ -106,11 +106,17 @@ defmodule Vws.Links.Transport.SerialTest do
     :ok = Transport.close(end_a)
   end
 
-  test "pulling the cable (the pty pair goes away) is seen as :closed at both ends", ctx do
+  test "pulling the cable (the pty pair goes away) is said as such at both ends", ctx do
     {end_a, end_b} = open_both(ctx)
     System.cmd("kill", [Integer.to_string(ctx.cable_pid)])
-    assert next(end_a) == :closed
-    assert next(end_b) == :closed
+    gone = {:error, %Vws.Links.Transport.Error{reason: :device_gone}}
+    assert next(end_a) == gone
+    assert next(end_b) == gone
+
+    assert Exception.message(elem(gone, 1)) ==
+             "the serial device went away (cable pulled or USB adapter removed); " <>
+               "it is reopened when it is back"
+
     wait_until(fn -> not Serial.os_alive?(socat_pid(end_a)) end)
     wait_until(fn -> not Serial.os_alive?(socat_pid(end_b)) end)
     assert Transport.close(end_a) == :ok
@@ -145,6 +151,46 @@ defmodule Vws.Links.Transport.SerialTest do
 
     :ok = Transport.close(end_a)
     :ok = Transport.close(end_b)
+  end
+
+  test "flow control reaches the device: XON/XOFF, RTS/CTS, none", ctx do
+    for {flow, expected} <- [
+          {"xonxoff", [~r/(^|\s)ixon(\s|$)/, ~r/(^|\s)ixoff(\s|$)/, ~r/(^|\s)-crtscts/]},
+          {"rtscts", [~r/(^|\s)-ixon/, ~r/(^|\s)-ixoff/, ~r/(^|\s)crtscts/]},
+          {"none", [~r/(^|\s)-ixon/, ~r/(^|\s)-ixoff/, ~r/(^|\s)-crtscts/]}
+        ] do
+      {:ok, end_a} = Transport.connect("tty:#{ctx.a}?baud=4800&stop_bits=2&flow=#{flow}")
+      # socat has configured the line once it relays: a byte through it proves that
+      {:ok, end_b} = Transport.connect("tty:#{ctx.b}")
+      :ok = Transport.send(end_a, "x")
+      assert recv_exactly(end_b, 1) == "x"
+      {settings, 0} = System.cmd("stty", ["-F", ctx.a, "-a"])
+      assert settings =~ "speed 4800 baud"
+      assert settings =~ ~r/(^|\s)cstopb/
+
+      for pattern <- expected,
+          do: assert(settings =~ pattern, "flow=#{flow}: #{inspect(pattern)} in #{settings}")
+
+      :ok = Transport.close(end_a)
+      :ok = Transport.close(end_b)
+    end
+  end
+
+  test "a link whose tty went away says so and opens it again once it is back", ctx do
+    {:ok, link} = Vws.Links.DNC.start_link(endpoint: "tty:#{ctx.a}?baud=4800", owner: self())
+    assert_receive {:dnc, ^link, :connected}, 5_000
+
+    log =
+      ExUnit.CaptureLog.capture_log(fn ->
+        System.cmd("kill", [Integer.to_string(ctx.cable_pid)])
+        assert_receive {:dnc, ^link, :disconnected}, 5_000
+        # plugged in again where it was
+        Vws.Test.PtyPair.start!(dir: ctx.dir)
+        assert_receive {:dnc, ^link, :connected}, 10_000
+      end)
+
+    assert log =~ "the serial device went away (cable pulled or USB adapter removed)"
+    GenServer.stop(link)
   end
 
   test "messages are classified per connection", ctx do
