@@ -319,7 +319,8 @@ defmodule Vws.Partitions.VwsStatusTest do
     test "a lock pin that does not engage is an error, as read" do
       %{ws: ws, plant: plant} = DAQFloor.start()
       :ok = Plant.inject_fault(plant, :stuck_valve, actuator: :tray2_lock)
-      lock = VwsStatus.tray_lock_fun(ws, timeout_ms: 200)
+      # (1 s: within 200 ms a loaded run had no fresh reading at all, NOT ANSWERING)
+      lock = VwsStatus.tray_lock_fun(ws, timeout_ms: 1_000)
       assert lock.(2, :lock) == {:error, "TRAY 2 LOCK PIN NOT ENGAGED"}
     end
 
