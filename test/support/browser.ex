@@ -17,16 +17,7 @@ defmodule Vws.Test.Browser do
   def run(budget_ms, extra, opts \\ []) do
     profile = Path.join(System.tmp_dir!(), "vws-chromium-#{System.unique_integer([:positive])}")
 
-    args =
-      [
-        "--headless=new",
-        "--disable-gpu",
-        "--no-sandbox",
-        "--no-first-run",
-        "--disable-extensions",
-        "--user-data-dir=" <> profile,
-        "--virtual-time-budget=#{budget_ms}"
-      ] ++ extra
+    args = headless(profile) ++ ["--virtual-time-budget=#{budget_ms}" | extra]
 
     try do
       # Chromium's own complaints (no D-Bus in a container) go to /dev/null, its output to us
@@ -35,6 +26,18 @@ defmodule Vws.Test.Browser do
     after
       File.rm_rf(profile)
     end
+  end
+
+  @doc "The arguments every headless Chromium of the tests starts with, its profile in `profile`."
+  def headless(profile) do
+    [
+      "--headless=new",
+      "--disable-gpu",
+      "--no-sandbox",
+      "--no-first-run",
+      "--disable-extensions",
+      "--user-data-dir=" <> profile
+    ]
   end
 
   @doc "The DOM Chromium ends with after `budget_ms` of page time on `url`."

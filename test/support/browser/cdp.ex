@@ -41,17 +41,9 @@ defmodule Vws.Test.Browser.CDP do
     profile = Path.join(System.tmp_dir!(), "vws-cdp-#{System.unique_integer([:positive])}")
     File.mkdir_p!(profile)
 
-    args = [
-      "--headless=new",
-      "--disable-gpu",
-      "--no-sandbox",
-      "--no-first-run",
-      "--disable-extensions",
-      "--user-data-dir=" <> profile,
-      "--remote-debugging-address=127.0.0.1",
-      "--remote-debugging-port=0",
-      "about:blank"
-    ]
+    args =
+      Vws.Test.Browser.headless(profile) ++
+        ["--remote-debugging-address=127.0.0.1", "--remote-debugging-port=0", "about:blank"]
 
     # Chromium in the background; the shell waits on its own standard input (this port) and
     # stops Chromium when it closes: when this process or the VM ends
