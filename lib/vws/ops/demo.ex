@@ -43,8 +43,11 @@ defmodule Vws.Ops.Demo do
   `[faults: [ber: 1.0e-4, …], seed: term]`, see `Vws.Sim.Floor`; `Vws.Sim.Floor.line(id, :wc)` is
   the WC's), `:supervisor` (a `DynamicSupervisor` to start the floor and the WC's line under;
   by default they are linked to the caller), `:journal` (the journal's directory, none by
-  default; `mix vws.demo` gives one), `:library` (the program library's directory, likewise). Returns where the WC reaches SUN_COMM (through its line, if any), what is
-  simulated, which links have a faulty line and which partitions have no device link.
+  default; `mix vws.demo` gives one), `:library` (the program library's directory, likewise),
+  `:ge2000` and `:devices` (see `shop_floor/1`: the GE-2000 simulator on a serial line, and the
+  workstation reaching it through a terminal server). Returns where the WC reaches SUN_COMM
+  (through its line, if any), what is simulated, which links have a faulty line and which
+  partitions have no device link.
   """
   @spec start_shop_floor(keyword) :: {:ok, shop_floor} | {:error, term}
   def start_shop_floor(opts \\ []) do
@@ -55,7 +58,7 @@ defmodule Vws.Ops.Demo do
 
     sim_opts =
       [workstation: id, time_scale: time_scale, lines: lines] ++
-        Keyword.take(opts, [:supervisor])
+        Keyword.take(opts, [:supervisor, :ge2000, :devices])
 
     with {:ok, sim} <- shop_floor(sim_opts),
          {:ok, _pid} <-
@@ -94,6 +97,13 @@ defmodule Vws.Ops.Demo do
   VAL II, material handling — and a blank in tray #1, and returns the workstation links and
   partition options that reach it (`Vws.CEC.Workstation.device_links/3` of
   `Vws.Sim.Floor.devices/1`). `{:error, {Vws.Sim.Floor, reason}}` when the floor does not start.
+
+  Two options put something real between the workstation and a simulator: `:ge2000` — the
+  GE-2000 simulator's options (`Vws.Sim.GE2000`, e.g. `endpoint: "tty:/dev/pts/7"`: it opens
+  that serial line instead of listening) — and `:devices` — where the workstation reaches a
+  device instead of where the floor says it is (a keyword list as the workstation's `devices:`
+  takes it, e.g. `ge2000: "rfc2217://127.0.0.1:2001?baud=38400"`, a terminal server whose port is
+  cabled to that line).
   """
   @spec shop_floor(keyword) ::
           {:ok, %{name: String.t(), links: [Supervisor.child_spec()], partitions: keyword}}
@@ -103,11 +113,17 @@ defmodule Vws.Ops.Demo do
 
     floor =
       Keyword.take(opts, [:workstation, :time_scale, :seed, :lines, :supervisor]) ++
-        [hydraulic: {Vws.Peers.HydraulicController, []}, ge2000: true, robot: true, mhs: true]
+        [
+          hydraulic: {Vws.Peers.HydraulicController, []},
+          ge2000: Keyword.get(opts, :ge2000, true),
+          robot: true,
+          mhs: true
+        ]
 
     case Vws.Sim.Floor.start_stocked(floor) do
       {:ok, _pid} ->
-        {links, partitions} = Vws.CEC.Workstation.device_links(ws, Vws.Sim.Floor.devices(ws), [])
+        devices = Keyword.merge(Vws.Sim.Floor.devices(ws), Keyword.get(opts, :devices, []))
+        {links, partitions} = Vws.CEC.Workstation.device_links(ws, devices, [])
 
         {:ok,
          %{
