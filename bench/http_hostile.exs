@@ -30,7 +30,13 @@ alias Vws.Bench
 
 {opts, _, _} =
   OptionParser.parse(System.argv(),
-    strict: [hostile: :integer, seconds: :integer, samples: :integer, nice: :boolean]
+    strict: [
+      hostile: :integer,
+      seconds: :integer,
+      samples: :integer,
+      nice: :boolean,
+      only: :string
+    ]
   )
 
 hostile = Keyword.get(opts, :hostile, 2_000)
@@ -138,19 +144,162 @@ honest_get = fn path ->
   {result, (System.monotonic_time(:microsecond) - t0) / 1000}
 end
 
-_warm = measure.(200)
-idle = measure.(samples)
-honest_idle = for path <- ["/current", "/api/state"], _ <- 1..10, do: honest_get.(path)
+# The control: a neutral sink that is not VWS — one process, no process per connection, no
+# admission server, no HTTP — taking the same hostile sockets with the same visible rules, so
+# that the connections come and go at about the same rate: while it holds half its 1,024 or more,
+# a client (address) opening more than 10 a second (a burst of 20) is answered a fixed 503 and
+# closed; a full sink closes the connection it has held the longest to take a newcomer. It reads
+# nothing (an idle, trickling or streaming socket is simply held). It runs in the generator's OS
+# process (at nice 19 with --nice: only the kernel's loopback work and the generator touch this
+# node's cores) or in this node at low process priority (what a lean BEAM listener costs).
+sink_src = ~S"""
+fn ->
+  {:ok, l} =
+    :gen_tcp.listen(0, [:binary, ip: {127, 0, 0, 1}, active: false, reuseaddr: true, backlog: 1024])
+
+  {:ok, port} = :inet.port(l)
+  busy = "HTTP/1.1 503 Service Unavailable\r\ncontent-length: 0\r\nconnection: close\r\n\r\n"
+  head = "HTTP/1.1 200 OK\r\ncontent-type: text/xml\r\ntransfer-encoding: chunked\r\n\r\n"
+  count = fn c, k -> Map.update(c, k, 1, &(&1 + 1)) end
+  now = fn -> System.monotonic_time(:millisecond) end
+  held = :atomics.new(1, [])
+
+  # the holder: every held socket (active: :once), {since, :idle | :stream}; the oldest first
+  hold = fn hold, socks, queue, c ->
+    receive do
+      {:hold, s} ->
+        {socks, queue, c} =
+          if map_size(socks) >= 1024 do
+            {{:value, old}, queue} = :queue.out(queue)
+            :gen_tcp.close(old)
+            {Map.delete(socks, old), queue, count.(c, :shed)}
+          else
+            {socks, queue, c}
+          end
+
+        :inet.setopts(s, active: :once)
+        socks = Map.put(socks, s, {now.(), :idle, ""})
+        :atomics.put(held, 1, map_size(socks))
+        hold.(hold, socks, :queue.in(s, queue), c)
+
+      {:tcp, s, data} ->
+        case socks do
+          %{^s => {t, :idle, got}} ->
+            got = got <> data
+
+            if String.contains?(got, "\r\n\r\n") do
+              :gen_tcp.send(s, head)
+              :inet.setopts(s, active: :once)
+              hold.(hold, Map.put(socks, s, {t, :stream, ""}), queue, count.(c, :streams))
+            else
+              :inet.setopts(s, active: :once)
+              hold.(hold, Map.put(socks, s, {t, :idle, got}), queue, c)
+            end
+
+          _ ->
+            :inet.setopts(s, active: :once)
+            hold.(hold, socks, queue, c)
+        end
+
+      {closed, s} when closed in [:tcp_closed, :tcp_error] ->
+        :gen_tcp.close(s)
+        socks = Map.delete(socks, s)
+        :atomics.put(held, 1, map_size(socks))
+        queue = :queue.filter(&(&1 != s), queue)
+        hold.(hold, socks, queue, c)
+
+      {:tcp_error, s, _} ->
+        send(self(), {:tcp_error, s})
+        hold.(hold, socks, queue, c)
+
+      :tick ->
+        # a connection that has not sent a whole head within 10 s is closed
+        old = for {s, {t, :idle, _}} <- socks, now.() - t > 10_000, do: s
+        Enum.each(old, &:gen_tcp.close/1)
+        socks = Map.drop(socks, old)
+        queue = :queue.filter(&Map.has_key?(socks, &1), queue)
+        :atomics.put(held, 1, map_size(socks))
+        Process.send_after(self(), :tick, 1_000)
+        hold.(hold, socks, queue, Map.update(c, :timed_out, length(old), &(&1 + length(old))))
+
+      {:counts, from} ->
+        send(from, {:sink_counts, Map.put(c, :held, map_size(socks))})
+        hold.(hold, socks, queue, c)
+    end
+  end
+
+  holder =
+    spawn(fn ->
+      Process.flag(:priority, :low)
+      Process.send_after(self(), :tick, 1_000)
+      hold.(hold, %{}, :queue.new(), %{})
+    end)
+
+  # the acceptor: a client opening more than 10 a second (a burst of 20) while half the sink
+  # or more is held is answered 503 and closed
+  accept = fn accept, rate, c ->
+    c =
+      receive do
+        {:counts, from} ->
+          send(holder, {:counts, self()})
+          receive do
+            {:sink_counts, h} -> send(from, {:sink_counts, Map.merge(c, h)}) && c
+          end
+      after
+        0 -> c
+      end
+
+    case :gen_tcp.accept(l, 100) do
+      {:ok, s} ->
+        t = System.monotonic_time(:microsecond)
+        client = with {:ok, {ip, _}} <- :inet.peername(s), do: ip
+        slot = max(Map.get(rate, client, t - 2_000_000), t - 2_000_000)
+        c = count.(c, :accepted)
+
+        if slot > t and :atomics.get(held, 1) * 2 >= 1024 do
+          :gen_tcp.send(s, busy)
+          :gen_tcp.close(s)
+          accept.(accept, Map.put(rate, client, slot), count.(c, :refused))
+        else
+          :gen_tcp.controlling_process(s, holder)
+          send(holder, {:hold, s})
+          accept.(accept, Map.put(rate, client, slot + 100_000), c)
+        end
+
+      {:error, _} ->
+        accept.(accept, rate, c)
+    end
+  end
+
+  pid = spawn(fn -> Process.flag(:priority, :low); Process.link(holder); accept.(accept, %{}, %{}) end)
+  :ok = :gen_tcp.controlling_process(l, pid)
+  {port, pid}
+end
+"""
+
+sink_file =
+  Path.join(System.tmp_dir!(), "vws_http_sink_#{System.unique_integer([:positive])}.exs")
+
+File.write!(sink_file, sink_src)
+{start_sink, _} = Code.eval_string(sink_src)
 
 generator = ~S"""
 [port, total, seconds] = System.argv() |> Enum.map(&String.to_integer/1)
+# port 0: the hostile sockets go to a sink of this OS process's own (the control)
+{start_sink, _} = Code.eval_string(File.read!(System.get_env("VWS_SINK")))
+{port, sink} = if port == 0, do: start_sink.(), else: {port, nil}
 deadline = System.monotonic_time(:millisecond) + seconds * 1000
 parent = self()
 live? = fn -> System.monotonic_time(:millisecond) < deadline end
 
+connects = :counters.new(1, [:write_concurrency])
+
 connect = fn i ->
-  :gen_tcp.connect({127, 0, 0, 1}, port,
-    [:binary, active: false, ip: {127, 0, 0, 10 + rem(i, 40)}], 5_000)
+  with {:ok, s} <- :gen_tcp.connect({127, 0, 0, 1}, port,
+         [:binary, active: false, ip: {127, 0, 0, 10 + rem(i, 40)}], 5_000) do
+    :counters.add(connects, 1, 1)
+    {:ok, s}
+  end
 end
 
 # waits until the server closes the socket or the deadline: true if closed by the server
@@ -250,97 +399,192 @@ total_counts =
     end
   end)
 
+total_counts = Map.put(total_counts, :connects, :counters.get(connects, 1))
 IO.puts("COUNTS " <> inspect(total_counts))
+[utime, stime] = File.read!("/proc/self/stat") |> String.split(" ") |> Enum.slice(13, 2)
+IO.puts("CPU #{String.to_integer(utime) + String.to_integer(stime)}")
+
+if sink do
+  send(sink, {:counts, self()})
+  receive do
+    {:sink_counts, c} -> IO.puts("SINK " <> inspect(c))
+  after 5_000 -> :ok
+  end
+end
 """
 
 script =
   Path.join(System.tmp_dir!(), "vws_http_hostile_#{System.unique_integer([:positive])}.exs")
 
 File.write!(script, generator)
-gen_args = [script, "#{http_port}", "#{hostile}", "#{seconds}"]
 
-{gen_exe, gen_args} =
-  if nice,
-    do:
-      {System.find_executable("nice"), ["-n", "19", System.find_executable("elixir") | gen_args]},
-    else: {System.find_executable("elixir"), gen_args}
+# CPU ticks (1/100 s: utime + stime) of an OS process, and the host's busy and all ticks
+cpu_ticks = fn pid ->
+  case File.read("/proc/#{pid}/stat") do
+    {:ok, stat} ->
+      [u, s] = stat |> String.split(" ") |> Enum.slice(13, 2)
+      String.to_integer(u) + String.to_integer(s)
 
-gen =
-  Port.open({:spawn_executable, gen_exe}, [
-    :binary,
-    :exit_status,
-    :stderr_to_stdout,
-    args: gen_args
-  ])
+    _ ->
+      0
+  end
+end
 
-# the hostile sockets connect (the elixir VM starts in about a second); then, while they last:
-# the honest client, the WC, and the server's connection count, all at once
-Process.sleep(3_000)
-window = (seconds - 5) * 1000
-parent = self()
+host_ticks = fn ->
+  [_cpu | ticks] = File.read!("/proc/stat") |> String.split("\n") |> hd() |> String.split()
+  ticks = Enum.map(ticks, &String.to_integer/1)
+  idle = Enum.at(ticks, 3) + Enum.at(ticks, 4)
+  {Enum.sum(ticks) - idle, Enum.sum(ticks)}
+end
 
-spawn_link(fn ->
-  stop = System.monotonic_time(:millisecond) + window
+uptime = fn -> System.cmd("uptime", []) |> elem(0) |> String.trim() end
 
-  results =
-    Stream.repeatedly(fn ->
-      r = for path <- ["/current", "/api/state"], do: Tuple.append(honest_get.(path), path)
-      Process.sleep(250)
-      r
-    end)
-    |> Enum.reduce_while([], fn r, acc ->
-      if System.monotonic_time(:millisecond) < stop,
-        do: {:cont, r ++ acc},
-        else: {:halt, r ++ acc}
-    end)
-
-  send(parent, {:honest, results})
-end)
-
-spawn_link(fn ->
-  stop = System.monotonic_time(:millisecond) + window
-
-  seen =
-    Stream.repeatedly(fn ->
-      Process.sleep(100)
-      web |> Vws.Ops.Web.connections() |> elem(0)
-    end)
-    |> Enum.reduce_while([], fn n, acc ->
-      if System.monotonic_time(:millisecond) < stop,
-        do: {:cont, [n | acc]},
-        else: {:halt, [n | acc]}
-    end)
-
-  send(parent, {:connections, seen})
-end)
-
-loaded = measure.(min(samples, div(window, 3)))
-honest = receive(do: ({:honest, r} -> r))
-connections = receive(do: ({:connections, c} -> c))
-
-output =
-  Stream.repeatedly(fn ->
-    receive do
-      {^gen, {:data, data}} -> data
-      {^gen, {:exit_status, _}} -> :eof
-    after
-      (seconds + 60) * 1000 -> :eof
+# One run of the hostile generator against `target` (:vws, :sink_apart: the generator's own sink,
+# :sink_node: a sink in this node), with the honest client (always to VWS), the connection count
+# and the WC measured alike in every run.
+churn = fn target ->
+  {port, node_sink} =
+    case target do
+      :vws -> {http_port, nil}
+      :sink_apart -> {0, nil}
+      :sink_node -> start_sink.()
     end
+
+  gen_args = [script, "#{port}", "#{hostile}", "#{seconds}"]
+
+  {gen_exe, gen_args} =
+    if nice,
+      do:
+        {System.find_executable("nice"),
+         ["-n", "19", System.find_executable("elixir") | gen_args]},
+      else: {System.find_executable("elixir"), gen_args}
+
+  uptime_before = uptime.()
+
+  gen =
+    Port.open({:spawn_executable, gen_exe}, [
+      :binary,
+      :exit_status,
+      :stderr_to_stdout,
+      args: gen_args,
+      env: [{~c"VWS_SINK", String.to_charlist(sink_file)}]
+    ])
+
+  # the hostile sockets connect (the elixir VM starts in about a second); then, while they last:
+  # the honest client, the WC, and the server's connection count, all at once
+  Process.sleep(3_000)
+  window = (seconds - 5) * 1000
+  parent = self()
+  node_cpu0 = cpu_ticks.(System.pid())
+  host0 = host_ticks.()
+  sched0 = :scheduler.sample()
+
+  spawn_link(fn ->
+    stop = System.monotonic_time(:millisecond) + window
+
+    results =
+      Stream.repeatedly(fn ->
+        r = for path <- ["/current", "/api/state"], do: Tuple.append(honest_get.(path), path)
+        Process.sleep(250)
+        r
+      end)
+      |> Enum.reduce_while([], fn r, acc ->
+        if System.monotonic_time(:millisecond) < stop,
+          do: {:cont, r ++ acc},
+          else: {:halt, r ++ acc}
+      end)
+
+    send(parent, {:honest, results})
   end)
-  |> Enum.take_while(&(&1 != :eof))
-  |> Enum.join()
 
-File.rm(script)
+  spawn_link(fn ->
+    stop = System.monotonic_time(:millisecond) + window
 
-counts =
-  case Regex.run(~r/COUNTS (.*)/, output) do
-    [_, c] -> c
-    nil -> "(the generator said: #{String.slice(output, 0, 500)})"
+    seen =
+      Stream.repeatedly(fn ->
+        Process.sleep(100)
+        web |> Vws.Ops.Web.connections() |> elem(0)
+      end)
+      |> Enum.reduce_while([], fn n, acc ->
+        if System.monotonic_time(:millisecond) < stop,
+          do: {:cont, [n | acc]},
+          else: {:halt, [n | acc]}
+      end)
+
+    send(parent, {:connections, seen})
+  end)
+
+  loaded = measure.(min(samples, div(window, 3)))
+  honest = receive(do: ({:honest, r} -> r))
+  connections = receive(do: ({:connections, c} -> c))
+  node_cpu = cpu_ticks.(System.pid()) - node_cpu0
+  sched = Bench.normal_utilization(sched0)
+  {busy1, all1} = host_ticks.()
+  host_busy = (busy1 - elem(host0, 0)) / max(all1 - elem(host0, 1), 1)
+
+  output =
+    Stream.repeatedly(fn ->
+      receive do
+        {^gen, {:data, data}} -> data
+        {^gen, {:exit_status, _}} -> :eof
+      after
+        (seconds + 60) * 1000 -> :eof
+      end
+    end)
+    |> Enum.take_while(&(&1 != :eof))
+    |> Enum.join()
+
+  grab = fn tag ->
+    case Regex.run(~r/#{tag} (.*)/, output) do
+      [_, c] -> c
+      nil -> nil
+    end
   end
 
-# after the hostile process is gone: every connection closed?
-Process.sleep(2_000)
-{left, _} = Vws.Ops.Web.connections(web)
+  sink_counts =
+    case node_sink do
+      pid when is_pid(pid) ->
+        send(pid, {:counts, self()})
+
+        receive do
+          {:sink_counts, c} -> inspect(c)
+        after
+          5_000 -> nil
+        end
+
+      nil ->
+        grab.("SINK")
+    end
+
+  if node_sink, do: Process.exit(node_sink, :kill)
+
+  # after the hostile process is gone: every connection closed?
+  Process.sleep(2_000)
+  {left, _} = Vws.Ops.Web.connections(web)
+
+  connects =
+    case grab.("COUNTS") && Regex.run(~r/connects(?::| =>) (\d+)/, grab.("COUNTS")) do
+      [_, n] -> String.to_integer(n)
+      _ -> 0
+    end
+
+  %{
+    target: target,
+    uptime: [uptime_before, uptime.()],
+    counts: grab.("COUNTS") || "(the generator said: #{String.slice(output, 0, 500)})",
+    sink: sink_counts,
+    connect_rate: connects / seconds,
+    gen_cpu: String.to_integer(grab.("CPU") || "0") / 100,
+    node_cpu: node_cpu / 100,
+    sched: sched,
+    host_busy: host_busy,
+    window: window / 1000,
+    wc: loaded,
+    honest: honest,
+    connections: connections,
+    left: left
+  }
+end
 
 honest_summary = fn label, results ->
   ms = Enum.map(results, &elem(&1, 1))
@@ -362,16 +606,44 @@ honest_summary = fn label, results ->
   |> IO.iodata_to_binary()
 end
 
+targets =
+  case Keyword.get(opts, :only) do
+    nil -> [:vws, :sink_apart, :sink_node]
+    only -> only |> String.split(",") |> Enum.map(&String.to_existing_atom/1)
+  end
+
+names = %{
+  vws: "hostile -> VWS",
+  sink_apart: "hostile -> sink (generator's OS process)",
+  sink_node: "hostile -> sink (in this node)"
+}
+
+idle_uptime = uptime.()
+_warm = measure.(200)
+idle = measure.(samples)
+honest_idle = for path <- ["/current", "/api/state"], _ <- 1..10, do: honest_get.(path)
+runs = Enum.map(targets, churn)
+File.rm(script)
+File.rm(sink_file)
+
 IO.puts("""
 Hostile HTTP clients, an honest one and the WC link (bench/http_hostile.exs)
 #{Enum.join(machine, "\n")}
   hostile        #{hostile} sockets from 40 loopback addresses (idle 35 %, trickling 35 %, abandoned streams 30 %), #{seconds} s, a separate OS process#{if nice, do: " at nice 19", else: ""}
-  hostile saw    #{counts}
-  server         connections open during the window: max #{Enum.max(connections)}, p50 #{Bench.pct(connections, 0.5)}; #{left} left 2 s after the hostile process ended
+  uptime         #{idle_uptime} (HTTP idle)
 #{honest_summary.("honest GET, HTTP idle", honest_idle)}
-#{honest_summary.("honest GET, #{hostile} hostile", honest)}
-#{honest_summary.("  of which /current", Enum.filter(honest, &(elem(&1, 2) == "/current")))}
-#{honest_summary.("  of which /api/state", Enum.filter(honest, &(elem(&1, 2) == "/api/state")))}
 #{wc_summary.("WC status, HTTP idle", idle)}
-#{wc_summary.("WC status, #{hostile} hostile", loaded)}
 """)
+
+for r <- runs do
+  IO.puts("""
+  #{names[r.target]}
+    uptime         #{Enum.join(r.uptime, "  ->  ")}
+    hostile saw    #{r.counts}
+    connect rate   #{Float.round(r.connect_rate, 0)} connections/s accepted (#{hostile} sockets, #{seconds} s)#{if r.sink, do: "; the sink: #{r.sink}", else: ""}
+    CPU            this node #{r.node_cpu} s in #{r.window} s (normal schedulers #{Float.round(r.sched * 100, 1)} % busy), the generator #{r.gen_cpu} s in its life, the host #{Float.round(r.host_busy * 100, 1)} % busy
+    VWS server     connections open during the window: max #{Enum.max(r.connections)}, p50 #{Bench.pct(r.connections, 0.5)}; #{r.left} left 2 s after the hostile process ended
+  #{honest_summary.("honest GET (to VWS)", r.honest)}
+  #{wc_summary.("WC status", r.wc)}
+  """)
+end
