@@ -35,7 +35,9 @@ alias Vws.Bench
       seconds: :integer,
       samples: :integer,
       nice: :boolean,
-      only: :string
+      only: :string,
+      wc_apart: :boolean,
+      msacc: :boolean
     ]
   )
 
@@ -76,20 +78,67 @@ status =
   |> Vws.Codecs.WC.CommandString.encode()
   |> IO.iodata_to_binary()
 
-{:ok, wc} =
-  :gen_tcp.connect({127, 0, 0, 1}, wc_port, [:binary, active: false, nodelay: true, packet: :line])
+# µs from the send to the reply line, `n` times, one every 2 ms — the WC's own loop, run in
+# this node or (--wc-apart) in an OS process of its own, asked for `n` samples on its stdin
+wc_loop = ~S"""
+fn port, status ->
+  {:ok, wc} =
+    :gen_tcp.connect({127, 0, 0, 1}, port, [:binary, active: false, nodelay: true, packet: :line])
 
-# µs from the send to the reply line, `n` times, one every 2 ms
-measure = fn n ->
-  for _ <- 1..n do
-    t0 = System.monotonic_time()
-    :ok = :gen_tcp.send(wc, status)
-    {:ok, _line} = :gen_tcp.recv(wc, 0, 10_000)
-    t1 = System.monotonic_time()
-    Process.sleep(2)
-    System.convert_time_unit(t1 - t0, :native, :nanosecond) / 1_000
+  fn n ->
+    for _ <- 1..n do
+      t0 = System.monotonic_time()
+      :ok = :gen_tcp.send(wc, status)
+      {:ok, _line} = :gen_tcp.recv(wc, 0, 10_000)
+      t1 = System.monotonic_time()
+      Process.sleep(2)
+      System.convert_time_unit(t1 - t0, :native, :nanosecond) / 1_000
+    end
   end
 end
+"""
+
+measure =
+  if opts[:wc_apart] do
+    wc_script =
+      Path.join(System.tmp_dir!(), "vws_http_wc_#{System.unique_integer([:positive])}.exs")
+
+    # its orders come on a socket (an `elixir` process does not read a port's stdin)
+    {:ok, control} =
+      :gen_tcp.listen(0, [:binary, ip: {127, 0, 0, 1}, active: false, packet: :line])
+
+    {:ok, control_port} = :inet.port(control)
+
+    File.write!(wc_script, """
+    {connect, _} = Code.eval_string(#{inspect(wc_loop)})
+    measure = connect.(#{wc_port}, #{inspect(status)})
+    {:ok, c} = :gen_tcp.connect({127, 0, 0, 1}, #{control_port}, [:binary, active: false, packet: :line, buffer: 1_000_000])
+    Stream.repeatedly(fn -> :gen_tcp.recv(c, 0) end)
+    |> Stream.take_while(&match?({:ok, _}, &1))
+    |> Enum.each(fn {:ok, n} ->
+      us = measure.(n |> String.trim() |> String.to_integer())
+      :gen_tcp.send(c, ["US ", Enum.map_join(us, ",", &Float.to_string/1), "\\n"])
+    end)
+    """)
+
+    Port.open({:spawn_executable, System.find_executable("elixir")}, [
+      :binary,
+      :stderr_to_stdout,
+      args: [wc_script]
+    ])
+
+    {:ok, c} = :gen_tcp.accept(control, 60_000)
+    :ok = :inet.setopts(c, buffer: 1_000_000, recbuf: 1_000_000)
+
+    fn n ->
+      :ok = :gen_tcp.send(c, "#{n}\n")
+      {:ok, "US " <> us} = :gen_tcp.recv(c, 0, n * 20 + 30_000)
+      us |> String.trim() |> String.split(",") |> Enum.map(&String.to_float/1)
+    end
+  else
+    {connect, _} = Code.eval_string(wc_loop)
+    connect.(wc_port, status)
+  end
 
 wc_summary = fn label, us ->
   :io_lib.format("  ~-34s p50 ~8.1f µs   p99 ~8.1f µs   max ~9.1f µs   (~B samples)", [
@@ -164,13 +213,19 @@ fn ->
   now = fn -> System.monotonic_time(:millisecond) end
   held = :atomics.new(1, [])
 
+  oldest = fn oldest, queue, socks ->
+    {{:value, s}, queue} = :queue.out(queue)
+    if Map.has_key?(socks, s), do: {s, queue}, else: oldest.(oldest, queue, socks)
+  end
+
   # the holder: every held socket (active: :once), {since, :idle | :stream}; the oldest first
   hold = fn hold, socks, queue, c ->
     receive do
       {:hold, s} ->
         {socks, queue, c} =
           if map_size(socks) >= 1024 do
-            {{:value, old}, queue} = :queue.out(queue)
+            # the oldest still held (the queue keeps sockets already gone: skipped here)
+            {old, queue} = oldest.(oldest, queue, socks)
             :gen_tcp.close(old)
             {Map.delete(socks, old), queue, count.(c, :shed)}
           else
@@ -205,7 +260,6 @@ fn ->
         :gen_tcp.close(s)
         socks = Map.delete(socks, s)
         :atomics.put(held, 1, map_size(socks))
-        queue = :queue.filter(&(&1 != s), queue)
         hold.(hold, socks, queue, c)
 
       {:tcp_error, s, _} ->
@@ -217,7 +271,6 @@ fn ->
         old = for {s, {t, :idle, _}} <- socks, now.() - t > 10_000, do: s
         Enum.each(old, &:gen_tcp.close/1)
         socks = Map.drop(socks, old)
-        queue = :queue.filter(&Map.has_key?(socks, &1), queue)
         :atomics.put(held, 1, map_size(socks))
         Process.send_after(self(), :tick, 1_000)
         hold.(hold, socks, queue, Map.update(c, :timed_out, length(old), &(&1 + length(old))))
@@ -439,6 +492,28 @@ end
 
 uptime = fn -> System.cmd("uptime", []) |> elem(0) |> String.trim() end
 
+# seconds of each state, summed over the node's threads of each type, busiest first
+msacc_summary = fn stats ->
+  stats
+  |> Enum.group_by(& &1.type, & &1.counters)
+  |> Enum.map(fn {type, counters} ->
+    states =
+      counters
+      |> Enum.flat_map(&Map.to_list/1)
+      |> Enum.group_by(&elem(&1, 0), &elem(&1, 1))
+      |> Enum.map(fn {state, us} -> {state, Enum.sum(us) / 1_000_000} end)
+      |> Enum.reject(fn {state, s} -> state == :sleep or s < 0.01 end)
+      |> Enum.sort_by(&(-elem(&1, 1)))
+      |> Enum.map_join(" ", fn {state, s} ->
+        "#{state} #{:erlang.float_to_binary(s, decimals: 2)}"
+      end)
+
+    "#{type}: #{states}"
+  end)
+  |> Enum.reject(&String.ends_with?(&1, ": "))
+  |> Enum.join("; ")
+end
+
 # One run of the hostile generator against `target` (:vws, :sink_apart: the generator's own sink,
 # :sink_node: a sink in this node), with the honest client (always to VWS), the connection count
 # and the WC measured alike in every run.
@@ -514,7 +589,10 @@ churn = fn target ->
     send(parent, {:connections, seen})
   end)
 
+  # with --msacc: where this node's threads spend the window (OTP's microstate accounting)
+  if opts[:msacc], do: spawn(fn -> :msacc.start(window - 500) end)
   loaded = measure.(min(samples, div(window, 3)))
+  msacc = if opts[:msacc], do: msacc_summary.(:msacc.stats()), else: nil
   honest = receive(do: ({:honest, r} -> r))
   connections = receive(do: ({:connections, c} -> c))
   node_cpu = cpu_ticks.(System.pid()) - node_cpu0
@@ -579,6 +657,7 @@ churn = fn target ->
     sched: sched,
     host_busy: host_busy,
     window: window / 1000,
+    msacc: msacc,
     wc: loaded,
     honest: honest,
     connections: connections,
@@ -643,7 +722,7 @@ for r <- runs do
     connect rate   #{Float.round(r.connect_rate, 0)} connections/s accepted (#{hostile} sockets, #{seconds} s)#{if r.sink, do: "; the sink: #{r.sink}", else: ""}
     CPU            this node #{r.node_cpu} s in #{r.window} s (normal schedulers #{Float.round(r.sched * 100, 1)} % busy), the generator #{r.gen_cpu} s in its life, the host #{Float.round(r.host_busy * 100, 1)} % busy
     VWS server     connections open during the window: max #{Enum.max(r.connections)}, p50 #{Bench.pct(r.connections, 0.5)}; #{r.left} left 2 s after the hostile process ended
-  #{honest_summary.("honest GET (to VWS)", r.honest)}
+  #{if r.msacc, do: "  msacc (s)      #{r.msacc}\n", else: ""}#{honest_summary.("honest GET (to VWS)", r.honest)}
   #{wc_summary.("WC status", r.wc)}
   """)
 end
