@@ -36,13 +36,17 @@
 # CPU, and the WC measured alike (--wc-apart: from an OS process of its own instead of this
 # node). The honest client asks VWS in every run.
 #
-# What it showed (2026-11-27, 2 cores shared, load 5–25; 4 runs): the WC with the churn served
-# by another OS process is at its idle figures (p99 1.9–12 ms vs idle 3.5–11 ms); served in this
-# node, by VWS or by the lean sink alike, the WC's p99 is 30–110 ms, and this node's CPU per
-# accepted connection is the same for both (about 130–340 µs, mostly the sockets' port work:
-# msacc "port" is the schedulers' largest state for VWS and the sink alike). What the WC loses
-# is this node's share of the socket work of the churn, not the host's loopback work and not
-# anything VWS does beyond accepting and closing.
+# What it showed (2026-11-27, 2 cores shared with other work, load 5–25, 9 runs, WC measured in
+# this node): with the churn served by another OS process the WC stays at its idle figures (p99
+# 1.9–12 ms against 3.5–11 ms idle in the same runs) — the host's loopback work is not what
+# costs the WC. Served in this node, by the lean sink, the WC's p99 is 7–100 ms; by VWS, at a
+# comparable rate in the same run, 1.0–3.7 times the sink's (e.g. 31 vs 8.4 ms at 6,217 vs
+# 5,986 connections/s), with this node's CPU per connection alike (about 120–340 µs) and msacc's
+# states alike (port and emulator the largest). What the WC loses is mostly this node's own
+# socket work for the churn, which any listener in the node pays; VWS adds to it (the p99 about
+# twice the lean sink's in most runs), not located yet: the admission server and the connection
+# supervisor at low process priority did not change the ratio (2.8 and 1.8), nor did
+# `+sbwt none`.
 
 Code.require_file("support.exs", __DIR__)
 Logger.configure(level: :error)
