@@ -62,7 +62,8 @@ alias Vws.Bench
       nice: :boolean,
       only: :string,
       wc_apart: :boolean,
-      msacc: :boolean
+      msacc: :boolean,
+      reductions: :boolean
     ]
   )
 
@@ -539,6 +540,50 @@ msacc_summary = fn stats ->
   |> Enum.join("; ")
 end
 
+# with --reductions: the node's reductions in the window, by the kind of process (its initial
+# call, or its registered name), and those of processes gone by the end
+reductions = fn ->
+  procs =
+    for pid <- Process.list(),
+        info = Process.info(pid, [:reductions, :registered_name, :dictionary, :initial_call]),
+        info != nil,
+        into: %{} do
+      kind =
+        case info[:registered_name] do
+          [] -> info[:dictionary][:"$initial_call"] || info[:initial_call]
+          name -> name
+        end
+
+      {pid, {kind, info[:reductions]}}
+    end
+
+  {elem(:erlang.statistics(:reductions), 0), procs}
+end
+
+reductions_summary = fn {total0, procs0}, {total1, procs1} ->
+  by_kind =
+    Enum.reduce(procs1, %{}, fn {pid, {kind, r}}, acc ->
+      r0 =
+        case procs0 do
+          %{^pid => {_, r0}} -> r0
+          _ -> 0
+        end
+
+      Map.update(acc, kind, r - r0, &(&1 + r - r0))
+    end)
+
+  living = by_kind |> Map.values() |> Enum.sum()
+  gone = total1 - total0 - living
+
+  top =
+    [{:"(gone by the end)", gone} | Map.to_list(by_kind)]
+    |> Enum.sort_by(&(-elem(&1, 1)))
+    |> Enum.take(8)
+    |> Enum.map_join("; ", fn {k, r} -> "#{inspect(k)} #{Bench.thousands(r)}" end)
+
+  "#{Bench.thousands(total1 - total0)} in all: #{top}"
+end
+
 # One run of the hostile generator against `target` (:vws, :sink_apart: the generator's own sink,
 # :sink_node: a sink in this node), with the honest client (always to VWS), the connection count
 # and the WC measured alike in every run.
@@ -616,8 +661,10 @@ churn = fn target ->
 
   # with --msacc: where this node's threads spend the window (OTP's microstate accounting)
   if opts[:msacc], do: spawn(fn -> :msacc.start(window - 500) end)
+  reds0 = if opts[:reductions], do: reductions.(), else: nil
   loaded = measure.(min(samples, div(window, 3)))
   msacc = if opts[:msacc], do: msacc_summary.(:msacc.stats()), else: nil
+  reds = if reds0, do: reductions_summary.(reds0, reductions.()), else: nil
   honest = receive(do: ({:honest, r} -> r))
   connections = receive(do: ({:connections, c} -> c))
   node_cpu = cpu_ticks.(System.pid()) - node_cpu0
@@ -683,6 +730,7 @@ churn = fn target ->
     host_busy: host_busy,
     window: window / 1000,
     msacc: msacc,
+    reductions: reds,
     wc: loaded,
     honest: honest,
     connections: connections,
@@ -747,7 +795,7 @@ for r <- runs do
     connect rate   #{Float.round(r.connect_rate, 0)} connections/s accepted (#{hostile} sockets, #{seconds} s)#{if r.sink, do: "; the sink: #{r.sink}", else: ""}
     CPU            this node #{r.node_cpu} s in #{r.window} s (normal schedulers #{Float.round(r.sched * 100, 1)} % busy), the generator #{r.gen_cpu} s in its life, the host #{Float.round(r.host_busy * 100, 1)} % busy
     VWS server     connections open during the window: max #{Enum.max(r.connections)}, p50 #{Bench.pct(r.connections, 0.5)}; #{r.left} left 2 s after the hostile process ended
-  #{if r.msacc, do: "  msacc (s)      #{r.msacc}\n", else: ""}#{honest_summary.("honest GET (to VWS)", r.honest)}
+  #{if r.msacc, do: "  msacc (s)      #{r.msacc}\n", else: ""}#{if r.reductions, do: "  reductions     #{r.reductions}\n", else: ""}#{honest_summary.("honest GET (to VWS)", r.honest)}
   #{wc_summary.("WC status", r.wc)}
   """)
 end
