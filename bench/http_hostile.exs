@@ -44,9 +44,14 @@
 # 5,986 connections/s), with this node's CPU per connection alike (about 120–340 µs) and msacc's
 # states alike (port and emulator the largest). What the WC loses is mostly this node's own
 # socket work for the churn, which any listener in the node pays; VWS adds to it (the p99 about
-# twice the lean sink's in most runs), not located yet: the admission server and the connection
-# supervisor at low process priority did not change the ratio (2.8 and 1.8), nor did
-# `+sbwt none`.
+# twice the lean sink's in most runs). Where (--reductions): the MTConnect agent took 97–99 % of
+# the node's reductions during the VWS churn (2.0–2.6 billion in 15 s, against 50–95 million
+# for the honest client alone): every admitted hostile stream gets a whole /current or /sample
+# document, and one costs the agent about 2.7 million reductions and 10 ms of CPU with a single
+# workstation and no devices (eprof: String.replace escaping, Calendar.ISO.zero_pad timestamps,
+# Keyword.get). Giving the admission server, the connection supervisor or the agent low process
+# priority did not change the ratio, nor did `+sbwt none`: it is CPU the node spends, not an
+# order of scheduling.
 
 Code.require_file("support.exs", __DIR__)
 Logger.configure(level: :error)
