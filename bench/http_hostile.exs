@@ -109,26 +109,8 @@ status =
   |> Vws.Codecs.WC.CommandString.encode()
   |> IO.iodata_to_binary()
 
-# µs from the send to the reply line, `n` times, one every 2 ms — the WC's own loop, run in
-# this node or (--wc-apart) in an OS process of its own, asked for `n` samples on its stdin
-wc_loop = ~S"""
-fn port, status ->
-  {:ok, wc} =
-    :gen_tcp.connect({127, 0, 0, 1}, port, [:binary, active: false, nodelay: true, packet: :line])
-
-  fn n ->
-    for _ <- 1..n do
-      t0 = System.monotonic_time()
-      :ok = :gen_tcp.send(wc, status)
-      {:ok, _line} = :gen_tcp.recv(wc, 0, 10_000)
-      t1 = System.monotonic_time()
-      Process.sleep(2)
-      System.convert_time_unit(t1 - t0, :native, :nanosecond) / 1_000
-    end
-  end
-end
-"""
-
+# µs from the send to the reply line, `n` times, one every 2 ms (Vws.Bench.wc_client/2): the WC
+# in this node, or (--wc-apart) in an OS process of its own, asked for `n` samples on a socket
 measure =
   if opts[:wc_apart] do
     wc_script =
@@ -141,8 +123,8 @@ measure =
     {:ok, control_port} = :inet.port(control)
 
     File.write!(wc_script, """
-    {connect, _} = Code.eval_string(#{inspect(wc_loop)})
-    measure = connect.(#{wc_port}, #{inspect(status)})
+    Code.require_file(#{inspect(Path.join(__DIR__, "support.exs"))})
+    measure = Vws.Bench.wc_client(#{wc_port}, #{inspect(status)})
     {:ok, c} = :gen_tcp.connect({127, 0, 0, 1}, #{control_port}, [:binary, active: false, packet: :line, buffer: 1_000_000])
     Stream.repeatedly(fn -> :gen_tcp.recv(c, 0) end)
     |> Stream.take_while(&match?({:ok, _}, &1))
@@ -167,8 +149,7 @@ measure =
       us |> String.trim() |> String.split(",") |> Enum.map(&String.to_float/1)
     end
   else
-    {connect, _} = Code.eval_string(wc_loop)
-    connect.(wc_port, status)
+    Bench.wc_client(wc_port, status)
   end
 
 wc_summary = fn label, us ->
@@ -677,17 +658,7 @@ churn = fn target ->
   {busy1, all1} = host_ticks.()
   host_busy = (busy1 - elem(host0, 0)) / max(all1 - elem(host0, 1), 1)
 
-  output =
-    Stream.repeatedly(fn ->
-      receive do
-        {^gen, {:data, data}} -> data
-        {^gen, {:exit_status, _}} -> :eof
-      after
-        (seconds + 60) * 1000 -> :eof
-      end
-    end)
-    |> Enum.take_while(&(&1 != :eof))
-    |> Enum.join()
+  output = Bench.port_output(gen, (seconds + 60) * 1000)
 
   grab = fn tag ->
     case Regex.run(~r/#{tag} (.*)/, output) do

@@ -54,20 +54,8 @@ status =
   |> Vws.Codecs.WC.CommandString.encode()
   |> IO.iodata_to_binary()
 
-{:ok, wc} =
-  :gen_tcp.connect({127, 0, 0, 1}, wc_port, [:binary, active: false, nodelay: true, packet: :line])
-
 # µs from the send to the reply line, `n` times, one every 2 ms
-measure = fn n ->
-  for _ <- 1..n do
-    t0 = System.monotonic_time()
-    :ok = :gen_tcp.send(wc, status)
-    {:ok, _line} = :gen_tcp.recv(wc, 0, 10_000)
-    t1 = System.monotonic_time()
-    Process.sleep(2)
-    System.convert_time_unit(t1 - t0, :native, :nanosecond) / 1_000
-  end
-end
+measure = Bench.wc_client(wc_port, status)
 
 summary = fn label, us ->
   :io_lib.format("  ~-34s p50 ~8.1f µs   p99 ~8.1f µs   max ~9.1f µs   (~B samples)", [
@@ -173,17 +161,7 @@ gen =
 Process.sleep(3_000)
 loaded = measure.(min(samples, div((seconds - 5) * 1000, 3)))
 
-output =
-  Stream.repeatedly(fn ->
-    receive do
-      {^gen, {:data, data}} -> data
-      {^gen, {:exit_status, _}} -> :eof
-    after
-      (seconds + 60) * 1000 -> :eof
-    end
-  end)
-  |> Enum.take_while(&(&1 != :eof))
-  |> Enum.join()
+output = Bench.port_output(gen, (seconds + 60) * 1000)
 
 File.rm(script)
 

@@ -155,6 +155,45 @@ defmodule Vws.Bench do
     |> Enum.find(& &1)
   end
 
+  @doc "Everything an OS process opened with `Port.open/2` (`:exit_status`) writes until it exits (or `ms` pass quietly)."
+  def port_output(port, ms) do
+    Stream.repeatedly(fn ->
+      receive do
+        {^port, {:data, data}} -> data
+        {^port, {:exit_status, _}} -> :eof
+      after
+        ms -> :eof
+      end
+    end)
+    |> Enum.take_while(&(&1 != :eof))
+    |> Enum.join()
+  end
+
+  @doc """
+  A raw WC on TCP `port` (passive, nodelay): a function that sends `status` `n` times, one every
+  2 ms, and answers the µs from each send to its reply line.
+  """
+  def wc_client(port, status) do
+    {:ok, wc} =
+      :gen_tcp.connect({127, 0, 0, 1}, port, [
+        :binary,
+        active: false,
+        nodelay: true,
+        packet: :line
+      ])
+
+    fn n ->
+      for _ <- 1..n do
+        t0 = System.monotonic_time()
+        :ok = :gen_tcp.send(wc, status)
+        {:ok, _line} = :gen_tcp.recv(wc, 0, 10_000)
+        t1 = System.monotonic_time()
+        Process.sleep(2)
+        System.convert_time_unit(t1 - t0, :native, :nanosecond) / 1_000
+      end
+    end
+  end
+
   @doc "A number with thousands separators."
   def thousands(n) when is_float(n), do: thousands(round(n))
 
