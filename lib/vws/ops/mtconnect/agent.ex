@@ -166,6 +166,8 @@ defmodule Vws.Ops.MTConnect.Agent do
           Keyword.get(opts, :checkpoint_frequency, @default_checkpoint)
         ),
       waiters: [],
+      # documents rendered since the buffer last changed (see `rendered/3`)
+      rendered: nil,
       # this node's workstations' links, told as they change (LinkWatch)
       link_watch: LinkWatch.new()
     }
@@ -297,12 +299,19 @@ defmodule Vws.Ops.MTConnect.Agent do
 
   def handle_call({:current, device, opts}, _from, s) do
     s = refresh(s)
-    {:reply, current_answer(s, device, opts), s}
+    {reply, s} = rendered(s, {:current, device, opts}, fn -> current_answer(s, device, opts) end)
+    {:reply, reply, s}
   end
 
   def handle_call({:sample, from, count, device, opts}, _from, s) do
     s = refresh(s)
-    {:reply, sample_answer(s, from, count, device, opts), s}
+
+    {reply, s} =
+      rendered(s, {:sample, from, count, device, opts}, fn ->
+        sample_answer(s, from, count, device, opts)
+      end)
+
+    {:reply, reply, s}
   end
 
   def handle_call({:assets, opts}, _from, s) do
@@ -401,6 +410,41 @@ defmodule Vws.Ops.MTConnect.Agent do
 
       obs = Enum.sort_by(obs, & &1.sequence)
       {:ok, render(fmt, :streams, streams_header(s, Buffer.next(s.buffer)), obs)}
+    end
+  end
+
+  # A streams document is the same for the same request while nothing new is in the buffer and
+  # the devices are as they were; only its creationTime would differ. Rendering one cost ~10 ms
+  # of this process (one workstation), so a client asking again and again — a stream's first
+  # document on every reconnection, 500 requests/s of many clients — held the node's cores
+  # (issue 30). Kept at most @rendered_ms and for @rendered_max requests; anything new in the
+  # buffer or the model starts afresh.
+  @rendered_ms 1_000
+  @rendered_max 64
+
+  defp rendered(s, key, render) do
+    now = System.monotonic_time(:millisecond)
+    stamp = {Buffer.next(s.buffer), s.model_change_time, s.order}
+
+    cache =
+      case s.rendered do
+        %{stamp: ^stamp, since: since} = cache when now - since < @rendered_ms -> cache
+        _ -> %{stamp: stamp, since: now, docs: %{}}
+      end
+
+    case cache.docs do
+      %{^key => reply} ->
+        {reply, %{s | rendered: cache}}
+
+      docs ->
+        reply = render.()
+
+        docs =
+          if match?({:ok, _}, reply) and map_size(docs) < @rendered_max,
+            do: Map.put(docs, key, reply),
+            else: docs
+
+        {reply, %{s | rendered: %{cache | docs: docs}}}
     end
   end
 
