@@ -126,5 +126,9 @@ defmodule Vws.Acceptance.DripFeedTaskTest do
 
     assert output =~
              ~r/received #{byte_size(text)} bytes, ran #{byte_size(text)}, buffer \d+\/8192 at most, .* CRC #{crc}, state done/
+
+    # byte for byte: the SHA-256 of what the machine received is the library version's
+    assert output =~ "SHA-256 #{v.digest}"
+    assert v.digest == Library.digest(text)
   end
 end
