@@ -106,9 +106,8 @@ defmodule Vws.Acceptance.DripFeedTaskTest do
          "machine stores, well within what the library keeps) through an 8 KiB buffer",
        %{tmp_dir: dir} do
     library = Path.join(dir, "library")
-    # "%", "O88", 88,236 blocks of 17 bytes, "M30", "%": 1,500,024 bytes
-    body = for i <- 1..88_236, do: "N#{rem(i, 9000) + 1000} G01 X#{rem(i, 900) + 100}.5\n"
-    text = IO.iodata_to_binary(["%\nO88\n", body, "M30\n%\n"])
+    # 1,500,024 bytes: over what the machine stores (Vws.Test.MonarchWC.long_program/1)
+    text = Vws.Test.MonarchWC.long_program(88)
     assert byte_size(text) == 1_500_024
     assert byte_size(text) > Program.max_stored_bytes() and byte_size(text) <= Library.max_bytes()
     {:ok, v} = Library.store({:dir, library}, "88", text, source: "cli")

@@ -88,9 +88,8 @@ defmodule Vws.CEC.LibraryTest do
     File.write!(Path.join(dir, old), old_text)
     File.ln_s!(Path.join("..", old), Path.join([dir, ".v", "000018.PRO~000001"]))
 
-    # 1.5 MB: 88,236 blocks of 17 bytes
-    body = for i <- 1..88_236, do: "N#{rem(i, 9000) + 1000} G01 X#{rem(i, 900) + 100}.5\n"
-    big = IO.iodata_to_binary(["%\nO18\n", body, "M30\n%\n"])
+    # 1,500,024 bytes: over what the machine stores (Vws.Test.MonarchWC.long_program/1)
+    big = Vws.Test.MonarchWC.long_program(18)
     assert byte_size(big) == 1_500_024
     assert Vws.Links.DNC.Program.check_size(big) != :ok
     assert Library.check_program(big) == :ok

@@ -122,9 +122,8 @@ defmodule Vws.Ops.LibraryCLITest do
          "feeds); over what the library keeps, refused before it is read",
        %{tmp_dir: dir} do
     library = Path.join(dir, "library")
-    # 1.5 MB: "%", "O88", 88,236 blocks of 17 bytes, "M30", "%"
-    body = for i <- 1..88_236, do: "N#{rem(i, 9000) + 1000} G01 X#{rem(i, 900) + 100}.5\n"
-    text = IO.iodata_to_binary(["%\nO88\n", body, "M30\n%\n"])
+    # 1,500,024 bytes: over what the machine stores (Vws.Test.MonarchWC.long_program/1)
+    text = Vws.Test.MonarchWC.long_program(88)
     file = Path.join(dir, "long.nc")
     File.write!(file, text)
 

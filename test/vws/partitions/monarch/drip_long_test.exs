@@ -4,46 +4,26 @@ defmodule Vws.Partitions.Monarch.DripLongTest do
   # program library → DNC link → the simulated GE-2000's 8 KiB block buffer, at a fast machine.
   use ExUnit.Case, async: true
 
-  alias Vws.CEC.{Library, Workstation}
-  alias Vws.Links.DNC
+  alias Vws.CEC.Library
   alias Vws.Links.DNC.Program
   alias Vws.Sim.GE2000
-  alias Vws.Test.WCPeer
+  alias Vws.Test.{MonarchWC, WCPeer}
   import Vws.Test.Eventually
 
-  @link_opts [reply_timeout: 300, wack_delay: 50, backoff_min: 10, backoff_max: 50]
   @memory 8_192
 
   setup do
-    dir = Path.join(System.tmp_dir!(), "vws-drip-long-#{System.unique_integer([:positive])}")
-    on_exit(fn -> File.rm_rf!(dir) end)
-
-    sim =
-      start_supervised!(
-        {GE2000,
-         cycle_time: 60_000, link: @link_opts, memory: @memory, feed_rate: 5_000_000, tick: 5}
-      )
-
-    %{ws: ws, wc: wc} =
-      Vws.Test.Workstation.start(
-        devices: [ge2000: [endpoint: GE2000.endpoint(sim), status_interval: nil] ++ @link_opts],
-        partitions: [monarch: [options: [interlock: [timeout: 300, retry_ms: 50]]]],
-        library: dir
-      )
-
-    link = Workstation.whereis(ws, :ge2000)
-    assert eventually(fn -> DNC.info(link).state == :idle end)
-    {:ok, peer} = WCPeer.connect(wc)
-    %{ws: ws, peer: peer, sim: sim}
+    MonarchWC.start("vws-drip-long",
+      sim: [memory: @memory, feed_rate: 5_000_000, tick: 5],
+      partitions: [monarch: [options: [interlock: [timeout: 300, retry_ms: 50]]]]
+    )
   end
 
   @tag timeout: 180_000
   test "a 1.5 MB library program is drip-fed byte for byte through the 8 KiB buffer; " <>
          "DOWNLOAD_GE of the same version ends ERROR, nothing sent",
        %{ws: ws, peer: peer, sim: sim} do
-    # "%", "O88", 88,236 blocks of 17 bytes, "M30", "%": 1,500,024 bytes
-    body = for i <- 1..88_236, do: "N#{rem(i, 9000) + 1000} G01 X#{rem(i, 900) + 100}.5\n"
-    text = IO.iodata_to_binary(["%\nO88\n", body, "M30\n%\n"])
+    text = MonarchWC.long_program(88)
     assert byte_size(text) == 1_500_024
     assert byte_size(text) > Program.max_stored_bytes()
     {:ok, v} = Library.store(ws, "88", text, source: "iex")
