@@ -102,15 +102,17 @@ defmodule Vws.Acceptance.DripFeedTaskTest do
     end
   end
 
-  test "mix vws.drip_feed --program: a long library program (the most the library keeps, " <>
-         "999,999 bytes) through an 8 KiB buffer",
+  test "mix vws.drip_feed --program: a long library program (1.5 MB, over the 999,999 bytes the " <>
+         "machine stores, well within what the library keeps) through an 8 KiB buffer",
        %{tmp_dir: dir} do
     library = Path.join(dir, "library")
-    # "%", "O88", 58,822 blocks of 17 bytes, "M30", "%": 999,986 bytes
-    body = for i <- 1..58_822, do: "N#{rem(i, 9000) + 1000} G01 X#{rem(i, 900) + 100}.5\n"
-    text = IO.iodata_to_binary(["%\nO88\n", body, "M30\n%\n"])
-    assert byte_size(text) <= Library.max_bytes() and byte_size(text) > 990_000
-    {:ok, _} = Library.store({:dir, library}, "88", text, source: "cli")
+    # 1,500,024 bytes: over what the machine stores (Vws.Test.MonarchWC.long_program/1)
+    text = Vws.Test.MonarchWC.long_program(88)
+    assert byte_size(text) == 1_500_024
+    assert byte_size(text) > Program.max_stored_bytes() and byte_size(text) <= Library.max_bytes()
+    {:ok, v} = Library.store({:dir, library}, "88", text, source: "cli")
+    # its file name carries a seven-digit size (libraries written before keep six-digit names)
+    assert v.file =~ "~1500024~"
 
     args = ~w(--program 88 --library #{library} --memory 8192 --feed-rate 5000000)
     proc = Acceptance.start(["mix", "vws.drip_feed" | args], env: [{"MIX_ENV", "dev"}])
@@ -118,9 +120,14 @@ defmodule Vws.Acceptance.DripFeedTaskTest do
     assert Acceptance.await_exit(proc, 300_000) == 0, Acceptance.output(proc)
     output = Acceptance.output(proc)
     assert output =~ "000088.PRO version 1 from the library"
+    assert output =~ "drip feed of 000088.PRO: 1500024 bytes"
     crc = Integer.to_string(Vws.Codecs.CRC16.compute(text), 16)
 
     assert output =~
              ~r/received #{byte_size(text)} bytes, ran #{byte_size(text)}, buffer \d+\/8192 at most, .* CRC #{crc}, state done/
+
+    # byte for byte: the SHA-256 of what the machine received is the library version's
+    assert output =~ "SHA-256 #{v.digest}"
+    assert v.digest == Library.digest(text)
   end
 end

@@ -116,8 +116,8 @@ defmodule Vws.Acceptance.LibraryTest do
   } do
     lib_dir = Path.join(data, "lib")
 
-    # about 970 KB: as large as a program may be (999,999 bytes, PROTOCOLS.md §2), so that the kill
-    # lands while one is being written
+    # about 970 KB: as large as the GE-2000 stores (999,999 bytes, PROTOCOLS.md §2; the library
+    # keeps larger ones for drip feeds), so that the kill lands while one is being written
     big = String.duplicate("N10 G01 X1.0 Y2.0 F300\n", 42_000)
 
     code = """

@@ -14,16 +14,26 @@ defmodule Vws.Test.MonarchWC do
 
   @link_opts [reply_timeout: 300, wack_delay: 50, backoff_min: 10, backoff_max: 50]
 
-  @doc "Starts it all (under the test's supervisor): `%{ws, peer, sim, dir}`."
-  def start(prefix) do
+  @doc """
+  Starts it all (under the test's supervisor): `%{ws, peer, sim, dir}`. Options: `:sim`, more
+  options of the simulated GE-2000 (`memory:`, `feed_rate:`, …); `:partitions`, the
+  workstation's (`Vws.Test.Workstation.start/1`).
+  """
+  def start(prefix, opts \\ []) do
     dir = Path.join(System.tmp_dir!(), "#{prefix}-#{System.unique_integer([:positive])}")
     on_exit(fn -> File.rm_rf!(dir) end)
-    sim = start_supervised!({GE2000, link: @link_opts, cycle_time: 60_000})
+
+    sim =
+      start_supervised!(
+        {GE2000, [link: @link_opts, cycle_time: 60_000] ++ Keyword.get(opts, :sim, [])}
+      )
 
     %{ws: ws, wc: wc} =
       Vws.Test.Workstation.start(
-        devices: [ge2000: [endpoint: GE2000.endpoint(sim), status_interval: nil] ++ @link_opts],
-        library: dir
+        [
+          devices: [ge2000: [endpoint: GE2000.endpoint(sim), status_interval: nil] ++ @link_opts],
+          library: dir
+        ] ++ Keyword.take(opts, [:partitions])
       )
 
     link = Vws.CEC.Workstation.whereis(ws, :ge2000)
@@ -65,5 +75,14 @@ defmodule Vws.Test.MonarchWC do
     end
 
     finished(peer)
+  end
+
+  @doc """
+  A long part program, `O<number>`: `%`, the O word, 88,236 blocks of 17 bytes, `M30`, `%` —
+  1,500,024 bytes, more than the 999,999 the GE-2000 stores, well within what the library keeps.
+  """
+  def long_program(number \\ 88) do
+    body = for i <- 1..88_236, do: "N#{rem(i, 9000) + 1000} G01 X#{rem(i, 900) + 100}.5\n"
+    IO.iodata_to_binary(["%\nO#{number}\n", body, "M30\n%\n"])
   end
 end

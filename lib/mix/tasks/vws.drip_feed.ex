@@ -251,7 +251,8 @@ defmodule Mix.Tasks.Vws.DripFeed do
       d ->
         Mix.shell().info(
           "simulated GE-2000: received #{d.received} bytes, ran #{d.ran}, buffer #{d.max_fill}/#{d.memory} at most, " <>
-            "#{d.underruns} underruns, CRC #{Integer.to_string(d.crc, 16)}, state #{d.state}"
+            "#{d.underruns} underruns, CRC #{Integer.to_string(d.crc, 16)}, state #{d.state}, " <>
+            "SHA-256 #{d.sha256}"
         )
     end
   end

@@ -80,9 +80,6 @@ defmodule Vws.CEC.Library do
 
   require Logger
 
-  # what the GE-2000 can store (Vws.Links.DNC.Program.check_size/1): a larger program could never
-  # be sent to it, so it is not kept either
-  @max_bytes Vws.Links.DNC.Program.max_stored_bytes()
   @machine "MACHINE.DIR"
 
   alias Vws.CEC.Library.{Check, Diff, Files, History, Search, Version, Workflow}
@@ -130,9 +127,13 @@ defmodule Vws.CEC.Library do
   @spec enabled?(lib) :: boolean
   def enabled?(lib), do: match?({:ok, _}, dir(lib))
 
-  @doc "The largest program the library takes, in bytes."
+  @doc """
+  The largest program the library keeps: 64 MiB, for the longest drip feed (the machine keeps
+  none of it). What the GE-2000 *stores*, 999,999 bytes, is `Vws.Links.DNC.Program.check_size/1`'s:
+  DOWNLOAD_GE or a remote request of a larger version ends `ERROR PROGRAM TOO LARGE`, none sent.
+  """
   @spec max_bytes() :: pos_integer
-  def max_bytes, do: @max_bytes
+  defdelegate max_bytes, to: Check
 
   ## Names
 
@@ -231,7 +232,7 @@ defmodule Vws.CEC.Library do
     with {:ok, dir} <- dir(lib),
          {:ok, name} <- name(name),
          :ok <- check_source(source),
-         :ok <- if(byte_size(bytes) <= @max_bytes, do: :ok, else: {:error, :too_large}),
+         :ok <- if(byte_size(bytes) <= max_bytes(), do: :ok, else: {:error, :too_large}),
          :ok <- File.mkdir_p(Files.numbers_dir(dir)),
          tmp = Files.tmp_path(dir, name),
          :ok <- Files.write_synced(tmp, bytes) do
@@ -481,16 +482,15 @@ defmodule Vws.CEC.Library do
     end
   end
 
-  # PROTOCOLS.md §2 "Program size limit" (Vws.Links.DNC.Program.check_size/1, @max_bytes)
-  defp check_size(size) when size > @max_bytes,
-    do: {:error, {:not_a_program, {:too_large, size}}}
-
-  defp check_size(_size), do: :ok
+  # what the library keeps (max_bytes/0), checked before the file is read
+  defp check_size(size),
+    do: if(size > max_bytes(), do: {:error, {:not_a_program, {:too_large, size}}}, else: :ok)
 
   @doc """
   Whether `bytes` are an NC program the library may keep and the links can carry: `:ok`, or
-  `{:error, {:not_a_program, why}}` with `why` one of `{:too_large, bytes}` (over 999,999 bytes,
-  PROTOCOLS.md §2 "Program size limit"), `{:binary, offset}` (a NUL byte, or not text),
+  `{:error, {:not_a_program, why}}` with `why` one of `{:too_large, bytes}` (over `max_bytes/0`,
+  64 MiB: what the library keeps; the machine's own 999,999 is checked as a program is sent to
+  be stored, PROTOCOLS.md §2 "Program size limit"), `{:binary, offset}` (a NUL byte, or not text),
   `{:control, byte, line}` (a control character other than TAB, CR and LF), `:no_start`
   (the first line is not `%`), `:no_end` (the last line is not `%`, or it has no LF:
   `Vws.Links.DNC.Program.complete?/1`), `:no_program_number` (the first line after `%` is not an

@@ -25,7 +25,8 @@ defmodule Vws.Ops.LibraryCLI do
   `tcp://127.0.0.1:7070`; `Vws.Peers.WC.CLI`).
 
   `import` takes only an NC program (`Vws.CEC.Library.check_program/1`: `%` first and
-  last, the O word after the first `%`, text, at most 999,999 bytes) and says why it refuses
+  last, the O word after the first `%`, text, at most 64 MiB, `Vws.CEC.Library.max_bytes/0`;
+  a program over 999,999 bytes is kept for drip feeds, but never stored on the GE-2000) and says why it refuses
   anything else (`tool.py: not an NC program: its first line is not %`, exit status 1); a file
   holding exactly the latest version is not stored again (`same as 001234.PRO v2, nothing
   stored`, exit status 0).
@@ -373,7 +374,7 @@ defmodule Vws.Ops.LibraryCLI do
   defp reason_text(:no_program_number), do: "no program number (O word); give --name"
 
   defp reason_text(:too_large),
-    do: "larger than #{Library.max_bytes()} bytes, the most the GE-2000's directory can say"
+    do: "larger than #{Library.max_bytes()} bytes, the most the library keeps"
 
   defp reason_text(:enoent), do: "no such file"
   defp reason_text(:deleted), do: "that version was deleted (its tombstone: show)"

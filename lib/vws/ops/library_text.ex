@@ -199,7 +199,7 @@ defmodule Vws.Ops.LibraryText do
   def program_refusal(why), do: "not an NC program: " <> refusal(why)
 
   defp refusal({:too_large, size}),
-    do: "#{size} bytes, more than the #{Library.max_bytes()} bytes a program may have"
+    do: "#{size} bytes, more than the #{Library.max_bytes()} bytes the library keeps"
 
   defp refusal({:binary, offset}), do: "a binary file (not text at byte #{offset})"
 

@@ -49,10 +49,11 @@ defmodule Vws.Partitions.Monarch do
   old program. (`verify: false` skips the directory too.)
 
   **Program size limit** (PROTOCOLS.md §2): the directory's size field has six digits, so
-  DOWNLOAD_GE, DOWNLOAD_GE(nnnnnn.PRO[/v]), UPLOAD_GE and a program the machine sends unasked are
-  refused over 999,999 bytes, before a byte is sent or stored: `ERROR PROGRAM TOO LARGE <bytes>
-  BYTES (LIMIT 999999)` (`Vws.Links.DNC.Program.check_size/1`, the one home of the limit).
-  DRIP_FEED stores nothing and has no limit.
+  DOWNLOAD_GE, DOWNLOAD_GE(nnnnnn.PRO[/v][/FORCE]), a remote request, UPLOAD_GE and a program the
+  machine sends unasked are refused over 999,999 bytes, before a byte is sent or stored: `ERROR
+  PROGRAM TOO LARGE <bytes> BYTES (LIMIT 999999)` (`Vws.Links.DNC.Program.check_size/1`, the one
+  home of the limit). DRIP_FEED stores nothing and has no limit: the library keeps programs of
+  up to 64 MiB (`Vws.CEC.Library.max_bytes/0`) for it.
 
   **Table interlock** (seed App. I A, §2.3.8 rules 1b and 3b), decided for every command by the
   one interlock table, `Vws.CEC.Interlock.Rules`: CYCLE_START and DRIP_FEED — both set the

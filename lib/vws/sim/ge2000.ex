@@ -157,11 +157,11 @@ defmodule Vws.Sim.GE2000 do
 
   @doc """
   The drip feed under way or the last one (nil if none): `%{program, state, received, ran,
-  fill, max_fill, memory, feed_rate, blocks, underruns, starved_ms, crc}` —
+  fill, max_fill, memory, feed_rate, blocks, underruns, starved_ms, crc, sha256}` —
   `state` `:feeding` (the program runs while it arrives), `:draining` (all arrived, the buffer
   still runs), `:done`, `:broken` (the feed broke off: the machine stopped, alarm 7);
-  `underruns` how often the buffer ran empty while more was to come, `crc` the CRC-16/ARC of
-  all text received so far.
+  `underruns` how often the buffer ran empty while more was to come, `crc` the CRC-16/ARC and
+  `sha256` the SHA-256 (lower-case hex) of all text received so far.
   """
   @spec drip(GenServer.server()) :: map | nil
   def drip(sim), do: GenServer.call(sim, :drip)
@@ -700,6 +700,7 @@ defmodule Vws.Sim.GE2000 do
       empty_since: nil,
       owed: 0.0,
       crc: 0,
+      sha256: :crypto.hash_init(:sha256),
       tail: "",
       running: false,
       last_tick: now_ms()
@@ -721,6 +722,7 @@ defmodule Vws.Sim.GE2000 do
           max_fill: max(drip.max_fill, fill),
           blocks: drip.blocks + 1,
           crc: Vws.Codecs.CRC16.compute(text, drip.crc),
+          sha256: :crypto.hash_update(drip.sha256, text),
           tail: text
       }
       |> fed()
@@ -807,6 +809,7 @@ defmodule Vws.Sim.GE2000 do
     drip
     |> Map.drop([:owed, :tail, :last_tick, :empty_since, :running])
     |> Map.merge(%{memory: s.memory, feed_rate: s.feed_rate})
+    |> Map.put(:sha256, Base.encode16(:crypto.hash_final(drip.sha256), case: :lower))
   end
 
   defp now_ms, do: System.monotonic_time(:millisecond)

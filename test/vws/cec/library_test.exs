@@ -65,15 +65,60 @@ defmodule Vws.CEC.LibraryTest do
 
     assert Library.store(lib, "1", @prog, source: "Bad/Source") == {:error, :bad_source}
     assert Library.store(lib, "1", @prog, source: "a~b") == {:error, :bad_source}
-    big = :binary.copy("N1\n", div(Library.max_bytes(), 3) + 1)
+    # the library keeps up to 64 MiB (a drip feed's program); what the GE-2000 stores is bounded
+    # apart (999,999 bytes, its directory's six digits: Vws.Links.DNC.Program.check_size/1)
+    assert Library.max_bytes() == 64 * 1024 * 1024
+    assert Library.max_bytes() > Vws.Links.DNC.Program.max_stored_bytes()
+    big = :binary.copy("N", Library.max_bytes() + 1)
     assert Library.store(lib, "1", big) == {:error, :too_large}
-
-    # the GE-2000's directory says at most 999,999 bytes (PROTOCOLS.md §2): the library keeps no more
-    assert Library.max_bytes() == 999_999
-    assert Library.store(lib, "1", :binary.copy("N", 1_000_000)) == {:error, :too_large}
     assert Library.list(lib) == {:ok, []}
     refute File.exists?(Path.join(Path.dirname(dir), "x"))
     assert Library.store(:no_such_workstation, "1", @prog) == {:error, :no_library}
+  end
+
+  test "a program over the 999,999 bytes the machine stores is kept, its size in the file name " <>
+         "with as many digits as it takes; a library named in the old six-digit form reads as before",
+       %{lib: lib, dir: dir} do
+    # written by hand as every library was before programs over 999,999 bytes: six-digit size
+    old_text = "%\nO18\nN1 X1\nM30\n%\n"
+    crc = String.pad_leading(Integer.to_string(Vws.Codecs.CRC16.compute(old_text), 16), 4, "0")
+    digest = Library.digest(old_text)
+    old = "000018.PRO~000001~20261125T090000.123Z~wc~000018~#{crc}~#{digest}"
+    File.mkdir_p!(Path.join(dir, ".v"))
+    File.write!(Path.join(dir, old), old_text)
+    File.ln_s!(Path.join("..", old), Path.join([dir, ".v", "000018.PRO~000001"]))
+
+    # 1,500,024 bytes: over what the machine stores (Vws.Test.MonarchWC.long_program/1)
+    big = Vws.Test.MonarchWC.long_program(18)
+    assert byte_size(big) == 1_500_024
+    assert Vws.Links.DNC.Program.check_size(big) != :ok
+    assert Library.check_program(big) == :ok
+    {:ok, v2} = Library.store(lib, "18", big, source: "cli")
+    assert {v2.version, v2.size} == {2, 1_500_024}
+    assert v2.file =~ ~r/^000018\.PRO~000002~[^~]+~cli~1500024~[0-9A-F]{4}~[0-9a-f]{64}$/
+
+    assert {:ok, [p]} = Library.list(lib)
+    assert [%{file: ^old, size: 18, digest: ^digest}, %{size: 1_500_024}] = p.versions
+    assert {:ok, ^old_text, %{version: 1}} = Library.read(lib, "18", 1)
+    assert {:ok, ^big, %{version: 2}} = Library.read(lib, "18")
+    # the same bytes again are the same version, whatever their size
+    assert {:ok, %{version: 2}} = Library.store(lib, "18", big, only_if_changed: true)
+    # a damaged big version is caught as any other
+    File.write!(Path.join(dir, v2.file), binary_part(big, 0, byte_size(big) - 1) <> "X")
+    assert Library.read(lib, "18", 2) == {:error, :damaged}
+  end
+
+  test "version file names: sizes from 0 to the library's bound read back as written" do
+    at = ~U[2026-11-27 04:00:00.123Z]
+
+    for size <- [0, 1, 999_999, 1_000_000, 1_500_024, Library.max_bytes()] do
+      v = %{name: "000001.PRO", version: 3, at: at, source: "wc", size: size, crc: 0xBB3D}
+      v = Map.put(v, :digest, String.duplicate("a", 64))
+      file = Vws.CEC.Library.Files.file_name(v)
+
+      assert [%{size: ^size, version: 3, crc: 0xBB3D, file: ^file}] =
+               Vws.CEC.Library.Files.parse_files([file])
+    end
   end
 
   test "stores racing for one program get distinct numbers, none lost", %{lib: lib} do
@@ -191,9 +236,14 @@ defmodule Vws.CEC.LibraryTest do
     assert refused.("%\nO1234\n" <> <<0, 1, 2, 255>> <> "\n%\n") == {:binary, 8}
     assert refused.("%\nO1234\n" <> <<0xFF, 0xFE>> <> "\n%\n") == {:binary, 8}
 
-    big = "%\nO1234\n" <> String.duplicate("N10 G01 X1.0 Y2.0 F300\n", 43_479) <> "%\n"
-    assert byte_size(big) > 999_999
-    assert refused.(big) == {:too_large, byte_size(big)}
+    # more than the library keeps: refused by its size, before a byte is read (a sparse file)
+    {:ok, fd} = :file.open(String.to_charlist(src), [:write, :binary])
+    {:ok, _} = :file.position(fd, Library.max_bytes() + 1)
+    :ok = :file.truncate(fd)
+    :ok = :file.close(fd)
+    assert {:error, {:not_a_program, {:too_large, size}}} = Library.import_file(lib, src)
+    assert size == Library.max_bytes() + 1
+    assert Vws.Ops.LibraryText.program_refusal({:too_large, size}) =~ "the library keeps"
     assert Library.list(lib) == {:ok, []}
 
     # what the shop writes is still taken: EIA, comments before the O word, CR LF, tabs

@@ -118,6 +118,43 @@ defmodule Vws.Ops.LibraryCLITest do
   end
 
   @tag :tmp_dir
+  test "import and list a program over the 999,999 bytes the machine stores (kept for drip " <>
+         "feeds); over what the library keeps, refused before it is read",
+       %{tmp_dir: dir} do
+    library = Path.join(dir, "library")
+    # 1,500,024 bytes: over what the machine stores (Vws.Test.MonarchWC.long_program/1)
+    text = Vws.Test.MonarchWC.long_program(88)
+    file = Path.join(dir, "long.nc")
+    File.write!(file, text)
+
+    {0, out} = cli(["--library", library, "import", file])
+    assert out =~ "stored 000088.PRO v1"
+    {0, out} = cli(["--library", library, "list"])
+    assert out =~ "000088.PRO  v1 of 1"
+    {0, out} = cli(["--library", library, "show", "88"])
+    assert out =~ "1500024 bytes"
+    assert {:ok, ^text, %{size: 1_500_024}} = Library.read({:dir, library}, "88")
+    # the same file again: nothing stored
+    {0, out} = cli(["--library", library, "import", file])
+    assert out =~ "same as 000088.PRO v1, nothing stored"
+
+    # a (sparse) file larger than the library keeps
+    huge = Path.join(dir, "huge.nc")
+    {:ok, fd} = :file.open(String.to_charlist(huge), [:write, :binary])
+    {:ok, _} = :file.position(fd, Library.max_bytes() + 1)
+    :ok = :file.truncate(fd)
+    :ok = :file.close(fd)
+    args = ["--library", library, "import", huge]
+    {{status, out}, err} = with_io(:stderr, fn -> with_io(fn -> LibraryCLI.main(args) end) end)
+    assert status == 1
+
+    assert out <> err =~
+             "#{Library.max_bytes() + 1} bytes, more than the #{Library.max_bytes()} bytes the library keeps"
+
+    assert {:ok, [%{versions: [_]}]} = Library.list({:dir, library})
+  end
+
+  @tag :tmp_dir
   test "a damaged state file makes its version a draft, said loudly", %{tmp_dir: dir} do
     lib = {:dir, dir}
     {:ok, _} = Library.store(lib, "40", "%\nO40\nN1\n%\n", source: "wc")

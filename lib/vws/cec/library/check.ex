@@ -4,13 +4,21 @@ defmodule Vws.CEC.Library.Check do
   (`Vws.CEC.Library.check_program/1`, which documents the answers): pure, on the bytes alone.
   """
 
+  # what the library keeps (Vws.CEC.Library.max_bytes/0): the longest drip feed, not what the
+  # GE-2000 stores (Vws.Links.DNC.Program.max_stored_bytes/0, checked where a program is stored)
+  @max_bytes 64 * 1024 * 1024
+
+  @doc "The largest program the library keeps: see `Vws.CEC.Library.max_bytes/0`."
+  @spec max_bytes() :: pos_integer
+  def max_bytes, do: @max_bytes
+
   @doc "See `Vws.CEC.Library.check_program/1`."
   @spec program(binary) :: :ok | {:error, {:not_a_program, term}}
   def program(bytes) when is_binary(bytes) do
     lines = Vws.Links.DNC.Program.from_text(bytes)
 
     cond do
-      byte_size(bytes) > Vws.Links.DNC.Program.max_stored_bytes() ->
+      byte_size(bytes) > @max_bytes ->
         {:error, {:not_a_program, {:too_large, byte_size(bytes)}}}
 
       offset = binary_at(bytes) ->

@@ -4,6 +4,11 @@ defmodule Vws.CEC.Library.Files do
   listing shows (`<program>~<version>~<stored at, UTC>~<source>~<size>~<CRC>~<SHA-256>`), read
   back from a directory listing; the version numbers taken as symbolic links under `.v/`; and
   files written whole (a synced temporary file, renamed; the directory synced).
+
+  The size is written with at least six digits (`001234`, as every version was named while the
+  library kept only what the GE-2000's directory can say, 999,999 bytes) and as many as it takes
+  above that (`1500000`, up to `Vws.CEC.Library.max_bytes/0`): a listing reads any number of
+  digits, so libraries written in either form read alike.
   """
 
   alias Vws.CEC.Library.Version

@@ -99,9 +99,13 @@ defmodule Vws.Partitions.Monarch.RemoteRequest do
 
   defp ended(_ws, _link, {:failed, _}, _text, _options), do: {:error, "NO ANSWER"}
 
-  @doc "The refusal's message block for `words` (upper-case words and numbers)."
+  @doc """
+  The refusal's message block for `words` (upper-case words and numbers). A comment ends at its
+  first `)`, so the words' own parentheses are left out of it (`PROGRAM TOO LARGE 1020012 BYTES
+  LIMIT 999999`); the log and the history keep the words whole.
+  """
   @spec refusal(String.t()) :: String.t()
-  def refusal(words), do: "(MSG,REQUEST REFUSED #{words})\n"
+  def refusal(words), do: "(MSG,REQUEST REFUSED #{String.replace(words, ["(", ")"], "")})\n"
 
   defp program(ws, asked, options) do
     # the request's text read as DOWNLOAD_GE's argument: nnnnnn.PRO or nnnnnn.PRO/v

@@ -70,6 +70,17 @@ defmodule Vws.Partitions.Monarch.LibraryTest do
 
     assert monarch(peer, 5, "DOWNLOAD_GE(../../x)") =~ "ERROR BAD PROGRAM FILE"
 
+    # a version over what the machine stores (999,999 bytes, its directory's six digits) is kept
+    # by the library for drip feeds; DOWNLOAD_GE of it ends ERROR in words, nothing sent
+    big = "%\nO59\n" <> String.duplicate("N1000 G01 X100.5\n", 60_000) <> "M30\n%\n"
+    {:ok, _} = Library.store(ws, "59", big)
+    downloads = GE2000.state(sim).downloads
+    too_large = "ERROR PROGRAM TOO LARGE #{byte_size(big)} BYTES (LIMIT 999999)"
+    assert monarch(peer, 9, "DOWNLOAD_GE(000059.PRO)") == too_large
+    assert monarch(peer, 10, "DOWNLOAD_GE(000059.PRO/1/FORCE)") == too_large
+    refute "000059.PRO" in GE2000.directory(sim)
+    assert GE2000.state(sim).downloads == downloads
+
     assert MonarchWC.download_hp(peer, 6, @lines) == "DONE"
     assert monarch(peer, 7, "DOWNLOAD_GE") == "DONE"
     assert GE2000.program(sim, "004711.PRO") == Vws.Links.DNC.Program.to_text(@lines)

@@ -107,8 +107,12 @@ defmodule Vws.Partitions.Monarch.RemoteRequestTest do
     # version 2 came from the machine: not released
     :ok = Monarch.store_from_machine(ws, "000055.PRO", Vws.Links.DNC.Program.from_text(@v2))
     :ok = Monarch.store_from_machine(ws, "000056.PRO", Vws.Links.DNC.Program.from_text(@v2))
+    # released, but more than the machine stores (the library keeps it for drip feeds)
+    big = "%\nO58\n" <> String.duplicate("N1000 G01 X100.5\n", 60_000) <> "M30\n%\n"
+    {:ok, _} = Library.store(ws, "58", big, source: "iex")
 
     cases = [
+      {{58, nil}, "PROGRAM TOO LARGE #{byte_size(big)} BYTES (LIMIT 999999)"},
       {{"000055.PRO", 2}, "000055.PRO VERSION 2 NOT RELEASED"},
       {{"000056.PRO", nil}, "000056.PRO HAS NO RELEASED VERSION"},
       {{57, nil}, "000057.PRO NOT IN LIBRARY"},
@@ -116,11 +120,14 @@ defmodule Vws.Partitions.Monarch.RemoteRequestTest do
     ]
 
     for {{number, version}, words} <- cases do
+      # a comment ends at its first ")": the words' own parentheses are not in the message
+      shown = "REQUEST REFUSED " <> String.replace(words, ["(", ")"], "")
+
       assert GE2000.Panel.request_program(sim, number, version) ==
-               {:error, {:refused, "REQUEST REFUSED " <> words}}
+               {:error, {:refused, shown}}
 
       assert GE2000.state(sim).alarm == 9
-      assert hd(GE2000.state(sim).messages) == "REQUEST REFUSED " <> words
+      assert hd(GE2000.state(sim).messages) == shown
       assert_receive {:remote_request, _, %{result: :refused, reason: ^words}}
     end
 
