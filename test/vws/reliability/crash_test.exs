@@ -2,7 +2,7 @@
 # workstation killed 100 times at random moments while a WC runs the machining cycle over and
 # over. The thirteen targets are shared among @groups modules, each with its own workstation and
 # floor and its links and partitions killed side by side, so that the campaigns run at once.
-groups = 5
+groups = 7
 
 for group <- 0..(groups - 1) do
   defmodule Module.concat(Vws.Reliability.CrashTest, "Group#{group + 1}") do
