@@ -4,11 +4,11 @@
 # nothing; every command must end DONE or ERROR with a reason, none stay EXECUTING.
 # bench/safety_soak.exs runs the same model for 10 000 sequences.
 #
-# 300 sequences, in three modules of 100 that run at once (each draws its own: PropEr seeds
+# 300 sequences, in six modules of 50 that run at once (each draws its own: PropEr seeds
 # every run from the clock). A sequence spends most of its time waiting on its simulated floor
 # (the `:fast` timers), not on a core; on a loaded machine more commands end in a timeout, which
 # the properties allow.
-for part <- 1..3 do
+for part <- 1..6 do
   defmodule Module.concat(Vws.SafetyStatemTest, "Part#{part}") do
     use ExUnit.Case, async: true
     use Vws.PropCase
@@ -16,9 +16,9 @@ for part <- 1..3 do
     alias Vws.Test.SafetyModel
 
     @moduletag timeout: 300_000
-    @sequences 100
+    @sequences 50
 
-    test "no collision, and every command ends, over #{@sequences} random sequences (#{part}/3)" do
+    test "no collision, and every command ends, over #{@sequences} random sequences (#{part}/6)" do
       property =
         :proper.forall(SafetyModel.commands(), fn cmds ->
           case SafetyModel.run(cmds) do
