@@ -145,6 +145,22 @@ defmodule Vws.Links.Connection do
   end
 
   @doc """
+  A `:disconnected` state's dial for a `:gen_statem` driver whose data keeps this shell in
+  `:wire` and dials on the state timeout `:connect`: once connected, `{:next_state, :idle,
+  connected.(data)}`; else the next dial after the back-off's wait.
+  """
+  @spec dial(%{wire: t}, (map -> map)) :: :gen_statem.event_handler_result(atom)
+  def dial(%{wire: wire} = data, connected) do
+    case connect(wire) do
+      {:ok, wire} ->
+        {:next_state, :idle, connected.(%{data | wire: wire})}
+
+      {:error, _reason, retry_in, wire} ->
+        {:keep_state, %{data | wire: wire}, [{:state_timeout, retry_in, :connect}]}
+    end
+  end
+
+  @doc """
   Takes an open connection (dialled by `connect/1`, or handed over: the calling process must be
   its controlling process) and arms it for its first chunk.
   """

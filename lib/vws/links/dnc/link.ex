@@ -165,15 +165,8 @@ defmodule Vws.Links.DNC.Link do
 
   def handle_event(:enter, _old, _state, _data), do: :keep_state_and_data
 
-  def handle_event(:state_timeout, :connect, :disconnected, data) do
-    case Connection.connect(data.wire) do
-      {:ok, wire} ->
-        {:next_state, :idle, take_connection(%{data | wire: wire})}
-
-      {:error, _reason, retry_in, wire} ->
-        {:keep_state, %{data | wire: wire}, [{:state_timeout, retry_in, :connect}]}
-    end
-  end
+  def handle_event(:state_timeout, :connect, :disconnected, data),
+    do: Connection.dial(data, &take_connection/1)
 
   # Vws.Links.DNC.request/4: the caller's deadline comes with it (Vws.Links.Connection)
   def handle_event(:cast, {Connection, _, _, _} = call, _state, _data),

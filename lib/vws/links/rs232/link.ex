@@ -154,15 +154,8 @@ defmodule Vws.Links.RS232.Link do
 
   def handle_event(:enter, _old, _state, _data), do: :keep_state_and_data
 
-  def handle_event(:state_timeout, :connect, :disconnected, data) do
-    case Connection.connect(data.wire) do
-      {:ok, wire} ->
-        {:next_state, :idle, connected(%{data | wire: wire})}
-
-      {:error, _reason, retry_in, wire} ->
-        {:keep_state, %{data | wire: wire}, [{:state_timeout, retry_in, :connect}]}
-    end
-  end
+  def handle_event(:state_timeout, :connect, :disconnected, data),
+    do: Connection.dial(data, &connected/1)
 
   def handle_event({:call, from}, {:attach, conn}, _state, data) do
     data = if data.wire.conn, do: lose(data, :taken_over), else: data
