@@ -37,13 +37,8 @@ defmodule Vws.Acceptance.LibraryTest do
     http = Acceptance.free_port()
 
     serve =
-      Acceptance.start(
-        ~w(mix vws.serve --wc-port #{wc} --http-port #{http} --time-scale 20),
-        env: env(data)
-      )
+      Acceptance.serve(~w(--wc-port #{wc} --http-port #{http} --time-scale 20), env: env(data))
 
-    on_exit(fn -> Acceptance.stop(serve) end)
-    Acceptance.await(serve, ~r/SUN_COMM waits for the WC/, 120_000)
     lib_dir = Path.join([data, "library", "VWS"])
     Acceptance.await(serve, ~r/Program library: #{Regex.escape(lib_dir)}/)
 

@@ -25,15 +25,7 @@ defmodule Vws.Acceptance.LibraryWorkflowTest do
   end
 
   defp serve(data, wc, http) do
-    serve =
-      Acceptance.start(
-        ~w(mix vws.serve --wc-port #{wc} --http-port #{http} --time-scale 20),
-        env: env(data)
-      )
-
-    on_exit(fn -> Acceptance.stop(serve) end)
-    Acceptance.await(serve, ~r/SUN_COMM waits for the WC/, 120_000)
-    serve
+    Acceptance.serve(~w(--wc-port #{wc} --http-port #{http} --time-scale 20), env: env(data))
   end
 
   defp command(client, text) do

@@ -19,14 +19,14 @@ defmodule Vws.Acceptance.ServeRS232Test do
     http = Acceptance.free_port()
 
     proc =
-      Acceptance.start(
-        ["mix", "vws.serve", "--wc-port", "#{wc}", "--http-port", "#{http}", "--no-journal"] ++
+      Acceptance.serve(
+        ["--wc-port", "#{wc}", "--http-port", "#{http}", "--no-journal"] ++
           ["--no-library", "--dnc-profile", "rs232-xonxoff"],
-        env: [{"MIX_ENV", "dev"}]
+        [env: [{"MIX_ENV", "dev"}]],
+        90_000
       )
 
-    on_exit(fn -> Acceptance.stop(proc) end)
-    Acceptance.await(proc, ~r/SUN_COMM waits for the WC on tcp:\/\/127\.0\.0\.1:#{wc}/, 90_000)
+    assert Acceptance.output(proc) =~ ~r/SUN_COMM waits for the WC on tcp:\/\/127\.0\.0\.1:#{wc}/
     assert Acceptance.output(proc) =~ ~r/Simulated RS-232 control \(XON\/XOFF\) on tcp:/
     assert Acceptance.output(proc) =~ "(profile rs232-xonxoff)"
 

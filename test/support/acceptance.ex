@@ -175,6 +175,17 @@ defmodule Vws.Test.Acceptance do
     pid
   end
 
+  @doc """
+  `mix vws.serve ARGS` started as a user starts it (`start/2`'s `opts`: `env:` and so on),
+  stopped when the test ends, and returned once SUN_COMM waits for the WC (`timeout` ms).
+  """
+  def serve(args, opts, timeout \\ 120_000) do
+    proc = start(["mix", "vws.serve" | args], opts)
+    ExUnit.Callbacks.on_exit(fn -> stop(proc) end)
+    await(proc, ~r/SUN_COMM waits for the WC/, timeout)
+    proc
+  end
+
   @doc "Everything the process wrote so far (stdout and stderr together)."
   def output(proc), do: GenServer.call(proc, :output)
 
