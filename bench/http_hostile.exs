@@ -50,8 +50,14 @@
 # document, and one costs the agent about 2.7 million reductions and 10 ms of CPU with a single
 # workstation and no devices (eprof: String.replace escaping, Calendar.ISO.zero_pad timestamps,
 # Keyword.get). Giving the admission server, the connection supervisor or the agent low process
-# priority did not change the ratio, nor did `+sbwt none`: it is CPU the node spends, not an
-# order of scheduling.
+# priority did not change the ratio, nor did `+sbwt none`, while the sockets were inet_drv ports.
+#
+# Then (2026-11-27, later, load 1.5–4.5, 12 runs): with the web server's sockets on OTP's socket
+# backend, their work is done inside the low-priority connection processes rather than as port
+# tasks beside every process, and with the agent, the admission server and the state snapshot at
+# low priority, the WC's p99 beside VWS is 2.8–6.5 ms against 2.2–4.2 ms beside the churn served
+# in another OS process (ratio median 1.1, 0.75–2.7; 13 ms against the lean in-node sink's 5.6
+# before the change); its max is 2–4 times the control's.
 
 Code.require_file("support.exs", __DIR__)
 Logger.configure(level: :error)

@@ -119,6 +119,8 @@ defmodule Vws.Ops.Web.Clients do
 
   @impl true
   def init(limits) do
+    # HTTP work yields to the workstations (Vws.Ops.Web.Server's moduledoc)
+    Process.flag(:priority, :low)
     table = :ets.new(__MODULE__, [:set, :public, write_concurrency: true, read_concurrency: true])
     idle = :ets.new(__MODULE__, [:ordered_set, :public, write_concurrency: true])
     Process.send_after(self(), :sweep, @sweep)

@@ -56,7 +56,13 @@ defmodule Vws.Ops.Web.Server do
   after it — a body, or the next request of a client that pipelines — are kept for what follows
   (`Vws.Ops.Web.Conn`). Acceptors and connections run at low process priority, so the
   workstations' own processes — SUN_COMM answering its WC first of all — are scheduled before any
-  HTTP work (`bench/http_load.exs` measures it).
+  HTTP work (`bench/http_load.exs` measures it). Their sockets use OTP's socket backend
+  (`inet_backend: :socket`): accepting, reading, writing and closing are NIF calls made by those
+  low-priority processes, where with the default `inet_drv` they are port tasks, scheduled beside
+  every process whatever its priority. Under 2,000 hostile sockets coming and going that is the
+  difference between the WC's p99 at 3–4 times that of a listener in another OS process and at
+  about the same (`bench/http_hostile.exs`); the MTConnect agent and the admission server
+  (`Vws.Ops.Web.Clients`) run at low priority for the same reason.
   """
   use GenServer
   require Logger
@@ -166,6 +172,8 @@ defmodule Vws.Ops.Web.Server do
 
   defp listen(address, port, limits) do
     :gen_tcp.listen(port, [
+      # first, as gen_tcp requires: see the moduledoc
+      {:inet_backend, :socket},
       :binary,
       if(tuple_size(address) == 8, do: :inet6, else: :inet),
       ip: address,

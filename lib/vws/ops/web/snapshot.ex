@@ -28,6 +28,8 @@ defmodule Vws.Ops.Web.Snapshot do
   def init(opts) do
     # State.build's tasks are linked: one that crashes must not take this process with it
     Process.flag(:trap_exit, true)
+    # HTTP work yields to the workstations (Vws.Ops.Web.Server's moduledoc)
+    Process.flag(:priority, :low)
 
     {:ok,
      %{
