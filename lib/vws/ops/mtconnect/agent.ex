@@ -133,6 +133,7 @@ defmodule Vws.Ops.MTConnect.Agent do
     # its rendering is HTTP work: it yields to the workstations (Vws.Ops.Web.Server's moduledoc);
     # observations keep the time of the write, which the change notice carries
     Process.flag(:priority, :low)
+
     sender =
       Keyword.get_lazy(opts, :sender, fn ->
         {:ok, host} = :inet.gethostname()
