@@ -118,6 +118,9 @@ defmodule Vws.Acceptance.ReleaseHealthTest do
       60_000
     )
 
+    # the web server starts after the workstations: on a loaded host the first GET came before it
+    Acceptance.await(proc, ~r/VWS web server on http:\/\/127\.0\.0\.1:#{http}\//, 60_000)
+
     # every other read needs the read token; /health does not, and says nothing more than this
     assert {401, _} = Acceptance.http_get(http, "/api/state")
     assert {200, ~s({"status":"ok"})} = Acceptance.http_get(http, "/health")

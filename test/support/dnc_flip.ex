@@ -73,9 +73,17 @@ defmodule Vws.Test.DNCFlip do
   end
 
   @doc "The traffic of one clean transfer: {bytes to the GE-2000, bytes back}."
-  def traffic(ctx, kind) do
+  def traffic(ctx, kind, tries \\ 5) do
     :ok = FlipRelay.plan(ctx.relay, {:bytes, []})
-    assert check!(ctx, kind, []) == :done
+
+    # the link's timeouts are the test's short ones (40 ms for a reply): on a loaded host a clean
+    # line may still end ERROR, which is a right outcome but gives no count of the traffic
+    case check!(ctx, kind, []) do
+      :done -> :ok
+      :error when tries > 1 -> traffic(ctx, kind, tries - 1)
+      other -> flunk("a clean #{kind} ended #{inspect(other)} on its last try")
+    end
+
     counts = FlipRelay.counts(ctx.relay)
     assert counts.to_target > 20 and counts.to_client > 20
     {counts.to_target, counts.to_client}

@@ -71,7 +71,10 @@ for part <- [0, 1] do
 
         burst = Vws.Test.FlipRelay.burst(to_target, to_client)
 
-        assert_property(:proper.forall(burst, &(check!(ctx, &1) in [:ok, :error])), 150)
+        assert_property(
+          :proper.forall(burst, &checked(fn -> check!(ctx, &1) in [:ok, :error] end)),
+          150
+        )
       end
     end
 
@@ -102,6 +105,9 @@ for part <- [0, 1] do
 
         {:error, reason} when is_binary(reason) and reason != "" ->
           :error
+
+        other ->
+          flunk("#{inspect(other)}, flips #{inspect(flips)}")
       end
     end
 
