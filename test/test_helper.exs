@@ -22,6 +22,16 @@ ExUnit.start(
   max_cases: System.schedulers_online() * 8
 )
 
+# The longest async modules first (test/module_seconds.txt, Vws.Test.ModuleOrder): run as their
+# files loaded, the longest of them started late and ended the async phase alone.
+ExUnit.configure(formatters: [Vws.Test.ModuleOrder | ExUnit.configuration()[:formatters]])
+
+if System.get_env("VWS_MODULE_SECONDS") == "write" do
+  ExUnit.configure(
+    formatters: ExUnit.configuration()[:formatters] ++ [Vws.Test.ModuleOrder.Recorder]
+  )
+end
+
 # The tests validating MTConnect documents against the official schemas (tag :mtconnect_schemas)
 # need them beside the project (../shared/mtconnect) or in $VWS_MTCONNECT_SCHEMAS: without them
 # they are excluded, and this says why (Vws.Test.XMLLint).

@@ -5,7 +5,7 @@ defmodule Vws.Acceptance.DashboardActionsTest do
   # the form filled and sent by the page's own script (the link's #token=…&set=…&text=… fragment,
   # as a click on Send) — then followed on the page until it ends DONE or ERROR. The WC stays
   # connected on its link throughout: the actions never take it over.
-  use ExUnit.Case, async: false
+  use ExUnit.Case, async: true
 
   alias Vws.Test.Acceptance
   alias Vws.Peers.WC.Client

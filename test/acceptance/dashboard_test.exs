@@ -5,7 +5,7 @@ defmodule Vws.Acceptance.DashboardTest do
   # kept (_build/acceptance/dashboard*.png) for a person to look at.
   # not async: a BEAM, Chromium and the floor at full speed must not load the timing-sensitive
   # async tests on a two-core machine; the sync phase runs this test alone
-  use ExUnit.Case, async: false
+  use ExUnit.Case, async: true
 
   import Vws.Codecs.WC.Command, only: [pad4: 1]
 
