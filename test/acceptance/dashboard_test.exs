@@ -3,8 +3,8 @@ defmodule Vws.Acceptance.DashboardTest do
   # process with the whole simulated floor), commands sent over the real WC TCP link, and the
   # page read by a real headless Chromium after its scripts ran — the DOM checked, a screenshot
   # kept (_build/acceptance/dashboard*.png) for a person to look at.
-  # not async: a BEAM, Chromium and the floor at full speed must not load the timing-sensitive
-  # async tests on a two-core machine; the sync phase runs this test alone
+  # async: with the suite's longest-first order (Vws.Test.ModuleOrder) it starts at once, beside
+  # other long modules, rather than alone in the sync phase
   use ExUnit.Case, async: true
 
   import Vws.Codecs.WC.Command, only: [pad4: 1]
