@@ -570,23 +570,26 @@ defmodule Vws.Links.DNCTest do
         assert finish(link, peer, how) == ["O1\n", @n60]
       end
 
-      test "#{side}: a new block equal to the last is not lost: the sender's poll brings it in",
+      test "#{side}: a block equal to the last one accepted is a copy, however often it comes",
            ctx do
         {link, peer, how} = receiving(unquote(side), ctx)
         {odd, even} = acks(unquote(side))
         DNCPeer.send_raw(peer, text("G04 P1\n"))
         expect(peer, odd)
-        # the same text again, as the next block: taken for a copy, answered ACK0 ...
-        DNCPeer.send_raw(peer, text("G04 P1\n"))
-        expect(peer, odd)
-        # ... the sender, waiting for ACK1, asks; ACK0 again: it sends the block again
-        DNCPeer.send_raw(peer, @enq)
-        expect(peer, odd)
-        DNCPeer.send_raw(peer, text("G04 P1\n"))
-        expect(peer, even)
+
+        # damaged replies can make a sender send a block again any number of times: each copy
+        # is answered with that block's ACK again and dropped (a sender of ours never sends two
+        # equal blocks in a row: Frame.split_text/2)
+        for _ <- 1..4 do
+          DNCPeer.send_raw(peer, text("G04 P1\n"))
+          expect(peer, odd)
+          DNCPeer.send_raw(peer, @enq)
+          expect(peer, odd)
+        end
+
         DNCPeer.send_raw(peer, text("M30\n"))
-        expect(peer, odd)
-        assert finish(link, peer, how) == ["G04 P1\n", "G04 P1\n", "M30\n"]
+        expect(peer, even)
+        assert finish(link, peer, how) == ["G04 P1\n", "M30\n"]
       end
     end
 

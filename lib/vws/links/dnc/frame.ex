@@ -272,8 +272,17 @@ defmodule Vws.Links.DNC.Frame do
   at the last LF that fits; a line longer than `max` is cut at `max`. Concatenating the result gives
   `program` back; an empty program gives `[]`.
 
+  Two blocks in a row are never equal (for `max` of 2 or more): a block equal to the one before
+  is cut shorter (at an earlier LF, else a byte shorter; a one-byte block a byte longer). Blocks
+  carry no number, so a receiver takes a block equal to the last one it accepted for a copy of
+  it, always — a copy taken as a new block would make a drip-fed machine run it twice
+  (PROTOCOLS.md §2 "Acknowledgement"; docs/dnc-drip-feed.md "Copies").
+
       iex> Vws.Links.DNC.Frame.split_text("N10 G00\\nN20 M30\\n", 12)
       ["N10 G00\\n", "N20 M30\\n"]
+
+      iex> Vws.Links.DNC.Frame.split_text("G04\\nG04\\nG04\\n", 4)
+      ["G04\\n", "G04", "\\n", "G04\\n"]
   """
   @spec split_text(binary, pos_integer) :: [binary]
   def split_text(program, max \\ @default_max_text)
@@ -281,21 +290,77 @@ defmodule Vws.Links.DNC.Frame do
     do_split(program, max, [])
   end
 
-  defp do_split(<<>>, _max, acc), do: Enum.reverse(acc)
-
-  defp do_split(rest, max, acc) when byte_size(rest) <= max, do: Enum.reverse([rest | acc])
+  defp do_split(<<>>, max, acc), do: finish(acc, max)
 
   defp do_split(rest, max, acc) do
-    window = binary_part(rest, 0, max)
+    size = greedy_cut(rest, max)
 
     size =
-      case :binary.matches(window, "\n") do
-        [] -> max
-        matches -> (matches |> List.last() |> elem(0)) + 1
+      case acc do
+        [previous | _] when previous == binary_part(rest, 0, size) ->
+          other_cut(rest, size, max)
+
+        _ ->
+          size
       end
 
     <<part::binary-size(size), rest::binary>> = rest
     do_split(rest, max, [part | acc])
+  end
+
+  defp greedy_cut(rest, max) when byte_size(rest) <= max, do: byte_size(rest)
+
+  defp greedy_cut(rest, max) do
+    case :binary.matches(binary_part(rest, 0, max), "\n") do
+      [] -> max
+      matches -> (matches |> List.last() |> elem(0)) + 1
+    end
+  end
+
+  # The block would equal the one before: shorter (at the last LF before its end, else a byte
+  # shorter) differs by its length; a one-byte block takes one more byte if there is one.
+  defp other_cut(rest, size, _max) when size > 1 do
+    case :binary.matches(binary_part(rest, 0, size - 1), "\n") do
+      [] -> size - 1
+      matches -> (matches |> List.last() |> elem(0)) + 1
+    end
+  end
+
+  defp other_cut(rest, 1, max) when max >= 2 and byte_size(rest) >= 2, do: 2
+  defp other_cut(_rest, size, _max), do: size
+
+  # The last block can be left equal to the one before (a one-byte end after a one-byte block):
+  # the last few blocks are cut again, searching (within a budget) for cuts whose neighbours
+  # differ. What cannot be (a `max` of 1) stays, and DNC.Session refuses to send it.
+  defp finish([same, same | _] = acc, max) when max >= 2, do: repair(acc, max, 2)
+  defp finish(acc, _max), do: Enum.reverse(acc)
+
+  defp repair(acc, max, k) when k <= 8 and length(acc) >= k do
+    {suffix, fixed} = Enum.split(acc, k)
+    suffix = suffix |> Enum.reverse() |> IO.iodata_to_binary()
+
+    case cuts(suffix, max, List.first(fixed), 10_000) do
+      {:ok, parts, _budget} -> Enum.reverse(fixed, parts)
+      {:error, _budget} -> repair(acc, max, k + 1)
+    end
+  end
+
+  defp repair(acc, _max, _k), do: Enum.reverse(acc)
+
+  defp cuts(<<>>, _max, _previous, budget), do: {:ok, [], budget}
+  defp cuts(_rest, _max, _previous, budget) when budget <= 0, do: {:error, 0}
+
+  defp cuts(rest, max, previous, budget) do
+    sizes = Enum.uniq([greedy_cut(rest, max) | Enum.to_list(min(max, byte_size(rest))..1)])
+
+    Enum.reduce_while(sizes, {:error, budget - 1}, fn size, {:error, budget} ->
+      <<part::binary-size(size), after_part::binary>> = rest
+
+      case if(part == previous, do: {:error, budget}, else: cuts(after_part, max, part, budget)) do
+        {:ok, parts, budget} -> {:halt, {:ok, [part | parts], budget}}
+        {:error, budget} -> {:cont, {:error, budget}}
+      end
+    end)
   end
 
   ## Decoding

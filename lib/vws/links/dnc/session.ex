@@ -477,12 +477,18 @@ defmodule Vws.Links.DNC.Session do
 
   defp encode_request(_command, _blocks, _s), do: :error
 
+  # Two equal blocks in a row are refused before anything goes on the line: the receiver takes
+  # the second for a copy of the first (duplicate?/2). Frame.split_text/2 never makes them.
   defp encode_texts_safe(blocks, check, s) when is_list(blocks) do
-    {:ok,
-     for(
-       text <- blocks,
-       do: Frame.encode(%Text{text: text}, check: check, max_text: s.limits.max_text)
-     )}
+    if Enum.any?(Enum.chunk_every(blocks, 2, 1, :discard), fn [a, b] -> a == b end) do
+      :error
+    else
+      {:ok,
+       for(
+         text <- blocks,
+         do: Frame.encode(%Text{text: text}, check: check, max_text: s.limits.max_text)
+       )}
+    end
   rescue
     ArgumentError -> :error
   end
@@ -608,10 +614,6 @@ defmodule Vws.Links.DNC.Session do
         text -> %{rx | blocks: if(streamed?(rx), do: rx.blocks, else: [text | rx.blocks])}
       end
 
-    # every NAK since the previous block may bring a copy of this one; so may a reply of ours
-    # the sender did not see or misread: at least one copy is expected
-    copies = max(rx.naks, 1)
-
     rx = %{
       rx
       | count: index,
@@ -619,8 +621,7 @@ defmodule Vws.Links.DNC.Session do
         last: ack,
         accepted: block_frame(block),
         ack: ack,
-        naks: 0,
-        copies: copies
+        naks: 0
     }
 
     s = bump(%{s | rx: rx}, :blocks_received)
@@ -688,23 +689,22 @@ defmodule Vws.Links.DNC.Session do
   defp block_frame(%Command{} = command), do: command
   defp block_frame(text) when is_binary(text), do: %Text{text: text}
 
-  # A block equal to the last one accepted is a copy of it while a copy may still come: a NAK
-  # of ours answered by more than one transmission (a damaged block that drew two errors, a NAK
-  # said again to an ENQ while the first was on its way), or an ACK the sender did not see
-  # (lost, or misread as the other parity) before it sent the block again. Blocks are not
-  # numbered, so a new block that merely repeats the last one's text looks the same: it is
-  # answered with the last ACK too, the sender finds the parity wrong, asks with ENQ, is told
-  # the same, and sends it again — by then no copy is expected and it is taken. Erring this way
-  # costs a round trip; erring the other way would take a block twice.
+  # A block equal to the last one accepted is a copy of it, always: the sender sends a block
+  # again when it did not see our ACK (lost, or misread as the other parity), when a NAK of ours
+  # or a damaged ACK read as one asked for it — and damaged replies can ask any number of times.
+  # Blocks are not numbered, so a new block that merely repeats the last one's text would look
+  # the same; no sender of ours sends two equal blocks in a row (Frame.split_text/2, and
+  # request/4 refuses them), and a foreign sender that does is answered as if it sent a copy
+  # until it gives up: the transfer ends ERROR, nothing taken twice. Until 2026-11-27 only as
+  # many copies as NAKs were expected, and two damaged replies in a drip feed made the machine
+  # run a block twice (test/vws/reliability/dnc_bit_flip_test.exs).
   defp duplicate?(%{accepted: nil}, _block), do: false
-
-  defp duplicate?(%{copies: copies, accepted: accepted}, block),
-    do: copies > 0 and accepted == block
+  defp duplicate?(%{accepted: accepted}, block), do: accepted == block
 
   defp discard_duplicate(%{rx: rx} = s) do
     s = log(s, :info, "DNC: block #{rx.count} received again; acknowledged again and dropped")
     reply = if short_of_credit?(s) and is_struct(rx.accepted, Text), do: :wack, else: rx.ack
-    rx = %{rx | copies: rx.copies - 1, last: rx.ack, sent: reply}
+    rx = %{rx | last: rx.ack, sent: reply}
     s = bump(%{s | rx: rx}, :duplicates)
     s = retry(s, :duplicate_received, rx.count)
     s = send_control(s, reply)

@@ -2,7 +2,7 @@ defmodule Vws.Links.DNC.Transfer do
   @moduledoc """
   The bookkeeping of one transfer on a DNC line, for `Vws.Links.DNC.Session`: the record of a
   transmission (`new_tx/4`: its frames, what the peer acknowledged, retries and pauses) and of
-  a reception (`new_rx/2`: the blocks taken, the last acknowledgement, copies), and the view of
+  a reception (`new_rx/2`: the blocks taken, the last acknowledgement, the last block accepted), and the view of
   either that progress reports and telemetry are made of (`view/3`). Pure data.
   """
 
@@ -76,7 +76,6 @@ defmodule Vws.Links.DNC.Transfer do
       accepted: nil,
       ack: :ack0,
       naks: 0,
-      copies: 0,
       retries: 0,
       ref: nil,
       started: now

@@ -40,7 +40,14 @@ defmodule Vws.Links.DNC.SessionTest do
   test "the request is refused before anything is sent when its text cannot be sent" do
     s = Session.new(limits: DNCWire.limits()) |> Session.connected()
     assert Session.request(s, @scs, ["bad\x03text"], 0) == {:error, :invalid_text}
+    # two equal blocks in a row: the receiver would take the second for a copy of the first
+    assert Session.request(s, @scs, ["G04 P1\n", "G04 P1\n"], 0) == {:error, :invalid_text}
+    assert Session.transmit(s, ["A\n", "A\n"], 0) == {:error, :invalid_text}
+    assert {:ok, _} = Session.request(s, @scs, ["G04 P1\n", "G04 P1", "\n"], 0) |> ok()
   end
+
+  defp ok({:error, _} = error), do: error
+  defp ok(result), do: {:ok, result}
 
   # Damage: every byte flipped with probability p (one random bit), every chunk lost with q.
   defp damage(p, q) do
