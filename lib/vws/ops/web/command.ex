@@ -79,7 +79,10 @@ defmodule Vws.Ops.Web.Command do
              set: set,
              number: WCCommand.pad4(number),
              text: text,
-             status: status(ws, set, number)
+             status: status(ws, set, number),
+             # taken after the command was: a page state built before it (a poll already on
+             # its way, the cached snapshot) is older, and the page does not follow it from there
+             time: DateTime.utc_now() |> DateTime.truncate(:millisecond) |> DateTime.to_iso8601()
            }}
 
         {:error, words} ->

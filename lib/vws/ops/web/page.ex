@@ -460,6 +460,9 @@ defmodule Vws.Ops.Web.Page do
     const tokenGiven = document.getElementById("control-token").value !== "";
     document.getElementById("actions").hidden = !(state.control && tokenGiven);
     if (!pending || pending.ended) return;
+    // a state read before the command was taken (a poll on its way when it was sent) says nothing
+    // of it: a WC command before it would look like one after it (the numbers wrap)
+    if (pending.time && !(state.time > pending.time)) return;
     const ws = state.workstations.find(w => w.id === pending.ws);
     const p = ws && ws.partitions.find(x => x.name === PARTITION[pending.set]);
     if (!p) return;
@@ -503,7 +506,7 @@ defmodule Vws.Ops.Web.Page do
       headers: {"x-vws-token": document.getElementById("control-token").value, "content-type": "application/json"}});
     const a = await r.json();
     if (!r.ok) { pending = null; out.replaceChildren(el("span", "refused: " + a.error, "error")); out.firstChild.id = "command-status"; return; }
-    pending = {ws: a.workstation, set: a.set, number: a.number, text: a.text, status: a.status, ended: false};
+    pending = {ws: a.workstation, set: a.set, number: a.number, text: a.text, status: a.status, time: a.time, ended: false};
     pending.ended = /^(DONE|ERROR)/.test(pending.status);
     drawPending();
   });

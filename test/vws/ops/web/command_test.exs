@@ -130,7 +130,14 @@ defmodule Vws.Ops.Web.CommandTest do
     await_free(ws, :robot)
 
     # ROBOT free: the partition takes it and judges it (this test robot knows no RELEASE_TABLE)
-    assert {200, %{"number" => n2}} = post(url, body(ws, "R", "RELEASE_TABLE"), token())
+    before = DateTime.utc_now()
+
+    assert {200, %{"number" => n2, "time" => time}} =
+             post(url, body(ws, "R", "RELEASE_TABLE"), token())
+
+    # when it was taken, for the page to tell a state read before it (Vws.Ops.Web.Page)
+    assert {:ok, taken, 0} = DateTime.from_iso8601(time)
+    assert DateTime.compare(taken, DateTime.truncate(before, :millisecond)) != :lt
     number2 = String.to_integer(n2)
     assert number2 != number
     assert_receive_status(ws, :robot, number2, :error)
