@@ -42,7 +42,16 @@ defmodule Vws.Partitions.VwsStatus do
   relay that does not read back as commanded is set and read again (at most twice, counted in
   telemetry), as the command or its answer may have been damaged on the line. A
   reading taken after that has `requested_at` later than the moment `actuate/3` returned, which
-  is what `await/4` waits for. `push_button/3` closes a relay briefly (the cycle-start button);
+  is what `await/4` waits for.
+
+  Actuations run one at a time, each with all its tries, in the order they were asked (a button's
+  press and its release too): the intended state of a write and of its corrections is the whole
+  slot as that actuation read it, so a write of another partition landing between its tries
+  would read as "not as commanded" and be set back, that partition's command already confirmed.
+  One that waited behind the others so long that its caller would give up before its tries end
+  is never sent: `DAQ #1 RELAYS BUSY`.
+
+  `push_button/3` closes a relay briefly (the cycle-start button);
   `cycle_start_fun/2` and `tray_lock_fun/2` build the functions MONARCH and ROBOT are given.
 
   A button is never left pressed: VWS_STATUS holds the press and lets it go itself, so a press
@@ -144,7 +153,11 @@ defmodule Vws.Partitions.VwsStatus do
   """
   @spec actuate(workstation, [action], timeout) :: :ok | {:error, String.t()}
   def actuate(ws, actions, timeout \\ 5_000) do
-    GenServer.call(Vws.CEC.Partition.via(ws, :vws_status), {:actuate, actions}, timeout)
+    GenServer.call(
+      Vws.CEC.Partition.via(ws, :vws_status),
+      {:actuate, actions, deadline(timeout)},
+      timeout
+    )
   catch
     :exit, {:timeout, _} -> {:error, "#{@device} NOT ANSWERING (NO ANSWER IN #{timeout} MS)"}
     :exit, _ -> {:error, "VWS_STATUS NOT RUNNING"}
@@ -260,13 +273,17 @@ defmodule Vws.Partitions.VwsStatus do
     # VWS_STATUS holds the press and lets it go, whatever becomes of the caller
     GenServer.call(
       Vws.CEC.Partition.via(ws, :vws_status),
-      {:push, relay, pulse_ms},
+      {:push, relay, pulse_ms, deadline(pulse_ms + 2 * timeout)},
       pulse_ms + 2 * timeout
     )
   catch
     :exit, {:timeout, _} -> {:error, "#{@device} NOT ANSWERING (NO ANSWER IN #{timeout} MS)"}
     :exit, _ -> {:error, "VWS_STATUS NOT RUNNING"}
   end
+
+  # when the caller stops waiting for its answer (monotonic ms)
+  defp deadline(:infinity), do: :infinity
+  defp deadline(timeout), do: System.monotonic_time(:millisecond) + timeout
 
   @doc """
   The function MONARCH's CYCLE_START calls (`ctx.options[:cycle_start]`): presses the
@@ -388,7 +405,10 @@ defmodule Vws.Partitions.VwsStatus do
         max_period_ms: Keyword.fetch!(opts, :max_period_ms),
         next_slot: now + poll_ms,
         poll: nil,
-        actuations: [],
+        # the actuation on the bus (all its tries) and those waiting for it: one at a time, so
+        # that each one's whole-slot expectation is the slot's (see "Actuators")
+        actuation: nil,
+        waiting: :queue.new(),
         # buttons whose release is not confirmed (a predecessor may have held one: all of
         # them at start), and how many releases are on their way
         unreleased: Sensors.buttons(Keyword.get(opts, :daq, [])),
@@ -415,10 +435,10 @@ defmodule Vws.Partitions.VwsStatus do
   end
 
   @impl true
-  def handle_call({:actuate, _actions}, _from, %{link: nil} = s),
+  def handle_call({:actuate, _actions, _deadline}, _from, %{link: nil} = s),
     do: {:reply, {:error, "NO LINK TO #{@device}"}, s}
 
-  def handle_call({:actuate, actions}, from, s) do
+  def handle_call({:actuate, actions, deadline}, from, s) do
     case DAQ.actuation(s.daq, actions) do
       {:error, {:unknown_actuator, who}} ->
         {:reply, {:error, "UNKNOWN ACTUATOR #{Vws.Codecs.WC.Words.of(who)}"}, s}
@@ -427,14 +447,14 @@ defmodule Vws.Partitions.VwsStatus do
         {:reply, :ok, s}
 
       {:ok, commands, expected} ->
-        {:noreply, request(s, commands, expected, from)}
+        {:noreply, request(s, commands, expected, from, latest_start(s, deadline, 0))}
     end
   end
 
-  def handle_call({:push, _relay, _pulse_ms}, _from, %{link: nil} = s),
+  def handle_call({:push, _relay, _pulse_ms, _deadline}, _from, %{link: nil} = s),
     do: {:reply, {:error, "NO LINK TO #{@device}"}, s}
 
-  def handle_call({:push, relay, pulse_ms}, from, s) do
+  def handle_call({:push, relay, pulse_ms, deadline}, from, s) do
     case DAQ.actuation(s.daq, [{relay, :close}]) do
       {:error, {:unknown_actuator, who}} ->
         {:reply, {:error, "UNKNOWN ACTUATOR #{Vws.Codecs.WC.Words.of(who)}"}, s}
@@ -442,7 +462,9 @@ defmodule Vws.Partitions.VwsStatus do
       {:ok, commands, expected} ->
         # this press is let go at its own time: an earlier release must not cut it short
         s = %{s | unreleased: MapSet.delete(s.unreleased, relay)}
-        {:noreply, request(s, commands, expected, {:pressed, relay, pulse_ms, from})}
+        # the caller also waits for the pulse and the release
+        latest = latest_start(s, deadline, pulse_ms + (@actuation_retries + 1) * s.timeout_ms)
+        {:noreply, request(s, commands, expected, {:pressed, relay, pulse_ms, from}, latest)}
     end
   end
 
@@ -670,46 +692,82 @@ defmodule Vws.Partitions.VwsStatus do
 
   ## Actuations
 
+  # One actuation of the slot at a time, with all its tries: each one's expectation — every
+  # relay it does not command as the reads before its write found it, and a correction's whole
+  # slot — then holds until it ends. Two in flight at once, a correction of one (after a
+  # damaged line) would find the other's relay "not as commanded" and set it back.
+  defp request(s, commands, expected, from, latest_start, counter \\ :actuations) do
+    s = update_in(s.stats[counter], &(&1 + 1))
+
+    if s.actuation == nil,
+      do: send_actuation(s, {commands, expected, 1}, from),
+      else: %{s | waiting: :queue.in({commands, expected, from, latest_start}, s.waiting)}
+  end
+
+  # The latest moment (monotonic ms) an actuation may start after waiting for others: its
+  # caller must still be waiting when its tries (and `after_ms` more) have had their time.
+  defp latest_start(_s, :infinity, _after_ms), do: :infinity
+
+  defp latest_start(s, deadline, after_ms),
+    do: deadline - (@actuation_retries + 1) * s.timeout_ms - after_ms
+
+  defp next_actuation(%{actuation: nil} = s) do
+    case :queue.out(s.waiting) do
+      {:empty, _} ->
+        s
+
+      {{:value, {commands, expected, from, latest_start}}, waiting} ->
+        s = %{s | waiting: waiting}
+
+        # one that waited too long is never sent: its caller could give up before its end
+        if latest_start == :infinity or System.monotonic_time(:millisecond) <= latest_start do
+          send_actuation(s, {commands, expected, 1}, from)
+        else
+          next_actuation(actuated(from, {:error, "#{@device} RELAYS BUSY"}, s))
+        end
+    end
+  end
+
+  defp next_actuation(s), do: s
+
   defp send_actuation(s, {commands, _expected, _try} = act, from) do
     req = HPIB.send_request(s.link, commands, s.timeout_ms)
-    %{s | actuations: [{req, from, act} | s.actuations]}
+    %{s | actuation: {req, from, act}}
   end
 
   defp actuation_reply(msg, s) do
-    Enum.reduce_while(s.actuations, :no_reply, fn {req, _from, {_, expected, _}} = a, _ ->
-      case HPIB.check_response(msg, req) do
-        :no_reply -> {:cont, :no_reply}
-        result -> {:halt, {a, Sensors.actuation_result(result, expected)}}
-      end
-    end)
-    |> case do
-      :no_reply ->
+    with {req, _from, {_, expected, _}} = a <- s.actuation,
+         result when result != :no_reply <- HPIB.check_response(msg, req) do
+      actuation_result(a, Sensors.actuation_result(result, expected), s)
+    else
+      _ ->
         Logger.debug("VWS_STATUS: unexpected message #{inspect(msg, limit: 10)}")
         s
-
-      {{_req, from, {_commands, expected, try}} = a, {:error, failure}}
-      when is_tuple(failure) and elem(failure, 0) in [:relays, :damaged] and
-             try <= @actuation_retries ->
-        Vws.Telemetry.execute([:vws, :vws_status, :actuation_retry], %{count: 1}, %{
-          workstation: s.workstation,
-          reason: elem(failure, 1),
-          try: try
-        })
-
-        s = %{s | actuations: List.delete(s.actuations, a)}
-        {commands, expected} = retry(failure, expected)
-        send_actuation(s, {commands, expected, try + 1}, from)
-
-      {{_req, from, _act} = a, reply} ->
-        reply =
-          case reply do
-            {:error, {:relays, why, _results}} -> {:error, why}
-            {:error, {:damaged, why}} -> {:error, why}
-            other -> other
-          end
-
-        actuated(from, reply, %{s | actuations: List.delete(s.actuations, a)})
     end
+  end
+
+  defp actuation_result({_req, from, {_commands, expected, try}}, {:error, failure}, s)
+       when is_tuple(failure) and elem(failure, 0) in [:relays, :damaged] and
+              try <= @actuation_retries do
+    Vws.Telemetry.execute([:vws, :vws_status, :actuation_retry], %{count: 1}, %{
+      workstation: s.workstation,
+      reason: elem(failure, 1),
+      try: try
+    })
+
+    {commands, expected} = retry(failure, expected)
+    send_actuation(s, {commands, expected, try + 1}, from)
+  end
+
+  defp actuation_result({_req, from, _act}, reply, s) do
+    reply =
+      case reply do
+        {:error, {:relays, why, _results}} -> {:error, why}
+        {:error, {:damaged, why}} -> {:error, why}
+        other -> other
+      end
+
+    next_actuation(actuated(from, reply, %{s | actuation: nil}))
   end
 
   # The transaction after a failed one. A relay of the slot not as intended (the command or
@@ -724,16 +782,12 @@ defmodule Vws.Partitions.VwsStatus do
 
   defp retry({:damaged, _why}, expected), do: {DAQ.recheck(expected), expected}
 
-  defp request(s, commands, expected, from, counter \\ :actuations) do
-    s = update_in(s.stats[counter], &(&1 + 1))
-    send_actuation(s, {commands, expected, 1}, from)
-  end
-
   # The relays to let go: `caller` (or nil) is told how it went.
   defp release(s, relays, caller) do
     {:ok, commands, expected} = DAQ.actuation(s.daq, Enum.map(relays, &{&1, :open}))
-    s = request(s, commands, expected, {:released, relays, caller}, :releases)
-    %{s | releasing: s.releasing + 1}
+    # counted before it is sent: it may end at once, with nothing before it
+    s = %{s | releasing: s.releasing + 1}
+    request(s, commands, expected, {:released, relays, caller}, :infinity, :releases)
   end
 
   # A press confirmed is let go after its pulse; one that failed may have half-happened.

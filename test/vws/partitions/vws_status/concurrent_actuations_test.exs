@@ -1,0 +1,194 @@
+defmodule Vws.Partitions.VwsStatus.ConcurrentActuationsTest do
+  @moduledoc """
+  Several actuations of DAQ #1's slot asked at once (GRIPPER, VACUUM, a tray lock, a button: each
+  partition asks on its own), with a relay write damaged on the line. Each actuation's intended
+  state is the whole slot as it read it; two on the bus at once, the correction of the damaged
+  one found the other's relay "not as commanded" and set it back, after the other had been
+  confirmed `:ok` (the plant then held a relay not as any command left it).
+  """
+  use ExUnit.Case, async: true
+  use Vws.PropCase
+
+  alias Vws.Partitions.VwsStatus
+  alias Vws.Sim.{DAQ, Plant}
+  alias Vws.Test.{FlipRelay, Workstation}
+  import Vws.Test.Eventually
+
+  @slot Enum.to_list(201..210)
+  # the slot before: the gripper's open solenoid and the vise's open valve on
+  @before [201, 205]
+
+  setup do
+    plant = start_supervised!({Plant, time_scale: 0})
+    daq = start_supervised!({DAQ, plant: plant})
+    {:ok, relay} = FlipRelay.start_link(DAQ.endpoint(daq))
+
+    %{ws: ws} =
+      Workstation.start(
+        devices: [
+          daq1: [
+            endpoint: FlipRelay.endpoint(relay),
+            # no polls (and no start-up release of the button): the traffic is the actuations'
+            vws_status: [poll_ms: 600_000, timeout_ms: 300]
+          ]
+        ]
+      )
+
+    assert eventually(fn -> VwsStatus.actuate(ws, []) == :ok and connected?(ws) end)
+    pid = GenServer.whereis(Vws.CEC.Partition.via(ws, :vws_status))
+    handler = "concurrent-actuations-#{ws}"
+    test_pid = self()
+
+    :ok =
+      Vws.Telemetry.attach(
+        handler,
+        [:vws, :vws_status, :actuation_retry],
+        fn _, _, md, _ ->
+          if md.workstation == ws, do: send(test_pid, {:actuation_retry, md.reason, md.try})
+        end,
+        nil
+      )
+
+    on_exit(fn -> Vws.Telemetry.detach(handler) end)
+    %{ws: ws, plant: plant, relay: relay, pid: pid}
+  end
+
+  defp connected?(ws), do: VwsStatus.stats(ws)[:link] != nil
+
+  # The slot set to @before on the plant itself.
+  defp reset(plant) do
+    for ch <- @slot do
+      if ch in @before,
+        do: :ok = Plant.close_channel(plant, {:daq1, ch}),
+        else: :ok = Plant.open_channel(plant, {:daq1, ch})
+    end
+  end
+
+  defp closed(plant), do: for({:daq1, ch} <- Plant.snapshot(plant).relays, ch in @slot, do: ch)
+
+  # Only the first write line naming channel `ch` is damaged: its last digit one bit off
+  # (`(@207)` → `(@206)`), as a flip on the line does.
+  defp damage_first_write(relay, ch) do
+    once = :atomics.new(1, [])
+    pattern = ~r/^ROUT:(CLOS|OPEN) \(@#{ch}\)$/
+
+    FlipRelay.plan(
+      relay,
+      {:lines,
+       [
+         {:to_target, pattern,
+          fn line ->
+            if :atomics.add_get(once, 1, 1) == 1,
+              do: FlipRelay.flip(line, byte_size(line) - 2, 0),
+              else: line
+          end}
+       ]}
+    )
+  end
+
+  # Every actuation of `actions` asked of VWS_STATUS before it handles the first: each is in
+  # flight before any answer comes back. Returns their results in order.
+  defp at_once(ctx, actions) do
+    :ok = :sys.suspend(ctx.pid)
+
+    tasks =
+      try do
+        for {a, n} <- Enum.with_index(actions, 1) do
+          task = Task.async(fn -> VwsStatus.actuate(ctx.ws, a) end)
+          # in the order given: this one's call is in the mailbox before the next is made
+          assert eventually(fn -> calls(ctx.pid) == n end)
+          task
+        end
+      after
+        :ok = :sys.resume(ctx.pid)
+      end
+
+    Enum.map(tasks, &Task.await(&1, 15_000))
+  end
+
+  defp calls(pid) do
+    {:messages, msgs} = Process.info(pid, :messages)
+
+    Enum.count(msgs, fn
+      {:"$gen_call", _from, request} when is_tuple(request) -> elem(request, 0) == :actuate
+      _other -> false
+    end)
+  end
+
+  test "a damaged write's correction never sets back another actuation's relay", ctx do
+    reset(ctx.plant)
+    damage_first_write(ctx.relay, 207)
+
+    # VACUUM's relay (its write arrives as 206) and the indexer's, asked at once
+    assert at_once(ctx, [[vacuum_motor: :close], [indexer_bit0: :close]]) == [:ok, :ok]
+    assert closed(ctx.plant) == Enum.sort([203, 207 | @before])
+
+    # the only relay corrected is the one the damaged write set: never the indexer's
+    assert_received {:actuation_retry, "RELAY 206 NOT AS COMMANDED", 1}
+    refute_received {:actuation_retry, _, _}
+  end
+
+  test "a correction never opens a relay another actuation closed meanwhile", ctx do
+    reset(ctx.plant)
+    damage_first_write(ctx.relay, 209)
+
+    # tray 2's lock (its write arrives as 208: tray 1's lock) and tray 1's lock, asked at once:
+    # the correction of the first opens 208 again, which the second has closed since
+    assert at_once(ctx, [[tray2_lock: :close], [tray1_lock: :close]]) == [:ok, :ok]
+    assert closed(ctx.plant) == Enum.sort([208, 209 | @before])
+    assert_received {:actuation_retry, "RELAY 208 NOT AS COMMANDED", 1}
+    refute_received {:actuation_retry, _, _}
+  end
+
+  # Random sets of actuations of distinct relays, asked at once, the first write of one of them
+  # damaged: every one that ends `:ok` left its relay as commanded; when all end `:ok`, every
+  # other relay of the slot is as it was; an error is words.
+  test "property: concurrent actuations of one slot, one write damaged", ctx do
+    pick = :proper_types.tuple([:proper_types.range(202, 209), :proper_types.boolean()])
+    # two distinct relays at least: the second one `d` channels after the first, round the slot
+    picks =
+      :proper_types.tuple([
+        pick,
+        :proper_types.range(1, 7),
+        :proper_types.boolean(),
+        :proper_types.list(pick)
+      ])
+
+    assert_property(
+      :proper.forall({picks, :proper_types.range(0, 3)}, fn {{{c1, b1}, d, b2, rest}, damaged} ->
+        c2 = 202 + rem(c1 - 202 + d, 8)
+        checked(fn -> concurrent_ok?(ctx, [{c1, b1}, {c2, b2} | rest], damaged) end)
+      end),
+      60
+    )
+  end
+
+  defp concurrent_ok?(ctx, picks, damaged) do
+    picks = picks |> Enum.uniq_by(&elem(&1, 0)) |> Enum.take(4)
+    reset(ctx.plant)
+    asked = for {ch, close?} <- picks, do: [{ch, if(close?, do: :close, else: :open)}]
+    {ch, _} = Enum.at(picks, rem(damaged, length(picks)))
+    damage_first_write(ctx.relay, ch)
+    results = at_once(ctx, asked)
+    now = closed(ctx.plant)
+    flush_retries()
+
+    commanded =
+      for {[{ch, how}], :ok} <- Enum.zip(asked, results), do: ch in now == (how == :close)
+
+    untouched = @slot -- Enum.map(picks, &elem(&1, 0))
+
+    Enum.all?(commanded) and
+      (Enum.any?(results, &(&1 != :ok)) or
+         Enum.all?(untouched, &(&1 in now == &1 in @before))) and
+      Enum.all?(results, &(&1 == :ok or match?({:error, "RELAY " <> _}, &1)))
+  end
+
+  defp flush_retries do
+    receive do
+      {:actuation_retry, _, _} -> flush_retries()
+    after
+      0 -> :ok
+    end
+  end
+end
