@@ -40,7 +40,11 @@ defmodule Vws.Partitions.VwsStatus do
   channel map) to open or close. VWS_STATUS sends them on the same HPIB device as its polls,
   opens before it closes, and confirms the relays with `ROUT:CLOS?` before it answers `:ok`; a
   relay that does not read back as commanded is set and read again (at most twice, counted in
-  telemetry), as the command or its answer may have been damaged on the line. A
+  telemetry), as the command or its answer may have been damaged on the line. An answer
+  missing or damaged even after the bus's own tries counts as a try: the slot is read again
+  and a relay set again only if it is not as intended (never written blindly). So a third try
+  that only reads can find the relay still not set; it then says what kept it from being set:
+  `RELAY 209 NOT AS COMMANDED AFTER DAQ #1 NOT ANSWERING (NO ANSWER IN 1000 MS)`. A
   reading taken after that has `requested_at` later than the moment `actuate/3` returned, which
   is what `await/4` waits for.
 
@@ -700,7 +704,7 @@ defmodule Vws.Partitions.VwsStatus do
     s = update_in(s.stats[counter], &(&1 + 1))
 
     if s.actuation == nil,
-      do: send_actuation(s, {commands, expected, 1}, from),
+      do: send_actuation(s, {commands, expected, 1, nil}, from),
       else: %{s | waiting: :queue.in({commands, expected, from, latest_start}, s.waiting)}
   end
 
@@ -721,7 +725,7 @@ defmodule Vws.Partitions.VwsStatus do
 
         # one that waited too long is never sent: its caller could give up before its end
         if latest_start == :infinity or System.monotonic_time(:millisecond) <= latest_start do
-          send_actuation(s, {commands, expected, 1}, from)
+          send_actuation(s, {commands, expected, 1, nil}, from)
         else
           next_actuation(actuated(from, {:error, "#{@device} RELAYS BUSY"}, s))
         end
@@ -730,13 +734,15 @@ defmodule Vws.Partitions.VwsStatus do
 
   defp next_actuation(s), do: s
 
-  defp send_actuation(s, {commands, _expected, _try} = act, from) do
+  # `act`: `{commands, expected, try, unanswered}` — `unanswered`, the reason the try before
+  # failed when its answers were missing or damaged (this one then only reads the slot)
+  defp send_actuation(s, {commands, _expected, _try, _unanswered} = act, from) do
     req = HPIB.send_request(s.link, commands, s.timeout_ms)
     %{s | actuation: {req, from, act}}
   end
 
   defp actuation_reply(msg, s) do
-    with {req, _from, {_, expected, _}} = a <- s.actuation,
+    with {req, _from, {_, expected, _, _}} = a <- s.actuation,
          result when result != :no_reply <- HPIB.check_response(msg, req) do
       actuation_result(a, Sensors.actuation_result(result, expected), s)
     else
@@ -746,7 +752,7 @@ defmodule Vws.Partitions.VwsStatus do
     end
   end
 
-  defp actuation_result({_req, from, {_commands, expected, try}}, {:error, failure}, s)
+  defp actuation_result({_req, from, {_commands, expected, try, _}}, {:error, failure}, s)
        when is_tuple(failure) and elem(failure, 0) in [:relays, :damaged] and
               try <= @actuation_retries do
     Vws.Telemetry.execute([:vws, :vws_status, :actuation_retry], %{count: 1}, %{
@@ -756,15 +762,25 @@ defmodule Vws.Partitions.VwsStatus do
     })
 
     {commands, expected} = retry(failure, expected)
-    send_actuation(s, {commands, expected, try + 1}, from)
+    unanswered = if elem(failure, 0) == :damaged, do: elem(failure, 1)
+    send_actuation(s, {commands, expected, try + 1, unanswered}, from)
   end
 
-  defp actuation_result({_req, from, _act}, reply, s) do
+  defp actuation_result({_req, from, {_, _, _, unanswered}}, reply, s) do
     reply =
       case reply do
-        {:error, {:relays, why, _results}} -> {:error, why}
-        {:error, {:damaged, why}} -> {:error, why}
-        other -> other
+        # the last try could only read: it says why it could not set the relay right
+        {:error, {:relays, why, _results}} when unanswered != nil ->
+          {:error, "#{why} AFTER #{unanswered}"}
+
+        {:error, {:relays, why, _results}} ->
+          {:error, why}
+
+        {:error, {:damaged, why}} ->
+          {:error, why}
+
+        other ->
+          other
       end
 
     next_actuation(actuated(from, reply, %{s | actuation: nil}))
@@ -785,9 +801,8 @@ defmodule Vws.Partitions.VwsStatus do
   # The relays to let go: `caller` (or nil) is told how it went.
   defp release(s, relays, caller) do
     {:ok, commands, expected} = DAQ.actuation(s.daq, Enum.map(relays, &{&1, :open}))
-    # counted before it is sent: it may end at once, with nothing before it
-    s = %{s | releasing: s.releasing + 1}
-    request(s, commands, expected, {:released, relays, caller}, :infinity, :releases)
+    s = request(s, commands, expected, {:released, relays, caller}, :infinity, :releases)
+    %{s | releasing: s.releasing + 1}
   end
 
   # A press confirmed is let go after its pulse; one that failed may have half-happened.

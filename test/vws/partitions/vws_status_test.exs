@@ -351,6 +351,58 @@ defmodule Vws.Partitions.VwsStatusTest do
     end
   end
 
+  describe "a write whose answers are missing" do
+    # Rule 2b's flake (RulesTest, a loaded suite): DAQ #1 answered neither the tray lock's write
+    # nor the read after it; the third try, a read, found the relay open and said only RELAY 209
+    # NOT AS COMMANDED, which read like a read-back disagreement.
+    test "a third try that can only read says why the relay could not be set" do
+      plant = start_supervised!({Plant, time_scale: 0})
+      daq = start_supervised!({DAQ, plant: plant})
+
+      %{ws: ws} =
+        Workstation.start(
+          devices: [
+            daq1: [endpoint: DAQ.endpoint(daq), vws_status: [poll_ms: 600_000, timeout_ms: 100]]
+          ]
+        )
+
+      assert eventually(fn -> VwsStatus.stats(ws)[:link] != nil end)
+      handler = "unanswered-#{ws}"
+      test_pid = self()
+
+      # the DAQ takes every line and answers none until the second try has failed
+      :ok =
+        Vws.Telemetry.attach(
+          handler,
+          [:vws, :vws_status, :actuation_retry],
+          fn _, _, md, _ ->
+            if md.workstation == ws do
+              send(test_pid, {:actuation_retry, md.reason, md.try})
+              if md.try == 2, do: :ok = DAQ.set_fault(daq, :none)
+            end
+          end,
+          nil
+        )
+
+      on_exit(fn -> Vws.Telemetry.detach(handler) end)
+      :ok = DAQ.set_fault(daq, :mute)
+
+      assert VwsStatus.actuate(ws, tray2_lock: :close) ==
+               {:error,
+                "RELAY 209 NOT AS COMMANDED AFTER DAQ #1 NOT ANSWERING (NO ANSWER IN 100 MS)"}
+
+      for try <- 1..2,
+          do:
+            assert_received(
+              {:actuation_retry, "DAQ #1 NOT ANSWERING (NO ANSWER IN 100 MS)", ^try}
+            )
+
+      # nothing was written after the mute DAQ dropped the write: the relay is as it was
+      refute {:daq1, 209} in Plant.snapshot(plant).relays
+      assert VwsStatus.actuate(ws, tray2_lock: :close) == :ok
+    end
+  end
+
   describe "a relay that does not read back as commanded (a command or answer damaged)" do
     # the test plays DAQ #1 on a loopback endpoint; VWS_STATUS does not poll in the meantime
     defp fake_daq1 do

@@ -50,7 +50,7 @@ defmodule Vws.Partitions.VwsStatus.ConcurrentActuationsTest do
       )
 
     on_exit(fn -> Vws.Telemetry.detach(handler) end)
-    %{ws: ws, plant: plant, relay: relay, pid: pid}
+    %{ws: ws, plant: plant, daq: daq, relay: relay, pid: pid}
   end
 
   defp connected?(ws), do: VwsStatus.stats(ws)[:link] != nil
@@ -138,6 +138,39 @@ defmodule Vws.Partitions.VwsStatus.ConcurrentActuationsTest do
     assert closed(ctx.plant) == Enum.sort([208, 209 | @before])
     assert_received {:actuation_retry, "RELAY 208 NOT AS COMMANDED", 1}
     refute_received {:actuation_retry, _, _}
+  end
+
+  test "one that waited so long that its caller would give up before its tries end is never sent",
+       ctx do
+    reset(ctx.plant)
+    test_pid = self()
+
+    :ok =
+      FlipRelay.plan(
+        ctx.relay,
+        {:lines, [{:to_target, ~r/^ROUT:CLOS \(@203\)$/, &(send(test_pid, :indexer_sent) && &1)}]}
+      )
+
+    # VACUUM's relay against a DAQ that takes every line and answers none: three tries of
+    # 300 ms (`timeout_ms`) before it ends; the indexer's, asked meanwhile by a caller who waits
+    # 1350 ms, would need 900 ms of its own after that
+    :ok = DAQ.set_fault(ctx.daq, :mute)
+    :ok = :sys.suspend(ctx.pid)
+    vacuum = Task.async(fn -> VwsStatus.actuate(ctx.ws, [vacuum_motor: :close], 5_000) end)
+    assert eventually(fn -> calls(ctx.pid) == 1 end)
+    indexer = Task.async(fn -> VwsStatus.actuate(ctx.ws, [indexer_bit0: :close], 1_350) end)
+    assert eventually(fn -> calls(ctx.pid) == 2 end)
+    :ok = :sys.resume(ctx.pid)
+
+    assert {:error, "DAQ #1 NOT ANSWERING" <> _} = Task.await(vacuum, 10_000)
+    assert Task.await(indexer, 10_000) == {:error, "DAQ #1 RELAYS BUSY"}
+    refute_received :indexer_sent
+
+    # the next one asked is served
+    :ok = DAQ.set_fault(ctx.daq, :none)
+    assert VwsStatus.actuate(ctx.ws, indexer_bit0: :close) == :ok
+    assert_received :indexer_sent
+    assert 203 in closed(ctx.plant)
   end
 
   # Random sets of actuations of distinct relays, asked at once, the first write of one of them
