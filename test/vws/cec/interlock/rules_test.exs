@@ -267,7 +267,14 @@ defmodule Vws.CEC.Interlock.RulesTest do
     end
 
     test "a locked relay refuses the MHS even when the lease is free", %{f: f} do
-      :ok = Vws.Partitions.VwsStatus.tray_lock(f.ws, 2, :lock, 500)
+      # locked as many times as a loaded machine needs (a DAQ #1 that answered neither the
+      # write nor the read after it ended one lock ERROR RELAY 209 NOT AS COMMANDED): what is
+      # tested is the MHS against a locked relay
+      assert SafetyFloor.wait_until(
+               fn -> Vws.Partitions.VwsStatus.tray_lock(f.ws, 2, :lock, 500) == :ok end,
+               10_000
+             )
+
       assert MHS.move(f.mhs, 2, :out) == {:error, "TRAY 2 LOCKED"}
       assert Interlock.held(f.ws) == []
       no_collisions(f)
