@@ -5,7 +5,7 @@ defmodule Vws.Partitions.VwsStatusTest do
   alias Vws.Links.DAQ.Readings
   alias Vws.Partitions.VwsStatus
   alias Vws.Sim.{DAQ, Plant}
-  alias Vws.Test.{DAQFloor, Workstation}
+  alias Vws.Test.{DAQFloor, RelayDAQ, Workstation}
   import Vws.Test.Eventually
 
   @text_locations [1, 2, 3, 4, 5, 7]
@@ -356,35 +356,9 @@ defmodule Vws.Partitions.VwsStatusTest do
     # nor the read after it; the third try, a read, found the relay open and said only RELAY 209
     # NOT AS COMMANDED, which read like a read-back disagreement.
     test "a third try that can only read says why the relay could not be set" do
-      plant = start_supervised!({Plant, time_scale: 0})
-      daq = start_supervised!({DAQ, plant: plant})
-
-      %{ws: ws} =
-        Workstation.start(
-          devices: [
-            daq1: [endpoint: DAQ.endpoint(daq), vws_status: [poll_ms: 600_000, timeout_ms: 100]]
-          ]
-        )
-
-      assert eventually(fn -> VwsStatus.stats(ws)[:link] != nil end)
-      handler = "unanswered-#{ws}"
-      test_pid = self()
-
+      %{ws: ws, plant: plant, daq: daq} = RelayDAQ.start(flip_relay: false, timeout_ms: 100)
       # the DAQ takes every line and answers none until the second try has failed
-      :ok =
-        Vws.Telemetry.attach(
-          handler,
-          [:vws, :vws_status, :actuation_retry],
-          fn _, _, md, _ ->
-            if md.workstation == ws do
-              send(test_pid, {:actuation_retry, md.reason, md.try})
-              if md.try == 2, do: :ok = DAQ.set_fault(daq, :none)
-            end
-          end,
-          nil
-        )
-
-      on_exit(fn -> Vws.Telemetry.detach(handler) end)
+      RelayDAQ.forward_retries(ws, &if(&1.try == 2, do: :ok = DAQ.set_fault(daq, :none)))
       :ok = DAQ.set_fault(daq, :mute)
 
       assert VwsStatus.actuate(ws, tray2_lock: :close) ==
@@ -416,21 +390,7 @@ defmodule Vws.Partitions.VwsStatusTest do
           ]
         )
 
-      # this workstation's retries only (the other tests' workstations retry too)
-      handler = "actuation-retry-#{name}"
-      test_pid = self()
-
-      :ok =
-        Vws.Telemetry.attach(
-          handler,
-          [:vws, :vws_status, :actuation_retry],
-          fn _, _, md, _ ->
-            if md.workstation == ws, do: send(test_pid, {:actuation_retry, md.reason, md.try})
-          end,
-          nil
-        )
-
-      on_exit(fn -> Vws.Telemetry.detach(handler) end)
+      RelayDAQ.forward_retries(ws)
 
       {:ok, conn} = Vws.Links.Transport.accept(listener, 2_000)
       :ok = Vws.Links.Transport.activate(conn)

@@ -18,9 +18,8 @@ for part <- [0, 1] do
     use Vws.PropCase
 
     alias Vws.Partitions.VwsStatus
-    alias Vws.Sim.{DAQ, Plant}
-    alias Vws.Test.{FlipRelay, Workstation}
-    import Vws.Test.Eventually
+    alias Vws.Sim.Plant
+    alias Vws.Test.{FlipRelay, RelayDAQ}
 
     @moduletag timeout: 600_000
 
@@ -28,27 +27,8 @@ for part <- [0, 1] do
     # the slot before each actuation: the gripper's open solenoid and the vise's open valve on
     @before [201, 205]
 
-    setup do
-      plant = start_supervised!({Plant, time_scale: 0})
-      daq = start_supervised!({DAQ, plant: plant})
-      {:ok, relay} = FlipRelay.start_link(DAQ.endpoint(daq))
-
-      %{ws: ws} =
-        Workstation.start(
-          devices: [
-            daq1: [
-              endpoint: FlipRelay.endpoint(relay),
-              # no polls: the traffic is the actuation's alone
-              vws_status: [poll_ms: 600_000, timeout_ms: 150]
-            ]
-          ]
-        )
-
-      assert eventually(fn -> VwsStatus.actuate(ws, []) == :ok and connected?(ws) end)
-      %{ws: ws, plant: plant, relay: relay}
-    end
-
-    defp connected?(ws), do: VwsStatus.stats(ws)[:link] != nil
+    # no polls: the traffic is the actuation's alone
+    setup do: RelayDAQ.start(timeout_ms: 150)
 
     test "V ON: every single-bit flip in every #{if part == 0, do: "even", else: "odd"} byte, both directions",
          ctx do

@@ -11,7 +11,7 @@ defmodule Vws.Partitions.VwsStatus.ConcurrentActuationsTest do
 
   alias Vws.Partitions.VwsStatus
   alias Vws.Sim.{DAQ, Plant}
-  alias Vws.Test.{FlipRelay, Workstation}
+  alias Vws.Test.{FlipRelay, RelayDAQ}
   import Vws.Test.Eventually
 
   @slot Enum.to_list(201..210)
@@ -19,41 +19,10 @@ defmodule Vws.Partitions.VwsStatus.ConcurrentActuationsTest do
   @before [201, 205]
 
   setup do
-    plant = start_supervised!({Plant, time_scale: 0})
-    daq = start_supervised!({DAQ, plant: plant})
-    {:ok, relay} = FlipRelay.start_link(DAQ.endpoint(daq))
-
-    %{ws: ws} =
-      Workstation.start(
-        devices: [
-          daq1: [
-            endpoint: FlipRelay.endpoint(relay),
-            # no polls (and no start-up release of the button): the traffic is the actuations'
-            vws_status: [poll_ms: 600_000, timeout_ms: 300]
-          ]
-        ]
-      )
-
-    assert eventually(fn -> VwsStatus.actuate(ws, []) == :ok and connected?(ws) end)
-    pid = GenServer.whereis(Vws.CEC.Partition.via(ws, :vws_status))
-    handler = "concurrent-actuations-#{ws}"
-    test_pid = self()
-
-    :ok =
-      Vws.Telemetry.attach(
-        handler,
-        [:vws, :vws_status, :actuation_retry],
-        fn _, _, md, _ ->
-          if md.workstation == ws, do: send(test_pid, {:actuation_retry, md.reason, md.try})
-        end,
-        nil
-      )
-
-    on_exit(fn -> Vws.Telemetry.detach(handler) end)
-    %{ws: ws, plant: plant, daq: daq, relay: relay, pid: pid}
+    ctx = RelayDAQ.start(timeout_ms: 300)
+    RelayDAQ.forward_retries(ctx.ws)
+    Map.put(ctx, :pid, GenServer.whereis(Vws.CEC.Partition.via(ctx.ws, :vws_status)))
   end
-
-  defp connected?(ws), do: VwsStatus.stats(ws)[:link] != nil
 
   # The slot set to @before on the plant itself.
   defp reset(plant) do
@@ -115,29 +84,32 @@ defmodule Vws.Partitions.VwsStatus.ConcurrentActuationsTest do
     end)
   end
 
-  test "a damaged write's correction never sets back another actuation's relay", ctx do
-    reset(ctx.plant)
-    damage_first_write(ctx.relay, 207)
-
-    # VACUUM's relay (its write arrives as 206) and the indexer's, asked at once
-    assert at_once(ctx, [[vacuum_motor: :close], [indexer_bit0: :close]]) == [:ok, :ok]
-    assert closed(ctx.plant) == Enum.sort([203, 207 | @before])
-
-    # the only relay corrected is the one the damaged write set: never the indexer's
-    assert_received {:actuation_retry, "RELAY 206 NOT AS COMMANDED", 1}
-    refute_received {:actuation_retry, _, _}
-  end
-
-  test "a correction never opens a relay another actuation closed meanwhile", ctx do
-    reset(ctx.plant)
-    damage_first_write(ctx.relay, 209)
-
-    # tray 2's lock (its write arrives as 208: tray 1's lock) and tray 1's lock, asked at once:
-    # the correction of the first opens 208 again, which the second has closed since
-    assert at_once(ctx, [[tray2_lock: :close], [tray1_lock: :close]]) == [:ok, :ok]
-    assert closed(ctx.plant) == Enum.sort([208, 209 | @before])
-    assert_received {:actuation_retry, "RELAY 208 NOT AS COMMANDED", 1}
-    refute_received {:actuation_retry, _, _}
+  # {what it shows, the relay whose first write is damaged (its last digit one bit off), the
+  # actuations asked at once, the relays closed after, the relay the correction sets right}
+  for {name, damaged, asked, closed, corrected} <- [
+        # VACUUM's relay (its write arrives as 206) and the indexer's: the correction of the
+        # first found 203 "not as commanded" and opened it, the indexer's command confirmed
+        {"a damaged write's correction never sets back another actuation's relay", 207,
+         [[vacuum_motor: :close], [indexer_bit0: :close]], [203, 207], 206},
+        # tray 2's lock (its write arrives as 208: tray 1's lock) and tray 1's lock: the
+        # correction of the first opened 208, which the second had closed since
+        {"a correction never opens a relay another actuation closed meanwhile", 209,
+         [[tray2_lock: :close], [tray1_lock: :close]], [208, 209], 208}
+      ] do
+    @asked asked
+    @closed closed
+    @damaged damaged
+    @corrected corrected
+    test name, ctx do
+      reset(ctx.plant)
+      damage_first_write(ctx.relay, @damaged)
+      assert at_once(ctx, @asked) == [:ok, :ok]
+      assert closed(ctx.plant) == Enum.sort(@closed ++ @before)
+      # the only relay corrected is the one the damaged write set
+      reason = "RELAY #{@corrected} NOT AS COMMANDED"
+      assert_received {:actuation_retry, ^reason, 1}
+      refute_received {:actuation_retry, _, _}
+    end
   end
 
   test "one that waited so long that its caller would give up before its tries end is never sent",
