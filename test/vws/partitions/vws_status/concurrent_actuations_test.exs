@@ -124,13 +124,14 @@ defmodule Vws.Partitions.VwsStatus.ConcurrentActuationsTest do
       )
 
     # VACUUM's relay against a DAQ that takes every line and answers none: three tries of
-    # 300 ms (`timeout_ms`) before it ends; the indexer's, asked meanwhile by a caller who waits
-    # 1350 ms, would need 900 ms of its own after that
+    # 300 ms (`timeout_ms`), at least 900 ms from when VWS_STATUS resumes; the indexer's, asked
+    # before that by a caller who waits 1750 ms, needs 900 ms of its own: it could start no
+    # later than 850 ms after it was asked, and its answer has 850 ms to spare
     :ok = DAQ.set_fault(ctx.daq, :mute)
     :ok = :sys.suspend(ctx.pid)
     vacuum = Task.async(fn -> VwsStatus.actuate(ctx.ws, [vacuum_motor: :close], 5_000) end)
     assert eventually(fn -> calls(ctx.pid) == 1 end)
-    indexer = Task.async(fn -> VwsStatus.actuate(ctx.ws, [indexer_bit0: :close], 1_350) end)
+    indexer = Task.async(fn -> VwsStatus.actuate(ctx.ws, [indexer_bit0: :close], 1_750) end)
     assert eventually(fn -> calls(ctx.pid) == 2 end)
     :ok = :sys.resume(ctx.pid)
 
