@@ -352,14 +352,27 @@ defmodule Vws.Partitions.VwsStatusTest do
   end
 
   describe "a write whose answers are missing" do
-    # Rule 2b's flake (RulesTest, a loaded suite): DAQ #1 answered neither the tray lock's write
-    # nor the read after it; the third try, a read, found the relay open and said only RELAY 209
-    # NOT AS COMMANDED, which read like a read-back disagreement.
+    # What rule 2b's flake (RulesTest, a loaded suite, the bus to DAQ #1 giving up on a request
+    # after 1000 ms) most likely was: the tray lock's write never took effect and neither it nor
+    # the read after it was answered; the third try, a read, found the relay open and said only
+    # RELAY 209 NOT AS COMMANDED, which read like a read-back disagreement.
     test "a third try that can only read says why the relay could not be set" do
-      %{ws: ws, plant: plant, daq: daq} = RelayDAQ.start(flip_relay: false, timeout_ms: 100)
-      # the DAQ takes every line and answers none until the second try has failed
-      RelayDAQ.forward_retries(ws, &if(&1.try == 2, do: :ok = DAQ.set_fault(daq, :none)))
-      :ok = DAQ.set_fault(daq, :mute)
+      %{ws: ws, plant: plant, relay: relay} = RelayDAQ.start(timeout_ms: 100)
+      through = :atomics.new(1, [])
+
+      # on the line to the DAQ, the tray lock's write is lost, and every other line too until
+      # the second try has failed (a line sent before that and carried late cannot set the relay)
+      :ok =
+        Vws.Test.FlipRelay.plan(
+          relay,
+          {:lines,
+           [
+             {:to_target, ~r/^ROUT:CLOS \(@209\)$/, fn _ -> "" end},
+             {:to_target, ~r//, &if(:atomics.get(through, 1) == 1, do: &1, else: "")}
+           ]}
+        )
+
+      RelayDAQ.forward_retries(ws, &if(&1.try == 2, do: :atomics.put(through, 1, 1)))
 
       assert VwsStatus.actuate(ws, tray2_lock: :close) ==
                {:error,
@@ -371,9 +384,10 @@ defmodule Vws.Partitions.VwsStatusTest do
               {:actuation_retry, "DAQ #1 NOT ANSWERING (NO ANSWER IN 100 MS)", ^try}
             )
 
-      # nothing was written after the mute DAQ dropped the write: the relay is as it was
       refute {:daq1, 209} in Plant.snapshot(plant).relays
+      :ok = Vws.Test.FlipRelay.plan(relay, :none)
       assert VwsStatus.actuate(ws, tray2_lock: :close) == :ok
+      assert {:daq1, 209} in Plant.snapshot(plant).relays
     end
   end
 
