@@ -57,7 +57,9 @@
 # tasks beside every process, and with the agent, the admission server and the state snapshot at
 # low priority, the WC's p99 beside VWS is 2.8–6.5 ms against 2.2–4.2 ms beside the churn served
 # in another OS process (ratio median 1.1, 0.75–2.7; 13 ms against the lean in-node sink's 5.6
-# before the change); its max is 2–4 times the control's.
+# before the change); its max is 2–4 times the control's. With the connection supervisor at low
+# priority too (6 runs, load 4.6–7): p99 2.5–5.2 ms against the control's 2.4–3.5 ms, the ratio
+# 0.88–1.05 in five runs and 1.69 in one; max 24–67 ms against 7–22 ms.
 
 Code.require_file("support.exs", __DIR__)
 Logger.configure(level: :error)

@@ -119,7 +119,8 @@ defmodule Vws.Ops.Web do
       # the connections are counted and bounded by the server's admission (Vws.Ops.Web.Clients),
       # which closes idle ones to make room: a closed one may not be reaped yet when the next
       # starts, hence the margin; this bound is only a backstop
-      {Task.Supervisor, name: connections, max_children: 2 * max},
+      # (at low priority, as the connections and the agent: HTTP work yields to the workstations)
+      {Task.Supervisor, name: connections, max_children: 2 * max, spawn_opt: [priority: :low]},
       {Vws.Ops.Web.Server,
        [ref: ref, agent: agent, snapshot: snapshot, connections: connections] ++ opts},
       # last: were it to fail, the listener (and its port) stays as it is

@@ -61,8 +61,9 @@ defmodule Vws.Ops.Web.Server do
   low-priority processes, where with the default `inet_drv` they are port tasks, scheduled beside
   every process whatever its priority. Under 2,000 hostile sockets coming and going that is the
   difference between the WC's p99 at 3–4 times that of a listener in another OS process and at
-  about the same (`bench/http_hostile.exs`); the MTConnect agent and the admission server
-  (`Vws.Ops.Web.Clients`) run at low priority for the same reason.
+  about the same (`bench/http_hostile.exs`); the MTConnect agent, the admission server
+  (`Vws.Ops.Web.Clients`), the state snapshot and the connections' supervisor run at low priority
+  for the same reason.
   """
   use GenServer
   require Logger
