@@ -53,13 +53,16 @@
 # priority did not change the ratio, nor did `+sbwt none`, while the sockets were inet_drv ports.
 #
 # Then (2026-11-27, later, load 1.5–4.5, 12 runs): with the web server's sockets on OTP's socket
-# backend, their work is done inside the low-priority connection processes rather than as port
-# tasks beside every process, and with the agent, the admission server and the state snapshot at
+# backend, their work is done by processes (each socket's gen_tcp_socket server, the connection
+# writing) rather than as port tasks beside every process, and with the agent, the admission server and the state snapshot at
 # low priority, the WC's p99 beside VWS is 2.8–6.5 ms against 2.2–4.2 ms beside the churn served
 # in another OS process (ratio median 1.1, 0.75–2.7; 13 ms against the lean in-node sink's 5.6
 # before the change); its max is 2–4 times the control's. With the connection supervisor at low
 # priority too (6 runs, load 4.6–7): p99 2.5–5.2 ms against the control's 2.4–3.5 ms, the ratio
-# 0.88–1.05 in five runs and 1.69 in one; max 24–67 ms against 7–22 ms.
+# 0.88–1.05 in five runs and 1.69 in one; max 24–67 ms against 7–22 ms. An
+# :erlang.system_monitor run (long_schedule 5 ms) showed the gen_tcp_socket servers (normal
+# priority) and the agent among the processes running longest at a stretch, on a host 95–98 %
+# busy, where the OS also preempts the node's scheduler threads.
 
 Code.require_file("support.exs", __DIR__)
 Logger.configure(level: :error)

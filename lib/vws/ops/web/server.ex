@@ -57,9 +57,10 @@ defmodule Vws.Ops.Web.Server do
   (`Vws.Ops.Web.Conn`). Acceptors and connections run at low process priority, so the
   workstations' own processes — SUN_COMM answering its WC first of all — are scheduled before any
   HTTP work (`bench/http_load.exs` measures it). Their sockets use OTP's socket backend
-  (`inet_backend: :socket`): accepting, reading, writing and closing are NIF calls made by those
-  low-priority processes, where with the default `inet_drv` they are port tasks, scheduled beside
-  every process whatever its priority. Under 2,000 hostile sockets coming and going that is the
+  (`inet_backend: :socket`): accepting, reading, writing and closing are NIF calls made by
+  processes — each socket's own `gen_tcp_socket` server (at normal priority: OTP starts it) and
+  the connection writing — where with the default `inet_drv` they are port tasks, scheduled
+  beside every process and outside the reductions that share a scheduler among processes. Under 2,000 hostile sockets coming and going that is the
   difference between the WC's p99 at 3–4 times that of a listener in another OS process and at
   about the same (`bench/http_hostile.exs`); the MTConnect agent, the admission server
   (`Vws.Ops.Web.Clients`), the state snapshot and the connections' supervisor run at low priority
