@@ -31,11 +31,17 @@ defmodule Vws.Ops.LogFileTest do
 
     assert Vws.Test.Eventually.eventually(fn -> File.exists?(path <> ".0") end)
 
-    all =
+    read_all = fn ->
       Enum.map_join(
         [path <> ".1", path <> ".0", path],
         &(File.read(&1) |> elem(1) |> to_string())
       )
+    end
+
+    # (read while the handler rotates, a file is briefly missing: read again until it is back)
+    line_60 = ~r/workstation=VWS-LOG partition=robot \[warning\] line 60 #{marker}/
+    Vws.Test.Eventually.eventually(fn -> read_all.() =~ line_60 end)
+    all = read_all.()
 
     assert all =~ ~r/workstation=VWS-LOG partition=robot \[warning\] line 60 #{marker}/
     refute File.exists?(path <> ".2")
