@@ -15,8 +15,7 @@ defmodule Vws.Test.RelayDAQ do
 
   @doc """
   Starts it: `%{ws, plant, daq, relay}` (`relay` nil without one). Options: `:timeout_ms` of
-  VWS_STATUS (default 150), `:flip_relay` (default true), `:prime` (default true: one actuation
-  first, so that VWS_STATUS knows the slot).
+  VWS_STATUS (default 150), `:flip_relay` (default true).
   """
   def start(opts \\ []) do
     plant = start_supervised!({Plant, time_scale: 0})
@@ -34,11 +33,6 @@ defmodule Vws.Test.RelayDAQ do
 
     unless eventually(fn -> VwsStatus.actuate(ws, []) == :ok and connected?(ws) end),
       do: raise("VWS_STATUS of #{ws} did not come up")
-
-    # one actuation read the slot back, as the start-up release of the buttons does when VWS_STATUS
-    # polls: a first write lost with its answers is held against it (`prime: false`: not yet)
-    if Keyword.get(opts, :prime, true) and VwsStatus.actuate(ws, vacuum_motor: :open) != :ok,
-      do: raise("VWS_STATUS of #{ws} could not read its slot")
 
     %{ws: ws, plant: plant, daq: daq, relay: relay}
   end

@@ -55,13 +55,6 @@ defmodule Vws.Partitions.VwsStatus do
   One that waited behind the others so long that its caller would give up before its tries end
   is never sent: `DAQ #1 RELAYS BUSY`.
 
-  A first write whose answers were lost (the reads before it with them) is checked against the
-  slot as the last actuation that ended `:ok` read it back — VWS_STATUS is DAQ #1's one writer —
-  never against reads made after it: a `ROUT:CLOS (@207)` arriving as `(@206)` would otherwise
-  make 206 closed look intended, and be confirmed. With no such slot (none yet since the start,
-  the last actuation ended in error, or a poll went unanswered), it ends
-  `DAQ #1 RELAYS NOT VERIFIED AFTER <why>`.
-
   `push_button/3` closes a relay briefly (the cycle-start button);
   `cycle_start_fun/2` and `tray_lock_fun/2` build the functions MONARCH and ROBOT are given.
 
@@ -420,9 +413,6 @@ defmodule Vws.Partitions.VwsStatus do
         # that each one's whole-slot expectation is the slot's (see "Actuators")
         actuation: nil,
         waiting: :queue.new(),
-        # DAQ #1's slot as the last actuation that ended :ok read it back (VWS_STATUS is its one
-        # writer), nil when unknown: what a first write lost with its answers is held against
-        slot_read: nil,
         # buttons whose release is not confirmed (a predecessor may have held one: all of
         # them at start), and how many releases are on their way
         unreleased: Sensors.buttons(Keyword.get(opts, :daq, [])),
@@ -615,9 +605,7 @@ defmodule Vws.Partitions.VwsStatus do
           |> put_in([:stats, :consecutive_failures], 0)
 
         {:error, error} ->
-          # an unanswering DAQ may have been restarted, its relays with it: the slot as last
-          # read no longer stands for what is there
-          %{s | slot_read: nil}
+          s
           |> update_stats(failed: 1, consecutive_failures: 1)
           |> put_in([:stats, :last_error], error)
           |> check_stale(div(t0, 1000))
@@ -756,12 +744,7 @@ defmodule Vws.Partitions.VwsStatus do
   defp actuation_reply(msg, s) do
     with {req, _from, {_, expected, _, _}} = a <- s.actuation,
          result when result != :no_reply <- HPIB.check_response(msg, req) do
-      actuation_result(
-        a,
-        Sensors.actuation_result(result, expected),
-        s,
-        slot_read(result, expected)
-      )
+      actuation_result(a, Sensors.actuation_result(result, expected), s)
     else
       _ ->
         Logger.debug("VWS_STATUS: unexpected message #{inspect(msg, limit: 10)}")
@@ -769,18 +752,7 @@ defmodule Vws.Partitions.VwsStatus do
     end
   end
 
-  # A first write whose answers were lost, and the slot before it unknown: reads after it
-  # cannot tell which relays it was meant to leave alone (a flipped `(@207)` may have closed
-  # 206 instead), so nothing can be confirmed.
-  defp actuation_result(
-         {_req, _from, {_, {:write, _, _}, _, _}} = a,
-         {:error, {:damaged, why}},
-         %{slot_read: nil} = s,
-         read
-       ),
-       do: actuation_result(a, {:error, "#{@device} RELAYS NOT VERIFIED AFTER #{why}"}, s, read)
-
-  defp actuation_result({_req, from, {_commands, expected, try, _}}, {:error, failure}, s, _read)
+  defp actuation_result({_req, from, {_commands, expected, try, _}}, {:error, failure}, s)
        when is_tuple(failure) and elem(failure, 0) in [:relays, :damaged] and
               try <= @actuation_retries do
     Vws.Telemetry.execute([:vws, :vws_status, :actuation_retry], %{count: 1}, %{
@@ -789,15 +761,12 @@ defmodule Vws.Partitions.VwsStatus do
       try: try
     })
 
-    {commands, expected} = retry(failure, expected, s.slot_read)
+    {commands, expected} = retry(failure, expected)
     unanswered = if elem(failure, 0) == :damaged, do: elem(failure, 1)
     send_actuation(s, {commands, expected, try + 1, unanswered}, from)
   end
 
-  defp actuation_result({_req, from, {_, _, _, unanswered}}, reply, s, read) do
-    # the slot as this actuation left it, when it ended as intended; otherwise not known
-    s = %{s | slot_read: if(reply == :ok, do: read)}
-
+  defp actuation_result({_req, from, {_, _, _, unanswered}}, reply, s) do
     reply =
       case reply do
         # the last try could only read: it says why it could not set the relay right
@@ -822,33 +791,12 @@ defmodule Vws.Partitions.VwsStatus do
   # slot confirmed again. Answers damaged or missing even after the bus's own tries: the writes
   # may have been done, so the slot is read again (DAQ.recheck/1) and a relay is set again only
   # if those reads show it is not as intended — never written blindly.
-  defp retry({:relays, _why, results}, expected, _known) do
+  defp retry({:relays, _why, results}, expected) do
     {:ok, commands, expected} = DAQ.correction(expected, results)
     {commands, expected}
   end
 
-  # A first write lost with its answers: the relays it did not command are held against the
-  # slot as the last actuation left it (`known`), never against reads made after the write —
-  # those would take a relay the damaged write set wrongly for one meant to be so, and confirm it.
-  defp retry({:damaged, _why}, {:write, slot, commanded}, known) when is_list(known) do
-    commanded = Map.new(commanded)
-    states = for {ch, was} <- Enum.zip(slot, known), do: {ch, Map.get(commanded, ch, was)}
-    {DAQ.recheck({:whole, states}), {:whole, states}}
-  end
-
-  defp retry({:damaged, _why}, expected, _known), do: {DAQ.recheck(expected), expected}
-
-  # The whole slot a transaction's answer read last (nil: not answered, or not the whole slot)
-  defp slot_read({:ok, results}, expected) do
-    last = List.last(results)
-    if is_list(last) and length(last) == slot_size(expected), do: last
-  end
-
-  defp slot_read(_result, _expected), do: nil
-
-  defp slot_size({:write, slot, _commanded}), do: length(slot)
-  defp slot_size({:whole, states}), do: length(states)
-  defp slot_size(_expected), do: -1
+  defp retry({:damaged, _why}, expected), do: {DAQ.recheck(expected), expected}
 
   # The relays to let go: `caller` (or nil) is told how it went.
   defp release(s, relays, caller) do

@@ -393,51 +393,6 @@ defmodule Vws.Partitions.VwsStatusTest do
     end
   end
 
-  describe "a first write damaged and its answers lost" do
-    # `ROUT:CLOS (@207)` arrives as `(@206)` and no answer of that transaction comes back. Before,
-    # the retry read the slot twice and took those reads, made after the wrong write, for the
-    # slot before it: 206 closed became "as intended", 207 was closed, and VACUUM ended :ok with
-    # the indexer's relay closed too (relay_bit_flip_test.exs under a CPU hog).
-    defp lose_first_answer(relay, ws) do
-      through = :atomics.new(1, [])
-
-      :ok =
-        Vws.Test.FlipRelay.plan(
-          relay,
-          {:lines,
-           [
-             {:to_target, ~r/^ROUT:CLOS \(@207\)$/,
-              &if(:atomics.get(through, 1) == 1, do: &1, else: "ROUT:CLOS (@206)")},
-             {:to_client, ~r//, &if(:atomics.get(through, 1) == 1, do: &1, else: "")}
-           ]}
-        )
-
-      RelayDAQ.forward_retries(ws, &if(&1.try == 1, do: :atomics.put(through, 1, 1)))
-    end
-
-    test "the relays it did not command are held against the slot as it was: 206 set right" do
-      %{ws: ws, plant: plant, relay: relay} = RelayDAQ.start(timeout_ms: 300)
-      lose_first_answer(relay, ws)
-
-      assert VwsStatus.actuate(ws, vacuum_motor: :close) == :ok
-      # (the emptied answer lines read as a damaged answer)
-      assert_received {:actuation_retry, "DAQ #1 " <> _, 1}
-      closed = for {:daq1, ch} <- Plant.snapshot(plant).relays, ch in 201..210, do: ch
-      assert closed == [207]
-    end
-
-    test "with the slot not known yet, it ends ERROR in words, never :ok" do
-      %{ws: ws, plant: plant, relay: relay} = RelayDAQ.start(timeout_ms: 300, prime: false)
-      lose_first_answer(relay, ws)
-
-      assert {:error, "DAQ #1 RELAYS NOT VERIFIED AFTER DAQ #1 " <> _} =
-               VwsStatus.actuate(ws, vacuum_motor: :close)
-
-      # (the wrong relay stays as the damaged write left it, and the WC is told)
-      assert {:daq1, 206} in Plant.snapshot(plant).relays
-    end
-  end
-
   describe "a relay that does not read back as commanded (a command or answer damaged)" do
     # the test plays DAQ #1 on a loopback endpoint; VWS_STATUS does not poll in the meantime
     defp fake_daq1 do
