@@ -64,9 +64,6 @@ defmodule Vws.Partitions.Monarch.RS232Test do
              "0001ERROR PROGRAM VERIFY FAILED READ BACK DIFFERS"
   end
 
-  # (a control slower than the line by half, so that its buffer fills and it says XOFF even when
-  # a loaded host's sender lags behind the line's pace)
-  @tag sim: [rate: 800]
   test "DRIP_FEED: every byte reaches the control under XON/XOFF, its progress published", ctx do
     lines = program(4_000)
     :ok = Mailbox.put_nc_file(ctx.ws, lines)
