@@ -317,14 +317,10 @@ defmodule Vws.Links.DNC.Frame do
     end
   end
 
-  # The block would equal the one before: shorter (at the last LF before its end, else a byte
-  # shorter) differs by its length; a one-byte block takes one more byte if there is one.
-  defp other_cut(rest, size, _max) when size > 1 do
-    case :binary.matches(binary_part(rest, 0, size - 1), "\n") do
-      [] -> size - 1
-      matches -> (matches |> List.last() |> elem(0)) + 1
-    end
-  end
+  # The block would equal the one before: the greedy cut of one byte less (at the last LF
+  # before its end, else a byte shorter) differs by its length; a one-byte block takes one more
+  # byte if there is one.
+  defp other_cut(rest, size, _max) when size > 1, do: greedy_cut(rest, size - 1)
 
   defp other_cut(rest, 1, max) when max >= 2 and byte_size(rest) >= 2, do: 2
   defp other_cut(_rest, size, _max), do: size

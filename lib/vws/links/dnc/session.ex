@@ -371,9 +371,7 @@ defmodule Vws.Links.DNC.Session do
   defp frame(:receiving, :enq, s, _now) do
     # "repeat your reply" — WACK while an E reception has no room for another block
     reply = if s.rx.last != :nak and short_of_credit?(s), do: :wack, else: s.rx.last
-    # a NAK said again may bring one more copy of the block, like the first
-    naks = if reply == :nak, do: s.rx.naks + 1, else: s.rx.naks
-    s = send_control(%{s | rx: %{s.rx | sent: reply, naks: naks}}, reply)
+    s = send_control(%{s | rx: %{s.rx | sent: reply}}, reply)
     receive_timer(s)
   end
 
@@ -620,8 +618,7 @@ defmodule Vws.Links.DNC.Session do
         bytes: rx.bytes + size,
         last: ack,
         accepted: block_frame(block),
-        ack: ack,
-        naks: 0
+        ack: ack
     }
 
     s = bump(%{s | rx: rx}, :blocks_received)
@@ -713,7 +710,7 @@ defmodule Vws.Links.DNC.Session do
 
   defp reply_nak(s) do
     s = send_control(s, :nak)
-    rx = %{s.rx | last: :nak, sent: :nak, naks: s.rx.naks + 1}
+    rx = %{s.rx | last: :nak, sent: :nak}
     s = bump(%{s | rx: rx}, :naks_sent)
     s = retry(s, :nak_sent, s.rx.count + 1)
     receive_timer(s)

@@ -75,7 +75,6 @@ defmodule Vws.Links.DNC.Transfer do
       sent: :ack0,
       accepted: nil,
       ack: :ack0,
-      naks: 0,
       retries: 0,
       ref: nil,
       started: now
