@@ -82,7 +82,7 @@ defmodule Vws.Ops.Web.Command do
              status: status(ws, set, number),
              # taken after the command was: a page state built before it (a poll already on
              # its way, the cached snapshot) is older, and the page does not follow it from there
-             time: DateTime.utc_now() |> DateTime.truncate(:millisecond) |> DateTime.to_iso8601()
+             time: Vws.Ops.Web.State.time()
            }}
 
         {:error, words} ->

@@ -44,6 +44,13 @@ defmodule Vws.Ops.Web.State do
   @bad_states ~w(down not_answering unreadable restarting disconnected connecting halted)
 
   @doc """
+  Now, as the state's `time` says it (ISO 8601, UTC, milliseconds): a command's answer says when
+  it was taken the same way, so that the page can tell a state read before it (string order).
+  """
+  @spec time() :: String.t()
+  def time, do: DateTime.utc_now() |> DateTime.truncate(:millisecond) |> DateTime.to_iso8601()
+
+  @doc """
   The dashboard state. Options: `:control` (whether control actions are enabled),
   `:library_cache` (a public ETS table: the library section is then read again only when older
   than ten times what reading it took, see `library/2`), `:workstations` (the ids of the
@@ -55,7 +62,7 @@ defmodule Vws.Ops.Web.State do
     cache = Keyword.get(opts, :library_cache)
 
     %{
-      time: DateTime.utc_now() |> DateTime.truncate(:millisecond) |> DateTime.to_iso8601(),
+      time: time(),
       node: to_string(node()),
       control: Keyword.get(opts, :control, false),
       cell: cell(),
