@@ -24,10 +24,14 @@ defmodule Vws.Links.DAQ do
       iex> {:ok, commands, expected} =
       ...>   Vws.Links.DAQ.actuation(daq, vise_open_valve: :open, vise_close_valve: :close)
       iex> commands
-      [{:rout_clos?, slot}, {:rout_clos?, slot}, {:rout_open, [205]}, {:rout_clos, [206]},
-       {:rout_clos?, slot}]
+      [{:rout_clos?, slot}, {:rout_clos?, slot}]
       iex> expected
-      {:write, slot, [{205, false}, {206, true}]}
+      {:before, slot, [{205, false}, {206, true}]}
+      iex> before = Enum.map(slot, &(&1 == 207))
+      iex> {:next, writes, {:whole, _}} =
+      ...>   Vws.Links.DAQ.confirm_relays(expected, [before, before], "DAQ #1")
+      iex> writes
+      [{:rout_open, [205]}, {:rout_clos, [206]}, {:rout_clos?, slot}]
 
   ## Options of `new/1`
 
@@ -190,20 +194,27 @@ defmodule Vws.Links.DAQ do
   def slot(%__MODULE__{actuators: actuators}), do: actuators |> Map.values() |> Enum.sort()
 
   @typedoc """
-  What a relay write must leave behind: `{:write, slot, commanded}` for a first write (the
-  other relays of the slot must stay as the two reads before the write agree they were), or
-  `{:whole, [{channel, closed?}]}` for the whole slot (a correction).
+  What a relay transaction must leave behind: `{:before, slot, commanded}` for the reads that
+  come before a write (two reads of the whole slot that must agree: they tell what the relays
+  the write does not command are), or `{:whole, [{channel, closed?}]}` for a write of the whole
+  slot's intended state and any correction of it.
   """
   @type expected ::
-          {:write, [pos_integer], [{pos_integer, boolean}]}
+          {:before, [pos_integer], [{pos_integer, boolean}]}
           | {:whole, [{pos_integer, boolean}]}
 
   @doc """
-  The commands that set relays (the seed's Hp_act: a channel and open or close), opens first so
-  that two solenoids working against each other are never both on — between two reads of the
-  whole slot before (they must agree: they tell what the other relays are) and one after
-  (PROTOCOLS.md §4: SCPI has no check, so one bit can turn `ROUT:CLOS (@207)` into `(@206)`).
-  Returns the commands, sent as one transaction, and what `confirm_relays/3` checks.
+  The commands that set relays (the seed's Hp_act: a channel and open or close), in two
+  transactions. The first reads the whole slot twice (the reads must agree: they tell what the
+  other relays are) and writes nothing; `confirm_relays/3` then answers `{:next, commands,
+  expected}`, the second: the writes, opens first so that two solenoids working against each
+  other are never both on, and one read of the whole slot after them (PROTOCOLS.md §4: SCPI has
+  no check, so one bit can turn `ROUT:CLOS (@207)` into `(@206)`).
+
+  Two transactions, not one, so that the slot before a write is never lost with the write's
+  answers: taking reads made after a damaged write for the slot before it would take a relay
+  that write set wrongly (206 for 207) for one meant to be so, and confirm it.
+  Returns the first transaction's commands and what `confirm_relays/3` checks.
   """
   @spec actuation(t, [{signal | pos_integer, action}]) ::
           {:ok, [Vws.Codecs.SCPI.command()], expected | []}
@@ -229,7 +240,7 @@ defmodule Vws.Links.DAQ do
         commanded = list |> Enum.reverse() |> Map.new() |> Enum.sort()
         slot = slot(daq)
         query = {:rout_clos?, slot}
-        {:ok, [query, query | writes(commanded)] ++ [query], {:write, slot, commanded}}
+        {:ok, [query, query], {:before, slot, commanded}}
     end
   end
 
@@ -240,14 +251,14 @@ defmodule Vws.Links.DAQ do
   end
 
   @doc """
-  The whole slot a write intends, from the transaction's answers: the commanded relays as
-  commanded, every other one as both reads before the write found it. `:unknown` when the two
-  reads disagree on a relay the write did not command (one was damaged: nothing can be said).
+  The whole slot a write intends, from the answers of the reads before it: the commanded relays
+  as commanded, every other one as both reads found it. `:unknown` when the two reads disagree on
+  a relay the write does not command (one was damaged: nothing can be said).
   """
   @spec intended(expected, [term]) :: {:ok, [{pos_integer, boolean}]} | :unknown
   def intended({:whole, states}, _results), do: {:ok, states}
 
-  def intended({:write, slot, commanded}, [before1, before2 | _])
+  def intended({:before, slot, commanded}, [before1, before2 | _])
       when is_list(before1) and is_list(before2) and length(before1) == length(slot) and
              length(before2) == length(slot) do
     commanded = Map.new(commanded)
@@ -274,6 +285,9 @@ defmodule Vws.Links.DAQ do
   answer is missing or the reads before the write disagree).
   """
   @spec check_relays(expected, [term]) :: :ok | {:error, [pos_integer]}
+  # (reads before a write confirm nothing)
+  def check_relays({:before, _slot, _commanded}, _results), do: {:error, []}
+
   def check_relays(expected, results) do
     with {:ok, states} <- intended(expected, results),
          after_write when is_list(after_write) <- List.last(results),
@@ -291,10 +305,21 @@ defmodule Vws.Links.DAQ do
   the commanded one or any other), or `RELAYS NOT READ BACK` when the slot could not be read
   back alike. `device` names the DAQ in the latter.
 
+  After the reads before a write (`{:before, …}`), when they agree: `{:next, commands,
+  expected}`, the transaction that writes and reads the slot back, and what it must leave.
+
       iex> Vws.Links.DAQ.confirm_relays({:whole, [{205, false}, {206, true}]}, [:ok, [false, false]], "DAQ #1")
       {:error, "RELAY 206 NOT AS COMMANDED"}
   """
-  @spec confirm_relays(expected, [term], String.t()) :: :ok | {:error, String.t()}
+  @spec confirm_relays(expected, [term], String.t()) ::
+          :ok | {:next, [Vws.Codecs.SCPI.command()], expected} | {:error, String.t()}
+  def confirm_relays({:before, slot, commanded} = expected, results, device) do
+    case intended(expected, results) do
+      {:ok, states} -> {:next, writes(commanded) ++ [{:rout_clos?, slot}], {:whole, states}}
+      :unknown -> {:error, "#{device} RELAYS NOT READ BACK"}
+    end
+  end
+
   def confirm_relays(expected, results, device) do
     case check_relays(expected, results) do
       :ok -> :ok
@@ -331,16 +356,17 @@ defmodule Vws.Links.DAQ do
 
   @doc """
   After a transaction whose answers were damaged or missing: the reads that tell whether its
-  writes took effect — the whole slot twice for a first write (the two reads must agree and
-  stand for the reads before it), once for a correction — checked against the same `expected`.
-  Nothing is written again blindly: a relay is set again only by a `correction/3` of these
-  reads, so a write that reached the DAQ while its answer was lost is never repeated.
+  writes took effect — once, held against the whole slot `expected` — or, for the reads before a
+  write (nothing was written), those reads again. Nothing is written again blindly: a relay is
+  set again only by a `correction/2` of these reads, so a write that reached the DAQ while its
+  answer was lost is never repeated; and the slot before a write is always the one read before
+  it (`actuation/2`).
 
       iex> Vws.Links.DAQ.recheck({:whole, [{205, false}, {206, true}]})
       [{:rout_clos?, [205, 206]}]
   """
   @spec recheck(expected) :: [Vws.Codecs.SCPI.command()]
-  def recheck({:write, slot, _commanded}),
+  def recheck({:before, slot, _commanded}),
     do: [{:rout_clos?, slot}, {:rout_clos?, slot}]
 
   def recheck({:whole, states}), do: [{:rout_clos?, Enum.map(states, &elem(&1, 0))}]

@@ -38,7 +38,8 @@ defmodule Vws.Partitions.VwsStatus do
 
   `actuate/3` is the seed's ACTUATOR/Hp_act: relay channels (or their signal names from the
   channel map) to open or close. VWS_STATUS sends them on the same HPIB device as its polls,
-  opens before it closes, and confirms the relays with `ROUT:CLOS?` before it answers `:ok`; a
+  reads the whole slot (twice, alike) in a transaction of its own, then opens before it closes, and
+  confirms the relays with `ROUT:CLOS?` before it answers `:ok`; a
   relay that does not read back as commanded is set and read again (at most twice, counted in
   telemetry), as the command or its answer may have been damaged on the line. An answer
   missing or damaged even after the bus's own tries counts as a try: the slot is read again
@@ -114,6 +115,8 @@ defmodule Vws.Partitions.VwsStatus do
   @device "DAQ #1"
   # how many times an actuation whose relays are not as commanded is sent again
   @actuation_retries 2
+  # at most: the reads before the write and the write, then a transaction for each retry
+  @actuation_transactions @actuation_retries + 2
 
   @defaults [
     poll_ms: 20,
@@ -467,7 +470,7 @@ defmodule Vws.Partitions.VwsStatus do
         # this press is let go at its own time: an earlier release must not cut it short
         s = %{s | unreleased: MapSet.delete(s.unreleased, relay)}
         # the caller also waits for the pulse and the release
-        latest = latest_start(s, deadline, pulse_ms + (@actuation_retries + 1) * s.timeout_ms)
+        latest = latest_start(s, deadline, pulse_ms + @actuation_transactions * s.timeout_ms)
         {:noreply, request(s, commands, expected, {:pressed, relay, pulse_ms, from}, latest)}
     end
   end
@@ -713,7 +716,7 @@ defmodule Vws.Partitions.VwsStatus do
   defp latest_start(_s, :infinity, _after_ms), do: :infinity
 
   defp latest_start(s, deadline, after_ms),
-    do: deadline - (@actuation_retries + 1) * s.timeout_ms - after_ms
+    do: deadline - @actuation_transactions * s.timeout_ms - after_ms
 
   defp next_actuation(%{actuation: nil} = s) do
     case :queue.out(s.waiting) do
@@ -751,6 +754,10 @@ defmodule Vws.Partitions.VwsStatus do
         s
     end
   end
+
+  # the slot read before the write: the write goes out, in the same try
+  defp actuation_result({_req, from, {_, _, try, _}}, {:next, commands, expected}, s),
+    do: send_actuation(s, {commands, expected, try, nil}, from)
 
   defp actuation_result({_req, from, {_commands, expected, try, _}}, {:error, failure}, s)
        when is_tuple(failure) and elem(failure, 0) in [:relays, :damaged] and

@@ -64,16 +64,15 @@ defmodule Vws.Links.DAQTest do
 
     @slot Enum.to_list(201..210)
 
-    test "actuation: the whole slot read twice, opens before closes, the last word wins, the whole slot read back" do
+    test "actuation: the whole slot read twice and nothing written; then opens before closes, the last word wins, the whole slot read back" do
       daq = DAQ.new()
       assert DAQ.slot(daq) == @slot
       q = {:rout_clos?, @slot}
 
       assert DAQ.actuation(daq, [{:gripper_open_solenoid, :close}, {202, :open}, {207, :close}]) ==
-               {:ok, [q, q, {:rout_open, [202]}, {:rout_clos, [201, 207]}, q],
-                {:write, @slot, [{201, true}, {202, false}, {207, true}]}}
+               {:ok, [q, q], {:before, @slot, [{201, true}, {202, false}, {207, true}]}}
 
-      assert {:ok, _, {:write, _, [{207, false}]}} =
+      assert {:ok, _, {:before, _, [{207, false}]}} =
                DAQ.actuation(daq, [{207, :close}, {207, :open}])
 
       assert DAQ.actuation(daq, []) == {:ok, [], []}
@@ -82,62 +81,74 @@ defmodule Vws.Links.DAQTest do
                {:error, {:unknown_actuator, :vise_jaw_mm}}
 
       assert DAQ.actuation(daq, [{117, :close}]) == {:error, {:unknown_actuator, 117}}
+
+      # the reads agree: the write, and the whole slot it must leave (205 closed before stays so)
+      {:ok, _, before} = DAQ.actuation(daq, [{201, :close}, {202, :open}, {207, :close}])
+
+      assert DAQ.confirm_relays(before, [states([202, 205]), states([202, 205])], "DAQ #1") ==
+               {:next, [{:rout_open, [202]}, {:rout_clos, [201, 207]}, q],
+                {:whole, Enum.map(@slot, &{&1, &1 in [201, 205, 207]})}}
+
+      # reads alone confirm nothing
+      assert DAQ.check_relays(before, [states([]), states([])]) == {:error, []}
     end
 
     # slot states as a list of booleans, the channels given closed
     defp states(closed), do: Enum.map(@slot, &(&1 in closed))
 
-    test "the read-back is checked against the whole slot: the commanded relay and every other" do
-      daq = DAQ.new()
-      {:ok, _, expected} = DAQ.actuation(daq, [{207, :close}])
-      before = states([205])
+    # the write of 207 after the reads before it found `closed`
+    defp write_207(closed) do
+      {:ok, _, before} = DAQ.actuation(DAQ.new(), [{207, :close}])
+      {:next, _, whole} = DAQ.confirm_relays(before, [states(closed), states(closed)], "DAQ #1")
+      {before, whole}
+    end
 
-      assert DAQ.check_relays(expected, [before, before, :ok, states([205, 207])]) == :ok
+    test "the read-back is checked against the whole slot: the commanded relay and every other" do
+      {_before, expected} = write_207([205])
+
+      assert DAQ.check_relays(expected, [:ok, :ok, states([205, 207])]) == :ok
       # ROUT:CLOS (@207) arrived as (@206): 207 not closed, 206 closed — both found
-      results = [before, before, :ok, states([205, 206])]
+      results = [:ok, states([205, 206])]
       assert DAQ.check_relays(expected, results) == {:error, [206, 207]}
 
       assert DAQ.confirm_relays(expected, results, "DAQ #1") ==
                {:error, "RELAY 206 NOT AS COMMANDED"}
 
       # set right: 206 opened, 207 closed, the slot read again and compared whole
-      assert {:ok, [{:rout_open, [206]}, {:rout_clos, [207]}, {:rout_clos?, @slot}], whole} =
+      assert {:ok, [{:rout_open, [206]}, {:rout_clos, [207]}, {:rout_clos?, @slot}], ^expected} =
                DAQ.correction(expected, results)
 
-      assert DAQ.check_relays(whole, [:ok, :ok, states([205, 207])]) == :ok
-      assert DAQ.check_relays(whole, [:ok, :ok, states([207])]) == {:error, [205]}
+      assert DAQ.check_relays(expected, [:ok, :ok, states([205, 207])]) == :ok
+      assert DAQ.check_relays(expected, [:ok, :ok, states([207])]) == {:error, [205]}
 
-      # the two reads before disagree on a relay not commanded: nothing can be said; the slot
-      # is read again, twice, and nothing written until those reads show what is wrong
-      disagree = [states([205]), states([]), :ok, states([205, 207])]
-      assert DAQ.check_relays(expected, disagree) == {:error, []}
+      # no answer at all (the write may have been done): read again, never written blindly,
+      # and held against the slot as read BEFORE the write — 206 closed by a damaged write is
+      # found, never taken for intended
+      assert DAQ.recheck(expected) == [{:rout_clos?, @slot}]
+      assert DAQ.check_relays(expected, [states([205, 206])]) == {:error, [206, 207]}
+      assert DAQ.check_relays(expected, [states([205, 207])]) == :ok
 
-      assert DAQ.confirm_relays(expected, disagree, "DAQ #1") ==
+      # the write answered, the read-back missing: read again, whole
+      assert DAQ.check_relays(expected, [:ok, :ok]) == {:error, []}
+
+      assert {:ok, [{:rout_clos?, @slot}], ^expected} = DAQ.correction(expected, [:ok, :ok])
+    end
+
+    test "the two reads before a write disagree on a relay not commanded: read again, nothing written" do
+      {before, _} = write_207([205])
+      disagree = [states([205]), states([])]
+
+      assert DAQ.confirm_relays(before, disagree, "DAQ #1") ==
                {:error, "DAQ #1 RELAYS NOT READ BACK"}
 
-      assert DAQ.correction(expected, disagree) ==
-               {:ok, [{:rout_clos?, @slot}, {:rout_clos?, @slot}], expected}
+      assert DAQ.correction(before, disagree) ==
+               {:ok, [{:rout_clos?, @slot}, {:rout_clos?, @slot}], before}
 
-      # the reads again: 207 closed (the write took effect) → confirmed, nothing written again
-      assert DAQ.check_relays(expected, [states([205, 207]), states([205, 207])]) == :ok
-      # 207 still open → the correction writes only 207
-      reread = [states([205]), states([205])]
-      assert {:error, [207]} = DAQ.check_relays(expected, reread)
-
-      assert {:ok, [{:rout_clos, [207]}, {:rout_clos?, @slot}], _} =
-               DAQ.correction(expected, reread)
-
-      # no answer at all: read again, never written blindly
-      assert DAQ.check_relays(expected, [before, before, :ok]) == {:error, []}
-
-      # (the reads before were good: the slot read once more is held against them, whole)
-      assert {:ok, [{:rout_clos?, @slot}], {:whole, _} = whole} =
-               DAQ.correction(expected, [before, before, :ok])
-
-      assert DAQ.check_relays(whole, [states([205, 207])]) == :ok
-      assert DAQ.check_relays(whole, [states([207])]) == {:error, [205]}
-
-      assert DAQ.recheck(expected) == [{:rout_clos?, @slot}, {:rout_clos?, @slot}]
+      # their answers lost: the same reads again (nothing was written)
+      assert DAQ.recheck(before) == [{:rout_clos?, @slot}, {:rout_clos?, @slot}]
+      # a disagreement on the commanded relay itself does not matter: it is written anyway
+      assert {:next, _, _} =
+               DAQ.confirm_relays(before, [states([205, 207]), states([205])], "DAQ #1")
     end
   end
 

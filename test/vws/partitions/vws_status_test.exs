@@ -360,17 +360,18 @@ defmodule Vws.Partitions.VwsStatusTest do
       # (1000 ms, as rule 2b's bus: with 100 ms the third try, a read, also went unanswered on
       # a loaded CI run)
       %{ws: ws, plant: plant, relay: relay} = RelayDAQ.start(timeout_ms: 1_000)
-      through = :atomics.new(1, [])
+      {wrote, through} = {:atomics.new(1, []), :atomics.new(1, [])}
 
-      # on the line to the DAQ, the tray lock's write is lost, and every other line too until
+      # on the line to the DAQ, the tray lock's write is lost, and every line after it too until
       # the second try has failed (a line sent before that and carried late cannot set the relay)
       :ok =
         Vws.Test.FlipRelay.plan(
           relay,
           {:lines,
            [
-             {:to_target, ~r/^ROUT:CLOS \(@209\)$/, fn _ -> "" end},
-             {:to_target, ~r//, &if(:atomics.get(through, 1) == 1, do: &1, else: "")}
+             {:to_target, ~r/^ROUT:CLOS \(@209\)$/, fn _ -> :atomics.put(wrote, 1, 1) && "" end},
+             {:to_target, ~r//,
+              &if(:atomics.get(wrote, 1) == 1 and :atomics.get(through, 1) == 0, do: "", else: &1)}
            ]}
         )
 
@@ -390,6 +391,41 @@ defmodule Vws.Partitions.VwsStatusTest do
       :ok = Vws.Test.FlipRelay.plan(relay, :none)
       assert VwsStatus.actuate(ws, tray2_lock: :close) == :ok
       assert {:daq1, 209} in Plant.snapshot(plant).relays
+    end
+
+    # `ROUT:CLOS (@207)` arrives as `(@206)` and no answer after it comes back. Before (one
+    # transaction: reads, write, read), the reads before the write were lost with it; the retry
+    # read the slot twice and took those reads, made after the wrong write, for the slot before
+    # it: 206 closed became "as intended", 207 was closed, and VACUUM ended :ok with the
+    # indexer's relay closed too (relay_bit_flip_test.exs under a CPU hog). The reads before
+    # are now a transaction of their own.
+    test "a damaged write with its answers lost is held against the slot as read before it" do
+      %{ws: ws, plant: plant, relay: relay} = RelayDAQ.start(timeout_ms: 300)
+      {wrote, through} = {:atomics.new(1, []), :atomics.new(1, [])}
+
+      :ok =
+        Vws.Test.FlipRelay.plan(
+          relay,
+          {:lines,
+           [
+             {:to_target, ~r/^ROUT:CLOS \(@207\)$/,
+              &if(:atomics.get(through, 1) == 1,
+                do: &1,
+                else: :atomics.put(wrote, 1, 1) && "ROUT:CLOS (@206)"
+              )},
+             {:to_client, ~r//,
+              &if(:atomics.get(wrote, 1) == 1 and :atomics.get(through, 1) == 0, do: "", else: &1)}
+           ]}
+        )
+
+      RelayDAQ.forward_retries(ws, &if(&1.try == 1, do: :atomics.put(through, 1, 1)))
+
+      assert VwsStatus.actuate(ws, vacuum_motor: :close) == :ok
+      closed = for {:daq1, ch} <- Plant.snapshot(plant).relays, ch in 201..210, do: ch
+      assert closed == [207]
+      # (the emptied answer lines read as a damaged answer; the read after it finds 206 closed)
+      assert_received {:actuation_retry, "DAQ #1 " <> _, 1}
+      assert_received {:actuation_retry, "RELAY 206 NOT AS COMMANDED", 2}
     end
   end
 
@@ -436,9 +472,11 @@ defmodule Vws.Partitions.VwsStatusTest do
     test "a relay of the slot not as intended is set right, the slot read again, the retry counted" do
       {ws, conn} = fake_daq1()
       task = Task.async(fn -> VwsStatus.actuate(ws, vacuum_motor: :close) end)
-      expect_lines(conn, [@q, @q, "ROUT:CLOS (@207)", @q])
+      expect_lines(conn, [@q, @q])
+      :ok = Vws.Links.Transport.send(conn, slot([]) <> slot([]))
+      expect_lines(conn, ["ROUT:CLOS (@207)", @q])
       # ROUT:CLOS (@207) arrived as (@206): the read-back shows it, although 207 alone was asked
-      :ok = Vws.Links.Transport.send(conn, slot([]) <> slot([]) <> slot([206]))
+      :ok = Vws.Links.Transport.send(conn, slot([206]))
       assert_receive {:actuation_retry, "RELAY 206 NOT AS COMMANDED", 1}
       expect_lines(conn, ["ROUT:OPEN (@206)", "ROUT:CLOS (@207)", @q])
       :ok = Vws.Links.Transport.send(conn, slot([207]))
@@ -448,8 +486,10 @@ defmodule Vws.Partitions.VwsStatusTest do
     test "after two tries again the relay's state is the error" do
       {ws, conn} = fake_daq1()
       task = Task.async(fn -> VwsStatus.actuate(ws, vacuum_motor: :open) end)
-      expect_lines(conn, [@q, @q, "ROUT:OPEN (@207)", @q])
-      :ok = Vws.Links.Transport.send(conn, slot([207]) <> slot([207]) <> slot([207]))
+      expect_lines(conn, [@q, @q])
+      :ok = Vws.Links.Transport.send(conn, slot([207]) <> slot([207]))
+      expect_lines(conn, ["ROUT:OPEN (@207)", @q])
+      :ok = Vws.Links.Transport.send(conn, slot([207]))
 
       for try <- 1..2 do
         assert_receive({:actuation_retry, "RELAY 207 NOT AS COMMANDED", ^try})

@@ -154,12 +154,15 @@ defmodule Vws.Partitions.VwsStatus.Sensors do
   end
 
   @doc """
-  How an actuation's answer reads: `:ok` when the relays read back as `expected`; `{:error,
+  How an actuation's answer reads: `:ok` when the relays read back as `expected`; `{:next,
+  commands, expected}` after the reads before a write, the write to send (`DAQ.confirm_relays/3`); `{:error,
   {:relays, why, results}}` when some do not, `{:error, {:damaged, why}}` when the answer was
   damaged or missing (the writes may have been done), `{:error, why}` for any other failure.
   """
   @spec actuation_result({:ok, [term]} | {:error, HPIB.Error.t()}, term) ::
-          :ok | {:error, String.t() | {:relays, String.t(), [term]} | {:damaged, String.t()}}
+          :ok
+          | {:next, [Vws.Codecs.SCPI.command()], DAQ.expected()}
+          | {:error, String.t() | {:relays, String.t(), [term]} | {:damaged, String.t()}}
   def actuation_result({:ok, results}, expected) do
     with {:error, why} <- DAQ.confirm_relays(expected, results, @device),
          do: {:error, {:relays, why, results}}

@@ -191,6 +191,10 @@ defmodule Vws.Peers.HydraulicController.Pallet do
 
   defp confirmed(p, expected, tries, results) do
     case DAQ.confirm_relays(expected, results, @device) do
+      # the slot read before the write: the write goes out, in the same try
+      {:next, commands, expected} ->
+        confirm(p, commands, expected, tries)
+
       {:error, _} when tries > 1 ->
         Vws.Telemetry.execute([:vws, :hydraulic_controller, :relay_corrected], %{count: 1}, %{
           device: p.device
