@@ -63,6 +63,17 @@
 # :erlang.system_monitor run (long_schedule 5 ms) showed the gen_tcp_socket servers (normal
 # priority) and the agent among the processes running longest at a stretch, on a host 95–98 %
 # busy, where the OS also preempts the node's scheduler threads.
+#
+# Then (2026-11-27, session ten, load 2–6 with a helper's niced builds beside): the web server on
+# OTP's `:socket` itself, so no `gen_tcp_socket` server (normal priority) per socket — the
+# accepting, reading and writing are NIF calls of the low-priority acceptors and connections.
+# Four in-node runs: WC p99 beside VWS 2.85, 2.92, 3.17, 3.96 ms against the control's 3.78,
+# 3.37, 2.39, 2.80 ms in the same runs (ratio 0.75, 0.87, 1.32, 1.41); max 23–34 ms against
+# 7–31 ms. The node spends about one core on the churn (14–17 s of CPU in 15 s; 108,000–124,000
+# connections), the MTConnect agent 89 % of its reductions (107 million; the first document of
+# each admitted stream), and the host is 90–96 % busy. With the WC measured from an OS process of
+# its own (--wc-apart) the ratio is 1.8–4.5: that process then competes for the two cores with
+# this node's churn work (+sbwt none changed nothing: 3.0–3.4).
 
 Code.require_file("support.exs", __DIR__)
 Logger.configure(level: :error)

@@ -20,7 +20,7 @@ defmodule Vws.Ops.Web.Conn do
   # The connection limit is reached: say so and close, without reading anything.
   def refuse_busy(socket, why, conf) do
     _ = respond(socket, {503, "text/plain", why}, false, conf, nil)
-    :gen_tcp.close(socket)
+    :socket.close(socket)
   end
 
   # `buffer`: bytes read from the socket but not used yet — the start of the next request when the
@@ -45,7 +45,7 @@ defmodule Vws.Ops.Web.Conn do
 
             case respond(socket, response, keep, conf, request) do
               :ok when keep -> loop(socket, conf, n + 1, conf.limits.idle_timeout, rest)
-              _ -> :gen_tcp.close(socket)
+              _ -> :socket.close(socket)
             end
 
           {:close, response} ->
@@ -58,7 +58,7 @@ defmodule Vws.Ops.Web.Conn do
         close_unread(socket)
 
       {:error, _closed_or_timeout} ->
-        :gen_tcp.close(socket)
+        :socket.close(socket)
     end
   end
 
@@ -127,7 +127,7 @@ defmodule Vws.Ops.Web.Conn do
   # reading from the socket while the buffer holds no whole line, until the head's deadline.
   # `packet_size: max_line` bounds the line, its CR LF included: as soon as max_line bytes without
   # a line end are in, it is too long, so the buffer never holds more than max_line bytes and one
-  # read of the socket (its `buffer` option, 1460 bytes by default). A header line is only
+  # read of the socket (at most its `{:otp, :rcvbuf}`, 4096 bytes: Vws.Ops.Web.Server). A header line is only
   # complete once the byte after it is in (a line starting with a space continues a header).
   # `bytes` counts the bytes of head taken so far.
   defp next_line(reader, type) do
@@ -253,7 +253,7 @@ defmodule Vws.Ops.Web.Conn do
   end
 
   defp read_body(socket, length, buffer, deadline) do
-    case :gen_tcp.recv(socket, length - byte_size(buffer), max(deadline - now(), 0)) do
+    case :socket.recv(socket, length - byte_size(buffer), max(deadline - now(), 0)) do
       {:ok, more} -> {:ok, buffer <> more, ""}
       {:error, _} = error -> error
     end
@@ -302,42 +302,63 @@ defmodule Vws.Ops.Web.Conn do
       )
     end
 
-    :gen_tcp.send(socket, [head, sent])
+    send_all(socket, [head, sent], conf)
+  end
+
+  # An answer the client does not read within `send_timeout` fails the send, and the connection
+  # is closed by its caller.
+  defp send_all(socket, data, conf) do
+    case :socket.send(socket, data, conf.limits.send_timeout) do
+      :ok -> :ok
+      {:error, {reason, _rest}} -> {:error, reason}
+      {:error, _} = error -> error
+    end
   end
 
   # A stream runs in a process of its own, linked, while this one — the socket's owner — watches
-  # the socket (`active: :once`): when the client closes it or resets it, the stream is killed at
-  # once, whatever it is waiting for (the next `interval`, new observations), and the socket
-  # closed; no connection is left in CLOSE-WAIT until the stream's next write. What the client
-  # sends meanwhile is read and dropped, up to `max_head` bytes in all, then the stream ends.
+  # the socket (a read that waits for data without blocking: `:nowait`, then the socket's
+  # `select` message): when the client closes it or resets it, the stream is killed at once,
+  # whatever it is waiting for (the next `interval`, new observations), and the socket closed; no
+  # connection is left in CLOSE-WAIT until the stream's next write. What the client sends
+  # meanwhile is read and dropped, up to `max_head` bytes in all, then the stream ends.
   defp watch_stream(socket, stream, conf, request) do
     pid = spawn_link(fn -> stream(socket, stream, conf, request) end)
     ref = Process.monitor(pid)
-    :ok = :inet.setopts(socket, active: :once)
     watch(socket, pid, ref, conf.limits.max_head)
   end
 
   defp watch(socket, pid, ref, left) do
-    receive do
-      {:DOWN, ^ref, :process, ^pid, _} ->
-        :gen_tcp.close(socket)
-
-      {:tcp, ^socket, data} when byte_size(data) < left ->
-        _ = :inet.setopts(socket, active: :once)
+    case :socket.recv(socket, 0, :nowait) do
+      {:ok, data} when byte_size(data) < left ->
         watch(socket, pid, ref, left - byte_size(data))
 
-      {tag, ^socket, _} when tag in [:tcp, :tcp_error] ->
-        end_stream(socket, pid)
+      {:select, info} ->
+        handle = select_handle(info)
 
-      {:tcp_closed, ^socket} ->
+        receive do
+          {:DOWN, ^ref, :process, ^pid, _} ->
+            :socket.close(socket)
+
+          {:"$socket", ^socket, :select, ^handle} ->
+            watch(socket, pid, ref, left)
+
+          {:"$socket", ^socket, :abort, {^handle, _reason}} ->
+            end_stream(socket, pid)
+        end
+
+      # too much sent, closed or reset
+      _ ->
         end_stream(socket, pid)
     end
   end
 
+  defp select_handle({:select_info, _tag, handle}), do: handle
+  defp select_handle({{:select_info, _tag, handle}, _data}), do: handle
+
   defp end_stream(socket, pid) do
     Process.unlink(pid)
     Process.exit(pid, :kill)
-    :gen_tcp.close(socket)
+    :socket.close(socket)
   end
 
   # A stream (MTConnect `interval=`): `multipart/x-mixed-replace` in HTTP/1.1 chunks, one part
@@ -377,16 +398,16 @@ defmodule Vws.Ops.Web.Conn do
       ]
 
       size = IO.iodata_length(data)
-      :gen_tcp.send(socket, [Integer.to_string(size, 16), "\r\n", data, "\r\n"])
+      send_all(socket, [Integer.to_string(size, 16), "\r\n", data, "\r\n"], conf)
     end
 
     paced = fn doc ->
       with :ok <- pace(conf), do: part.(doc)
     end
 
-    with :ok <- :gen_tcp.send(socket, head), :ok <- part.(first) do
+    with :ok <- send_all(socket, head, conf), :ok <- part.(first) do
       result = more.(paced)
-      _ = :gen_tcp.send(socket, "0\r\n\r\n")
+      _ = send_all(socket, "0\r\n\r\n", conf)
       result
     end
   end
@@ -396,13 +417,13 @@ defmodule Vws.Ops.Web.Conn do
   # the answer): the write side is shut first, then whatever the client still sends is read and
   # dropped — never kept — for at most a second and 16 MB, then the socket is closed.
   defp close_unread(socket) do
-    _ = :gen_tcp.shutdown(socket, :write)
+    _ = :socket.shutdown(socket, :write)
     drain(socket, now() + 1_000, 16 * 1024 * 1024)
-    :gen_tcp.close(socket)
+    :socket.close(socket)
   end
 
   defp drain(socket, deadline, left) when left > 0 do
-    case :gen_tcp.recv(socket, 0, max(deadline - now(), 0)) do
+    case :socket.recv(socket, 0, max(deadline - now(), 0)) do
       {:ok, data} -> drain(socket, deadline, left - byte_size(data))
       {:error, _} -> :ok
     end
@@ -412,7 +433,7 @@ defmodule Vws.Ops.Web.Conn do
 
   defp recv(socket, deadline) do
     case deadline - now() do
-      left when left > 0 -> :gen_tcp.recv(socket, 0, left)
+      left when left > 0 -> :socket.recv(socket, 0, left)
       _ -> {:error, :timeout}
     end
   end

@@ -1,6 +1,6 @@
 defmodule Vws.Ops.Web.Server do
   @moduledoc """
-  A small, bounded HTTP/1.1 server on `:gen_tcp` — the listener of `Vws.Ops.Web`.
+  A small, bounded HTTP/1.1 server on OTP's `:socket` — the listener of `Vws.Ops.Web`.
 
   OTP's `:inets` httpd, which served the dashboard before, reads a whole request body before its
   modules see the request, has no limit on the URI, and queues every client beyond `max_clients`
@@ -56,15 +56,15 @@ defmodule Vws.Ops.Web.Server do
   after it — a body, or the next request of a client that pipelines — are kept for what follows
   (`Vws.Ops.Web.Conn`). Acceptors and connections run at low process priority, so the
   workstations' own processes — SUN_COMM answering its WC first of all — are scheduled before any
-  HTTP work (`bench/http_load.exs` measures it). Their sockets use OTP's socket backend
-  (`inet_backend: :socket`): accepting, reading, writing and closing are NIF calls made by
-  processes — each socket's own `gen_tcp_socket` server (at normal priority: OTP starts it) and
-  the connection writing — where with the default `inet_drv` they are port tasks, scheduled
-  beside every process and outside the reductions that share a scheduler among processes. Under 2,000 hostile sockets coming and going that is the
-  difference between the WC's p99 at 3–4 times that of a listener in another OS process and at
-  about the same (`bench/http_hostile.exs`); the MTConnect agent, the admission server
-  (`Vws.Ops.Web.Clients`), the state snapshot and the connections' supervisor run at low priority
-  for the same reason.
+  HTTP work (`bench/http_load.exs` measures it). Their sockets are OTP's `:socket` itself:
+  accepting, reading, writing and closing are NIF calls made by those low-priority processes and
+  no other. `:gen_tcp` with its default `inet_drv` does them as port tasks, scheduled beside every
+  process and outside the reductions that share a scheduler among processes; `:gen_tcp` on the
+  socket backend (`inet_backend: :socket`) moves them into one `gen_tcp_socket` server per
+  socket, which OTP starts at normal priority. Under 2,000 hostile sockets coming and going,
+  `inet_drv` put the WC's p99 at 3–4 times that of a listener in another OS process
+  (`bench/http_hostile.exs`); the MTConnect agent, the admission server (`Vws.Ops.Web.Clients`),
+  the state snapshot and the connections' supervisor run at low priority for the same reason.
   """
   use GenServer
   require Logger
@@ -123,7 +123,7 @@ defmodule Vws.Ops.Web.Server do
     with {:ok, address} <- parse_address(bind),
          limits = Keyword.merge(@defaults, Keyword.take(opts, Keyword.keys(@defaults))),
          {:ok, socket} <- listen(address, Keyword.get(opts, :port, 4000), limits) do
-      {:ok, port} = :inet.port(socket)
+      {:ok, %{port: port}} = :socket.sockname(socket)
       url = "http://#{host(bind)}:#{port}/"
 
       settings = %{
@@ -172,21 +172,21 @@ defmodule Vws.Ops.Web.Server do
     end
   end
 
-  defp listen(address, port, limits) do
-    :gen_tcp.listen(port, [
-      # first, as gen_tcp requires: see the moduledoc
-      {:inet_backend, :socket},
-      :binary,
-      if(tuple_size(address) == 8, do: :inet6, else: :inet),
-      ip: address,
-      packet: :raw,
-      active: false,
-      reuseaddr: true,
-      nodelay: true,
-      backlog: 1024,
-      send_timeout: limits[:send_timeout],
-      send_timeout_close: true
-    ])
+  # (the send timeout is each send's own: Vws.Ops.Web.Conn)
+  defp listen(address, port, _limits) do
+    family = if tuple_size(address) == 8, do: :inet6, else: :inet
+
+    with {:ok, socket} <- :socket.open(family, :stream, :tcp) do
+      with :ok <- :socket.setopt(socket, {:socket, :reuseaddr}, true),
+           :ok <- :socket.bind(socket, %{family: family, addr: address, port: port}),
+           :ok <- :socket.listen(socket, 1024) do
+        {:ok, socket}
+      else
+        error ->
+          :socket.close(socket)
+          error
+      end
+    end
   end
 
   defp host(bind) do
@@ -215,7 +215,7 @@ defmodule Vws.Ops.Web.Server do
 
   @impl true
   def terminate(_reason, %{socket: socket}) do
-    :gen_tcp.close(socket)
+    :socket.close(socket)
     :ok
   end
 
@@ -224,8 +224,11 @@ defmodule Vws.Ops.Web.Server do
   defp accept_loop(listen_socket, conf) do
     Process.flag(:priority, :low)
 
-    case :gen_tcp.accept(listen_socket) do
+    case :socket.accept(listen_socket) do
       {:ok, socket} ->
+        _ = :socket.setopt(socket, {:tcp, :nodelay}, true)
+        # one read of the socket, and so what a connection's buffer holds beyond `max_line`
+        _ = :socket.setopt(socket, {:otp, :rcvbuf}, 4096)
         hand_over(socket, conf)
         accept_loop(listen_socket, conf)
 
@@ -260,11 +263,12 @@ defmodule Vws.Ops.Web.Server do
       )
     end
 
-    with {:ok, {ip, _port}} <- :inet.peername(socket),
+    with {:ok, %{addr: ip}} when is_tuple(ip) <- :socket.peername(socket),
          {:ok, pid, pace, idle_key} <- Clients.admit(conf.clients, Clients.client(ip), start) do
-      case :gen_tcp.controlling_process(socket, pid) do
+      # (the socket is closed when its controlling process ends, as a port with its owner)
+      case :socket.setopt(socket, {:otp, :controlling_process}, pid) do
         :ok -> send(pid, {:socket, socket, pace, idle_key})
-        {:error, _} -> Process.exit(pid, :kill) && :gen_tcp.close(socket)
+        {:error, _} -> Process.exit(pid, :kill) && :socket.close(socket)
       end
     else
       {:refuse, :client} ->
@@ -280,8 +284,8 @@ defmodule Vws.Ops.Web.Server do
       {:refuse, :full} ->
         Vws.Ops.Web.Conn.refuse_busy(socket, "busy: too many connections", conf)
 
-      {:error, _} ->
-        :gen_tcp.close(socket)
+      _no_peer ->
+        :socket.close(socket)
     end
   end
 end
