@@ -24,6 +24,11 @@ defmodule Vws.Sim.RS232Control do
   next program it keeps, as line noise the CEC cannot see — its read-back then differs;
   `:never_xon` holds its XOFF for ever (the CEC must give up in bounded time).
 
+  **Busy at the start** (`busy_until_xoff: true`): it empties nothing until it has said XOFF
+  once (or nothing has come for 100 ms), as a control busy when a transfer begins. A sender on
+  a loaded host may fall behind the line's pace, and a control slower than the line then never
+  fills its buffer; with this, a test sees the flow control work whatever the sender's pace.
+
   Where it is: `listen:` an endpoint (default `tcp://127.0.0.1:0`, one CEC at a time, the newest
   wins) or `tty:` a serial device it opens itself (a pty of a pair, say). `endpoint/1` says where.
   """
@@ -86,6 +91,8 @@ defmodule Vws.Sim.RS232Control do
       punch_after_load: Keyword.get(opts, :punch_after_load, false),
       punch_delay: Keyword.get(opts, :punch_delay, 20),
       ready_dc1: Keyword.get(opts, :ready_dc1, false),
+      busy_until_xoff: Keyword.get(opts, :busy_until_xoff, false),
+      last_rx: nil,
       programs: Keyword.get(opts, :programs, %{}),
       last: nil,
       buffer: <<>>,
@@ -210,8 +217,8 @@ defmodule Vws.Sim.RS232Control do
     kept = binary_part(bytes, 0, min(room, byte_size(bytes)))
     lost = byte_size(bytes) - byte_size(kept)
     buffer = s.buffer <> kept
-
-    s = %{s | buffer: buffer, max_fill: max(s.max_fill, byte_size(buffer))}
+    now = System.monotonic_time(:millisecond)
+    s = %{s | buffer: buffer, max_fill: max(s.max_fill, byte_size(buffer)), last_rx: now}
 
     s =
       if lost > 0 do
@@ -228,6 +235,15 @@ defmodule Vws.Sim.RS232Control do
     if byte_size(buffer) >= s.high and not s.xoff,
       do: %{out(s, <<@dc3>>) | xoff: true, xoffs: s.xoffs + 1},
       else: s
+  end
+
+  # busy at the start (busy_until_xoff): nothing emptied until an XOFF, or a quiet line
+  defp drain(%{busy_until_xoff: true, xoffs: 0} = s) do
+    quiet? = s.last_rx != nil and System.monotonic_time(:millisecond) - s.last_rx >= 100
+
+    if quiet?,
+      do: drain(%{s | busy_until_xoff: false}),
+      else: %{s | last_tick: System.monotonic_time(:microsecond)}
   end
 
   # by the time that has passed, not the ticks counted: a late tick must not slow the control

@@ -335,12 +335,28 @@ defmodule Vws.Links.RS232.Link do
         # the transfer's progress, every 256 bytes and at the last one
         if div(job.sent, 256) != div(job.sent - n, 256) or left == <<>>, do: progress(data, false)
         # the next chunk when the line has carried this one (its pace since sending (re)started)
-        due = job.paced_from + div((job.sent - job.paced_sent) * 1000, data.cps)
+        {data, due} = pace(data, n)
         {:keep_state, data, [{{:timeout, :pace}, max(due - now(), 0), :go}]}
 
       {:error, _} ->
         # the connection's end comes as a message: the request ends there
         :keep_state_and_data
+    end
+  end
+
+  # When the next chunk is due. A sender held up (a loaded host) catches up at most two chunks:
+  # beyond that the pace starts again from this chunk, as a UART would go on at its rate —
+  # catching up a long delay at once sent a burst the control's buffer could not take before its
+  # XOFF came back (buffer overruns in a loaded full suite).
+  defp pace(%{job: job} = data, n) do
+    now = now()
+    due = job.paced_from + div((job.sent - job.paced_sent) * 1000, data.cps)
+
+    if due < now - div(2 * data.opts.chunk * 1000, data.cps) do
+      job = %{job | paced_from: now, paced_sent: job.sent - n}
+      {%{data | job: job}, now + div(n * 1000, data.cps)}
+    else
+      {data, due}
     end
   end
 

@@ -38,7 +38,8 @@ defmodule Vws.Partitions.Monarch.RS232Test do
 
   defp program(bytes, number \\ "O4711"), do: Vws.Test.Serial.program_lines(bytes, number)
 
-  @tag sim: [punch_after_load: true]
+  # (busy at the start: it says XOFF whatever the pace of a loaded host's sender)
+  @tag sim: [punch_after_load: true, busy_until_xoff: true]
   test "DOWNLOAD_GE is DONE once the control's read-back is the program sent", ctx do
     lines = program(3_000)
     :ok = Mailbox.put_nc_file(ctx.ws, lines)
@@ -64,6 +65,8 @@ defmodule Vws.Partitions.Monarch.RS232Test do
              "0001ERROR PROGRAM VERIFY FAILED READ BACK DIFFERS"
   end
 
+  # (busy at the start: it says XOFF whatever the pace of a loaded host's sender)
+  @tag sim: [busy_until_xoff: true]
   test "DRIP_FEED: every byte reaches the control under XON/XOFF, its progress published", ctx do
     lines = program(4_000)
     :ok = Mailbox.put_nc_file(ctx.ws, lines)
