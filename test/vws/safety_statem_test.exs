@@ -21,17 +21,20 @@ for part <- 1..6 do
     test "no collision, and every command ends, over #{@sequences} random sequences (#{part}/6)" do
       property =
         :proper.forall(SafetyModel.commands(), fn cmds ->
-          case SafetyModel.run(cmds) do
-            :ok ->
-              true
+          # (what a sequence raises is shown with the counterexample: checked/1)
+          checked(fn ->
+            case SafetyModel.run(cmds) do
+              :ok ->
+                true
 
-            {:failed, report} ->
-              IO.puts(
-                "\nsafety sequence failed:\n" <> inspect(report, pretty: true, limit: :infinity)
-              )
+              {:failed, report} ->
+                IO.puts(
+                  "\nsafety sequence failed:\n" <> inspect(report, pretty: true, limit: :infinity)
+                )
 
-              false
-          end
+                false
+            end
+          end)
         end)
 
       assert_property(property, @sequences)
