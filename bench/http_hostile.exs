@@ -4,7 +4,7 @@
 #
 #     mix run bench/http_hostile.exs [--hostile 2000] [--seconds 20] [--samples 2000] [--nice]
 #                                    [--only vws,sink_apart,sink_node] [--wc-apart] [--msacc]
-#                                    [--rounds N] [--reductions]
+#                                    [--rounds N] [--reductions] [--monitor]
 #
 # This node runs one workstation (SUN_COMM on TCP 127.0.0.1) and the web server with its default
 # limits (1,024 connections, 64 per client, 10 new connections/s per client while it is half
@@ -79,6 +79,12 @@
 # beside VWS / beside the control, p50 0.96, p99 1.36 (4.35 against 3.19 ms), p99.9 2.92, max
 # 39 against 15 ms. The WC's median is untouched; its tail is not: about one exchange in a
 # hundred waits a few ms longer while this node serves the churn.
+# `--monitor` (processes holding a scheduler ≥ 2 ms at a stretch, :erlang.system_monitor): the
+# connections (low priority) ×42 for 293 ms in all, the admission server once 56 ms, a
+# connection's GC twice 20 ms — times no BEAM work of theirs takes, so mostly their scheduler
+# thread preempted by the OS on a host 96 % busy; a WC process queued on that scheduler waits with
+# it. The control's node sleeps and is woken at once. What is left is this node's CPU for the
+# churn (about one core), not its priorities.
 
 Code.require_file("support.exs", __DIR__)
 Logger.configure(level: :error)
@@ -96,7 +102,8 @@ alias Vws.Bench
       wc_apart: :boolean,
       msacc: :boolean,
       reductions: :boolean,
-      rounds: :integer
+      rounds: :integer,
+      monitor: :boolean
     ]
   )
 
@@ -574,6 +581,54 @@ reductions = fn ->
   {elem(:erlang.statistics(:reductions), 0), procs}
 end
 
+# with --monitor: the processes that held a scheduler 2 ms or more at a stretch, or were
+# collected that long (:erlang.system_monitor), by kind, during `ms`
+long_runs = fn ms ->
+  Task.async(fn ->
+    kind = fn
+      pid when is_pid(pid) ->
+        case Process.info(pid, [:registered_name, :dictionary, :initial_call, :priority]) do
+          nil ->
+            :gone
+
+          info ->
+            name =
+              case info[:registered_name] do
+                [] -> info[:dictionary][:"$initial_call"] || info[:initial_call]
+                name -> name
+              end
+
+            {name, info[:priority]}
+        end
+
+      port ->
+        {:port, port |> :erlang.port_info(:name) |> elem(1)}
+    end
+
+    _ = :erlang.system_monitor(self(), long_schedule: 2, long_gc: 2)
+    stop = System.monotonic_time(:millisecond) + ms
+
+    collect = fn collect, acc ->
+      receive do
+        {:monitor, who, what, info} when what in [:long_schedule, :long_gc] ->
+          t = info[:timeout] || info[:time] || 0
+          key = {what, kind.(who)}
+          collect.(collect, Map.update(acc, key, {1, t}, fn {n, sum} -> {n + 1, sum + t} end))
+      after
+        max(stop - System.monotonic_time(:millisecond), 0) -> acc
+      end
+    end
+
+    acc = collect.(collect, %{})
+    :erlang.system_monitor(:undefined)
+
+    acc
+    |> Enum.sort_by(fn {_, {_n, ms}} -> -ms end)
+    |> Enum.take(8)
+    |> Enum.map_join("; ", fn {{what, who}, {n, ms}} -> "#{what} #{inspect(who)} ×#{n} (#{ms} ms)" end)
+  end)
+end
+
 reductions_summary = fn {total0, procs0}, {total1, procs1} ->
   by_kind =
     Enum.reduce(procs1, %{}, fn {pid, {kind, r}}, acc ->
@@ -675,10 +730,12 @@ churn = fn target ->
 
   # with --msacc: where this node's threads spend the window (OTP's microstate accounting)
   if opts[:msacc], do: spawn(fn -> :msacc.start(window - 500) end)
+  monitor = if opts[:monitor], do: long_runs.(window - 500)
   reds0 = if opts[:reductions], do: reductions.(), else: nil
   loaded = measure.(min(samples, div(window, 3)))
   msacc = if opts[:msacc], do: msacc_summary.(:msacc.stats()), else: nil
   reds = if reds0, do: reductions_summary.(reds0, reductions.()), else: nil
+  long = if monitor, do: Task.await(monitor, :infinity)
   honest = receive(do: ({:honest, r} -> r))
   connections = receive(do: ({:connections, c} -> c))
   node_cpu = cpu_ticks.(System.pid()) - node_cpu0
@@ -735,6 +792,7 @@ churn = fn target ->
     window: window / 1000,
     msacc: msacc,
     reductions: reds,
+    long: long,
     wc: loaded,
     honest: honest,
     connections: connections,
@@ -802,7 +860,7 @@ for r <- runs do
     connect rate   #{Float.round(r.connect_rate, 0)} connections/s accepted (#{hostile} sockets, #{seconds} s)#{if r.sink, do: "; the sink: #{r.sink}", else: ""}
     CPU            this node #{r.node_cpu} s in #{r.window} s (normal schedulers #{Float.round(r.sched * 100, 1)} % busy), the generator #{r.gen_cpu} s in its life, the host #{Float.round(r.host_busy * 100, 1)} % busy
     VWS server     connections open during the window: max #{Enum.max(r.connections)}, p50 #{Bench.pct(r.connections, 0.5)}; #{r.left} left 2 s after the hostile process ended
-  #{if r.msacc, do: "  msacc (s)      #{r.msacc}\n", else: ""}#{if r.reductions, do: "  reductions     #{r.reductions}\n", else: ""}#{honest_summary.("honest GET (to VWS)", r.honest)}
+  #{if r.msacc, do: "  msacc (s)      #{r.msacc}\n", else: ""}#{if r.reductions, do: "  reductions     #{r.reductions}\n", else: ""}#{if r.long, do: "  held ≥ 2 ms    #{r.long}\n", else: ""}#{honest_summary.("honest GET (to VWS)", r.honest)}
   #{wc_summary.("WC status", r.wc)}
   """)
 end
