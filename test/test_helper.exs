@@ -40,6 +40,16 @@ if reason = Vws.Test.XMLLint.missing_schemas() do
   ExUnit.configure(exclude: Enum.uniq(ExUnit.configuration()[:exclude] ++ [:mtconnect_schemas]))
 end
 
+# The tests tagged :ipv6 bind the IPv6 loopback, which a container may not have.
+case :gen_tcp.listen(0, [:inet6, ip: {0, 0, 0, 0, 0, 0, 0, 1}]) do
+  {:ok, socket} ->
+    :gen_tcp.close(socket)
+
+  {:error, reason} ->
+    IO.puts("Excluding the tests tagged :ipv6: no IPv6 loopback here (#{inspect(reason)})")
+    ExUnit.configure(exclude: Enum.uniq(ExUnit.configuration()[:exclude] ++ [:ipv6]))
+end
+
 # The suite leaves no daemon running: an epmd started by a test (distribution) is stopped after it.
 Vws.Test.Acceptance.stop_epmd_after_suite()
 

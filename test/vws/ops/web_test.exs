@@ -41,6 +41,24 @@ defmodule Vws.Ops.WebTest do
     %{ws: ws, wc: wc}
   end
 
+  # (only where the host has an IPv6 loopback: a container may have none)
+  @tag :ipv6
+  test "an IPv6 address to bind: served there (the server opens its socket by the address's family)" do
+    pid = start_supervised!({Vws.Ops.Web, [port: 0, bind: "::1"]}, id: make_ref())
+    assert Vws.Ops.Web.url(pid) =~ ~r{^http://\[::1\]:\d+/$}
+
+    {:ok, s} =
+      :gen_tcp.connect({0, 0, 0, 0, 0, 0, 0, 1}, Vws.Ops.Web.port(pid), [
+        :binary,
+        :inet6,
+        active: false
+      ])
+
+    :ok = :gen_tcp.send(s, "GET /api/state HTTP/1.1\r\nhost: x\r\nconnection: close\r\n\r\n")
+    assert {:ok, "HTTP/1.1 200 OK\r\n" <> _} = :gen_tcp.recv(s, 0, 10_000)
+    :gen_tcp.close(s)
+  end
+
   test "binds 127.0.0.1 by default and serves the dashboard page" do
     url = web([])
     assert url =~ ~r{^http://127\.0\.0\.1:\d+/$}
