@@ -751,10 +751,16 @@ defmodule Vws.Ops.MTConnect.Model do
 
   @doc "Tray `n`'s LockState from the TRAYS status text."
   @spec tray_state(term, pos_integer) :: String.t()
+  # (one regex compiled with the module: one with `n` interpolated was compiled at every status)
   def tray_state(text, n) when is_binary(text) do
-    case Regex.run(~r/TRAY #?#{n} (NOT )?IN POSITION/, text) do
-      [_, "NOT "] -> "UNLOCKED"
-      [_] -> "LOCKED"
+    tray = Integer.to_string(n)
+
+    case Enum.find(
+           Regex.scan(~r/TRAY #?(\d+) (NOT )?IN POSITION/, text),
+           &(Enum.at(&1, 1) == tray)
+         ) do
+      [_, _, "NOT "] -> "UNLOCKED"
+      [_, _] -> "LOCKED"
       _ -> @unavailable
     end
   end

@@ -1,5 +1,6 @@
 defmodule Vws.Ops.MTConnect.ModelTest do
   use ExUnit.Case, async: true
+  use Vws.PropCase
 
   alias Vws.Ops.MTConnect.Model
 
@@ -44,6 +45,7 @@ defmodule Vws.Ops.MTConnect.ModelTest do
       assert Model.tray_state(trays, 1) == "LOCKED"
       assert Model.tray_state(trays, 2) == "UNLOCKED"
       assert Model.tray_state("NO DATA (NO LINK TO DAQ #1)", 1) == "UNAVAILABLE"
+      assert Model.tray_state("TRAY #12 IN POSITION TRAY #1 NOT IN POSITION", 1) == "UNLOCKED"
 
       assert Model.pallet_state("PALLET CLAMPED") == "LOCKED"
       assert Model.pallet_state("PALLET NOT CLAMPED") == "UNLOCKED"
@@ -114,5 +116,34 @@ defmodule Vws.Ops.MTConnect.ModelTest do
       assert v["ws_VWS_pallet_state"] == "LOCKED"
       assert v["ws_VWS_vise_state"] == "UNAVAILABLE"
     end
+  end
+
+  test "property: a tray's state is the first \"TRAY #n [NOT ]IN POSITION\" of that tray in the text" do
+    part =
+      :proper_types.oneof([
+        :proper_types.elements(["TRAY ", "#", "1", "2", "12", " ", "NOT ", "IN POSITION", "X"]),
+        :proper_types.elements([
+          "TRAY #1 IN POSITION",
+          "TRAY #2 NOT IN POSITION",
+          "TRAY 1 NOT IN POSITION"
+        ])
+      ])
+
+    property =
+      :proper.forall({:proper_types.list(part), :proper_types.elements([1, 2])}, fn {parts, n} ->
+        text = Enum.join(parts)
+
+        # the rule as a regex of its own for the tray
+        expected =
+          case Regex.run(Regex.compile!("TRAY #?#{n} (NOT )?IN POSITION"), text) do
+            [_, "NOT "] -> "UNLOCKED"
+            [_] -> "LOCKED"
+            _ -> "UNAVAILABLE"
+          end
+
+        Model.tray_state(text, n) == expected
+      end)
+
+    assert_property(property, 500)
   end
 end
