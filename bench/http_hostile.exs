@@ -625,7 +625,9 @@ long_runs = fn ms ->
     acc
     |> Enum.sort_by(fn {_, {_n, ms}} -> -ms end)
     |> Enum.take(8)
-    |> Enum.map_join("; ", fn {{what, who}, {n, ms}} -> "#{what} #{inspect(who)} ×#{n} (#{ms} ms)" end)
+    |> Enum.map_join("; ", fn {{what, who}, {n, ms}} ->
+      "#{what} #{inspect(who)} ×#{n} (#{ms} ms)"
+    end)
   end)
 end
 

@@ -360,12 +360,36 @@ defmodule Vws.Ops.MTConnect.Agent do
       end
 
     if follows? and Map.has_key?(s.facts, ws) do
-      facts = apply_change(Map.fetch!(s.facts, ws), change)
-      observe(%{s | facts: Map.put(s.facts, ws, facts)}, ws, facts, at)
+      before = Map.fetch!(s.facts, ws)
+      facts = apply_change(before, change)
+      s = %{s | facts: Map.put(s.facts, ws, facts)}
+
+      # a poll's changes touch a few items: those alone (Model.changed_values/3)
+      case device_change(s, ws, change, before) do
+        {:only, values} ->
+          Enum.reduce(values, s, &record(&2, Map.fetch!(&2.items, elem(&1, 0)), elem(&1, 1), at))
+
+        :all ->
+          observe(s, ws, facts, at)
+      end
     else
       s
     end
   end
+
+  defp device_change(s, ws, {:device, loc, value}, before) do
+    case s.devices do
+      %{^ws => device} ->
+        if MapSet.member?(s.gone, ws),
+          do: :all,
+          else: Model.changed_values(device, {:device, Mailbox.device_name(loc), value}, before)
+
+      _ ->
+        :all
+    end
+  end
+
+  defp device_change(_s, _ws, _change, _before), do: :all
 
   # Before an answer: every change announced on another node before the request is in. Each
   # forwarder (of a node that answers) is asked to say so after what it has forwarded; its

@@ -313,6 +313,9 @@ defmodule Vws.Ops.MTConnect.Model do
   def items(%{items: items, components: components}),
     do: items ++ Enum.flat_map(components, &items/1)
 
+  # The status texts whose items depend on that text alone (text_values/3)
+  @text_only ["GRIPPER", "VISE", "TRAYS"]
+
   @doc """
   The value of every data item of a workstation's device from what is known of it (`nil`: the
   workstation cannot be read, every item `UNAVAILABLE`). Returns `%{item_id => value}`.
@@ -385,21 +388,11 @@ defmodule Vws.Ops.MTConnect.Model do
       "#{p}_robot_j5_angle" => at.(10),
       "#{p}_robot_j6_angle" => at.(11),
       "#{p}_gripper_avail" => available(daq?),
-      "#{p}_gripper_state" => gripper_state(text.("GRIPPER")),
-      "#{p}_gripper_gap" => reading(sensors, :gripper_finger_mm),
-      "#{p}_gripper_msg" => message(text.("GRIPPER")),
       "#{p}_gripper_cmd" => command_message(status.(:gripper), cmd_in[:gripper], true),
       "#{p}_gripper_system" => command_condition(status.(:gripper), daq?),
       "#{p}_vise_avail" => available(daq?),
-      "#{p}_vise_state" => vise_state(text.("VISE")),
-      "#{p}_vise_part" => vise_part(text.("VISE")),
-      "#{p}_vise_jaw" => reading(sensors, :vise_jaw_mm),
-      "#{p}_vise_force" => reading(sensors, :vise_force_n),
-      "#{p}_vise_msg" => message(text.("VISE")),
       "#{p}_vise_cmd" => command_message(status.(:fixture), cmd_in[:fixture], true),
       "#{p}_vise_system" => command_condition(status.(:fixture), daq?),
-      "#{p}_tray1_state" => tray_state(text.("TRAYS"), 1),
-      "#{p}_tray2_state" => tray_state(text.("TRAYS"), 2),
       "#{p}_pallet_avail" => available(pallet?),
       "#{p}_pallet_state" => pallet_state(text.("PALLET")),
       "#{p}_pallet_force1" => pallet_force(pallet?, pallet, :force1_n),
@@ -414,11 +407,62 @@ defmodule Vws.Ops.MTConnect.Model do
       "#{p}_hydraulic_link_conn" => Map.get(links, :hydraulic, @unavailable)
     }
 
+    values =
+      Enum.reduce(@text_only, Map.merge(values, sensor_values(p, sensors)), fn name, acc ->
+        Map.merge(acc, text_values(p, name, text.(name)))
+      end)
+
     Map.new(items(device), fn i ->
       default = if i.category == :condition, do: unavailable_condition(), else: @unavailable
       {i.id, Map.get(values, i.id, default)}
     end)
   end
+
+  @doc """
+  What one change of a workstation's facts does to its data items, when it touches only a few:
+  `{:only, %{item_id => value}}` — those items' new values, every other item's value the same as
+  `observe/2` gave before the change — or `:all` (observe the whole device again). `change` is
+  `{:device, name, value}` (a status location by its name) or anything else; `before` what was
+  known before it. A poll of DAQ #1 changes SENSORS (a new reading) and often VISE (the force in
+  its text): their few items are worked out alone, not the device's 54.
+  """
+  @spec changed_values(device, term, facts) :: {:only, %{String.t() => value}} | :all
+  def changed_values(%{id: p}, {:device, "SENSORS", %Vws.Links.DAQ.Readings{} = new}, before) do
+    # (whether there are readings at all decides the gripper's and the vise's availability)
+    case get_in(before, [:devices, "SENSORS"]) do
+      %Vws.Links.DAQ.Readings{} -> {:only, sensor_values(p, new)}
+      _ -> :all
+    end
+  end
+
+  def changed_values(%{id: p}, {:device, name, new}, _before) when name in @text_only,
+    do: {:only, text_values(p, name, new)}
+
+  def changed_values(_device, _change, _before), do: :all
+
+  # the items read from DAQ #1's readings (nil: none)
+  defp sensor_values(p, sensors) do
+    %{
+      "#{p}_gripper_gap" => reading(sensors, :gripper_finger_mm),
+      "#{p}_vise_jaw" => reading(sensors, :vise_jaw_mm),
+      "#{p}_vise_force" => reading(sensors, :vise_force_n)
+    }
+  end
+
+  # the items read from one status text alone
+  defp text_values(p, "GRIPPER", text),
+    do: %{"#{p}_gripper_state" => gripper_state(text), "#{p}_gripper_msg" => message(text)}
+
+  defp text_values(p, "VISE", text) do
+    %{
+      "#{p}_vise_state" => vise_state(text),
+      "#{p}_vise_part" => vise_part(text),
+      "#{p}_vise_msg" => message(text)
+    }
+  end
+
+  defp text_values(p, "TRAYS", text),
+    do: %{"#{p}_tray1_state" => tray_state(text, 1), "#{p}_tray2_state" => tray_state(text, 2)}
 
   @doc """
   The DNC transfer message: what the GE-2000 link is transferring or transferred last

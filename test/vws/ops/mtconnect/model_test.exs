@@ -146,4 +146,93 @@ defmodule Vws.Ops.MTConnect.ModelTest do
 
     assert_property(property, 500)
   end
+
+  describe "a change's few items worked out alone (Model.changed_values/3)" do
+    alias Vws.Ops.MTConnect.Agent
+
+    # DAQ #1's readings from random volts and a random gauge
+    defp readings do
+      :proper_types.bind(
+        {:proper_types.vector(16, :proper_types.float(0.0, 10.0)),
+         :proper_types.float(100.0, 600.0)},
+        fn {volts, ohms} -> Vws.Links.DAQ.readings(Vws.Links.DAQ.new(), [volts, [ohms]]) end,
+        false
+      )
+    end
+
+    defp text do
+      :proper_types.elements([
+        nil,
+        "GRIPPER IS OPEN AND INDEXER ROTATED 90 DEG",
+        "FINGERS ARE 12.5 MM APART AND INDEXER ROTATED 0 DEG",
+        "VISE JAWS ARE 75 MM APART AND VISE IS LOCKED PART IN VISE",
+        "VISE IS FULLY OPEN PART NOT IN VISE",
+        "TRAY #1 IN POSITION TRAY #2 NOT IN POSITION",
+        "TRAY #1 NOT IN POSITION TRAY #2 IN POSITION",
+        "PALLET CLAMPED",
+        "IDLE",
+        "ACTIVE",
+        {:no_data, "NO LINK TO DAQ #1"},
+        "NO DATA (DAQ #1 NOT ANSWERING)"
+      ])
+    end
+
+    @names ~w(GRIPPER TABLE VISE TRAYS VACUUM MONARCH WHERE_ROBOT PALLET SENSORS)
+
+    defp facts do
+      :proper_types.bind(
+        {:proper_types.list(
+           :proper_types.oneof([
+             {:proper_types.elements(@names -- ["SENSORS"]), text()},
+             {:proper_types.exactly("SENSORS"), :proper_types.oneof([readings(), text()])}
+           ])
+         ), :proper_types.elements([%{}, %{robot: {7, :executing}, gripper: {3, :done}}])},
+        fn {devices, commands} -> %{devices: Map.new(devices), commands: commands} end,
+        false
+      )
+    end
+
+    defp change do
+      :proper_types.oneof([
+        {:proper_types.elements(@names -- ["SENSORS"]), text()},
+        {:proper_types.exactly("SENSORS"), :proper_types.oneof([readings(), text()])}
+      ])
+    end
+
+    test "property: the items it gives are the whole device's observed again, and no other item changed" do
+      device = Model.device("VWS")
+
+      property =
+        :proper.forall({facts(), change()}, fn {before, {name, value}} ->
+          loc = Vws.CEC.Mailbox.device_location(name)
+          after_change = Agent.apply_change(before, {:device, loc, value})
+          whole = Model.observe(device, after_change)
+
+          case Model.changed_values(device, {:device, name, value}, before) do
+            {:only, values} ->
+              Map.merge(Model.observe(device, before), values) == whole
+
+            :all ->
+              true
+          end
+        end)
+
+      assert_property(property, 1_000)
+    end
+
+    test "a poll's SENSORS and VISE are worked out alone; a first reading, MONARCH or PALLET is not" do
+      device = Model.device("VWS")
+      r = Vws.Links.DAQ.readings(Vws.Links.DAQ.new(), [List.duplicate(1.0, 16), [300.0]])
+      with_readings = %{devices: %{"SENSORS" => r}}
+
+      assert {:only, %{"ws_VWS_vise_force" => _} = v} =
+               Model.changed_values(device, {:device, "SENSORS", r}, with_readings)
+
+      assert map_size(v) == 3
+      assert {:only, _} = Model.changed_values(device, {:device, "VISE", "VISE IS LOCKED"}, %{})
+      assert Model.changed_values(device, {:device, "SENSORS", r}, %{}) == :all
+      assert Model.changed_values(device, {:device, "MONARCH", "IDLE"}, with_readings) == :all
+      assert Model.changed_values(device, {:device, "PALLET", "PALLET CLAMPED"}, %{}) == :all
+    end
+  end
 end
