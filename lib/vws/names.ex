@@ -61,12 +61,51 @@ defmodule Vws.Names do
   @doc """
   The ETS table of a workstation's mailboxes (CMD_IN, the locations, the event counters), as its
   owner registered it; raises `ArgumentError` when the workstation has none (not started).
+
+  A process that called `keep_mailbox_table/1` for `ws` gets it without a Registry look-up
+  while the table's owner lives; once the owner is gone it is looked up again.
   """
   @spec mailbox_table(term) :: :ets.tid()
   def mailbox_table(ws) do
-    case Registry.lookup(Vws.Registry, {ws, :mailbox}) do
-      [{_pid, table}] -> table
-      [] -> raise ArgumentError, "workstation #{inspect(ws)} has no mailboxes (is it started?)"
+    case Process.get({__MODULE__, :mailbox, ws}) do
+      nil ->
+        lookup_mailbox_table(ws)
+
+      {owner, table} ->
+        if Process.alive?(owner), do: table, else: keep_mailbox_table(ws)
+
+      :kept ->
+        keep_mailbox_table(ws)
     end
   end
+
+  @doc """
+  Keeps the workstation's mailbox table (and its owner) in the calling process, for the
+  processes that read and write the mailboxes at every poll or string (VWS_STATUS, SUN_COMM):
+  `mailbox_table/1` then needs no Registry look-up. The owner is checked alive at every use, so
+  a table whose owner was restarted is never used: the new one is looked up (and kept).
+  """
+  @spec keep_mailbox_table(term) :: :ets.tid()
+  def keep_mailbox_table(ws) do
+    case Registry.lookup(Vws.Registry, {ws, :mailbox}) do
+      [{owner, table}] ->
+        Process.put({__MODULE__, :mailbox, ws}, {owner, table})
+        table
+
+      [] ->
+        # asked for again at the next use
+        Process.put({__MODULE__, :mailbox, ws}, :kept)
+        no_mailboxes(ws)
+    end
+  end
+
+  defp lookup_mailbox_table(ws) do
+    case Registry.lookup(Vws.Registry, {ws, :mailbox}) do
+      [{_owner, table}] -> table
+      [] -> no_mailboxes(ws)
+    end
+  end
+
+  defp no_mailboxes(ws),
+    do: raise(ArgumentError, "workstation #{inspect(ws)} has no mailboxes (is it started?)")
 end

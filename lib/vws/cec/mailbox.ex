@@ -115,6 +115,14 @@ defmodule Vws.CEC.Mailbox do
   @spec table(workstation) :: :ets.tid()
   def table(ws), do: Vws.Names.mailbox_table(ws)
 
+  @doc """
+  Keeps the workstation's table in the calling process (`Vws.Names.keep_mailbox_table/1`): the
+  processes that write the mailboxes at every poll or string find it without a Registry
+  look-up, and a new table (its owner restarted) is looked up again.
+  """
+  @spec keep_table(workstation) :: :ets.tid()
+  def keep_table(ws), do: Vws.Names.keep_mailbox_table(ws)
+
   @doc "True when the workstation's mailboxes exist."
   @spec exists?(workstation) :: boolean
   def exists?(ws), do: Registry.lookup(Vws.Registry, {ws, :mailbox}) != []
@@ -160,27 +168,32 @@ defmodule Vws.CEC.Mailbox do
   Writes several device-status locations at once, `[{loc, value}]`, as `put_device/3` does each
   (one look-up of the table: VWS_STATUS writes seven at every poll of DAQ #1). An entry
   `{loc, value, :changed}` is a value its writer knows to be new (a reading with its own sequence
-  number): announced without reading the old one back to compare.
+  number): announced without reading the old one back to compare. Each location at most once:
+  they are written in one insert, so a reader sees all of them or none.
   """
   @spec put_devices(workstation, [{1..14, term} | {1..14, term, :changed}]) :: :ok
   def put_devices(ws, values) do
     table = table(ws)
     now = now()
 
-    changes =
-      for entry <- values do
+    {rows, changes} =
+      Enum.reduce(values, {[], []}, fn entry, {rows, changes} ->
         {loc, value, changed?} =
           case entry do
-            {loc, value, :changed} -> {loc, value, true}
-            {loc, value} -> {loc, value, :ets.lookup_element(table, {:device, loc}, 2) != value}
+            {loc, value, :changed} when loc in 1..14 ->
+              {loc, value, true}
+
+            {loc, value} when loc in 1..14 ->
+              {loc, value, :ets.lookup_element(table, {:device, loc}, 2) != value}
           end
 
-        true = loc in 1..14
-        :ets.insert(table, {{:device, loc}, value, now})
-        changed? && {:device, loc, value}
-      end
+        changes = if changed?, do: [{:device, loc, value} | changes], else: changes
+        {[{{:device, loc}, value, now} | rows], changes}
+      end)
 
-    for change <- changes, change, do: changed(ws, change)
+    # one write of them all
+    :ets.insert(table, rows)
+    for change <- :lists.reverse(changes), do: changed(ws, change)
     :ok
   end
 

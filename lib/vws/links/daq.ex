@@ -56,7 +56,8 @@ defmodule Vws.Links.DAQ do
           sensors: %{pos_integer => map},
           actuators: %{signal => pos_integer},
           threshold_volts: float,
-          signal_channels: %{signal => pos_integer}
+          signal_channels: %{signal => pos_integer},
+          layout: {[{pos_integer, map}], [{pos_integer, map}]}
         }
 
   defstruct [
@@ -66,7 +67,8 @@ defmodule Vws.Links.DAQ do
     :sensors,
     :actuators,
     :threshold_volts,
-    :signal_channels
+    :signal_channels,
+    :layout
   ]
 
   @schema [
@@ -105,10 +107,19 @@ defmodule Vws.Links.DAQ do
       for {ch, %{kind: kind}} <- sensors, kind in kinds, do: ch
     end
 
+    volt_channels = Enum.sort(by_kind.([:switch, :pot, :spare]))
+    ohm_channels = Enum.sort(by_kind.([:gauge]))
+
     %__MODULE__{
       daq: daq,
-      volt_channels: Enum.sort(by_kind.([:switch, :pot, :spare])),
-      ohm_channels: Enum.sort(by_kind.([:gauge])),
+      volt_channels: volt_channels,
+      ohm_channels: ohm_channels,
+      # each answer's channels in order with their map entries: a poll's answers are read in
+      # one walk each (readings/3), not looked up channel by channel
+      layout: {
+        Enum.map(volt_channels, &{&1, Map.fetch!(sensors, &1)}),
+        Enum.map(ohm_channels, &{&1, Map.fetch!(sensors, &1)})
+      },
       sensors: sensors,
       actuators: for({ch, %{kind: :actuator, signal: s}} <- entries, into: %{}, do: {s, ch}),
       threshold_volts: config.switch.threshold_volts * 1.0,
@@ -142,14 +153,12 @@ defmodule Vws.Links.DAQ do
         {_, _, [v, o]} -> {v, o}
       end
 
-    volts = Map.new(Enum.zip(daq.volt_channels, volts))
-    ohms = Map.new(Enum.zip(daq.ohm_channels, ohms))
-
-    values =
-      for {ch, %{kind: kind, signal: signal} = entry} <- daq.sensors, kind != :spare, into: %{} do
-        reading = if kind == :gauge, do: Map.fetch!(ohms, ch), else: Map.fetch!(volts, ch)
-        {signal, value(entry, reading, daq.threshold_volts)}
-      end
+    {volt_layout, ohm_layout} = daq.layout
+    {volts, values} = read(volt_layout, volts, daq.threshold_volts, [], [])
+    {ohms, values} = read(ohm_layout, ohms, daq.threshold_volts, [], values)
+    volts = :maps.from_list(volts)
+    ohms = :maps.from_list(ohms)
+    values = :maps.from_list(values)
 
     %Readings{
       seq: Keyword.get(opts, :seq, 0),
@@ -161,6 +170,21 @@ defmodule Vws.Links.DAQ do
       channels: daq.signal_channels
     }
   end
+
+  # One answer against its channels, in order: `{[{channel, reading}], values}`, the values of
+  # its sensors (spare channels have none) added to `values`. An answer with more or fewer
+  # readings than channels raises, as the HPIB never hands one over (Vws.Codecs.SCPI checks).
+  defp read([{ch, entry} | layout], [reading | rest], threshold, raw, values) do
+    values =
+      case entry do
+        %{kind: :spare} -> values
+        %{signal: signal} -> [{signal, value(entry, reading, threshold)} | values]
+      end
+
+    read(layout, rest, threshold, [{ch, reading} | raw], values)
+  end
+
+  defp read([], [], _threshold, raw, values), do: {raw, values}
 
   @doc false
   def __channel_map__(map_or_path) when is_map(map_or_path) or is_binary(map_or_path),

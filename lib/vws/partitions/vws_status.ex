@@ -372,6 +372,8 @@ defmodule Vws.Partitions.VwsStatus do
     ws = Keyword.fetch!(opts, :workstation)
     # its log lines say which workstation they are about, as the other partitions' do
     Logger.metadata(workstation: ws, partition: :vws_status)
+    # written at every poll: found without a Registry look-up (looked up again if it is new)
+    Mailbox.keep_table(ws)
     opts = Keyword.merge(@defaults, opts)
     link = Keyword.get(opts, :link)
     # caused at every write of location 11: what await/4 waits on
@@ -541,13 +543,19 @@ defmodule Vws.Partitions.VwsStatus do
         # the node overloaded, not the OS waking a thread a few ms late: half a period late
         shed(s, 1, if(lateness * 2 > period(s) * 1000, do: 1, else: 0), 0)
 
-        s
-        |> Map.merge(%{
-          poll: %{req: req, seq: seq, started: started, lateness: lateness, handling: 0},
-          seq: seq
-        })
-        |> update_stats(polls: 1, late: late)
-        |> max_lateness(lateness)
+        stats = s.stats
+
+        %{
+          s
+          | poll: %{req: req, seq: seq, started: started, lateness: lateness, handling: 0},
+            seq: seq,
+            stats: %{
+              stats
+              | polls: stats.polls + 1,
+                late: stats.late + late,
+                max_lateness_us: max(stats.max_lateness_us, lateness)
+            }
+        }
       end
 
     s = check_stale(s, div(started, 1000))
@@ -590,12 +598,12 @@ defmodule Vws.Partitions.VwsStatus do
               received_at: t0
             )
 
-          texts = DeviceStatus.texts(readings, min_force_n: s.min_force_n)
+          texts = DeviceStatus.text_list(readings, min_force_n: s.min_force_n)
 
           # the texts, then location 11 and the event that wakes whoever awaits a reading (await/4)
           Mailbox.put_devices(
             s.workstation,
-            Enum.to_list(texts) ++ [{Sensors.sensors_location(), readings, :changed}]
+            texts ++ [{Sensors.sensors_location(), readings, :changed}]
           )
 
           Vws.CEC.Events.cause(s.workstation, :sensors)
@@ -603,9 +611,14 @@ defmodule Vws.Partitions.VwsStatus do
           # the stale readings' warning ends here, with how often it was repeated
           Vws.LogLimit.clear(:stale, "VWS_STATUS: #{@device} answers again")
 
-          %{s | last_good_at: div(t0, 1000), stale: nil}
-          |> update_stats(ok: 1)
-          |> put_in([:stats, :consecutive_failures], 0)
+          stats = s.stats
+
+          %{
+            s
+            | last_good_at: div(t0, 1000),
+              stale: nil,
+              stats: %{stats | ok: stats.ok + 1, consecutive_failures: 0}
+          }
 
         {:error, error} ->
           s
@@ -663,9 +676,6 @@ defmodule Vws.Partitions.VwsStatus do
     stats = Enum.reduce(increments, s.stats, fn {k, n}, acc -> Map.update!(acc, k, &(&1 + n)) end)
     %{s | stats: stats}
   end
-
-  defp max_lateness(s, lateness),
-    do: put_in(s.stats.max_lateness_us, max(s.stats.max_lateness_us, lateness))
 
   # No good poll for stale_after_ms: the texts must not go on showing the old values.
   defp check_stale(s, now_ms) do

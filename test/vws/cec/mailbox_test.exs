@@ -48,6 +48,46 @@ defmodule Vws.CEC.MailboxTest do
     assert Enum.count(results, &(&1 == :ok)) == 1
   end
 
+  test "a process that keeps the table uses the new one once its owner is restarted", %{ws: ws} do
+    old = Mailbox.keep_table(ws)
+    assert Mailbox.table(ws) == old
+    owner = Vws.Names.whereis(ws, :mailbox_owner)
+    ref = Process.monitor(owner)
+    Process.exit(owner, :kill)
+    assert_receive {:DOWN, ^ref, _, _, :killed}
+    # the test supervisor starts a new owner with a new table
+    new = wait_for_new_table(ws, old, 500)
+    assert new != old
+    assert Mailbox.table(ws) == new
+    Mailbox.put_device(ws, 1, "AFTER THE RESTART")
+    assert {"AFTER THE RESTART", _} = Mailbox.get_device(ws, 1)
+  end
+
+  test "several locations are written at once, each change announced in order", %{ws: ws} do
+    Mailbox.put_device(ws, 2, "SAME")
+    Vws.CEC.Events.subscribe(ws, :mailbox)
+    :ok = Mailbox.put_devices(ws, [{1, "ONE"}, {2, "SAME"}, {11, {:no_data, "X"}, :changed}])
+    assert {"ONE", _} = Mailbox.get_device(ws, 1)
+    assert {{:no_data, "X"}, _} = Mailbox.get_device(ws, 11)
+    assert_receive {:vws_event, ^ws, :mailbox, {{:device, 1, "ONE"}, _}}
+    assert_receive {:vws_event, ^ws, :mailbox, {{:device, 11, {:no_data, "X"}}, _}}
+    refute_received {:vws_event, ^ws, :mailbox, {{:device, 2, _}, _}}
+    assert_raise CaseClauseError, fn -> Mailbox.put_devices(ws, [{1, "TWO"}, {15, "NO SUCH"}]) end
+    # nothing of a write with a bad location is written
+    assert {"ONE", _} = Mailbox.get_device(ws, 1)
+  end
+
+  defp wait_for_new_table(ws, old, ms) do
+    case Registry.lookup(Vws.Registry, {ws, :mailbox}) do
+      [{_pid, table}] when table != old ->
+        table
+
+      _ when ms > 0 ->
+        Process.sleep(10)
+        wait_for_new_table(ws, old, ms - 10)
+    end
+  end
+
   test "device values carry their age", %{ws: ws} do
     :ok = Mailbox.put_device(ws, 5, "VACUUM IS ON")
     assert {"VACUUM IS ON", age} = Mailbox.get_device(ws, 5)

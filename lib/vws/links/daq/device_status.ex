@@ -37,6 +37,7 @@ defmodule Vws.Links.DAQ.DeviceStatus do
 
   @locations [gripper: 1, table: 2, vise: 3, trays: 4, vacuum: 5, changer_1: 7]
   @indexer [indexer_0: 0, indexer_90: 90, indexer_180: 180, indexer_270: 270]
+  @gripper_signals [:gripper_fully_open, :gripper_finger_mm | Keyword.keys(@indexer)]
 
   @doc "The mailbox location of each device text (1–5, 7)."
   @spec locations() :: keyword(1..14)
@@ -44,9 +45,12 @@ defmodule Vws.Links.DAQ.DeviceStatus do
 
   @doc "Every device text of one poll, by mailbox location. Options: `:min_force_n`."
   @spec texts(Readings.t(), keyword) :: %{pos_integer => String.t()}
-  def texts(%Readings{} = r, opts \\ []) do
-    Map.new(@locations, fn {device, loc} -> {loc, text(device, r, opts)} end)
-  end
+  def texts(%Readings{} = r, opts \\ []), do: :maps.from_list(text_list(r, opts))
+
+  @doc "`texts/2` as a list `[{location, text}]`, in the order of the locations."
+  @spec text_list(Readings.t(), keyword) :: [{pos_integer, String.t()}]
+  def text_list(%Readings{} = r, opts \\ []),
+    do: for({device, loc} <- @locations, do: {loc, text(device, r, opts)})
 
   @doc "The text of one device (`:gripper`, `:table`, `:vise`, `:trays`, `:vacuum`, `:changer_1`)."
   @spec text(atom, Readings.t(), keyword) :: String.t()
@@ -65,7 +69,7 @@ defmodule Vws.Links.DAQ.DeviceStatus do
   @spec gripper(Readings.t()) :: String.t()
   def gripper(r) do
     with {:ok, [open, mm | indexer]} <-
-           fetch(r, "GRIPPER", [:gripper_fully_open, :gripper_finger_mm | Keyword.keys(@indexer)]) do
+           fetch(r, "GRIPPER", @gripper_signals) do
       fingers = if open, do: "GRIPPER IS OPEN", else: "FINGERS ARE #{mm(mm)} MM APART"
       fingers <> " AND " <> indexer_text(indexer)
     end
@@ -82,7 +86,7 @@ defmodule Vws.Links.DAQ.DeviceStatus do
   end
 
   defp indexer_text(states) do
-    case for({true, {_s, deg}} <- Enum.zip(states, @indexer), do: deg) do
+    case for({true, {_s, deg}} <- :lists.zip(states, @indexer), do: deg) do
       [deg] -> "INDEXER ROTATED #{deg} DEG"
       [] -> "INDEXER BETWEEN POSITIONS"
       _ -> "INDEXER SWITCHES DISAGREE"
