@@ -476,24 +476,24 @@ defmodule Vws.Codecs.SCPI do
     end
   end
 
-  defp all_ok(fields, parse) do
-    Enum.reduce_while(fields, {:ok, []}, fn field, {:ok, acc} ->
-      case parse.(field) do
-        {:ok, value} -> {:cont, {:ok, [value | acc]}}
-        :error -> {:halt, :error}
-      end
-    end)
-    |> case do
-      {:ok, values} -> {:ok, Enum.reverse(values)}
+  defp all_ok(fields, parse), do: all_ok(fields, parse, [])
+
+  defp all_ok([field | rest], parse, acc) do
+    case parse.(field) do
+      {:ok, value} -> all_ok(rest, parse, [value | acc])
       :error -> :error
     end
   end
+
+  defp all_ok([], _parse, acc), do: {:ok, :lists.reverse(acc)}
 
   defp parse_bit("1"), do: {:ok, true}
   defp parse_bit("0"), do: {:ok, false}
   defp parse_bit(_), do: :error
 
   defguardp digit(d) when d in ?0..?9
+
+  @powers_of_ten List.to_tuple(for n <- 0..22, do: :math.pow(10, n))
 
   # SCPI NR1/NR2/NR3: [+-] digits [. digits] [E [+-] digits], or [+-] . digits [...]; at
   # most 4 exponent digits. Read by matching bytes (a DAQ #1 poll reads 17 numbers: a regex
@@ -503,7 +503,26 @@ defmodule Vws.Codecs.SCPI do
        when s in [?+, ?-] and digit(i) and digit(f1) and digit(f2) and digit(f3) and
               digit(f4) and digit(f5) and digit(f6) and digit(f7) and digit(f8) and
               e in [?E, ?e] and es in [?+, ?-] and digit(x1) and digit(x2) do
-    to_float(binary_part(text, 0, 1), <<i>>, binary_part(text, 3, 8), <<es, x1, x2>>)
+    # the nine digits and the exponent in arithmetic, no binaries: to_float/4's fast path,
+    # the same value to the bit
+    m =
+      (i - ?0) * 100_000_000 + (f1 - ?0) * 10_000_000 + (f2 - ?0) * 1_000_000 +
+        (f3 - ?0) * 100_000 + (f4 - ?0) * 10_000 + (f5 - ?0) * 1_000 + (f6 - ?0) * 100 +
+        (f7 - ?0) * 10 + (f8 - ?0)
+
+    x = (x1 - ?0) * 10 + (x2 - ?0)
+    scale = if(es == ?-, do: -x, else: x) - 8
+
+    if scale in -22..22 do
+      value =
+        if scale >= 0,
+          do: m * 1.0 * elem(@powers_of_ten, scale),
+          else: m * 1.0 / elem(@powers_of_ten, -scale)
+
+      {:ok, if(s == ?-, do: -value, else: value)}
+    else
+      to_float(binary_part(text, 0, 1), <<i>>, binary_part(text, 3, 8), <<es, x1, x2>>)
+    end
   end
 
   defp parse_number(text) do
@@ -528,8 +547,6 @@ defmodule Vws.Codecs.SCPI do
       _ -> :error
     end
   end
-
-  @powers_of_ten List.to_tuple(for n <- 0..22, do: :math.pow(10, n))
 
   # Up to 15 digits and a scale within 10^±22: the digits and the power of ten are both exact
   # doubles, so one multiplication or division rounds correctly, as strtod does (Clinger's fast

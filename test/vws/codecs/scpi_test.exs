@@ -344,6 +344,18 @@ defmodule Vws.Codecs.SCPITest do
               "E" <> Integer.to_string(e)
           end,
           false
+        ),
+        # exactly a DAQ's form (read in arithmetic), every two-digit exponent of either sign
+        :proper_types.bind(
+          {:proper_types.oneof(["+", "-"]), :proper_types.integer(0, 999_999_999),
+           :proper_types.oneof(["+", "-"]), :proper_types.integer(0, 99),
+           :proper_types.oneof(["E", "e"])},
+          fn {sign, m, es, x, e} ->
+            m = m |> Integer.to_string() |> String.pad_leading(9, "0")
+            x = x |> Integer.to_string() |> String.pad_leading(2, "0")
+            sign <> binary_part(m, 0, 1) <> "." <> binary_part(m, 1, 8) <> e <> es <> x
+          end,
+          false
         )
       ])
 

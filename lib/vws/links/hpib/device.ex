@@ -228,11 +228,11 @@ defmodule Vws.Links.HPIB.Device do
   end
 
   defp send_request(data, actions, from, commands, {deadline, timeout, tries}) do
-    {bytes, data} = encoded(data, commands)
+    {%{bytes: bytes, queries: queries, repeatable?: repeatable?}, data} = encoded(data, commands)
 
     case Connection.send(data.wire, bytes) do
       :ok ->
-        case Enum.filter(commands, &SCPI.response?/1) do
+        case queries do
           [] ->
             serve(data, actions ++ [{:reply, from, {:ok, results(commands, [])}}])
 
@@ -249,7 +249,7 @@ defmodule Vws.Links.HPIB.Device do
             }
 
             # a try that may be followed by another waits its share of the time left
-            tries_left = if repeatable?(commands), do: max(data.retries - tries, 0), else: 0
+            tries_left = if repeatable?, do: max(data.retries - tries, 0), else: 0
             wait = div(max(deadline - now(), 0), tries_left + 1)
 
             {:next_state, :busy, %{data | current: current},
@@ -262,12 +262,18 @@ defmodule Vws.Links.HPIB.Device do
     end
   end
 
-  # The last request's bytes are kept: VWS_STATUS sends the same poll every 20 ms.
-  defp encoded(%{encoded: {commands, bytes}} = data, commands), do: {bytes, data}
+  # The last request's bytes, its queries and whether it may be tried again are kept:
+  # VWS_STATUS sends the same poll every 20 ms.
+  defp encoded(%{encoded: {commands, request}} = data, commands), do: {request, data}
 
   defp encoded(data, commands) do
-    bytes = commands |> Enum.map(&SCPI.encode_command/1) |> IO.iodata_to_binary()
-    {bytes, %{data | encoded: {commands, bytes}}}
+    request = %{
+      bytes: commands |> Enum.map(&SCPI.encode_command/1) |> IO.iodata_to_binary(),
+      queries: Enum.filter(commands, &SCPI.response?/1),
+      repeatable?: repeatable?(commands)
+    }
+
+    {request, %{data | encoded: {commands, request}}}
   end
 
   ## Bytes from the device
@@ -320,9 +326,14 @@ defmodule Vws.Links.HPIB.Device do
   defp answered(%{current: %{waiting: [], error: nil} = c} = data) do
     reply = {:ok, results(c.commands, Enum.reverse(c.answers))}
     # a good answer ends the troubles logged once each (Vws.LogLimit)
-    Vws.LogLimit.clear(:timeout, "HPIB device #{data.address} answers again")
-    Vws.LogLimit.clear(:lost, "HPIB device #{data.address} keeps its connection again")
-    Vws.LogLimit.clear(:unsolicited, "HPIB device #{data.address}: unsolicited lines")
+    # (the texts built only when one was on: this runs at every answer)
+    Vws.LogLimit.clear(:timeout, fn -> "HPIB device #{data.address} answers again" end)
+
+    Vws.LogLimit.clear(:lost, fn ->
+      "HPIB device #{data.address} keeps its connection again"
+    end)
+
+    Vws.LogLimit.clear(:unsolicited, fn -> "HPIB device #{data.address}: unsolicited lines" end)
     serve(%{data | current: nil}, [{:reply, c.from, reply}])
   end
 
@@ -417,14 +428,19 @@ defmodule Vws.Links.HPIB.Device do
 
   # Vws.Links.HPIB's requests come with the caller's deadline (Vws.Links.Connection); a request
   # without a timeout of its own has the device's, from now
+  # (a request straight to its event, not through the {:deadline, …} one: every poll is one)
+  defp common(_state, :cast, {Connection, from, deadline, {:request, commands, timeout}}, data),
+    do:
+      {:keep_state_and_data,
+       [{:next_event, {:call, from}, request(commands, deadline, timeout, data)}]}
+
   defp common(_state, :cast, {Connection, _, _, _} = call, _data),
     do: {:keep_state_and_data, [Connection.as_call(call)]}
 
-  defp common(_state, {:call, from}, {:deadline, deadline, {:request, commands, timeout}}, data) do
-    deadline = if timeout, do: deadline, else: now() + data.timeout
-    request = {:request, commands, deadline, timeout}
-    {:keep_state_and_data, [{:next_event, {:call, from}, request}]}
-  end
+  defp common(_state, {:call, from}, {:deadline, deadline, {:request, commands, timeout}}, data),
+    do:
+      {:keep_state_and_data,
+       [{:next_event, {:call, from}, request(commands, deadline, timeout, data)}]}
 
   defp common(_state, {:call, from}, {:deadline, _deadline, :await_connected}, _data),
     do: {:keep_state_and_data, [{:next_event, {:call, from}, :await_connected}]}
@@ -446,7 +462,14 @@ defmodule Vws.Links.HPIB.Device do
     :keep_state_and_data
   end
 
+  defp request(commands, deadline, timeout, data) do
+    deadline = if timeout, do: deadline, else: now() + data.timeout
+    {:request, commands, deadline, timeout}
+  end
+
   # Results in command order: the answers of the queries, :ok for the others.
+  defp results(commands, answers) when length(commands) == length(answers), do: answers
+
   defp results(commands, answers) do
     {results, []} =
       Enum.map_reduce(commands, answers, fn command, answers ->
