@@ -33,6 +33,8 @@ defmodule Vws.CEC.SunComm.Server do
   def init(opts) do
     ws = opts.workstation
     Logger.metadata(workstation: ws, partition: :sun_comm)
+    # read and written at every string: found without a Registry look-up (looked up again if new)
+    Mailbox.keep_table(ws)
     Process.flag(:trap_exit, true)
     Events.create(ws, :wc_dialogue)
     Events.create(ws, :wc_listening)
@@ -339,7 +341,8 @@ defmodule Vws.CEC.SunComm.Server do
     case Transport.send(data.conn, bytes) do
       :ok ->
         telemetry(data, :reply_sent, %{bytes: byte_size(bytes)}, %{kind: reply_kind(reply)})
-        {record(data, :out, String.trim_trailing(bytes, "\r\n")), lost}
+        # (every reply ends with its one CR LF)
+        {record(data, :out, binary_part(bytes, 0, byte_size(bytes) - 2)), lost}
 
       {:error, reason} ->
         # a WC that does not read (send_timeout) or is gone: drop it rather than wait on it

@@ -26,8 +26,27 @@ defmodule Vws.Codecs.WC.BCC do
   def compute(data, :xor) when is_binary(data), do: xor(data, 0)
   def compute(data, mode) when mode in [:sum, :xor], do: compute(IO.iodata_to_binary(data), mode)
 
-  defp sum(<<byte, rest::binary>>, acc), do: sum(rest, band(acc + byte, 0xFF))
-  defp sum(<<>>, acc), do: acc
+  # eight bytes a step (a step costs what a byte would); the sum is taken mod 256 at the end
+  defp sum(<<a, b, c, d, e, f, g, h, rest::binary>>, acc),
+    do: sum(rest, acc + a + b + c + d + e + f + g + h)
+
+  defp sum(<<byte, rest::binary>>, acc), do: sum(rest, acc + byte)
+  defp sum(<<>>, acc), do: band(acc, 0xFF)
+
+  defp xor(<<a, b, c, d, e, f, g, h, rest::binary>>, acc),
+    do:
+      xor(
+        rest,
+        acc
+        |> bxor(a)
+        |> bxor(b)
+        |> bxor(c)
+        |> bxor(d)
+        |> bxor(e)
+        |> bxor(f)
+        |> bxor(g)
+        |> bxor(h)
+      )
 
   defp xor(<<byte, rest::binary>>, acc), do: xor(rest, bxor(acc, byte))
   defp xor(<<>>, acc), do: acc

@@ -142,12 +142,21 @@ defmodule Vws.Codecs.WC.Command do
   """
   @spec pad4(0..9999) :: binary
   def pad4(n) when is_integer(n) and n in 0..9999,
-    do: n |> Integer.to_string() |> String.pad_leading(4, "0")
+    do:
+      <<?0 + div(n, 1000), ?0 + rem(div(n, 100), 10), ?0 + rem(div(n, 10), 10), ?0 + rem(n, 10)>>
 
   defp letter?(<<byte>>) when byte in ?A..?Z, do: true
   defp letter?(_), do: false
 
-  defp text?(<<byte, rest::binary>>) when byte in 0x20..0x7E and byte != ?*, do: text?(rest)
+  defguardp text_byte(byte) when byte in 0x20..0x7E and byte != ?*
+
+  # eight bytes a step where it can (a step costs what a byte would)
+  defp text?(<<a, b, c, d, e, f, g, h, rest::binary>>)
+       when text_byte(a) and text_byte(b) and text_byte(c) and text_byte(d) and text_byte(e) and
+              text_byte(f) and text_byte(g) and text_byte(h),
+       do: text?(rest)
+
+  defp text?(<<byte, rest::binary>>) when text_byte(byte), do: text?(rest)
   defp text?(<<>>), do: true
   defp text?(_), do: false
 end

@@ -265,7 +265,15 @@ defmodule Vws.Codecs.WC.Reply do
 
   defp checked(line, _mode), do: malformed(line)
 
-  defp printable?(<<byte, rest::binary>>) when byte in 0x20..0x7E, do: printable?(rest)
+  defguardp printable_byte(byte) when byte in 0x20..0x7E
+
+  # eight bytes a step where it can (a step costs what a byte would)
+  defp printable?(<<a, b, c, d, e, f, g, h, rest::binary>>)
+       when printable_byte(a) and printable_byte(b) and printable_byte(c) and printable_byte(d) and
+              printable_byte(e) and printable_byte(f) and printable_byte(g) and printable_byte(h),
+       do: printable?(rest)
+
+  defp printable?(<<byte, rest::binary>>) when printable_byte(byte), do: printable?(rest)
   defp printable?(<<>>), do: true
   defp printable?(_), do: false
 

@@ -63,6 +63,12 @@ defmodule Vws.Codecs.WC.Status do
           | {:unknown_set, String.t()}
           | {:device, String.t()}
           | {:unknown, String.t()}
+  # a name as the vocabulary spells it, as WCs send them: no trimming or Unicode upcasing
+  def classify(name) when is_map_key(@command_names, name),
+    do: {:command, Map.fetch!(@command_names, name)}
+
+  def classify(name) when name in @device_names, do: {:device, name}
+
   def classify(name) do
     name = name |> String.trim() |> String.upcase()
 

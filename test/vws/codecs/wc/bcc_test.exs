@@ -50,6 +50,18 @@ defmodule Vws.Codecs.WC.BCCTest do
     for n <- 0..255, do: assert(BCC.decode(BCC.encode(n)) == {:ok, n})
   end
 
+  test "property: the block checks are the byte-by-byte sum mod 256 and XOR, any length" do
+    property =
+      :proper.forall(:proper_types.binary(), fn data ->
+        bytes = :binary.bin_to_list(data)
+
+        BCC.compute(data, :sum) == rem(Enum.sum(bytes), 256) and
+          BCC.compute(data, :xor) == Enum.reduce(bytes, 0, &Bitwise.bxor/2)
+      end)
+
+    assert_property(property, 500)
+  end
+
   test "a single changed byte always changes both block checks" do
     property =
       :proper.forall(

@@ -44,4 +44,12 @@ defmodule Vws.Codecs.WC.CommandTest do
     assert_raise ArgumentError, fn -> Command.new(:robot, 10_000, "WHERE") end
     assert_raise ArgumentError, fn -> Command.new(:robot, -1, "WHERE") end
   end
+
+  test "pad4 writes every number 0-9999 as four digits" do
+    for n <- 0..9999 do
+      assert Command.pad4(n) == n |> Integer.to_string() |> String.pad_leading(4, "0")
+    end
+
+    assert_raise FunctionClauseError, fn -> Command.pad4(10_000) end
+  end
 end

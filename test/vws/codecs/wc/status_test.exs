@@ -18,6 +18,27 @@ defmodule Vws.Codecs.WC.StatusTest do
     assert Status.unknown_answer("WHERE") == "ERROR UNKNOWN STATUS WHERE"
   end
 
+  test "property: a name asks the same whether or not it is spelt exactly" do
+    # the exact names take a short way (no trimming or upcasing): it must agree with the long one
+    gen =
+      :proper_types.tuple([
+        :proper_types.oneof(
+          Enum.map(Status.names() ++ ["A_CMD", "Q_CMD", "WHERE"], &{:exactly, &1})
+        ),
+        :proper_types.oneof(["", " ", "  "]),
+        :proper_types.oneof(["", " "]),
+        :proper_types.bool()
+      ])
+
+    property =
+      :proper.forall(gen, fn {{:exactly, name}, before, after_, down} ->
+        spelt = before <> if(down, do: String.downcase(name), else: name) <> after_
+        Status.classify(spelt) == Status.classify(name)
+      end)
+
+    assert_property(property, 300)
+  end
+
   test "device answers: NO DATA before anything was written, else the text" do
     assert Status.device_answer(nil) == "NO DATA"
     assert Status.device_answer("VISE OPEN") == "VISE OPEN"
