@@ -22,6 +22,9 @@
 #   B. polls + WC: besides, each workstation's WC sends a status string (`S0001 ROBOT_CMD`, a new
 #      sequence number each time) every --wc-ms and reads the reply.
 #      CPU per WC exchange = (CPU in B - CPU rate of A × B's length) / exchanges.
+#   Own work: the reductions of the workstations' VWS_STATUS and HPIB processes per poll in A,
+#   and of SUN_COMM per WC string in B — what those processes did themselves, counted apart
+#   (no subtraction, so neither the machine's load nor the polls in B change it).
 #   The CEC's CPU is its OS process's user + system time (/proc/self/stat), and the schedulers'
 #   busy time (`:scheduler.sample/0`; it leaves out the schedulers' spinning when idle: run with
 #   the ELIXIR_ERL_OPTIONS above so the OS figure leaves it out too).
@@ -465,7 +468,60 @@ stop_workstations = fn ids ->
   for {_, peer} <- floors, do: :ok = :peer.call(peer, host_mod, :stop_all, [], 600_000)
 end
 
+# By role: what the workstations' own processes did in a window (the polls' VWS_STATUS and
+# HPIB, the WC's SUN_COMM), and, with the whole floors, the CPU per DDCMP/DNC message, per poll
+# and per WC string.
+# The reductions of the workstations' processes by role (their initial call), to share the
+# node's CPU out: a process's reductions are the BEAM's count of the work it did.
+roles = %{
+  Vws.Links.DDCMP.Link => "DDCMP",
+  Vws.Links.VAL.Connection => "DDCMP",
+  Vws.Links.DNC.Link => "DNC",
+  Vws.Links.HPIB.Device => "HPIB",
+  Vws.Partitions.VwsStatus => "VWS_STATUS",
+  Vws.CEC.SunComm.Server => "SUN_COMM"
+}
+
+reds_by_role = fn ids ->
+  walk = fn walk, sup ->
+    Enum.flat_map(Supervisor.which_children(sup), fn
+      {_, pid, :supervisor, _} when is_pid(pid) -> [pid | walk.(walk, pid)]
+      {_, pid, _, _} when is_pid(pid) -> [pid]
+      _ -> []
+    end)
+  end
+
+  for ws <- ids,
+      sup = Vws.CEC.Workstation.whereis(ws),
+      pid <- walk.(walk, sup),
+      {:reductions, r} <- [Process.info(pid, :reductions)],
+      reduce: %{} do
+    acc ->
+      role =
+        case :proc_lib.translate_initial_call(pid) do
+          {m, _, _} -> Map.get(roles, m, "the rest")
+          _ -> "the rest"
+        end
+
+      Map.update(acc, {role, pid}, r, &(&1 + r))
+  end
+end
+
+# each process's reductions between two reds_by_role/1 (one started between them: all of its
+# own), summed by role
+role_delta = fn reds0, reds1 ->
+  Enum.reduce(reds1, %{}, fn {{role, pid}, r}, acc ->
+    Map.update(
+      acc,
+      role,
+      r - Map.get(reds0, {role, pid}, 0),
+      &(&1 + r - Map.get(reds0, {role, pid}, 0))
+    )
+  end)
+end
+
 per = fn us, n -> if n > 0, do: Bench.us(us / n), else: "-" end
+per_n = fn x, n -> if x && n > 0, do: round(x / n), else: "-" end
 line = fn label, text -> "  " <> String.pad_trailing(label, 16) <> text end
 
 step = fn n ->
@@ -510,7 +566,9 @@ step = fn n ->
   sample_polls.(sampled)
 
   s0 = poll_stats.(ids)
+  roles0 = reds_by_role.(ids)
   a = window.(fn -> Process.sleep(seconds * 1_000) end)
+  roles1 = reds_by_role.(ids)
   s1 = poll_stats.(ids)
   errors_a = period_errors.()
   :ets.delete_all_objects(samples)
@@ -535,6 +593,7 @@ step = fn n ->
       Process.sleep(max(stop - System.monotonic_time(:millisecond), 0))
     end)
 
+  roles2 = reds_by_role.(ids)
   s2 = poll_stats.(ids)
   errors_b = period_errors.()
   :ok = Vws.Telemetry.detach(:bench_cec_cost)
@@ -560,6 +619,8 @@ step = fn n ->
     pb: diff.(s1, s2),
     errors_a: errors_a,
     errors_b: errors_b,
+    roles_a: role_delta.(roles0, roles1),
+    roles_b: role_delta.(roles1, roles2),
     rtts: rtts,
     lost: length(lost),
     wcs: length(wc),
@@ -662,6 +723,10 @@ for n <- counts do
           "#{per.(cpu_a, r.pa.polls)} µs CPU (busy #{per.(r.a.busy, r.pa.polls)} µs), #{round(reds_poll)} reductions"
         ),
         line.(
+          "  own work",
+          "VWS_STATUS #{per_n.(r.roles_a["VWS_STATUS"], r.pa.polls)} + HPIB #{per_n.(r.roles_a["HPIB"], r.pa.polls)} reductions per poll in their own processes (window A); SUN_COMM #{per_n.(r.roles_b["SUN_COMM"], length(r.rtts))} per WC string (window B)"
+        ),
+        line.(
           "  period error",
           if(r.errors_a == [],
             do: "-",
@@ -698,43 +763,6 @@ for n <- counts do
       "\n"
     )
   )
-end
-
-# The whole floors: the CPU per DDCMP/DNC message, per poll and per WC string, by role.
-# The reductions of the workstations' processes by role (their initial call), to share the
-# node's CPU out: a process's reductions are the BEAM's count of the work it did.
-roles = %{
-  Vws.Links.DDCMP.Link => "DDCMP",
-  Vws.Links.VAL.Connection => "DDCMP",
-  Vws.Links.DNC.Link => "DNC",
-  Vws.Links.HPIB.Device => "HPIB",
-  Vws.Partitions.VwsStatus => "VWS_STATUS",
-  Vws.CEC.SunComm.Server => "SUN_COMM"
-}
-
-reds_by_role = fn ids ->
-  walk = fn walk, sup ->
-    Enum.flat_map(Supervisor.which_children(sup), fn
-      {_, pid, :supervisor, _} when is_pid(pid) -> [pid | walk.(walk, pid)]
-      {_, pid, _, _} when is_pid(pid) -> [pid]
-      _ -> []
-    end)
-  end
-
-  for ws <- ids,
-      sup = Vws.CEC.Workstation.whereis(ws),
-      pid <- walk.(walk, sup),
-      {:reductions, r} <- [Process.info(pid, :reductions)],
-      reduce: %{} do
-    acc ->
-      role =
-        case :proc_lib.translate_initial_call(pid) do
-          {m, _, _} -> Map.get(roles, m, "the rest")
-          _ -> "the rest"
-        end
-
-      Map.update(acc, {role, pid}, r, &(&1 + r))
-  end
 end
 
 cycle_step = fn n ->
@@ -825,16 +853,7 @@ cycle_step = fn n ->
   :ok = Vws.Telemetry.detach(:bench_cec_cycles)
   reds1 = reds_by_role.(ids)
 
-  # each process's reductions in the window (one started during it: all of its own), by role
-  by_role =
-    Enum.reduce(reds1, %{}, fn {{role, pid}, r}, acc ->
-      Map.update(
-        acc,
-        role,
-        r - Map.get(reds0, {role, pid}, 0),
-        &(&1 + r - Map.get(reds0, {role, pid}, 0))
-      )
-    end)
+  by_role = role_delta.(reds0, reds1)
 
   counts =
     for {{kind, _}, i} <- Enum.with_index(kinds, 1),
