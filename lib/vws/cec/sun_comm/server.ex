@@ -73,7 +73,9 @@ defmodule Vws.CEC.SunComm.Server do
         decoder: nil,
         connections: 0,
         dialogue: :queue.new(),
-        dialogue_size: 0
+        dialogue_size: 0,
+        # the line being answered, {time, text}: it joins the dialogue once its reply is out
+        heard: nil
       })
 
     # OK_TO_PROCEED may have been caused before we subscribed (the workstation causes it just
@@ -115,7 +117,9 @@ defmodule Vws.CEC.SunComm.Server do
 
   # Lines and transfer timers go to the session.
   defp linked(:internal, {:line, line}, state, data) do
-    data = record(data, :in, dialogue_text(line))
+    # into the dialogue just after the reply to it went out, still before that reply: an answer
+    # does not wait for the dialogue's subscribers
+    data = %{data | heard: {now_ms(), dialogue_text(line)}}
     step(state, data, Session.handle_line(data.session, line, ctx()))
   end
 
@@ -247,8 +251,12 @@ defmodule Vws.CEC.SunComm.Server do
   # A result of the session carried out; the callback's answer, in the session's mode.
   defp step(state, data, result, actions \\ []) do
     case run(data, result, {actions, nil}) do
-      {data, actions, nil} -> {:next_state, next_state(state, data), data, actions}
-      {data, actions, {peer, why}} -> link_lost(state, data, peer, why, actions)
+      {data, actions, nil} ->
+        data = record_heard(data)
+        {:next_state, next_state(state, data), data, actions}
+
+      {data, actions, {peer, why}} ->
+        link_lost(state, record_heard(data), peer, why, actions)
     end
   end
 
@@ -337,8 +345,10 @@ defmodule Vws.CEC.SunComm.Server do
 
   defp send_reply(reply, {data, lost}) do
     bytes = reply |> Reply.encode(bcc: data.bcc) |> IO.iodata_to_binary()
+    sent = Transport.send(data.conn, bytes)
+    data = record_heard(data)
 
-    case Transport.send(data.conn, bytes) do
+    case sent do
       :ok ->
         telemetry(data, :reply_sent, %{bytes: byte_size(bytes)}, %{kind: reply_kind(reply)})
         # (every reply ends with its one CR LF)
@@ -497,8 +507,11 @@ defmodule Vws.CEC.SunComm.Server do
 
   ## Dialogue, telemetry
 
-  defp record(data, direction, line) do
-    entry = {now_ms(), direction, line}
+  defp record_heard(%{heard: nil} = data), do: data
+  defp record_heard(%{heard: {at, line}} = data), do: record(%{data | heard: nil}, :in, line, at)
+
+  defp record(data, direction, line, at \\ now_ms()) do
+    entry = {at, direction, line}
     Events.cause(data.workstation, :wc_dialogue, entry)
     queue = :queue.in(entry, data.dialogue)
 

@@ -26,10 +26,12 @@ defmodule Vws.Codecs.WC.BCC do
   def compute(data, :xor) when is_binary(data), do: xor(data, 0)
   def compute(data, mode) when mode in [:sum, :xor], do: compute(IO.iodata_to_binary(data), mode)
 
-  # eight bytes a step (a step costs what a byte would); the sum is taken mod 256 at the end
+  # eight (then four) bytes a step, a step costing what a byte would; the sum is taken mod 256
+  # at the end
   defp sum(<<a, b, c, d, e, f, g, h, rest::binary>>, acc),
     do: sum(rest, acc + a + b + c + d + e + f + g + h)
 
+  defp sum(<<a, b, c, d, rest::binary>>, acc), do: sum(rest, acc + a + b + c + d)
   defp sum(<<byte, rest::binary>>, acc), do: sum(rest, acc + byte)
   defp sum(<<>>, acc), do: band(acc, 0xFF)
 
@@ -47,6 +49,9 @@ defmodule Vws.Codecs.WC.BCC do
         |> bxor(g)
         |> bxor(h)
       )
+
+  defp xor(<<a, b, c, d, rest::binary>>, acc),
+    do: xor(rest, acc |> bxor(a) |> bxor(b) |> bxor(c) |> bxor(d))
 
   defp xor(<<byte, rest::binary>>, acc), do: xor(rest, bxor(acc, byte))
   defp xor(<<>>, acc), do: acc
