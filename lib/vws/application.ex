@@ -24,8 +24,10 @@ defmodule Vws.Application do
     children =
       [
         {Registry, keys: :unique, name: Vws.Registry},
-        {Registry,
-         keys: :duplicate, name: Vws.CEC.Events, partitions: System.schedulers_online()},
+        # one partition: a duplicate registry is partitioned by subscriber, so every CAUSE EVENT
+        # (two per VWS_STATUS poll, two per WC string) would look in every partition — 32
+        # reductions with 2 schedulers, 86 with 8, against 15; subscribing is rare
+        {Registry, keys: :duplicate, name: Vws.CEC.Events, partitions: 1},
         # the :pg scope every workstation joins: the cell across connected nodes (Vws.CEC.Cell)
         Vws.CEC.Cell,
         # is the node doing its job: /health, bin/vws health (the workstations it must run)
