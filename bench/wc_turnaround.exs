@@ -7,8 +7,8 @@
 # 1. Alone: one workstation served on TCP, one on loopback, and a bare echo process on each
 #    transport (the floor: what the machine and the transport cost); every 2 ms one status
 #    string (`*nnnn*S0001ROBOT_CMD*…`, a new sequence number each time) goes to each of the four
-#    in turn, the first rotating, --samples times: SUN_COMM and its floor sample by sample under
-#    the same load.
+#    in turn, 200 µs apart, the first rotating, --samples times: SUN_COMM and its floor sample by
+#    sample under the same load.
 # 2. --workstations on the node (loopback endpoints, no sockets), each with its own raw WC
 #    polling ROBOT_CMD every --poll-ms (the WC client's polling interval), at random phases,
 #    for --seconds; one of them is served on TCP instead and polled the same way, and so are two
@@ -140,6 +140,12 @@ start_ws = fn id, wc ->
   wait_listening.(id)
 end
 
+# Waits `us` microseconds on the CPU (a sleep would take a millisecond at least).
+pause_us = fn us ->
+  until = System.monotonic_time(:microsecond) + us
+  Stream.repeatedly(fn -> System.monotonic_time(:microsecond) end) |> Enum.find(&(&1 >= until))
+end
+
 # Each sample one exchange with each endpoint, in turn (which goes first rotates): SUN_COMM and
 # the bare echo are measured under the same load, sample by sample.
 alone = fn endpoints ->
@@ -153,7 +159,12 @@ alone = fn endpoints ->
       Process.sleep(2)
       order = Enum.map(0..(n - 1), &rem(&1 + k, n))
       line = elem(statuses, rem(k + 100, 9_999))
-      Map.new(order, fn i -> {i, Raw.exchange(Enum.at(conns, i), line)} end)
+      # each exchange a moment after the one before it: what an endpoint does after its reply
+      # (SUN_COMM records the dialogue then) must not fall into the next one's exchange
+      Map.new(order, fn i ->
+        pause_us.(200)
+        {i, Raw.exchange(Enum.at(conns, i), line)}
+      end)
     end
 
   for i <- 0..(n - 1), do: Enum.map(samples, & &1[i])
