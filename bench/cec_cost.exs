@@ -22,6 +22,8 @@
 #   B. polls + WC: besides, each workstation's WC sends a status string (`S0001 ROBOT_CMD`, a new
 #      sequence number each time) every --wc-ms and reads the reply.
 #      CPU per WC exchange = (CPU in B - CPU rate of A × B's length) / exchanges.
+#   Threads: in A, the time of the BEAM's threads by what they did (`:msacc`: emulator — Erlang
+#   code —, gc, port — the drivers' I/O —, check_io, other, aux), per poll, sleep left out.
 #   Own work: the reductions of the workstations' VWS_STATUS and HPIB processes per poll in A,
 #   and of SUN_COMM per WC string in B — what those processes did themselves, counted apart
 #   (no subtraction, so neither the machine's load nor the polls in B change it).
@@ -351,27 +353,29 @@ end
 
 floor_pids = for {_, peer} <- floors, do: :peer.call(peer, :os, :getpid, [])
 
-# an OS process's CPU time, µs (user + system, every thread): the CEC's, or the floor nodes'
-os_cpu_of = fn pid ->
+# an OS process's CPU time, µs, {user, system} (every thread): the CEC's ("self"), or the floor
+# nodes'
+os_times_of = fn pid ->
   [_pid, rest] = String.split(File.read!("/proc/#{pid}/stat"), ") ", parts: 2)
   fields = String.split(rest)
-  ticks = String.to_integer(Enum.at(fields, 11)) + String.to_integer(Enum.at(fields, 12))
-  div(ticks * 1_000_000, 100)
+  us = fn i -> div(String.to_integer(Enum.at(fields, i)) * 1_000_000, 100) end
+  {us.(11), us.(12)}
+end
+
+os_cpu_of = fn pid ->
+  {user, system} = os_times_of.(pid)
+  user + system
 end
 
 floor_cpu = fn -> Enum.sum(Enum.map(floor_pids, os_cpu_of)) end
 
 # the CEC's OS CPU time, µs (user + system, every thread)
-os_cpu = fn ->
-  [_pid, rest] = String.split(File.read!("/proc/self/stat"), ") ", parts: 2)
-  fields = String.split(rest)
-  ticks = String.to_integer(Enum.at(fields, 11)) + String.to_integer(Enum.at(fields, 12))
-  div(ticks * 1_000_000, 100)
-end
+os_cpu = fn -> os_cpu_of.("self") end
 
 # a window: its OS CPU µs, the schedulers' busy µs, wall µs
 window = fn fun ->
   c0 = os_cpu.()
+  {_, sys0} = os_times_of.("self")
   f0 = floor_cpu.()
   u0 = :scheduler.sample()
   {r0, _} = :erlang.statistics(:exact_reductions)
@@ -381,7 +385,17 @@ window = fn fun ->
   {r1, _} = :erlang.statistics(:exact_reductions)
   busy = Bench.normal_utilization(u0) * System.schedulers_online() * wall
   floor = floor_cpu.() - f0
-  %{cpu: os_cpu.() - c0, busy: busy, wall: wall, reds: r1 - r0, floor: floor, result: result}
+  {_, sys1} = os_times_of.("self")
+
+  %{
+    cpu: os_cpu.() - c0,
+    sys: sys1 - sys0,
+    busy: busy,
+    wall: wall,
+    reds: r1 - r0,
+    floor: floor,
+    result: result
+  }
 end
 
 split = fn ids ->
@@ -567,7 +581,16 @@ step = fn n ->
 
   s0 = poll_stats.(ids)
   roles0 = reds_by_role.(ids)
-  a = window.(fn -> Process.sleep(seconds * 1_000) end)
+  # the BEAM's threads' time by what they did (microstate accounting), for window A
+  a =
+    window.(fn ->
+      :msacc.start(seconds * 1_000)
+
+      for %{counters: c} <- :msacc.stats(), {state, us} <- c, state != :sleep, reduce: %{} do
+        acc -> Map.update(acc, state, us, &(&1 + us))
+      end
+    end)
+
   roles1 = reds_by_role.(ids)
   s1 = poll_stats.(ids)
   errors_a = period_errors.()
@@ -720,7 +743,15 @@ for n <- counts do
         ),
         line.(
           "  per poll",
-          "#{per.(cpu_a, r.pa.polls)} µs CPU (busy #{per.(r.a.busy, r.pa.polls)} µs), #{round(reds_poll)} reductions"
+          "#{per.(cpu_a, r.pa.polls)} µs CPU (busy #{per.(r.a.busy, r.pa.polls)} µs; the kernel's, system time, #{per.(r.a.sys, r.pa.polls)} µs), #{round(reds_poll)} reductions"
+        ),
+        line.(
+          "  threads",
+          "per poll, µs of the BEAM's threads by what they did (msacc): " <>
+            (r.a.result
+             |> Enum.filter(fn {_, us} -> us > 0 end)
+             |> Enum.sort_by(&(-elem(&1, 1)))
+             |> Enum.map_join(", ", fn {state, us} -> "#{state} #{per.(us, r.pa.polls)}" end))
         ),
         line.(
           "  own work",
