@@ -26,6 +26,20 @@ defmodule Vws.Links.DAQTest do
   @spare_116 %{daq1: %{116 => %{kind: :spare, signal: :spare}}}
 
   describe "the driver" do
+    test "an answer with more or fewer readings than its channels is never read" do
+      daq = DAQ.new()
+      # (the HPIB never hands one over: SCPI checks the count of every answer line)
+      assert_raise FunctionClauseError, fn -> DAQ.readings(daq, [tl(volts(%{})), [350.0]]) end
+
+      assert_raise FunctionClauseError, fn ->
+        DAQ.readings(daq, [volts(%{}) ++ [0.0], [350.0]])
+      end
+
+      assert_raise FunctionClauseError, fn -> DAQ.readings(daq, [volts(%{}), [350.0, 1.0]]) end
+      r = DAQ.readings(daq, [volts(%{}), [350.0]])
+      assert map_size(r.volts) == 16 and r.ohms == %{117 => 350.0}
+    end
+
     test "reads slot 1 as one voltage scan and the gauge as one resistance reading" do
       assert DAQ.poll_commands(DAQ.new()) == [
                {:meas_volt_dc?, Enum.to_list(101..116)},
