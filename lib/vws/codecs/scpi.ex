@@ -410,10 +410,10 @@ defmodule Vws.Codecs.SCPI do
   end
 
   defp response({kind, channels}, line) when kind in [:meas_volt_dc?, :meas_res?] do
-    fields = String.split(line, ",")
+    fields = :binary.split(line, ",", [:global])
 
     if length(fields) == length(channels),
-      do: all_ok(fields, &parse_number/1),
+      do: all_numbers(fields, []),
       else: :error
   end
 
@@ -486,6 +486,16 @@ defmodule Vws.Codecs.SCPI do
   end
 
   defp all_ok([], _parse, acc), do: {:ok, :lists.reverse(acc)}
+
+  # all_ok(fields, &parse_number/1) without the call through a fun: a poll reads 17 of them
+  defp all_numbers([field | rest], acc) do
+    case parse_number(field) do
+      {:ok, value} -> all_numbers(rest, [value | acc])
+      :error -> :error
+    end
+  end
+
+  defp all_numbers([], acc), do: {:ok, :lists.reverse(acc)}
 
   defp parse_bit("1"), do: {:ok, true}
   defp parse_bit("0"), do: {:ok, false}
@@ -721,6 +731,14 @@ defmodule Vws.Codecs.SCPI do
   defguardp printable_byte(c) when c in 0x20..0x7E or c == ?\t
 
   # eight bytes at a time where it can (a poll's answer is ~270 bytes)
+  # sixteen, then eight bytes a step where it can (a step costs what a byte would)
+  defp printable?(<<a, b, c, d, e, f, g, h, i, j, k, l, m, n, o, p, rest::binary>>)
+       when printable_byte(a) and printable_byte(b) and printable_byte(c) and printable_byte(d) and
+              printable_byte(e) and printable_byte(f) and printable_byte(g) and printable_byte(h) and
+              printable_byte(i) and printable_byte(j) and printable_byte(k) and printable_byte(l) and
+              printable_byte(m) and printable_byte(n) and printable_byte(o) and printable_byte(p),
+       do: printable?(rest)
+
   defp printable?(<<a, b, c, d, e, f, g, h, rest::binary>>)
        when printable_byte(a) and printable_byte(b) and printable_byte(c) and printable_byte(d) and
               printable_byte(e) and
