@@ -377,19 +377,11 @@ defmodule Vws.Ops.MTConnect.Agent do
     end
   end
 
-  defp device_change(s, ws, {:device, loc, value}, before) do
-    case s.devices do
-      %{^ws => device} ->
-        if MapSet.member?(s.gone, ws),
-          do: :all,
-          else: Model.changed_values(device, {:device, Mailbox.device_name(loc), value}, before)
-
-      _ ->
-        :all
-    end
+  defp device_change(%{devices: devices, gone: gone}, ws, change, before) do
+    if is_map_key(devices, ws) and not MapSet.member?(gone, ws),
+      do: Model.changed_values(Map.fetch!(devices, ws), change, before),
+      else: :all
   end
-
-  defp device_change(_s, _ws, _change, _before), do: :all
 
   # Before an answer: every change announced on another node before the request is in. Each
   # forwarder (of a node that answers) is asked to say so after what it has forwarded; its

@@ -422,11 +422,14 @@ defmodule Vws.Ops.MTConnect.Model do
   What one change of a workstation's facts does to its data items, when it touches only a few:
   `{:only, %{item_id => value}}` — those items' new values, every other item's value the same as
   `observe/2` gave before the change — or `:all` (observe the whole device again). `change` is
-  `{:device, name, value}` (a status location by its name) or anything else; `before` what was
+  `{:device, loc, value}` (a status location by its number or name) or anything else; `before` what was
   known before it. A poll of DAQ #1 changes SENSORS (a new reading) and often VISE (the force in
   its text): their few items are worked out alone, not the device's 54.
   """
   @spec changed_values(device, term, facts) :: {:only, %{String.t() => value}} | :all
+  def changed_values(device, {:device, loc, value}, before) when is_integer(loc),
+    do: changed_values(device, {:device, Vws.CEC.Mailbox.device_name(loc), value}, before)
+
   def changed_values(%{id: p}, {:device, "SENSORS", %Vws.Links.DAQ.Readings{} = new}, before) do
     # (whether there are readings at all decides the gripper's and the vise's availability)
     case get_in(before, [:devices, "SENSORS"]) do
