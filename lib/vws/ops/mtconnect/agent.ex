@@ -457,7 +457,8 @@ defmodule Vws.Ops.MTConnect.Agent do
         {reply, %{s | rendered: cache}}
 
       docs ->
-        reply = render.()
+        # one binary: an iolist of small binaries would be copied to the connection, whole
+        reply = with {:ok, doc} <- render.(), do: {:ok, IO.iodata_to_binary(doc)}
 
         docs =
           if match?({:ok, _}, reply) and map_size(docs) < @rendered_max,

@@ -325,8 +325,17 @@ defmodule Vws.Ops.MTConnect.XML do
   """
   @spec escape(String.t()) :: String.t()
   def escape(text) do
-    text |> valid_chars() |> do_escape()
+    # (most values are plain: numbers, words — returned as they are, without a copy)
+    if plain?(text), do: text, else: text |> valid_chars() |> do_escape()
   end
+
+  # printable ASCII with nothing to escape
+  defp plain?(<<c, rest::binary>>)
+       when c >= 0x20 and c <= 0x7E and c != ?& and c != ?< and c != ?> and c != ?" and c != ?',
+       do: plain?(rest)
+
+  defp plain?(<<>>), do: true
+  defp plain?(_), do: false
 
   defp do_escape(text) do
     text

@@ -1,5 +1,6 @@
 defmodule Vws.Ops.MTConnect.XMLTest do
   use ExUnit.Case, async: true
+  use Vws.PropCase
 
   alias Vws.Ops.MTConnect.{Model, XML}
   alias Vws.Test.XMLLint
@@ -21,6 +22,60 @@ defmodule Vws.Ops.MTConnect.XMLTest do
     assert XML.escape("a<b>&\"'") == "a&lt;b&gt;&amp;&quot;&apos;"
     assert XML.escape(<<"A", 0, 0x1B, "B", 0xFF>>) == "A??B?"
     assert XML.escape("tab\there é→") == "tab\there é→"
+  end
+
+  defp escape_rule(<<>>, acc), do: acc
+
+  defp escape_rule(<<c::utf8, rest::binary>>, acc) do
+    out =
+      cond do
+        c == ?& ->
+          "&amp;"
+
+        c == ?< ->
+          "&lt;"
+
+        c == ?> ->
+          "&gt;"
+
+        c == ?" ->
+          "&quot;"
+
+        c == ?' ->
+          "&apos;"
+
+        c in [0x9, 0xA, 0xD] or (c >= 0x20 and c <= 0xD7FF) or (c >= 0xE000 and c <= 0xFFFD) or
+            c >= 0x10000 ->
+          <<c::utf8>>
+
+        true ->
+          "?"
+      end
+
+    escape_rule(rest, acc <> out)
+  end
+
+  defp escape_rule(<<_, rest::binary>>, acc), do: escape_rule(rest, acc <> "?")
+
+  test "property: escape/1's plain text fast way gives what the character by character way gives" do
+    # the rule written out: characters XML cannot carry become ?, markup becomes entities
+    slow = &escape_rule(&1, "")
+
+    text =
+      :proper_types.oneof([
+        :proper_types.binary(),
+        :proper_unicode.utf8(),
+        :proper_types.list(:proper_types.elements(~c"AZ09 .-_&<>\"'\t")),
+        :proper_types.list(:proper_types.integer(0, 0x7F))
+      ])
+
+    property =
+      :proper.forall(text, fn t ->
+        t = if is_list(t), do: List.to_string(t), else: t
+        XML.escape(t) == slow.(t)
+      end)
+
+    assert_property(property, 1_000)
   end
 
   @tag :mtconnect_schemas
