@@ -125,8 +125,9 @@ defmodule Vws.Partitions.VwsStatus.ConcurrentActuationsTest do
 
     # VACUUM's relay against a DAQ that takes every line and answers none: three tries of
     # 300 ms (`timeout_ms`), at least 900 ms from when VWS_STATUS resumes; the indexer's, asked
-    # before that by a caller who waits 1750 ms, needs 900 ms of its own: it could start no
-    # later than 850 ms after it was asked, and its answer has 850 ms to spare
+    # before that by a caller who waits 1750 ms, needs up to 1,200 ms of its own (the reads
+    # before its write, the write, two retries): it could start no later than 550 ms after it
+    # was asked
     :ok = DAQ.set_fault(ctx.daq, :mute)
     :ok = :sys.suspend(ctx.pid)
     vacuum = Task.async(fn -> VwsStatus.actuate(ctx.ws, [vacuum_motor: :close], 5_000) end)
