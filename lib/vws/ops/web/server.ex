@@ -122,7 +122,7 @@ defmodule Vws.Ops.Web.Server do
 
     with {:ok, address} <- parse_address(bind),
          limits = Keyword.merge(@defaults, Keyword.take(opts, Keyword.keys(@defaults))),
-         {:ok, socket} <- listen(address, Keyword.get(opts, :port, 4000), limits) do
+         {:ok, socket} <- listen(address, Keyword.get(opts, :port, 4000)) do
       {:ok, %{port: port}} = :socket.sockname(socket)
       url = "http://#{host(bind)}:#{port}/"
 
@@ -173,7 +173,7 @@ defmodule Vws.Ops.Web.Server do
   end
 
   # (the send timeout is each send's own: Vws.Ops.Web.Conn)
-  defp listen(address, port, _limits) do
+  defp listen(address, port) do
     family = if tuple_size(address) == 8, do: :inet6, else: :inet
 
     with {:ok, socket} <- :socket.open(family, :stream, :tcp) do
