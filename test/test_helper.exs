@@ -32,13 +32,15 @@ if System.get_env("VWS_MODULE_SECONDS") == "write" do
   )
 end
 
-# The tests validating MTConnect documents against the official schemas (tag :mtconnect_schemas)
-# need them beside the project (../shared/mtconnect) or in $VWS_MTCONNECT_SCHEMAS: without them
-# they are excluded, and this says why (Vws.Test.XMLLint).
-if reason = Vws.Test.XMLLint.missing_schemas() do
-  IO.puts("Excluding the tests tagged :mtconnect_schemas: #{reason}")
-  ExUnit.configure(exclude: Enum.uniq(ExUnit.configuration()[:exclude] ++ [:mtconnect_schemas]))
+# Tests that need what this host may not have are excluded by their tag, saying why.
+exclude = fn tag, why ->
+  IO.puts("Excluding the tests tagged #{inspect(tag)}: #{why}")
+  ExUnit.configure(exclude: Enum.uniq(ExUnit.configuration()[:exclude] ++ [tag]))
 end
+
+# The tests validating MTConnect documents against the official schemas (tag :mtconnect_schemas)
+# need them beside the project (../shared/mtconnect) or in $VWS_MTCONNECT_SCHEMAS (Vws.Test.XMLLint).
+if reason = Vws.Test.XMLLint.missing_schemas(), do: exclude.(:mtconnect_schemas, reason)
 
 # The tests tagged :ipv6 bind the IPv6 loopback, which a container may not have.
 case :gen_tcp.listen(0, [:inet6, ip: {0, 0, 0, 0, 0, 0, 0, 1}]) do
@@ -46,8 +48,7 @@ case :gen_tcp.listen(0, [:inet6, ip: {0, 0, 0, 0, 0, 0, 0, 1}]) do
     :gen_tcp.close(socket)
 
   {:error, reason} ->
-    IO.puts("Excluding the tests tagged :ipv6: no IPv6 loopback here (#{inspect(reason)})")
-    ExUnit.configure(exclude: Enum.uniq(ExUnit.configuration()[:exclude] ++ [:ipv6]))
+    exclude.(:ipv6, "no IPv6 loopback here (#{inspect(reason)})")
 end
 
 # The suite leaves no daemon running: an epmd started by a test (distribution) is stopped after it.
