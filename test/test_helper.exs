@@ -26,6 +26,12 @@ ExUnit.start(
 # files loaded, the longest of them started late and ended the async phase alone.
 ExUnit.configure(formatters: [Vws.Test.ModuleOrder | ExUnit.configuration()[:formatters]])
 
+# The failed tests are named again after the summary, without their captured logs
+# (Vws.Test.FailureRecap): one failure's log is hundreds of lines, and a CI page that shows only
+# the end of the output showed the count of failures without their names.
+ExUnit.configure(formatters: ExUnit.configuration()[:formatters] ++ [Vws.Test.FailureRecap])
+ExUnit.after_suite(fn _ -> Vws.Test.FailureRecap.recap() end)
+
 if System.get_env("VWS_MODULE_SECONDS") == "write" do
   ExUnit.configure(
     formatters: ExUnit.configuration()[:formatters] ++ [Vws.Test.ModuleOrder.Recorder]
