@@ -635,6 +635,28 @@ defmodule Vws.Partitions.Monarch do
   end
 
   @doc """
+  Reads the GE-2000's status report as `refresh_status/3` does, without writing it: the MONARCH
+  reader (`Vws.Partitions.Monarch.Monitor`) writes it with `put_status/2` itself, unless a drip
+  feed said ACTIVE since the read was asked for.
+  """
+  @spec read_status(Mailbox.workstation(), DNC.link(), keyword) ::
+          {:ok, Report.status()} | {:error, String.t()}
+  def read_status(ws, link, options \\ []) do
+    read_report(%{workstation: ws, link: link, options: options})
+  end
+
+  @doc """
+  Writes a status report: the whole report (program, alarm) for the views and the MTConnect
+  agent, and the `MONARCH` device status (location 8), `ACTIVE` or `IDLE`.
+  """
+  @spec put_status(Mailbox.workstation(), Report.status()) :: :ok
+  def put_status(ws, report) do
+    word = if report.state == :active, do: "ACTIVE", else: "IDLE"
+    Mailbox.put_readings(ws, :monarch, report)
+    Mailbox.put_device(ws, @monarch_location, word)
+  end
+
+  @doc """
   A program the operator sent from the machine (auto-receive, ours: docs/dnc-drip-feed.md): the
   GE-2000 bid and sent `SCS`/`SNS` + `name` and the program's text unasked. A whole program
   (ending in its `%` line, no control characters) is handed to `store` — by default
@@ -739,17 +761,17 @@ defmodule Vws.Partitions.Monarch do
 
   # RNL → the report; every report read refreshes the MONARCH device status.
   defp status_report(ctx) do
+    with {:ok, report} <- read_report(ctx) do
+      put_status(ctx.workstation, report)
+      {:ok, report}
+    end
+  end
+
+  defp read_report(ctx) do
     with {:ok, blocks} <- request(ctx, :receive, :status, "", []) do
       case Report.parse_status(IO.iodata_to_binary(blocks)) do
-        {:ok, report} ->
-          word = if report.state == :active, do: "ACTIVE", else: "IDLE"
-          # the whole report (program, alarm) for the views and the MTConnect agent
-          Mailbox.put_readings(ctx.workstation, :monarch, report)
-          Mailbox.put_device(ctx.workstation, @monarch_location, word)
-          {:ok, report}
-
-        {:error, _} ->
-          {:error, "BAD STATUS REPORT FROM GE-2000"}
+        {:ok, report} -> {:ok, report}
+        {:error, _} -> {:error, "BAD STATUS REPORT FROM GE-2000"}
       end
     end
   end

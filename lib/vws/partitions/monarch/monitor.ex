@@ -29,9 +29,6 @@ defmodule Vws.Partitions.Monarch.Monitor do
 
   alias Vws.Partitions.{Monarch, StatusMonitor}
 
-  # the MONARCH device-status location
-  @monarch_location 8
-
   @doc false
   def child_spec(opts), do: StatusMonitor.child_spec(__MODULE__, opts)
 
@@ -45,15 +42,19 @@ defmodule Vws.Partitions.Monarch.Monitor do
       [
         # the read waits for the line while a transfer holds it; the monitor meanwhile takes that
         # transfer's progress (and a drip feed's ACTIVE, see machine_runs/2) as it comes
-        read: fn -> Monarch.refresh_status(ws, link, options) end,
+        read: fn -> Monarch.read_status(ws, link, options) end,
+        # written by the monitor, after the messages it handled before (write/3)
+        write: &write(ws, &1, &2, &3),
         failed: &"MONARCH cannot read the GE-2000's status: #{&1}",
         recovered: "MONARCH: the GE-2000's status reads again",
-        # the link process this monitor owns (a restarted link is owned again)
-        ext: %{link: link, owner: nil},
+        # the link process this monitor owns (a restarted link is owned again); when a drip feed
+        # last said the machine runs (monotonic, native units)
+        ext: %{link: link, owner: nil, fed_at: nil},
         tick: &own_link/1,
         handle: fn message, ext ->
-          dnc(message, ws, store)
-          ext
+          if dnc(message, ws, store) == :fed,
+            do: %{ext | fed_at: System.monotonic_time()},
+            else: ext
         end
       ]
     end)
@@ -80,12 +81,14 @@ defmodule Vws.Partitions.Monarch.Monitor do
   # A transfer's progress, told by the link: the workstation's event :dnc_progress
   # ({:vws_event, ws, :dnc_progress, payload}, payload as documented in Vws.Links.DNC).
   defp dnc({:dnc, _link, {:progress, payload}}, ws, _store) do
-    machine_runs(ws, payload)
+    fed = machine_runs(ws, payload)
 
     with {:error, :no_such_event} <- Vws.CEC.Events.cause(ws, :dnc_progress, payload) do
       :ok = Vws.CEC.Events.create(ws, :dnc_progress)
       Vws.CEC.Events.cause(ws, :dnc_progress, payload)
     end
+
+    fed
   rescue
     # the workstation's mailboxes are gone (it is stopping): nobody to tell
     ArgumentError -> :ok
@@ -111,11 +114,27 @@ defmodule Vws.Partitions.Monarch.Monitor do
         nil -> "000000"
       end
 
-    Vws.CEC.Mailbox.put_readings(ws, :monarch, %{state: :active, program: number, alarm: alarm})
-    Vws.CEC.Mailbox.put_device(ws, @monarch_location, "ACTIVE")
+    Monarch.put_status(ws, %{state: :active, program: number, alarm: alarm})
+    :fed
   end
 
   defp machine_runs(_ws, _payload), do: :ok
+
+  # A status report read is written unless a drip feed said ACTIVE since it was asked for: the
+  # link answers one request at a time, so a feed that began after the read was answered (the
+  # machine IDLE, an instant before its first block) may have been said first, and the read,
+  # written after it, made MONARCH IDLE while the program ran. Such a report is left; the next
+  # read, a second later, is written (a read that waited for the feed to end is left too: the
+  # next one says the same thing, later, and the table stays held a second longer).
+  defp write(ws, {:ok, report}, asked_at, %{fed_at: fed_at} = ext) do
+    if fed_at == nil or fed_at < asked_at, do: Monarch.put_status(ws, report)
+    ext
+  rescue
+    # the workstation's mailboxes are gone (it is stopping): nobody to tell
+    ArgumentError -> ext
+  end
+
+  defp write(_ws, {:error, _}, _asked_at, ext), do: ext
 
   # The monitor is the link's owner: it is told what the machine sends of its own accord.
   defp own_link(s) do
