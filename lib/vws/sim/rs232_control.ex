@@ -25,9 +25,12 @@ defmodule Vws.Sim.RS232Control do
   `:never_xon` holds its XOFF for ever (the CEC must give up in bounded time).
 
   **Busy at the start** (`busy_until_xoff: true`): it empties nothing until it has said XOFF
-  once (or nothing has come for 100 ms), as a control busy when a transfer begins. A sender on
-  a loaded host may fall behind the line's pace, and a control slower than the line then never
-  fills its buffer; with this, a test sees the flow control work whatever the sender's pace.
+  once (or nothing has come for a second: a program smaller than its buffer), as a control busy
+  when a transfer begins. A sender on a loaded host may fall behind the line's pace, and a
+  control slower than the line then never fills its buffer; with this, a test sees the flow
+  control work whatever the sender's pace. (The quiet line was 100 ms: a CI run's sender, held
+  up that long on a loaded host, ended the busy start before the buffer was full, and the
+  control never said XOFF.)
 
   Where it is: `listen:` an endpoint (default `tcp://127.0.0.1:0`, one CEC at a time, the newest
   wins) or `tty:` a serial device it opens itself (a pty of a pair, say). `endpoint/1` says where.
@@ -209,6 +212,9 @@ defmodule Vws.Sim.RS232Control do
 
   defp tick, do: Process.send_after(self(), :tick, @tick)
 
+  # ms of a quiet line that end a busy start (busy_until_xoff) before an XOFF
+  @busy_quiet 1_000
+
   ## The buffer: filled by the line, emptied at the control's rate
 
   # DC1/DC3 from the CEC would pace a punch; this control punches at once and ignores them
@@ -239,7 +245,7 @@ defmodule Vws.Sim.RS232Control do
 
   # busy at the start (busy_until_xoff): nothing emptied until an XOFF, or a quiet line
   defp drain(%{busy_until_xoff: true, xoffs: 0} = s) do
-    quiet? = s.last_rx != nil and System.monotonic_time(:millisecond) - s.last_rx >= 100
+    quiet? = s.last_rx != nil and System.monotonic_time(:millisecond) - s.last_rx >= @busy_quiet
 
     if quiet?,
       do: drain(%{s | busy_until_xoff: false}),
