@@ -5,11 +5,14 @@ defmodule Vws.TransportConformance do
       use Vws.TransportConformance, listen_on: fn -> "tcp://127.0.0.1:0" end
 
   `listen_on` returns a fresh endpoint string to listen on; each test gets a listener, a client
-  connection and the accepted server connection, all owned by the test process.
+  connection and the accepted server connection, all owned by the test process. `armed` (default
+  1): how many deliveries one `activate/1` lets through at most (TCP arms eight,
+  `Vws.Links.Transport.TCP`).
   """
 
   defmacro __using__(opts) do
     listen_on = Keyword.fetch!(opts, :listen_on)
+    armed = Keyword.get(opts, :armed, 1)
 
     quote do
       import Vws.TransportHelpers
@@ -40,7 +43,8 @@ defmodule Vws.TransportConformance do
           assert ctx.client.module == ctx.server.module
         end
 
-        test "active-once: nothing arrives before activate, one message per activate", ctx do
+        test "nothing arrives before activate, and at most #{unquote(armed)} deliveries per activate",
+             ctx do
           %{client: client, server: server} = ctx
           :ok = Transport.send(client, "first")
           refute_receive _, 100
@@ -48,9 +52,28 @@ defmodule Vws.TransportConformance do
           :ok = Transport.activate(server)
           assert next(server) == {:data, "first"}
 
-          :ok = Transport.send(client, "second")
+          # one send at a time, each waited for: as many as are armed arrive without an activate,
+          # then nothing does (a used-up TCP socket says so with no bytes)
+          delivered =
+            Enum.map(2..(unquote(armed) + 2), fn i ->
+              :ok = Transport.send(client, "m#{i}")
+
+              case next(server, 300) do
+                {:data, "m" <> _ = bytes} -> bytes
+                {:data, ""} -> :passive
+                :timeout -> :held
+              end
+            end)
+
+          sent = Enum.map(2..(unquote(armed) + 2), &"m#{&1}")
+          {through, held} = Enum.split(delivered, unquote(armed) - 1)
+          assert through == Enum.take(sent, unquote(armed) - 1)
+          assert :held in held and Enum.all?(held, &(&1 in [:passive, :held]))
           refute_receive _, 100
-          assert recv_exactly(server, 6) == "second"
+
+          # the held bytes come with the next activate, in order
+          rest = sent |> Enum.drop(unquote(armed) - 1) |> Enum.join()
+          assert recv_exactly(server, byte_size(rest)) == rest
         end
 
         test "a close is seen by the peer after the bytes sent before it", ctx do

@@ -1,6 +1,6 @@
 defmodule Vws.Links.Transport.TCPTest do
   use ExUnit.Case, async: true
-  use Vws.TransportConformance, listen_on: fn -> "tcp://127.0.0.1:0" end
+  use Vws.TransportConformance, listen_on: fn -> "tcp://127.0.0.1:0" end, armed: 8
 
   test "port 0 gives a real port, and the ip option binds the address", %{endpoint: endpoint} do
     assert %Vws.Links.Endpoint{kind: :tcp, host: ~c"127.0.0.1", port: port} = endpoint
