@@ -76,6 +76,20 @@ defmodule Vws.TransportConformance do
           assert recv_exactly(server, byte_size(rest)) == rest
         end
 
+        test "activate_once: nothing arrives before it, one message per call", ctx do
+          %{client: client, server: server} = ctx
+          :ok = Transport.send(client, "first")
+          refute_receive _, 100
+
+          :ok = Transport.activate_once(server)
+          assert next(server) == {:data, "first"}
+
+          :ok = Transport.send(client, "second")
+          refute_receive _, 100
+          :ok = Transport.activate_once(server)
+          assert next(server) == {:data, "second"}
+        end
+
         test "a close is seen by the peer after the bytes sent before it", ctx do
           %{client: client, server: server} = ctx
           :ok = Transport.send(client, "last words")

@@ -11,12 +11,16 @@ defmodule Vws.Links.Transport do
   (`Vws.Links.Endpoint`), so a driver written once runs unchanged over a real serial line, a
   terminal server, a simulator on TCP, or a loopback pair in tests.
 
-  ## Receiving: active-once
+  ## Receiving: on demand
 
   Received bytes are delivered as messages to the connection's *controlling process* (the process
   that connected or accepted, until `controlling_process/2` hands it on). Nothing is delivered
-  until the owner calls `activate/1`; then the next chunk arrives as one message and delivery
-  stops again until the next `activate/1`. The owner passes every message it does not recognise
+  until the owner calls `activate/1`; then the next chunk arrives as one message. The owner calls
+  `activate/1` again after each. TCP arms eight deliveries at a time (`Vws.Links.Transport.TCP`:
+  re-arming for each was a tenth of a VWS_STATUS poll's CPU), and says when they are used up with
+  a chunk of no bytes; the others arm one. Either way what waits unread is bounded. An owner whose
+  bound is one delivery — a simulated line that holds back its sender while its queue is full —
+  calls `activate_once/1`. The owner passes every message it does not recognise
   to `handle_message/2`, which says whether it was data, the end of the connection, an error, or
   not this connection's at all:
 
@@ -244,6 +248,18 @@ defmodule Vws.Links.Transport do
   """
   @spec activate(Conn.t()) :: :ok
   def activate(%Conn{module: module, handle: handle}), do: module.activate(handle)
+
+  @doc """
+  Arms delivery of the next chunk alone (`activate/1` may arm a few, as TCP does): for an owner
+  that must hold its sender back after every chunk (`Vws.Sim.Line`'s pumps, whose queue is
+  bounded). Always `:ok`, as `activate/1`.
+  """
+  @spec activate_once(Conn.t()) :: :ok
+  def activate_once(%Conn{module: module, handle: handle}) do
+    if function_exported?(module, :activate_once, 1),
+      do: module.activate_once(handle),
+      else: module.activate(handle)
+  end
 
   @doc """
   Classifies `msg`, received by the controlling process: `{:data, bytes}`, `:closed`,

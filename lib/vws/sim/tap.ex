@@ -144,6 +144,9 @@ defmodule Vws.Sim.Tap do
   def activate({conn, _tap}), do: Transport.activate(conn)
 
   @impl true
+  def activate_once({conn, _tap}), do: Transport.activate_once(conn)
+
+  @impl true
   def handle_message({conn, tap}, message) do
     case Transport.handle_message(conn, message) do
       {:data, bytes} -> {:data, GenServer.call(tap, {:incoming, bytes})}

@@ -11,14 +11,16 @@ defmodule Vws.Links.Transport.TCP do
   **Armed for eight deliveries at a time** (`active: 8`), not one: re-arming a socket after every
   delivery (`active: :once`) is a call into the driver and a change of the kernel's poll set each
   time, and for a VWS_STATUS poll (one request, an answer in one or two deliveries) that was about
-  15 µs of CPU of an exchange's 55–70 (a loopback ping-pong of 20,000
-  exchanges on this 2-core VM, active-once against active-N). `activate/1` re-arms only when the
+  15 µs of CPU of an exchange's 55–70 (a loopback ping-pong of 20,000 exchanges on this 2-core
+  VM, active-once against active-N). `activate/1` re-arms only when the
   socket has gone passive: the driver says so with `{:tcp_passive, socket}`, which
   `handle_message/2` gives as `{:data, ""}` — no bytes, and the owner's `activate/1` that follows
   every data arms the next eight. What arrives unread is bounded all the same: at most eight
   deliveries (512 KB) wait in the owner's mailbox before it has read them. Whether a socket is
   armed is kept in the owner's process dictionary (a socket handed to another process is armed
   again by its first `activate/1`; the count adds up in the driver, and stays bounded).
+  `activate_once/1` arms one delivery alone, for an owner that must hold its sender back after
+  each (a simulated line's pump).
 
   Options: `connect/2` takes `timeout` (ms, default 5000); `listen/2` takes `ip` (an address
   tuple or string, overriding the endpoint's host), `backlog` (default 128) and `send_timeout`
@@ -109,6 +111,13 @@ defmodule Vws.Links.Transport.TCP do
         Process.put({__MODULE__, socket}, true)
         :ok
     end
+  end
+
+  # One delivery alone: for an owner whose bound is one (the moduledoc of Vws.Links.Transport).
+  @impl true
+  def activate_once(socket) do
+    _ = :inet.setopts(socket, active: :once)
+    :ok
   end
 
   @impl true

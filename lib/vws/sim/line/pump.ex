@@ -230,7 +230,8 @@ defmodule Vws.Sim.Line.Pump do
   defp rearm(state) do
     if not state.armed and state.eof == nil and not Faults.cut?(state.faults) and
          Schedule.queued(state.schedule) < state.max_queue do
-      Transport.activate(state.source)
+      # one delivery at a time: the bound above holds only if the source is held back
+      Transport.activate_once(state.source)
       %{state | armed: true}
     else
       state
