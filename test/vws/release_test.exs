@@ -36,9 +36,37 @@ defmodule Vws.ReleaseTest do
     System.cmd(Path.join(root, "bin/vws"), args, env: env(root, id, extra), stderr_to_stdout: true)
   end
 
+  # The daemon answers `pid` once its node is up. Up to 60 s (a CI run at full load once took
+  # more than 30); failing, it says what the last `pid` printed and what the node logged.
+  defp await_daemon(root, id) do
+    last = :ets.new(:last_pid_answer, [:public])
+
+    up? =
+      eventually(
+        fn ->
+          {out, status} = bin(root, id, ["pid"])
+          :ets.insert(last, {:answer, status, out})
+          status == 0
+        end,
+        60_000
+      )
+
+    unless up? do
+      [{:answer, status, out}] = :ets.lookup(last, :answer)
+      logs = Path.wildcard(Path.join([root, "tmp-#{id}", "log", "*"]))
+
+      tail =
+        Enum.map_join(logs, "\n", &"#{&1}:\n#{&1 |> File.read!() |> String.slice(-3_000..-1)}")
+
+      flunk(
+        "the release #{id} did not answer `pid` in 60 s (last: exit #{status}, #{inspect(out)})\n#{tail}"
+      )
+    end
+  end
+
   defp start_release(root, id) do
     assert {_, 0} = bin(root, id, ["daemon"])
-    assert eventually(fn -> match?({_, 0}, bin(root, id, ["pid"])) end, 30_000)
+    await_daemon(root, id)
     {pid, 0} = bin(root, id, ["pid"])
     os_pid = String.trim(pid)
     on_exit(fn -> stop_release(root, id, os_pid) end)
@@ -198,7 +226,7 @@ defmodule Vws.ReleaseTest do
     ]
 
     {_, 0} = System.cmd(Path.join(root, "bin/vws"), ["daemon"], env: env(root, id, extra))
-    assert eventually(fn -> match?({_, 0}, bin(root, id, ["pid"])) end, 30_000)
+    await_daemon(root, id)
     {os_pid, 0} = bin(root, id, ["pid"])
     os_pid = String.trim(os_pid)
     on_exit(fn -> stop_release(root, id, os_pid) end)
