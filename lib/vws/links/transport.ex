@@ -255,11 +255,7 @@ defmodule Vws.Links.Transport do
   bounded). Always `:ok`, as `activate/1`.
   """
   @spec activate_once(Conn.t()) :: :ok
-  def activate_once(%Conn{module: module, handle: handle}) do
-    if function_exported?(module, :activate_once, 1),
-      do: module.activate_once(handle),
-      else: module.activate(handle)
-  end
+  def activate_once(%Conn{module: module, handle: handle}), do: module.activate_once(handle)
 
   @doc """
   Classifies `msg`, received by the controlling process: `{:data, bytes}`, `:closed`,

@@ -113,9 +113,7 @@ defmodule Vws.CEC.Cell.Connection do
   def activate(%__MODULE__{module: m, handle: h}), do: m.activate(h)
 
   @impl true
-  def activate_once(%__MODULE__{module: m, handle: h}) do
-    if function_exported?(m, :activate_once, 1), do: m.activate_once(h), else: m.activate(h)
-  end
+  def activate_once(%__MODULE__{module: m, handle: h}), do: m.activate_once(h)
 
   @impl true
   def handle_message(%__MODULE__{module: m, handle: h}, msg), do: m.handle_message(h, msg)

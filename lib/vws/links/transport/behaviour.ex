@@ -18,8 +18,7 @@ defmodule Vws.Links.Transport.Behaviour do
   Received bytes are delivered on demand (see `Vws.Links.Transport`): nothing reaches the
   controlling process until `activate/1`, then the next chunk (or the close) does — and, where
   the transport arms a few deliveries at a time (TCP, eight), a bounded number more. An owner
-  whose bound is one delivery calls `activate_once/1` instead (optional: without it, the facade
-  calls `activate/1`, which then arms one).
+  whose bound is one delivery calls `activate_once/1` instead.
   """
 
   @typedoc "A transport's own value for one connection."
@@ -58,10 +57,11 @@ defmodule Vws.Links.Transport.Behaviour do
   @doc "Arms delivery of the next chunk of received bytes (or of the close) to the owner."
   @callback activate(handle()) :: :ok
 
-  @doc "Arms delivery of the next chunk alone (a transport whose `activate/1` arms several)."
+  @doc """
+  Arms delivery of the next chunk alone (the same as `activate/1` where that arms one; TCP's
+  arms eight).
+  """
   @callback activate_once(handle()) :: :ok
-
-  @optional_callbacks activate_once: 1
 
   @doc "Classifies a message received by the controlling process."
   @callback handle_message(handle(), term()) :: message_result()

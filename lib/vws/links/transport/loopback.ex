@@ -128,6 +128,10 @@ defmodule Vws.Links.Transport.Loopback do
   @impl true
   def activate(%__MODULE__{pair: pair, side: side}), do: Pair.activate(pair, side)
 
+  # (activate/1 arms one delivery already)
+  @impl true
+  def activate_once(conn), do: activate(conn)
+
   @impl true
   def handle_message(%__MODULE__{ref: ref}, {:vws_loopback, ref, data}), do: {:data, data}
   def handle_message(%__MODULE__{ref: ref}, {:vws_loopback_closed, ref}), do: :closed

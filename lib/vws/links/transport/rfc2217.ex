@@ -99,6 +99,10 @@ defmodule Vws.Links.Transport.RFC2217 do
   @impl Vws.Links.Transport.Behaviour
   def activate(%__MODULE__{pid: pid}), do: GenServer.cast(pid, :activate)
 
+  # (activate/1 arms one delivery already)
+  @impl true
+  def activate_once(conn), do: activate(conn)
+
   @impl Vws.Links.Transport.Behaviour
   def handle_message(%__MODULE__{pid: pid}, {:rfc2217, pid, event}) do
     case event do

@@ -269,6 +269,10 @@ defmodule Vws.Links.Transport.Serial do
   @impl true
   def activate(%__MODULE__{}), do: :ok
 
+  # (always active: a tty cannot hold bytes back, and a line's pump counts what overruns it)
+  @impl true
+  def activate_once(%__MODULE__{}), do: :ok
+
   @impl true
   def handle_message(%__MODULE__{backend: :socat, port: port, endpoint: endpoint}, msg) do
     case msg do
