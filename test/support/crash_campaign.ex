@@ -346,6 +346,7 @@ defmodule Vws.Test.CrashCampaign do
   defp record(ws) do
     table = :ets.new(:crash_events, [:ordered_set, :public])
     id = {__MODULE__, ws}
+    {daq2_bus, _address} = HydraulicController.daq2_device(Floor.hydraulic_controller(ws))
 
     :ok =
       Vws.Telemetry.attach_many(
@@ -360,10 +361,20 @@ defmodule Vws.Test.CrashCampaign do
           [:vws, :hpib, :retry]
         ],
         fn event, _measurements, meta, _ ->
-          # (an HPIB device of the workstation names it as its bus)
-          if meta[:workstation] == ws or meta[:bus] == ws do
+          # (an HPIB device of the workstation names it as its bus — DAQ #1's; the hydraulic
+          # controller's DAQ #2 is on the controller's own bus, and its tries of a relay write
+          # are the bus's too: before, they were not recorded, and a write DAQ #2's device sent
+          # again after a late answer counted as the command run twice)
+          daq =
+            cond do
+              meta[:bus] == ws -> :daq1
+              meta[:bus] == daq2_bus -> :daq2
+              true -> nil
+            end
+
+          if meta[:workstation] == ws or daq != nil do
             key = {System.monotonic_time(), System.unique_integer([:monotonic])}
-            :ets.insert(table, entry(key, event, meta))
+            :ets.insert(table, entry(key, event, Map.put(meta, :daq, daq)))
           end
         end,
         nil
@@ -386,18 +397,23 @@ defmodule Vws.Test.CrashCampaign do
     do: {key, :finished, {m.partition, m.command}, m.status}
 
   defp entry(key, [:vws, :sim, :plant, :actuator], m),
-    do: {key, :executed, {:relay, m.signal, m.action}, m.channel}
+    do: {key, :executed, {:relay, m.signal, m.action}, {m.daq, m.channel}}
 
   defp entry(key, [:vws, :sim, :val2, :command], m),
     do: {key, :executed, {:val2, m.text}, nil}
 
   defp entry(key, [:vws, :hpib, :retry], m),
-    do: {key, :retried, m.commands, m.address}
+    do: {key, :retried, m.commands, m.daq}
 
   defp entry(key, [:vws, :sim, :ge2000, :command], m),
     do: {key, :executed, {:ge2000, m.operation}, m.name}
 
-  defp check(events, kills) do
+  @doc """
+  The campaign's judgement of a run's events (an ETS table of `{key, kind, a, b}` rows, as
+  `record/1` keeps them) and kills: raises with every problem found, else the figures. Public for
+  the tests of the judgement itself (`crash_campaign_check_test.exs`).
+  """
+  def check(events, kills) do
     rows = :ets.tab2list(events)
     dispatched = for {key, :dispatched, id, text} <- rows, do: {key, id, text}
 
@@ -459,7 +475,8 @@ defmodule Vws.Test.CrashCampaign do
     # answer is late or damaged (`[:vws, :hpib, :retry]`), and a late try may reach the DAQ too.
     # Such an execution is the bus's try of the same write, not the command run again: as many
     # executions beyond the first as the bus retried that write while the command was the latest
-    # of its kind are not counted against it.
+    # of its kind are not counted against it — a write to the same DAQ's same channel (DAQ #1 on
+    # the workstation's bus, DAQ #2 on the hydraulic controller's).
     {attributed, bus_retried} = discount_bus_retries(attributed, kinds, rows)
 
     unattributed =
@@ -515,11 +532,11 @@ defmodule Vws.Test.CrashCampaign do
     channel = Map.new(for {_, :executed, {:relay, sig, _}, ch} <- rows, do: {sig, ch})
 
     retries =
-      for {key, :retried, commands, _} <- rows,
+      for {key, :retried, commands, daq} <- rows,
           {op, channels} <- commands,
           op in [:rout_clos, :rout_open],
           c <- channels,
-          do: {key, c, if(op == :rout_clos, do: :close, else: :open)}
+          do: {key, {daq, c}, if(op == :rout_clos, do: :close, else: :open)}
 
     Enum.reduce(attributed, {attributed, 0}, fn
       {id, n}, {acc, total} when n > 1 ->

@@ -1,0 +1,41 @@
+defmodule Vws.Reliability.CrashCampaignCheckTest do
+  # The crash campaign's judge (Vws.Test.CrashCampaign.check/2) on made-up events: a relay write
+  # that ran twice is the command run twice, unless the bus of that very DAQ sent the write again.
+  use ExUnit.Case, async: true
+
+  alias Vws.Test.CrashCampaign
+
+  # CLAMP_PALLET: the hydraulic controller closes ram X's valve, on DAQ #2 (channel 201 there,
+  # as DAQ #1 has a channel 201 of its own)
+  defp events(retry_on) do
+    table = :ets.new(:events, [:ordered_set, :public])
+    key = fn t -> {t, t} end
+    id = {:hydraulic, 3}
+
+    rows =
+      [
+        {key.(1), :dispatched, id, "CLAMP_PALLET"},
+        {key.(2), :executed, {:relay, :ram_x_valve, :close}, {:daq2, 201}},
+        {key.(4), :executed, {:relay, :ram_x_valve, :close}, {:daq2, 201}},
+        {key.(5), :finished, id, :done}
+      ] ++
+        for daq <- List.wrap(retry_on),
+            do: {key.(3), :retried, [{:rout_clos, [201]}, {:rout_clos?, [201]}], daq}
+
+    :ets.insert(table, rows)
+    table
+  end
+
+  test "a write DAQ #2's bus sent again is the bus's try, not the command run twice" do
+    assert %{bus_retried: 1, executed: 2} = CrashCampaign.check(events(:daq2), [])
+  end
+
+  test "without that try, or with a try of DAQ #1's channel of the same number, it ran twice" do
+    for retry_on <- [nil, :daq1] do
+      error =
+        assert_raise ExUnit.AssertionError, fn -> CrashCampaign.check(events(retry_on), []) end
+
+      assert error.message =~ "{:hydraulic, 3} ran 2 times"
+    end
+  end
+end
