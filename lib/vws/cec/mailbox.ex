@@ -165,6 +165,31 @@ defmodule Vws.CEC.Mailbox do
   end
 
   @doc """
+  Writes a device-status location as `put_device/3` does, unless it was written at or after
+  `asked_at` (monotonic ms): `:ok`, or `:newer` (nothing written). For a reader whose answer may
+  come back late — a status read asked at `asked_at` — so that what another writer put there
+  since (a partition's own confirmation, a drip feed's ACTIVE) is not overwritten with older
+  news (`Vws.Partitions.StatusMonitor`). The test and the write are one ETS operation.
+  """
+  @spec put_device_unless_newer(workstation, 1..14, term, integer) :: :ok | :newer
+  def put_device_unless_newer(ws, loc, value, asked_at) when loc in 1..14 do
+    table = table(ws)
+    old = :ets.lookup_element(table, {:device, loc}, 2)
+    row = {{:device, loc}, value, now()}
+    key = {:device, loc}
+    spec = [{{key, :_, :"$1"}, [{:<, :"$1", asked_at}], [{:const, row}]}]
+
+    case :ets.select_replace(table, spec) do
+      1 ->
+        if old != value, do: changed(ws, {:device, loc, value})
+        :ok
+
+      0 ->
+        :newer
+    end
+  end
+
+  @doc """
   Writes several device-status locations at once, `[{loc, value}]`, as `put_device/3` does each
   (one look-up of the table: VWS_STATUS writes seven at every poll of DAQ #1). An entry
   `{loc, value, :changed}` is a value its writer knows to be new (a reading with its own sequence

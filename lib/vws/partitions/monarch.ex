@@ -635,25 +635,24 @@ defmodule Vws.Partitions.Monarch do
   end
 
   @doc """
-  Reads the GE-2000's status report as `refresh_status/3` does, without writing it: the MONARCH
-  reader (`Vws.Partitions.Monarch.Monitor`) writes it with `put_status/2` itself, unless a drip
-  feed said ACTIVE since the read was asked for.
+  Writes a status report: the `MONARCH` device status (location 8), `ACTIVE` or `IDLE`, and the
+  whole report (program, alarm) for the views and the MTConnect agent. With `asked_at` (the
+  monotonic ms at which the report was asked for), nothing is written when location 8 was written
+  since (`Mailbox.put_device_unless_newer/4`): `:newer`. A drip feed's blocks say ACTIVE as they
+  reach the machine (`Vws.Partitions.Monarch.Monitor`), and a report answered an instant before
+  the first block, handed back after it, once made MONARCH `IDLE` while the program ran.
   """
-  @spec read_status(Mailbox.workstation(), DNC.link(), keyword) ::
-          {:ok, Report.status()} | {:error, String.t()}
-  def read_status(ws, link, options \\ []) do
-    read_report(%{workstation: ws, link: link, options: options})
-  end
-
-  @doc """
-  Writes a status report: the whole report (program, alarm) for the views and the MTConnect
-  agent, and the `MONARCH` device status (location 8), `ACTIVE` or `IDLE`.
-  """
-  @spec put_status(Mailbox.workstation(), Report.status()) :: :ok
-  def put_status(ws, report) do
+  @spec put_status(Mailbox.workstation(), Report.status(), integer | nil) :: :ok | :newer
+  def put_status(ws, report, asked_at \\ nil) do
     word = if report.state == :active, do: "ACTIVE", else: "IDLE"
-    Mailbox.put_readings(ws, :monarch, report)
-    Mailbox.put_device(ws, @monarch_location, word)
+
+    written =
+      if asked_at,
+        do: Mailbox.put_device_unless_newer(ws, @monarch_location, word, asked_at),
+        else: Mailbox.put_device(ws, @monarch_location, word)
+
+    if written == :ok, do: Mailbox.put_readings(ws, :monarch, report)
+    written
   end
 
   @doc """
@@ -760,9 +759,12 @@ defmodule Vws.Partitions.Monarch do
   end
 
   # RNL → the report; every report read refreshes the MONARCH device status.
+  # (written unless location 8 was written since it was asked for: put_status/3)
   defp status_report(ctx) do
+    asked_at = System.monotonic_time(:millisecond)
+
     with {:ok, report} <- read_report(ctx) do
-      put_status(ctx.workstation, report)
+      put_status(ctx.workstation, report, asked_at)
       {:ok, report}
     end
   end

@@ -20,12 +20,7 @@ defmodule Vws.Partitions.StatusMonitor do
     * `:recovered` — the log line when it reads again;
     * `:init` — `fn -> any` run when the monitor starts (default nothing);
     * `:tick` — `fn ext -> ext` before every read, and every second without reads;
-    * `:handle` — `fn message, ext -> ext` for every other message; `:ext` its first state;
-    * `:write` — `fn result, asked_at, ext -> ext`, run by the monitor itself when a read is done
-      (`asked_at`: the monotonic time, native units, just before the read was started), in the
-      order of its other messages: a read that leaves its writing to the monitor cannot write an
-      old answer over what a message handled meanwhile wrote (the MONARCH reader and a drip feed's
-      ACTIVE). Default: nothing (the read wrote its answer itself).
+    * `:handle` — `fn message, ext -> ext` for every other message; `:ext` its first state.
   """
   use GenServer
   require Logger
@@ -61,11 +56,9 @@ defmodule Vws.Partitions.StatusMonitor do
       tick: Keyword.get(opts, :tick, & &1),
       handle: Keyword.get(opts, :handle, fn _message, ext -> ext end),
       ext: Keyword.get(opts, :ext),
-      write: Keyword.get(opts, :write, fn _result, _asked_at, ext -> ext end),
       failing: false,
-      # the process reading, while it waits or reads, and when it was started
-      reading: nil,
-      asked_at: nil
+      # the process reading, while it waits or reads
+      reading: nil
     }
 
     if init = Keyword.get(opts, :init), do: init.()
@@ -85,7 +78,6 @@ defmodule Vws.Partitions.StatusMonitor do
     s = tick(s)
     monitor = self()
     %{workstation: ws, read: read} = s
-    asked_at = System.monotonic_time()
 
     pid =
       spawn_link(fn ->
@@ -93,12 +85,12 @@ defmodule Vws.Partitions.StatusMonitor do
         send(monitor, {:read_done, self(), result})
       end)
 
-    {:noreply, %{s | reading: pid, asked_at: asked_at}}
+    {:noreply, %{s | reading: pid}}
   end
 
   def handle_info({:read_done, pid, result}, %{reading: pid} = s) do
     Process.send_after(self(), :read, s.interval)
-    s = %{s | reading: nil, ext: s.write.(result, s.asked_at, s.ext)}
+    s = %{s | reading: nil}
 
     case result do
       {:ok, _} ->

@@ -88,6 +88,23 @@ defmodule Vws.CEC.MailboxTest do
     end
   end
 
+  test "a late answer is not written over what was written since it was asked", %{ws: ws} do
+    Vws.CEC.Events.subscribe(ws, :mailbox)
+    asked_at = System.monotonic_time(:millisecond)
+    :ok = Mailbox.put_device(ws, 10, "PALLET CLAMPED")
+    assert Mailbox.put_device_unless_newer(ws, 10, "PALLET NOT CLAMPED", asked_at) == :newer
+    assert {"PALLET CLAMPED", _} = Mailbox.get_device(ws, 10)
+    assert_receive {:vws_event, ^ws, :mailbox, {{:device, 10, "PALLET CLAMPED"}, _}}
+    refute_received {:vws_event, ^ws, :mailbox, {{:device, 10, "PALLET NOT CLAMPED"}, _}}
+
+    # asked after the last write: written, and announced
+    Process.sleep(2)
+    asked_at = System.monotonic_time(:millisecond)
+    assert Mailbox.put_device_unless_newer(ws, 10, "PALLET NOT CLAMPED", asked_at) == :ok
+    assert {"PALLET NOT CLAMPED", _} = Mailbox.get_device(ws, 10)
+    assert_receive {:vws_event, ^ws, :mailbox, {{:device, 10, "PALLET NOT CLAMPED"}, _}}
+  end
+
   test "device values carry their age", %{ws: ws} do
     :ok = Mailbox.put_device(ws, 5, "VACUUM IS ON")
     assert {"VACUUM IS ON", age} = Mailbox.get_device(ws, 5)

@@ -42,19 +42,15 @@ defmodule Vws.Partitions.Monarch.Monitor do
       [
         # the read waits for the line while a transfer holds it; the monitor meanwhile takes that
         # transfer's progress (and a drip feed's ACTIVE, see machine_runs/2) as it comes
-        read: fn -> Monarch.read_status(ws, link, options) end,
-        # written by the monitor, after the messages it handled before (write/3)
-        write: &write(ws, &1, &2, &3),
+        read: fn -> Monarch.refresh_status(ws, link, options) end,
         failed: &"MONARCH cannot read the GE-2000's status: #{&1}",
         recovered: "MONARCH: the GE-2000's status reads again",
-        # the link process this monitor owns (a restarted link is owned again); when a drip feed
-        # last said the machine runs (monotonic, native units)
-        ext: %{link: link, owner: nil, fed_at: nil},
+        # the link process this monitor owns (a restarted link is owned again)
+        ext: %{link: link, owner: nil},
         tick: &own_link/1,
         handle: fn message, ext ->
-          if dnc(message, ws, store) == :fed,
-            do: %{ext | fed_at: System.monotonic_time()},
-            else: ext
+          dnc(message, ws, store)
+          ext
         end
       ]
     end)
@@ -81,14 +77,12 @@ defmodule Vws.Partitions.Monarch.Monitor do
   # A transfer's progress, told by the link: the workstation's event :dnc_progress
   # ({:vws_event, ws, :dnc_progress, payload}, payload as documented in Vws.Links.DNC).
   defp dnc({:dnc, _link, {:progress, payload}}, ws, _store) do
-    fed = machine_runs(ws, payload)
+    machine_runs(ws, payload)
 
     with {:error, :no_such_event} <- Vws.CEC.Events.cause(ws, :dnc_progress, payload) do
       :ok = Vws.CEC.Events.create(ws, :dnc_progress)
       Vws.CEC.Events.cause(ws, :dnc_progress, payload)
     end
-
-    fed
   rescue
     # the workstation's mailboxes are gone (it is stopping): nobody to tell
     ArgumentError -> :ok
@@ -114,27 +108,11 @@ defmodule Vws.Partitions.Monarch.Monitor do
         nil -> "000000"
       end
 
+    # (a status report asked for before this is not written over it: Monarch.put_status/3)
     Monarch.put_status(ws, %{state: :active, program: number, alarm: alarm})
-    :fed
   end
 
   defp machine_runs(_ws, _payload), do: :ok
-
-  # A status report read is written unless a drip feed said ACTIVE since it was asked for: the
-  # link answers one request at a time, so a feed that began after the read was answered (the
-  # machine IDLE, an instant before its first block) may have been said first, and the read,
-  # written after it, made MONARCH IDLE while the program ran. Such a report is left; the next
-  # read, a second later, is written (a read that waited for the feed to end is left too: the
-  # next one says the same thing, later, and the table stays held a second longer).
-  defp write(ws, {:ok, report}, asked_at, %{fed_at: fed_at} = ext) do
-    if fed_at == nil or fed_at < asked_at, do: Monarch.put_status(ws, report)
-    ext
-  rescue
-    # the workstation's mailboxes are gone (it is stopping): nobody to tell
-    ArgumentError -> ext
-  end
-
-  defp write(_ws, {:error, _}, _asked_at, ext), do: ext
 
   # The monitor is the link's owner: it is told what the machine sends of its own accord.
   defp own_link(s) do
