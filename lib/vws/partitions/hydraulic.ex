@@ -158,14 +158,20 @@ defmodule Vws.Partitions.Hydraulic do
   @doc """
   Reads `PALLET?` from the controller at `link` and writes the `PALLET` status (location 10).
   Returns the decoded answer, or `{:error, why}` with the `NO DATA` reason it wrote.
+
+  Nothing is written when location 10 was written since the read was asked for
+  (`Mailbox.put_device_unless_newer/4`): the PALLET monitor's read, answered before a
+  CLAMP_PALLET ended and handed back after HYDRAULIC's own confirmation wrote `PALLET CLAMPED`,
+  would otherwise show `PALLET NOT CLAMPED` after `DONE` until the next read.
   """
   @spec refresh_pallet(Mailbox.workstation(), HPIB.device(), timeout) ::
           {:ok, Vws.Codecs.SCPI.pallet()} | {:error, String.t()}
   def refresh_pallet(ws, link, timeout \\ 1_000) do
+    asked_at = System.monotonic_time(:millisecond)
+
     {text, result} =
       case HPIB.query(link, :pallet?, timeout) do
         {:ok, pallet} ->
-          Mailbox.put_readings(ws, :pallet, pallet)
           {pallet_text(pallet), {:ok, pallet}}
 
         {:error, error} ->
@@ -173,7 +179,10 @@ defmodule Vws.Partitions.Hydraulic do
           {"NO DATA (#{no_data_reason(error, why)})", {:error, why}}
       end
 
-    Mailbox.put_device(ws, @pallet_location, text)
+    with :ok <- Mailbox.put_device_unless_newer(ws, @pallet_location, text, asked_at),
+         {:ok, pallet} <- result,
+         do: Mailbox.put_readings(ws, :pallet, pallet)
+
     result
   end
 

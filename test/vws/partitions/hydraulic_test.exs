@@ -24,6 +24,33 @@ defmodule Vws.Partitions.HydraulicTest do
     assert %{force1_n: 0.0, force2_n: 0.0, x_switch: false} = Plant.snapshot(plant).pallet
   end
 
+  # The PALLET monitor's read, answered NOT CLAMPED before a CLAMP_PALLET ended and handed back
+  # after HYDRAULIC's confirmation wrote PALLET CLAMPED, must not write its older news over it.
+  test "a PALLET? answer is not written over what was written since it was asked" do
+    ws = "pallet-late-#{System.unique_integer([:positive])}"
+    start_supervised!({Vws.CEC.Mailbox.Owner, workstation: ws})
+    test = self()
+
+    # an HPIB device 8 that, asked PALLET?, lets the confirmation be written first
+    spawn_link(fn ->
+      {:ok, _} = Registry.register(Vws.Registry, {ws, {:hpib, 8}}, nil)
+      send(test, :registered)
+
+      receive do
+        {:"$gen_cast", {Vws.Links.Connection, from, _deadline, {:request, [:pallet?], _}}} ->
+          :ok = Vws.CEC.Mailbox.put_device(ws, 10, "PALLET CLAMPED")
+          late = %{clamped: false, x: false, y: false, force1_n: 0.0, force2_n: 0.0}
+          :gen.reply(from, {:ok, [late]})
+          Process.sleep(:infinity)
+      end
+    end)
+
+    assert_receive :registered
+    assert {:ok, %{clamped: false}} = Vws.Partitions.Hydraulic.refresh_pallet(ws, {ws, 8})
+    assert {"PALLET CLAMPED", _} = Vws.CEC.Mailbox.get_device(ws, 10)
+    refute Map.has_key?(Vws.CEC.Mailbox.readings(ws), :pallet)
+  end
+
   test "the PALLET status follows the pallet without a command (the monitor)" do
     %{peer: peer, plant: plant} = HydraulicFloor.start()
     assert HydraulicFloor.await_pallet(peer, &(&1 =~ "PALLET")) == "PALLET NOT CLAMPED"
