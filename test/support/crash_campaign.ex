@@ -585,13 +585,25 @@ defmodule Vws.Test.CrashCampaign do
           nil -> from + 3 * second
         end
 
-      lines =
-        for {{t, _}, what, a, b} <- rows, t >= from - second, t <= until + second do
-          b = if what == :started, do: :links, else: b
-          "#{ms.(t)} ms #{what} #{inspect(a)} #{inspect(b, limit: 5)}"
-        end
+      window =
+        for {{t, _}, _, _, _} = row <- rows, t >= from - second, t <= until + second, do: row
 
-      "#{inspect(id)} (#{inspect(kind)}):\n" <> Enum.join(Enum.take(lines, 300), "\n")
+      line = fn {{t, _}, what, a, b} ->
+        b = if what == :started, do: :links, else: b
+        "#{ms.(t)} ms #{what} #{inspect(a)} #{inspect(b, limit: 5)}"
+      end
+
+      # first what bears on it (the command, the executions of its kind, the bus's tries, the
+      # kills), then everything: a CI page keeps the first lines of a failure
+      relevant =
+        for {_, what, a, _} = row <- window,
+            a == id or (what == :executed and a == kind) or what in [:retried, :kill],
+            do: line.(row)
+
+      "#{inspect(id)} (#{inspect(kind)}), what bears on it:\n" <>
+        Enum.join(Enum.take(relevant, 100), "\n") <>
+        "\n\n#{inspect(id)}, every event around it:\n" <>
+        Enum.map_join(Enum.take(window, 300), "\n", line)
     end)
   end
 
