@@ -20,8 +20,8 @@ defmodule Vws.Links.Transport do
   re-arming for each was a tenth of a VWS_STATUS poll's CPU), and says when they are used up with
   a chunk of no bytes; the others arm one. Either way what waits unread is bounded. An owner whose
   bound is one delivery — a simulated line that holds back its sender while its queue is full —
-  calls `activate_once/1`. The owner passes every message it does not recognise
-  to `handle_message/2`, which says whether it was data, the end of the connection, an error, or
+  calls `activate_once/1`. The owner passes every message it does not recognise to
+  `handle_message/2`, which says whether it was data, the end of the connection, an error, or
   not this connection's at all:
 
       def handle_info(msg, state) do

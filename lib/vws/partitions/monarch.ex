@@ -758,22 +758,19 @@ defmodule Vws.Partitions.Monarch do
          do: :ok
   end
 
-  # RNL → the report; every report read refreshes the MONARCH device status.
-  # (written unless location 8 was written since it was asked for: put_status/3)
+  # RNL → the report; every report read refreshes the MONARCH device status, unless location 8
+  # was written since it was asked for (put_status/3).
   defp status_report(ctx) do
     asked_at = System.monotonic_time(:millisecond)
 
-    with {:ok, report} <- read_report(ctx) do
-      put_status(ctx.workstation, report, asked_at)
-      {:ok, report}
-    end
-  end
-
-  defp read_report(ctx) do
     with {:ok, blocks} <- request(ctx, :receive, :status, "", []) do
       case Report.parse_status(IO.iodata_to_binary(blocks)) do
-        {:ok, report} -> {:ok, report}
-        {:error, _} -> {:error, "BAD STATUS REPORT FROM GE-2000"}
+        {:ok, report} ->
+          put_status(ctx.workstation, report, asked_at)
+          {:ok, report}
+
+        {:error, _} ->
+          {:error, "BAD STATUS REPORT FROM GE-2000"}
       end
     end
   end

@@ -10,8 +10,9 @@ defmodule Vws.Partitions.StatusMonitor do
   of the one before, and meanwhile the monitor takes its other messages (the GE-2000 link's
   transfer progress). Its answer may come back after someone else wrote the location (the
   partition's own confirmation, a drip feed's ACTIVE): the reads write with
-  `Vws.CEC.Mailbox.put_device_unless_newer/4`, so older news is never written over newer. A read that fails is said in the log once per outage, not once a second;
-  the first read that succeeds again says so.
+  `Vws.CEC.Mailbox.put_device_unless_newer/4`, so older news is never written over newer. A read
+  that fails is said in the log once per outage, not once a second; the first read that succeeds
+  again says so.
 
   Options: `:workstation`, `:link`, `:interval` (ms, default 1000; `nil`: no reads, only the
   `:tick`); the device's parts are what `parts.(workstation, link)` gives:

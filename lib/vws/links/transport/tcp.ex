@@ -12,10 +12,10 @@ defmodule Vws.Links.Transport.TCP do
   delivery (`active: :once`) is a call into the driver and a change of the kernel's poll set each
   time, and for a VWS_STATUS poll (one request, an answer in one or two deliveries) that was about
   15 µs of CPU of an exchange's 55–70 (a loopback ping-pong of 20,000 exchanges on this 2-core
-  VM, active-once against active-N). `activate/1` re-arms only when the
-  socket has gone passive: the driver says so with `{:tcp_passive, socket}`, which
-  `handle_message/2` gives as `{:data, ""}` — no bytes, and the owner's `activate/1` that follows
-  every data arms the next eight. What arrives unread is bounded all the same: at most eight
+  VM, active-once against active-N). `activate/1` re-arms only when the socket has gone passive:
+  the driver says so with `{:tcp_passive, socket}`, which `handle_message/2` gives as
+  `{:data, ""}` — no bytes, and the owner's `activate/1` that follows every data arms the next
+  eight. What arrives unread is bounded all the same: at most eight
   deliveries (512 KB) wait in the owner's mailbox before it has read them. Whether a socket is
   armed is kept in the owner's process dictionary (a socket handed to another process is armed
   again by its first `activate/1`; the count adds up in the driver, and stays bounded).
