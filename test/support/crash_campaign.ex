@@ -343,7 +343,8 @@ defmodule Vws.Test.CrashCampaign do
   ## What happened
 
   # Every event of the workstation, in an ETS table: {{monotonic, unique}, kind, a, b}.
-  defp record(ws) do
+  @doc false
+  def record(ws) do
     table = :ets.new(:crash_events, [:ordered_set, :public])
     id = {__MODULE__, ws}
     {daq2_bus, _address} = HydraulicController.daq2_device(Floor.hydraulic_controller(ws))
@@ -365,16 +366,16 @@ defmodule Vws.Test.CrashCampaign do
           # controller's DAQ #2 is on the controller's own bus, and its tries of a relay write
           # are the bus's too: before, they were not recorded, and a write DAQ #2's device sent
           # again after a late answer counted as the command run twice)
-          daq =
+          bus_daq =
             cond do
               meta[:bus] == ws -> :daq1
               meta[:bus] == daq2_bus -> :daq2
               true -> nil
             end
 
-          if meta[:workstation] == ws or daq != nil do
+          if meta[:workstation] == ws or bus_daq != nil do
             key = {System.monotonic_time(), System.unique_integer([:monotonic])}
-            :ets.insert(table, entry(key, event, Map.put(meta, :daq, daq)))
+            :ets.insert(table, entry(key, event, Map.put(meta, :bus_daq, bus_daq)))
           end
         end,
         nil
@@ -403,7 +404,7 @@ defmodule Vws.Test.CrashCampaign do
     do: {key, :executed, {:val2, m.text}, nil}
 
   defp entry(key, [:vws, :hpib, :retry], m),
-    do: {key, :retried, m.commands, m.daq}
+    do: {key, :retried, m.commands, m.bus_daq}
 
   defp entry(key, [:vws, :sim, :ge2000, :command], m),
     do: {key, :executed, {:ge2000, m.operation}, m.name}
@@ -596,8 +597,9 @@ defmodule Vws.Test.CrashCampaign do
       # first what bears on it (the command, the executions of its kind, the bus's tries, the
       # kills), then everything: a CI page keeps the first lines of a failure
       relevant =
-        for {_, what, a, _} = row <- window,
-            a == id or (what == :executed and a == kind) or what in [:retried, :kill],
+        for {{t, _}, what, a, _} = row <- window,
+            a == id or (what == :executed and a == kind) or
+              (what in [:retried, :kill] and t >= from),
             do: line.(row)
 
       "#{inspect(id)} (#{inspect(kind)}), what bears on it:\n" <>

@@ -26,6 +26,38 @@ defmodule Vws.Reliability.CrashCampaignCheckTest do
     table
   end
 
+  test "the recorder keeps each execution's DAQ, and each bus try's DAQ by its bus" do
+    ws = "recorder-#{System.unique_integer([:positive])}"
+    table = CrashCampaign.record(ws)
+
+    {daq2_bus, _} =
+      Vws.Peers.HydraulicController.daq2_device(Vws.Sim.Floor.hydraulic_controller(ws))
+
+    write = [rout_clos: [201], rout_clos?: [201, 202]]
+
+    Vws.Telemetry.execute([:vws, :sim, :plant, :actuator], %{count: 1}, %{
+      workstation: ws,
+      daq: :daq2,
+      channel: 201,
+      signal: :ram_x_valve,
+      action: :close
+    })
+
+    for bus <- [daq2_bus, ws, "another cell"] do
+      Vws.Telemetry.execute([:vws, :hpib, :retry], %{count: 1}, %{
+        bus: bus,
+        address: 9,
+        commands: write
+      })
+    end
+
+    assert for({_key, what, a, b} <- :ets.tab2list(table), do: {what, a, b}) == [
+             {:executed, {:relay, :ram_x_valve, :close}, {:daq2, 201}},
+             {:retried, write, :daq2},
+             {:retried, write, :daq1}
+           ]
+  end
+
   test "a write DAQ #2's bus sent again is the bus's try, not the command run twice" do
     assert %{bus_retried: 1, executed: 2} = CrashCampaign.check(events(:daq2), [])
   end
