@@ -169,25 +169,36 @@ defmodule Vws.CEC.Mailbox do
   `asked_at` (monotonic ms): `:ok`, or `:newer` (nothing written). For a reader whose answer may
   come back late — a status read asked at `asked_at` — so that what another writer put there
   since (a partition's own confirmation, a drip feed's ACTIVE) is not overwritten with older
-  news (`Vws.Partitions.StatusMonitor`). The test and the write are one ETS operation.
+  news (`Vws.Partitions.StatusMonitor`). A location not read yet — its `NO DATA (… NOT READ
+  YET)` text, written when the workstation starts, perhaps after the read was asked — takes any
+  answer. The write happens only if the location is still as it was looked at (one
+  `:ets.select_replace/2`): a write in between makes it `:newer`.
   """
   @spec put_device_unless_newer(workstation, 1..14, term, integer) :: :ok | :newer
   def put_device_unless_newer(ws, loc, value, asked_at) when loc in 1..14 do
     table = table(ws)
-    old = :ets.lookup_element(table, {:device, loc}, 2)
-    row = {{:device, loc}, value, now()}
     key = {:device, loc}
-    spec = [{{key, :_, :"$1"}, [{:<, :"$1", asked_at}], [{:const, row}]}]
+    [{^key, old, at}] = :ets.lookup(table, key)
 
-    case :ets.select_replace(table, spec) do
-      1 ->
-        if old != value, do: changed(ws, {:device, loc, value})
-        :ok
+    if at < asked_at or not_read_yet?(old) do
+      row = {key, value, now()}
+      still = [{:"=:=", :"$1", {:const, old}}, {:"=:=", :"$2", at}]
+      spec = [{{key, :"$1", :"$2"}, still, [{:const, row}]}]
 
-      0 ->
-        :newer
+      case :ets.select_replace(table, spec) do
+        1 ->
+          if old != value, do: changed(ws, {:device, loc, value})
+          :ok
+
+        0 ->
+          :newer
+      end
+    else
+      :newer
     end
   end
+
+  defp not_read_yet?(value), do: is_binary(value) and String.ends_with?(value, "NOT READ YET)")
 
   @doc """
   Writes several device-status locations at once, `[{loc, value}]`, as `put_device/3` does each

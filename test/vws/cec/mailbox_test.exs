@@ -105,6 +105,16 @@ defmodule Vws.CEC.MailboxTest do
     assert_receive {:vws_event, ^ws, :mailbox, {{:device, 10, "PALLET NOT CLAMPED"}, _}}
   end
 
+  test "a location not read yet takes an answer asked before that text was written", %{ws: ws} do
+    asked_at = System.monotonic_time(:millisecond)
+    :ok = Mailbox.put_device(ws, 8, "NO DATA (GE-2000 NOT READ YET)")
+    assert Mailbox.put_device_unless_newer(ws, 8, "IDLE", asked_at) == :ok
+    assert {"IDLE", _} = Mailbox.get_device(ws, 8)
+    # and, once read, an older answer no longer does
+    assert Mailbox.put_device_unless_newer(ws, 8, "ACTIVE", asked_at) == :newer
+    assert {"IDLE", _} = Mailbox.get_device(ws, 8)
+  end
+
   test "device values carry their age", %{ws: ws} do
     :ok = Mailbox.put_device(ws, 5, "VACUUM IS ON")
     assert {"VACUUM IS ON", age} = Mailbox.get_device(ws, 5)
