@@ -12,8 +12,12 @@
 # (`taskset`), so the CEC has one core of its own — of a machine that other work shares: the
 # load average is printed at the start and the end of every step.
 #
-# For each N, three windows of --seconds:
+# For each N, windows of --seconds:
 #
+#   F. the floor (--daq canned): before the workstations start, one bare process per workstation
+#      on this node sends its DAQ #1 the very bytes of a poll every --poll-ms over an active-N
+#      socket and reads the answer lines, nothing else. CPU per exchange = the least a poll
+#      over TCP can cost this node; each poll's CPU is printed as a multiple of it.
 #   A. polls: every workstation's VWS_STATUS polls its DAQ #1 every --poll-ms. DAQ #1 is, with
 #      --daq canned (default), a bench-only SCPI responder that answers every poll with fixed
 #      readings (the cheapest equipment there can be: what it costs the floor nodes does not
@@ -534,6 +538,75 @@ role_delta = fn reds0, reds1 ->
   end)
 end
 
+# The floor: what the poll's TCP exchange alone costs this node. One bare process per
+# workstation, on this node, sends DAQ #1 the very bytes of a VWS_STATUS poll at the same rate
+# (absolute timers, the same phases spread) over an active-N socket, as the HPIB device's is,
+# and reads the answer lines — nothing else: no decoding, no mailbox, no event. Its CPU per
+# exchange is the least any poll over TCP could cost here; a poll's cost is set beside it.
+poll_bytes =
+  Vws.Links.DAQ.new()
+  |> Vws.Links.DAQ.poll_commands()
+  |> Enum.map(&Vws.Codecs.SCPI.encode_command/1)
+  |> IO.iodata_to_binary()
+
+poll_lines = length(Vws.Links.DAQ.poll_commands(Vws.Links.DAQ.new()))
+
+bare_poller = fn endpoint, first_at, counter ->
+  "tcp://127.0.0.1:" <> port = endpoint
+
+  {:ok, socket} =
+    :gen_tcp.connect(~c"127.0.0.1", String.to_integer(port), [:binary, active: 8, nodelay: true])
+
+  answer = fn answer, lines ->
+    receive do
+      {:tcp, ^socket, bytes} ->
+        lines = lines - length(:binary.matches(bytes, "\n"))
+        if lines > 0, do: answer.(answer, lines), else: :ok
+
+      {:tcp_passive, ^socket} ->
+        :ok = :inet.setopts(socket, active: 8)
+        answer.(answer, lines)
+    end
+  end
+
+  poll = fn poll, at ->
+    :erlang.start_timer(at, self(), :poll, abs: true)
+
+    receive do
+      {:timeout, _, :poll} ->
+        :ok = :gen_tcp.send(socket, poll_bytes)
+        :ok = answer.(answer, poll_lines)
+        :counters.add(counter, 1, 1)
+        poll.(poll, at + poll_ms)
+
+      :stop ->
+        :gen_tcp.close(socket)
+    end
+  end
+
+  poll.(poll, first_at)
+end
+
+# window F: the bare pollers of `daqs` ({ws, endpoint}) for --seconds, after a second's warm-up
+floor_window = fn daqs ->
+  counter = :counters.new(1, [])
+  start = System.monotonic_time(:millisecond) + 200
+
+  pids =
+    for {{_ws, endpoint}, i} <- Enum.with_index(daqs) do
+      first_at = start + rem(i * 7_919, poll_ms)
+      spawn(fn -> bare_poller.(endpoint, first_at, counter) end)
+    end
+
+  Process.sleep(1_200)
+  n0 = :counters.get(counter, 1)
+  f = window.(fn -> Process.sleep(seconds * 1_000) end)
+  exchanges = :counters.get(counter, 1) - n0
+  for pid <- pids, do: send(pid, :stop)
+  Process.sleep(200)
+  Map.put(f, :exchanges, exchanges)
+end
+
 per = fn us, n -> if n > 0, do: Bench.us(us / n), else: "-" end
 per_n = fn x, n -> if x && n > 0, do: round(x / n), else: "-" end
 line = fn label, text -> "  " <> String.pad_trailing(label, 16) <> text end
@@ -558,6 +631,8 @@ step = fn n ->
           :peer.call(peer, host_mod, :sim_daqs, [part], 600_000)
         end)
     end
+
+  f = if daq_kind == "canned", do: floor_window.(daqs)
 
   for {ws, endpoint} <- daqs do
     w = VwsStatus.wiring(ws, endpoint, vws_status: [poll_ms: poll_ms] ++ shedding)
@@ -634,6 +709,7 @@ step = fn n ->
 
   %{
     n: n,
+    f: f,
     ready: ready,
     mem: mem,
     a: a,
@@ -716,6 +792,20 @@ for n <- counts do
     (r.b.reds - idle_reds * r.b.wall - r.pb.polls * reds_poll) / max(length(r.rtts), 1)
 
   cpu_a = r.a.cpu
+
+  floor_text =
+    case r.f do
+      nil ->
+        "- (measured with --daq canned only)"
+
+      f ->
+        f_cpu = f.cpu - idle_rate * f.wall
+        ratio = cpu_a / max(r.pa.polls, 1) / max(f_cpu / max(f.exchanges, 1), 1.0e-9)
+
+        "a bare process per workstation doing the poll's TCP exchange alone (same bytes and rate, active-N): " <>
+          "#{Bench.thousands(f.exchanges / (f.wall / 1.0e6))}/s, #{per.(f_cpu, f.exchanges)} µs CPU each " <>
+          "(the kernel's #{per.(f.sys, f.exchanges)} µs); a poll costs #{:erlang.float_to_binary(ratio, decimals: 2)}× that"
+    end
   rate_a = r.a.cpu / r.a.wall
   busy_rate_a = r.a.busy / r.a.wall
   exchanges = length(r.rtts)
@@ -745,6 +835,7 @@ for n <- counts do
           "  per poll",
           "#{per.(cpu_a, r.pa.polls)} µs CPU (busy #{per.(r.a.busy, r.pa.polls)} µs; the kernel's, system time, #{per.(r.a.sys, r.pa.polls)} µs), #{round(reds_poll)} reductions"
         ),
+        line.("  floor", floor_text),
         line.(
           "  threads",
           "per poll, µs of the BEAM's threads by what they did (msacc): " <>
