@@ -587,6 +587,15 @@ bare_poller = fn endpoint, first_at, counter ->
   poll.(poll, first_at)
 end
 
+# the BEAM's threads' time by what they did (microstate accounting) over --seconds, sleep left out
+msacc_window = fn ->
+  :msacc.start(seconds * 1_000)
+
+  for %{counters: c} <- :msacc.stats(), {state, us} <- c, state != :sleep, reduce: %{} do
+    acc -> Map.update(acc, state, us, &(&1 + us))
+  end
+end
+
 # window F: the bare pollers of `daqs` ({ws, endpoint}) for --seconds, after a second's warm-up
 floor_window = fn daqs ->
   counter = :counters.new(1, [])
@@ -600,7 +609,7 @@ floor_window = fn daqs ->
 
   Process.sleep(1_200)
   n0 = :counters.get(counter, 1)
-  f = window.(fn -> Process.sleep(seconds * 1_000) end)
+  f = window.(fn -> msacc_window.() end)
   exchanges = :counters.get(counter, 1) - n0
   for pid <- pids, do: send(pid, :stop)
   Process.sleep(200)
@@ -608,6 +617,13 @@ floor_window = fn daqs ->
 end
 
 per = fn us, n -> if n > 0, do: Bench.us(us / n), else: "-" end
+threads = fn states, n ->
+  states
+  |> Enum.filter(fn {_, us} -> us > 0 end)
+  |> Enum.sort_by(&(-elem(&1, 1)))
+  |> Enum.map_join(", ", fn {state, us} -> "#{state} #{per.(us, n)}" end)
+end
+
 per_n = fn x, n -> if x && n > 0, do: round(x / n), else: "-" end
 line = fn label, text -> "  " <> String.pad_trailing(label, 16) <> text end
 
@@ -658,13 +674,7 @@ step = fn n ->
   roles0 = reds_by_role.(ids)
   # the BEAM's threads' time by what they did (microstate accounting), for window A
   a =
-    window.(fn ->
-      :msacc.start(seconds * 1_000)
-
-      for %{counters: c} <- :msacc.stats(), {state, us} <- c, state != :sleep, reduce: %{} do
-        acc -> Map.update(acc, state, us, &(&1 + us))
-      end
-    end)
+    window.(msacc_window)
 
   roles1 = reds_by_role.(ids)
   s1 = poll_stats.(ids)
@@ -804,7 +814,8 @@ for n <- counts do
 
         "a bare process per workstation doing the poll's TCP exchange alone (same bytes and rate, active-N): " <>
           "#{Bench.thousands(f.exchanges / (f.wall / 1.0e6))}/s, #{per.(f_cpu, f.exchanges)} µs CPU each " <>
-          "(the kernel's #{per.(f.sys, f.exchanges)} µs); a poll costs #{:erlang.float_to_binary(ratio, decimals: 2)}× that"
+          "(the kernel's #{per.(f.sys, f.exchanges)} µs); a poll costs #{:erlang.float_to_binary(ratio, decimals: 2)}× that; its threads per exchange (msacc): " <>
+          threads.(f.result, f.exchanges)
     end
   rate_a = r.a.cpu / r.a.wall
   busy_rate_a = r.a.busy / r.a.wall
@@ -839,10 +850,7 @@ for n <- counts do
         line.(
           "  threads",
           "per poll, µs of the BEAM's threads by what they did (msacc): " <>
-            (r.a.result
-             |> Enum.filter(fn {_, us} -> us > 0 end)
-             |> Enum.sort_by(&(-elem(&1, 1)))
-             |> Enum.map_join(", ", fn {state, us} -> "#{state} #{per.(us, r.pa.polls)}" end))
+            threads.(r.a.result, r.pa.polls)
         ),
         line.(
           "  own work",
