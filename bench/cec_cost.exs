@@ -627,6 +627,20 @@ end
 per_n = fn x, n -> if x && n > 0, do: round(x / n), else: "-" end
 line = fn label, text -> "  " <> String.pad_trailing(label, 16) <> text end
 
+# a read of counts, and the monotonic µs of its midpoint
+timed = fn fun ->
+  t0 = System.monotonic_time(:microsecond)
+  result = fun.()
+  {result, (t0 + System.monotonic_time(:microsecond)) / 2}
+end
+
+# counts made over a span, scaled to a window of `k` times its length (failures stay counted)
+scale = fn d, k ->
+  %{d | polls: d.polls * k, missed: d.missed * k, per: Enum.map(d.per, &(&1 * k))}
+end
+
+scale_roles = fn reds, k -> Map.new(reds, fn {role, r} -> {role, r * k} end) end
+
 step = fn n ->
   ids = for i <- 1..n, do: "C#{n}-#{i}"
   Process.sleep(1_000)
@@ -670,14 +684,18 @@ step = fn n ->
   :ets.delete_all_objects(samples)
   sample_polls.(sampled)
 
-  s0 = poll_stats.(ids)
-  roles0 = reds_by_role.(ids)
+  # The counts are read around each window, and reading them takes time (a call to every
+  # VWS_STATUS, a walk of every workstation's processes): seconds for 1,000 on a saturated node,
+  # while the polls go on. Each read is timed (its midpoint), and the counts between two reads
+  # are scaled to the window's length: polls in window = counted × window / span.
+  {roles0, rm0} = timed.(fn -> reds_by_role.(ids) end)
+  {s0, m0} = timed.(fn -> poll_stats.(ids) end)
   # the BEAM's threads' time by what they did (microstate accounting), for window A
   a =
     window.(msacc_window)
 
-  roles1 = reds_by_role.(ids)
-  s1 = poll_stats.(ids)
+  {s1, m1} = timed.(fn -> poll_stats.(ids) end)
+  {roles1, rm1} = timed.(fn -> reds_by_role.(ids) end)
   errors_a = period_errors.()
   :ets.delete_all_objects(samples)
 
@@ -701,8 +719,8 @@ step = fn n ->
       Process.sleep(max(stop - System.monotonic_time(:millisecond), 0))
     end)
 
-  roles2 = reds_by_role.(ids)
-  s2 = poll_stats.(ids)
+  {s2, m2} = timed.(fn -> poll_stats.(ids) end)
+  {roles2, rm2} = timed.(fn -> reds_by_role.(ids) end)
   errors_b = period_errors.()
   :ok = Vws.Telemetry.detach(:bench_cec_cost)
   Process.sleep(1_000)
@@ -724,12 +742,13 @@ step = fn n ->
     mem: mem,
     a: a,
     b: b,
-    pa: diff.(s0, s1),
-    pb: diff.(s1, s2),
+    pa: scale.(diff.(s0, s1), a.wall / (m1 - m0)),
+    pb: scale.(diff.(s1, s2), b.wall / (m2 - m1)),
+    spans: {(m1 - m0) / a.wall, (m2 - m1) / b.wall},
     errors_a: errors_a,
     errors_b: errors_b,
-    roles_a: role_delta.(roles0, roles1),
-    roles_b: role_delta.(roles1, roles2),
+    roles_a: scale_roles.(role_delta.(roles0, roles1), a.wall / (rm1 - rm0)),
+    roles_b: scale_roles.(role_delta.(roles1, roles2), b.wall / (rm2 - rm1)),
     rtts: rtts,
     lost: length(lost),
     wcs: length(wc),
@@ -836,7 +855,7 @@ for n <- counts do
         ),
         line.(
           "  A polls",
-          "#{Bench.thousands(r.pa.polls / (r.a.wall / 1.0e6))}/s, missed #{pct.(r.pa.missed, due.(r.pa))}, failed #{r.pa.failed}; CEC CPU #{Float.round(rate_a * 100, 1)} % of a core (busy #{Float.round(busy_rate_a * 100, 1)} %), the floor nodes #{Float.round(r.a.floor / r.a.wall * 100, 1)} %"
+          "#{Bench.thousands(r.pa.polls / (r.a.wall / 1.0e6))}/s, missed #{pct.(r.pa.missed, due.(r.pa))}, failed #{r.pa.failed}; CEC CPU #{Float.round(rate_a * 100, 1)} % of a core (busy #{Float.round(busy_rate_a * 100, 1)} %), the floor nodes #{Float.round(r.a.floor / r.a.wall * 100, 1)} %; counts read over #{Float.round(elem(r.spans, 0), 2)}× the window, scaled to it"
         ),
         line.(
           "  fairness",
