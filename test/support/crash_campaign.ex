@@ -359,17 +359,20 @@ defmodule Vws.Test.CrashCampaign do
           [:vws, :sim, :plant, :actuator],
           [:vws, :sim, :val2, :command],
           [:vws, :sim, :ge2000, :command],
-          [:vws, :hpib, :retry]
+          [:vws, :hpib, :retry],
+          [:vws, :hydraulic_controller, :relay_corrected]
         ],
         fn event, _measurements, meta, _ ->
           # (an HPIB device of the workstation names it as its bus — DAQ #1's; the hydraulic
           # controller's DAQ #2 is on the controller's own bus, and its tries of a relay write
           # are the bus's too: before, they were not recorded, and a write DAQ #2's device sent
           # again after a late answer counted as the command run twice)
+          # (the controller's corrections of DAQ #2's relays name its device, {bus, address})
           bus_daq =
             cond do
               meta[:bus] == ws -> :daq1
               meta[:bus] == daq2_bus -> :daq2
+              match?({^daq2_bus, _}, meta[:device]) -> :daq2
               true -> nil
             end
 
@@ -405,6 +408,11 @@ defmodule Vws.Test.CrashCampaign do
 
   defp entry(key, [:vws, :hpib, :retry], m),
     do: {key, :retried, m.commands, m.bus_daq}
+
+  # the hydraulic controller found DAQ #2's relays not as it wrote them and writes them again:
+  # in the story, not excused (the event does not say which relays)
+  defp entry(key, [:vws, :hydraulic_controller, :relay_corrected], m),
+    do: {key, :corrected, m.device, m.bus_daq}
 
   defp entry(key, [:vws, :sim, :ge2000, :command], m),
     do: {key, :executed, {:ge2000, m.operation}, m.name}
@@ -595,11 +603,12 @@ defmodule Vws.Test.CrashCampaign do
       end
 
       # first what bears on it (the command, the executions of its kind, the bus's tries, the
-      # kills), then everything: a CI page keeps the first lines of a failure
+      # hydraulic controller's relay corrections, the kills), then everything: a CI page keeps
+      # the first lines of a failure
       relevant =
         for {{t, _}, what, a, _} = row <- window,
             a == id or (what == :executed and a == kind) or
-              (what in [:retried, :kill] and t >= from),
+              (what in [:retried, :corrected, :kill] and t >= from),
             do: line.(row)
 
       "#{inspect(id)} (#{inspect(kind)}), what bears on it:\n" <>

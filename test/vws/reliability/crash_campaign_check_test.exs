@@ -51,10 +51,18 @@ defmodule Vws.Reliability.CrashCampaignCheckTest do
       })
     end
 
+    # the controller's corrections of DAQ #2's relays, by its device; another cell's are not kept
+    for device <- [{daq2_bus, 9}, {{:hydraulic_controller, "another cell"}, 9}] do
+      Vws.Telemetry.execute([:vws, :hydraulic_controller, :relay_corrected], %{count: 1}, %{
+        device: device
+      })
+    end
+
     assert for({_key, what, a, b} <- :ets.tab2list(table), do: {what, a, b}) == [
              {:executed, {:relay, :ram_x_valve, :close}, {:daq2, 201}},
              {:retried, write, :daq2},
-             {:retried, write, :daq1}
+             {:retried, write, :daq1},
+             {:corrected, {daq2_bus, 9}, :daq2}
            ]
   end
 
@@ -69,5 +77,13 @@ defmodule Vws.Reliability.CrashCampaignCheckTest do
 
       assert error.message =~ "{:hydraulic, 3} ran 2 times"
     end
+  end
+
+  test "a failure's story names the hydraulic controller's relay corrections among what bears on it" do
+    table = events(nil)
+    :ets.insert(table, {{3, 3}, :corrected, {{:hydraulic_controller, :x}, 9}, :daq2})
+    error = assert_raise ExUnit.AssertionError, fn -> CrashCampaign.check(table, []) end
+    [bears, _everything] = String.split(error.message, "every event around it")
+    assert bears =~ ~r/what bears on it:(.|\n)*corrected \{\{:hydraulic_controller, :x\}, 9\}/
   end
 end
