@@ -237,10 +237,21 @@ defmodule Vws.Reliability.RestartTest do
     WCPeer.close(peer)
     assert same_work?(equipment(ws), at_kill)
 
+    # that connection took the link over from the WC client's (takeover_after: 0): the client
+    # has seen its link closed before it is asked again, and opens it anew for the next string
+    # (asked at once, it could still send on the closed link and end with :closed)
+    assert eventually(fn -> Client.info(client).peer == nil end, 10_000)
+
     # a cycle start with the arm still where the interrupted motion left it: refused by the
     # leases the journal kept, and nothing moves
     if point.probe do
-      assert {:ok, [{"M", n}]} = Client.send_commands(client, [{"M", "CYCLE_START"}])
+      sent = Client.send_commands(client, [{"M", "CYCLE_START"}])
+
+      assert match?({:ok, [{"M", _}]}, sent),
+             "CYCLE_START: #{inspect(sent)}; the client's last events:\n" <>
+               Enum.map_join(Enum.take(Client.log(client), -20), "\n", &inspect/1)
+
+      {:ok, [{"M", n}]} = sent
 
       assert {:error, %ClientError{reason: :command_failed, data: %{status: status}}} =
                Client.await_command(client, "M", n, 15_000, poll_interval: 5)

@@ -328,8 +328,8 @@ defmodule Vws.Peers.WC.Client do
   def log(client), do: :gen_statem.call(client, :log)
 
   @doc """
-  The client's state: `%{endpoint, peer, state, next_sequence, next_numbers, counters}`, the
-  counters being `strings`, `commands`, `status_queries`, `resends`, `naks` (E received),
+  The client's state: `%{endpoint, peer, next_sequence, next_numbers, counters}` (`peer` nil
+  while it has no link), the counters being `strings`, `commands`, `status_queries`, `resends`, `naks` (E received),
   `timeouts`, `lines_sent`, `lines_received`, `naks_sent`, `stray` (replies not awaited) and
   `reconnects`.
   """
