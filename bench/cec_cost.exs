@@ -617,6 +617,7 @@ floor_window = fn daqs ->
 end
 
 per = fn us, n -> if n > 0, do: Bench.us(us / n), else: "-" end
+
 threads = fn states, n ->
   states
   |> Enum.filter(fn {_, us} -> us > 0 end)
@@ -691,8 +692,7 @@ step = fn n ->
   {roles0, rm0} = timed.(fn -> reds_by_role.(ids) end)
   {s0, m0} = timed.(fn -> poll_stats.(ids) end)
   # the BEAM's threads' time by what they did (microstate accounting), for window A
-  a =
-    window.(msacc_window)
+  a = window.(msacc_window)
 
   {s1, m1} = timed.(fn -> poll_stats.(ids) end)
   {roles1, rm1} = timed.(fn -> reds_by_role.(ids) end)
@@ -836,6 +836,7 @@ for n <- counts do
           "(the kernel's #{per.(f.sys, f.exchanges)} µs); a poll costs #{:erlang.float_to_binary(ratio, decimals: 2)}× that; its threads per exchange (msacc): " <>
           threads.(f.result, f.exchanges)
     end
+
   rate_a = r.a.cpu / r.a.wall
   busy_rate_a = r.a.busy / r.a.wall
   exchanges = length(r.rtts)
