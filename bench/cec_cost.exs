@@ -543,13 +543,10 @@ end
 # (absolute timers, the same phases spread) over an active-N socket, as the HPIB device's is,
 # and reads the answer lines — nothing else: no decoding, no mailbox, no event. Its CPU per
 # exchange is the least any poll over TCP could cost here; a poll's cost is set beside it.
-poll_bytes =
-  Vws.Links.DAQ.new()
-  |> Vws.Links.DAQ.poll_commands()
-  |> Enum.map(&Vws.Codecs.SCPI.encode_command/1)
-  |> IO.iodata_to_binary()
-
-poll_lines = length(Vws.Links.DAQ.poll_commands(Vws.Links.DAQ.new()))
+poll_commands = Vws.Links.DAQ.poll_commands(Vws.Links.DAQ.new())
+poll_bytes = poll_commands |> Enum.map(&Vws.Codecs.SCPI.encode_command/1) |> IO.iodata_to_binary()
+# (every poll command is a query: one answer line each)
+poll_lines = length(poll_commands)
 
 bare_poller = fn endpoint, first_at, counter ->
   "tcp://127.0.0.1:" <> port = endpoint
@@ -609,7 +606,7 @@ floor_window = fn daqs ->
 
   Process.sleep(1_200)
   n0 = :counters.get(counter, 1)
-  f = window.(fn -> msacc_window.() end)
+  f = window.(msacc_window)
   exchanges = :counters.get(counter, 1) - n0
   for pid <- pids, do: send(pid, :stop)
   Process.sleep(200)
