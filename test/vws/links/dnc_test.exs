@@ -450,6 +450,31 @@ defmodule Vws.Links.DNCTest do
     end
   end
 
+  describe "an R command the owner leaves unanswered" do
+    test "after answer_timeout the link says so, with where its owner was, and is idle again",
+         ctx do
+      {link, peer} = connected(ctx, role: :ge, reply_timeout: 500, answer_timeout: 200)
+
+      log =
+        ExUnit.CaptureLog.capture_log(fn ->
+          DNCPeer.send_raw(peer, @enq)
+          expect(peer, @ack0)
+          DNCPeer.send_raw(peer, @rnl_bytes)
+          expect(peer, @ack1)
+          DNCPeer.send_raw(peer, @eot)
+          assert_receive {:dnc, ^link, {:request, ref, @rnl, []}}, 5_000
+          # the owner (this test) is held up elsewhere past the answer timeout
+          Process.sleep(600)
+          assert DNC.answer(link, ref, ["STATE=ACTIVE;"]) == {:error, :not_asked}
+        end)
+
+      assert log =~ "no answer to the peer's R command from the owner in time"
+      assert log =~ "waiting for the link's owner, #{inspect(self())}, at"
+      assert log =~ "Process.sleep/1"
+      assert eventually(fn -> DNC.info(link).state == :idle end)
+    end
+  end
+
   # A block counts once: a copy of the block just accepted (the sender did not see, or misread,
   # its ACK; or it answered two NAKs) is acknowledged again with the same ACK and dropped. The same
   # receive logic serves the GE-2000 in an S transfer and the CEC in the answer to its R command.

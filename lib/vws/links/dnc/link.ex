@@ -284,6 +284,17 @@ defmodule Vws.Links.DNC.Link do
 
   def handle_event({:timeout, :request}, _stale, _state, _data), do: :keep_state_and_data
 
+  # The owner did not answer the peer's R command within answer_timeout: the session says so and
+  # goes idle. Where the owner was meanwhile goes into the log beside it: that is where an
+  # operator finds why (an owner held up by a slow disk, or by a call that waits for this line).
+  def handle_event(:state_timeout, :answer, _state, data) do
+    Logger.warning(
+      "DNC: the peer's R command was waiting for the link's owner, #{owner_at(data.owner)}"
+    )
+
+    apply_result(data, Session.handle_timeout(data.session, :answer, now()), [])
+  end
+
   def handle_event(:state_timeout, tag, _state, data) do
     apply_result(data, Session.handle_timeout(data.session, tag, now()), [])
   end
@@ -453,6 +464,21 @@ defmodule Vws.Links.DNC.Link do
   ## Helpers
 
   defp now, do: System.monotonic_time()
+
+  defp owner_at(nil), do: "and there is none"
+
+  defp owner_at(pid) when is_pid(pid) and node(pid) == node() do
+    case Process.info(pid, :current_stacktrace) do
+      {:current_stacktrace, frames} ->
+        "#{inspect(pid)}, at " <>
+          Enum.map_join(Enum.take(frames, 4), " < ", &Exception.format_stacktrace_entry/1)
+
+      nil ->
+        "#{inspect(pid)}, which is gone"
+    end
+  end
+
+  defp owner_at(owner), do: inspect(owner)
 
   defp notify(%{owner: nil}, _msg), do: :ok
   defp notify(%{owner: owner}, msg), do: send(owner, {:dnc, self(), msg})
