@@ -381,6 +381,77 @@ defmodule Vws.Links.DNCTest do
       assert DNC.info(link).counters.contentions == 1
     end
 
+    # The GE's R command (a remote request from its panel) won the line from the CEC's bid:
+    # the CEC answers it, then bids again for its own request. It used to forget that request
+    # once the answer was out (the answer's transmission took its place): its caller waited
+    # for ever, and MONARCH's status reads with it.
+    test "the CEC's bid meets the GE's R command: it answers it, then bids again for its own",
+         ctx do
+      {link, peer} = connected(ctx)
+      task = request(link, @sns, [])
+      expect(peer, @enq)
+      DNCPeer.send_raw(peer, @enq_del)
+      expect(peer, @ack0)
+
+      rcs = %Command{
+        direction: :receive,
+        check: :crc,
+        operation: :part_program,
+        text: "000055.PRO"
+      }
+
+      DNCPeer.send_raw(peer, IO.iodata_to_binary(Frame.encode(rcs)))
+      expect(peer, @ack1)
+      DNCPeer.send_raw(peer, @eot_del)
+      assert_receive {:dnc, ^link, {:request, ref, ^rcs, []}}, 5_000
+
+      assert DNC.answer(link, ref, ["%\nO55\nM30\n%\n"]) == :ok
+      expect(peer, @enq)
+      DNCPeer.send_raw(peer, @ack0)
+      expect(peer, text("%\nO55\nM30\n%\n", :crc))
+      DNCPeer.send_raw(peer, @ack1)
+      expect(peer, @eot)
+
+      # our own request's turn
+      expect(peer, @enq)
+      DNCPeer.send_raw(peer, @ack0)
+      expect(peer, @sns_bytes)
+      DNCPeer.send_raw(peer, @ack1)
+      expect(peer, @eot)
+      assert Task.await(task) == {:ok, []}
+    end
+
+    test "an R command of the GE's left unanswered: the CEC's yielded request still goes", ctx do
+      {link, peer} = connected(ctx, answer_timeout: 200)
+      task = request(link, @sns, [])
+      expect(peer, @enq)
+      DNCPeer.send_raw(peer, @enq_del)
+      expect(peer, @ack0)
+
+      rcs = %Command{
+        direction: :receive,
+        check: :crc,
+        operation: :part_program,
+        text: "000055.PRO"
+      }
+
+      DNCPeer.send_raw(peer, IO.iodata_to_binary(Frame.encode(rcs)))
+      expect(peer, @ack1)
+
+      ExUnit.CaptureLog.capture_log(fn ->
+        DNCPeer.send_raw(peer, @eot_del)
+        assert_receive {:dnc, ^link, {:request, _ref, ^rcs, []}}, 5_000
+        # no answer: after answer_timeout the line is ours again
+        expect(peer, @enq)
+      end)
+
+      DNCPeer.send_raw(peer, @ack0)
+      expect(peer, @sns_bytes)
+      DNCPeer.send_raw(peer, @ack1)
+      expect(peer, @eot)
+      assert Task.await(task) == {:ok, []}
+    end
+
     test "the GE role keeps the line when its bid meets the CEC's ENQ", ctx do
       {link, peer} = connected(ctx, role: :ge)
       task = request(link, @sns, [])

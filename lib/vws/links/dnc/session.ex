@@ -81,6 +81,9 @@ defmodule Vws.Links.DNC.Session do
             decoder: nil,
             req: nil,
             tx: nil,
+            # our request's transmission, yielded to a peer whose R command we answer first: bid
+            # for again once the answer is sent (or was never given)
+            yielded: nil,
             rx: nil,
             turnaround: nil,
             credit: :infinity,
@@ -128,7 +131,17 @@ defmodule Vws.Links.DNC.Session do
   @spec disconnected(t, integer) :: result
   def disconnected(s, now) do
     s = if s.req || s.tx || s.rx, do: fail(s, :link_down, nil, nil, now), else: s
-    done(%{s | state: :disconnected, decoder: nil, req: nil, tx: nil, rx: nil, turnaround: nil})
+
+    done(%{
+      s
+      | state: :disconnected,
+        decoder: nil,
+        req: nil,
+        tx: nil,
+        yielded: nil,
+        rx: nil,
+        turnaround: nil
+    })
   end
 
   @doc "Counts something the owner found unexpected (an unknown call, say)."
@@ -175,7 +188,7 @@ defmodule Vws.Links.DNC.Session do
         # (the answer's progress names the peer's command: the program it asked for)
         tx = Map.put(Transfer.new_tx(:answer, frames, sizes(blocks), now), :command, command)
 
-        %{s | rx: nil, tx: tx}
+        %{s | rx: nil, tx: tx, yielded: s.tx}
         |> bid()
         |> done()
 
@@ -447,7 +460,8 @@ defmodule Vws.Links.DNC.Session do
 
   defp timeout(:answering, :answer, s, _now) do
     s = log(s, :warning, "DNC: no answer to the peer's R command from the owner in time")
-    %{s | state: :idle, rx: nil}
+    # a request of ours that yielded to that peer still has the line's next turn
+    after_slave(%{s | rx: nil})
   end
 
   defp timeout(state, tag, s, _now) do
@@ -588,10 +602,18 @@ defmodule Vws.Links.DNC.Session do
       {:request, _req} ->
         reply(%{s | tx: nil}, {:ok, []})
 
-      {_answer_or_unsolicited, _} ->
+      {:answer, _} ->
+        after_answer(%{s | tx: nil})
+
+      {_unsolicited, _} ->
         %{s | tx: nil, state: :idle}
     end
   end
+
+  # The answer to the peer's R command is out (or was never given): a request of ours that
+  # yielded the line to that peer is bid for again — it was waiting, and its caller with it.
+  defp after_answer(%{yielded: nil} = s), do: %{s | state: :idle}
+  defp after_answer(%{yielded: tx} = s), do: bid(%{s | tx: tx, yielded: nil})
 
   ## Receiving
 
@@ -796,7 +818,7 @@ defmodule Vws.Links.DNC.Session do
           %{event(s, {:reply, {:error, error}}) | req: nil}
       end
 
-    %{s | tx: nil}
+    %{s | tx: nil, yielded: nil}
   end
 
   defp reply(s, result), do: %{event(s, {:reply, result}) | req: nil, state: :idle}
