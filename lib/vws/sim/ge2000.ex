@@ -77,7 +77,7 @@ defmodule Vws.Sim.GE2000 do
   use GenServer
   require Logger
 
-  alias Vws.Links.DNC
+  alias Vws.Links.{Connection, DNC}
   alias Vws.Links.DNC.{Frame, Program, Report}
   alias Vws.Links.DNC.Frame.Command
   alias Vws.Sim.GE2000.Faults
@@ -267,9 +267,8 @@ defmodule Vws.Sim.GE2000 do
       drips: 0,
       # the operator's screen: messages from the CEC, newest first
       messages: [],
-      # a remote request under way, and the CEC's R commands that wait for its answer's filing
-      requesting: false,
-      deferred: [],
+      # a remote request under way (Vws.Sim.GE2000.Panel): {caller, request id, file}
+      requesting: nil,
       cycle_time: Keyword.get(opts, :cycle_time, 5_000),
       plant: Keyword.get(opts, :plant),
       # false: a machine that files whatever arrived (as the old one did), for tests that show
@@ -385,20 +384,16 @@ defmodule Vws.Sim.GE2000 do
     end
   end
 
-  # a remote request (Vws.Sim.GE2000.Panel) goes out: the CEC's R commands wait until its answer
-  # is filed, as a control files a program before it answers the next bid
-  def handle_call({:program_request, _command}, _from, s),
-    do: {:reply, {:ok, s.link}, %{s | requesting: true}}
+  # A remote request (Vws.Sim.GE2000.Panel): the simulator makes it itself, and its link's reply
+  # comes to this process before anything the link receives after it (one sender, in order): the
+  # answer is filed before an R command of the CEC's that follows it is answered, and an R command
+  # that came first is answered at once — the line is the CEC's until then, and ours goes after.
+  def handle_call({:program_request, _command, _timeout}, _from, %{requesting: {_, _, _}} = s),
+    do: {:reply, {:error, :busy}, s}
 
-  def handle_call({:requested_program, file, answer}, _from, s) do
-    {reply, s} =
-      case answer do
-        {:ok, text} -> requested_program(file, text, s)
-        _failed -> {answer, s}
-      end
-
-    Enum.each(Enum.reverse(s.deferred), &send(self(), &1))
-    {:reply, reply, %{s | requesting: false, deferred: []}}
+  def handle_call({:program_request, command, timeout}, from, s) do
+    request = Connection.send_request(s.link, {:request, command, []}, timeout)
+    {:noreply, %{s | requesting: {from, request, program_file(command.text)}}}
   end
 
   def handle_call(:baud, _from, s), do: {:reply, s.baud, s}
@@ -485,8 +480,25 @@ defmodule Vws.Sim.GE2000 do
     {:noreply, s}
   end
 
-  def handle_info({:dnc, link, {:request, _, _, _}} = msg, %{link: link, requesting: true} = s),
-    do: {:noreply, %{s | deferred: [msg | s.deferred]}}
+  # the answer to our remote request: filed (or its message shown), and the panel told
+  def handle_info({[:alias | ref], reply}, %{requesting: {from, {ref, _} = request, file}} = s) do
+    {:ok, reply} = Connection.check_response({[:alias | ref], reply}, request)
+
+    {told, s} =
+      case reply do
+        {:ok, blocks} -> requested_program(file, IO.iodata_to_binary(blocks), s)
+        error -> {error, s}
+      end
+
+    GenServer.reply(from, told)
+    {:noreply, %{s | requesting: nil}}
+  end
+
+  # (as Vws.Links.DNC.request/4 says a link that went away)
+  def handle_info({:DOWN, ref, _, _, _}, %{requesting: {from, {ref, _}, _}} = s) do
+    GenServer.reply(from, {:error, %DNC.LinkError{reason: :link_down}})
+    {:noreply, %{s | requesting: nil}}
+  end
 
   def handle_info({:dnc, link, {:request, ref, command, _blocks}}, %{link: link} = s) do
     {text, s} = requested(command, s)
@@ -665,6 +677,9 @@ defmodule Vws.Sim.GE2000 do
         {if(s.alarm == 0, do: :ok, else: {:error, {:alarm, s.alarm}}), s}
     end
   end
+
+  # the file an R command's text names (nnnnnn.PRO of nnnnnn.PRO/v)
+  defp program_file(text), do: text |> String.split("/") |> hd() |> String.trim()
 
   defp file_name(name) do
     name = String.trim(name)

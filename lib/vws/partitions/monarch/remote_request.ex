@@ -27,7 +27,8 @@ defmodule Vws.Partitions.Monarch.RemoteRequest do
   sent: 0 bytes).
 
   Called by `Vws.Partitions.Monarch.Monitor` (the link's owner) within the link's
-  `answer_timeout`.
+  `answer_timeout`. The owner does not wait for the check: its requests go over the same
+  half-duplex link, and a request the machine makes meanwhile must find the owner free.
   """
   require Logger
 
@@ -40,7 +41,9 @@ defmodule Vws.Partitions.Monarch.RemoteRequest do
   @doc """
   Answers the GE-2000's `R` command `command` (announced as `{:request, ref, command, blocks}` by
   `link`) for workstation `ws`: the program, or the refusal's message. Returns what was told:
-  `{:sent, file, version}`, `{:refused, words}` or `{:failed, reason}`.
+  `{:sent, file, version}`, `{:refused, words}` or `{:failed, reason}`, as soon as the answer is
+  on its way; the transfer history's record, the check of a program sent and the log and
+  telemetry follow in a process of their own.
   """
   @spec answer(term, DNC.link(), reference, Frame.Command.t(), keyword) ::
           {:sent, String.t(), pos_integer} | {:refused, String.t()} | {:failed, term}
@@ -55,9 +58,22 @@ defmodule Vws.Partitions.Monarch.RemoteRequest do
         {:error, reason} -> {:failed, reason}
       end
 
-    # recorded in the transfer history through its one home, as MONARCH's own transfers: the
-    # program sent (a refusal or a failure sends none), and its end — as after any DOWNLOAD_GE,
-    # the machine's report and directory must say it holds the bytes
+    # The history and the check after the answer wait for this very link (the check reads the
+    # machine's report and directory over it), so they run in a process of their own: the owner
+    # is then free to answer the machine's next R command. Waiting here, it left a request that
+    # came during the check unanswered until the link's answer_timeout (alarm 7 on the machine).
+    {:ok, _pid} =
+      Task.start(fn -> record_and_check(ws, link, asked, outcome, text, blocks, options) end)
+
+    outcome
+  catch
+    :exit, reason -> {:failed, reason}
+  end
+
+  # The transfer history's record through its one home, as MONARCH's own transfers: the program
+  # sent (a refusal or a failure sends none), and its end — as after any DOWNLOAD_GE, the
+  # machine's report and directory must say it holds the bytes; then the log and the telemetry.
+  defp record_and_check(ws, link, asked, outcome, text, blocks, options) do
     history = %{
       workstation: ws,
       link: link,
@@ -85,9 +101,12 @@ defmodule Vws.Partitions.Monarch.RemoteRequest do
       if match?({:sent, _, _}, outcome), do: if(result == {:ok, []}, do: :ok, else: result)
 
     tell(ws, asked, outcome, verified, byte_size(text))
-    outcome
   catch
-    :exit, reason -> {:failed, reason}
+    # the link or the workstation went away during the check
+    :exit, reason ->
+      Logger.warning(
+        "MONARCH: the machine asked for #{asked}: #{inspect(outcome)}, not checked: #{inspect(reason, limit: 5)}"
+      )
   end
 
   defp ended(ws, link, {:sent, file, _v}, text, options) do

@@ -6,11 +6,12 @@ defmodule Vws.Sim.GE2000.Panel do
   becomes master and answers with the program, which `Vws.Sim.GE2000` files as `nnnnnn.PRO`
   (whole, ending with its `%` line, as any part program), or with a message block
   `(MSG,REQUEST REFUSED …)`, which it shows to the operator (`state/1`'s `messages`) with alarm 9.
-  While the request is under way the simulator answers no R command of the CEC's: those wait
-  until the answer is filed, as a control files a program before it answers the next bid.
+  The simulator makes the request itself and files the answer as its reply arrives — before
+  anything its link receives after it — so an R command of the CEC's that follows the answer
+  (the check after it) finds the program filed, and one that came first is answered at once, as
+  the half-duplex line needs: the machine's own R command can go only after it.
   """
 
-  alias Vws.Links.DNC
   alias Vws.Links.DNC.Frame.Command
 
   @doc """
@@ -31,26 +32,13 @@ defmodule Vws.Sim.GE2000.Panel do
            ) do
       text = if version, do: "#{file}/#{version}", else: file
       command = %Command{direction: :receive, check: :crc, operation: :part_program, text: text}
-      {:ok, link} = GenServer.call(sim, {:program_request, command})
-
-      answer =
-        try do
-          Vws.Sim.GE2000.connected(
-            link,
-            System.monotonic_time(:millisecond) + min(timeout, 5_000)
-          )
-
-          case DNC.request(link, command, [], timeout) do
-            {:ok, blocks} -> {:ok, IO.iodata_to_binary(blocks)}
-            error -> error
-          end
-        catch
-          :exit, reason -> {:error, reason}
-        end
-
-      # (told in every case: the CEC's R commands wait for it)
-      GenServer.call(sim, {:requested_program, file, answer})
+      link = Vws.Sim.GE2000.link(sim)
+      Vws.Sim.GE2000.connected(link, System.monotonic_time(:millisecond) + min(timeout, 5_000))
+      # the link ends the request by its deadline: the call waits a little longer than that
+      GenServer.call(sim, {:program_request, command, timeout}, timeout + 5_000)
     end
+  catch
+    :exit, reason -> {:error, reason}
   end
 
   # what the operator keys in: 100, "100", "000100" or "000100.PRO"

@@ -156,6 +156,81 @@ defmodule Vws.Partitions.Monarch.RemoteRequestTest do
     assert Interlock.holds?(ws, :table, :robot)
   end
 
+  # The machine asks while the CEC reads its status: an R command of the CEC's that reaches the
+  # machine before the machine's own could go out holds the half-duplex line until answered. The
+  # simulated control used to keep it waiting for its own request's answer — which could not come
+  # before — and both sat until the link's answer_timeout (alarm 7 on the machine: the CEC's next
+  # bid read as the program's text).
+  test "requests one after another while the CEC reads the machine's status: every one answered",
+       %{ws: ws, sim: sim} do
+    {:ok, _} = Library.store(ws, "55", @v1, source: "iex")
+    link = Workstation.whereis(ws, :ge2000)
+
+    reader = Task.async(fn -> for _ <- 1..30, do: Monarch.refresh_status(ws, link) end)
+    results = for _ <- 1..20, do: GE2000.Panel.request_program(sim, 55)
+    reads = Task.await(reader, 60_000)
+
+    assert Enum.frequencies(results) == %{:ok => 20}
+    assert Enum.count(reads, &match?({:ok, _}, &1)) > 0
+    assert GE2000.state(sim).alarm == 0
+  end
+
+  # The check after an answer reads the machine's report and directory over the same link: the
+  # owner that answers must not wait for it, or an R command that comes meanwhile (the machine's
+  # next request) finds it held up, unanswered until the link's answer_timeout.
+  test "the answer goes out and the owner is free at once; the check after it runs apart",
+       %{ws: ws} do
+    {:ok, _} = Library.store(ws, "55", @v1, source: "iex")
+    test = self()
+
+    # a link that takes the answer and holds every request of the check unanswered
+    link =
+      spawn(fn ->
+        hold = fn hold ->
+          receive do
+            {:"$gen_call", from, :info} ->
+              :gen.reply(from, %{max_text: 256, counters: %{}})
+
+            {:"$gen_call", from, {:answer, _ref, blocks}} ->
+              :gen.reply(from, :ok)
+              send(test, {:answered, blocks})
+
+            _held ->
+              :ok
+          end
+
+          hold.(hold)
+        end
+
+        hold.(hold)
+      end)
+
+    command = %Vws.Links.DNC.Frame.Command{
+      direction: :receive,
+      check: :crc,
+      operation: :part_program,
+      text: "000055.PRO"
+    }
+
+    log =
+      ExUnit.CaptureLog.capture_log(fn ->
+        answering =
+          Task.async(fn -> Monarch.RemoteRequest.answer(ws, link, make_ref(), command) end)
+
+        assert Task.yield(answering, 2_000) == {:ok, {:sent, "000055.PRO", 1}}
+        assert_receive {:answered, blocks}
+        assert IO.iodata_to_binary(blocks) == @v1
+
+        # the link goes away under the check: the check ends NOT verified, told and logged
+        refute_received {:remote_request, _, _}
+        Process.exit(link, :kill)
+        assert_receive {:remote_request, _, %{result: :sent, verified: {:error, _}}}, 10_000
+      end)
+
+    assert log =~
+             "MONARCH: the machine asked for 000055.PRO: sent 000055.PRO version 1, NOT verified"
+  end
+
   test "the CEC answers with the wire's own words: RCS + nnnnnn.PRO/v, then the program's blocks" do
     # the GE's command block as it goes on the line, and the refusal as the machine reads it
     command = %Vws.Links.DNC.Frame.Command{
