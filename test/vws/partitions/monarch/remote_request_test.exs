@@ -128,7 +128,8 @@ defmodule Vws.Partitions.Monarch.RemoteRequestTest do
 
       assert GE2000.state(sim).alarm == 9
       assert hd(GE2000.state(sim).messages) == shown
-      assert_receive {:remote_request, _, %{result: :refused, reason: ^words}}
+      # (told once its record is in the history: the check after an answer runs apart)
+      assert_receive {:remote_request, _, %{result: :refused, reason: ^words}}, 5_000
     end
 
     assert GE2000.directory(sim) == []
@@ -154,6 +155,7 @@ defmodule Vws.Partitions.Monarch.RemoteRequestTest do
     assert GE2000.Panel.request_program(sim, 55) == :ok
     assert GE2000.program(sim, "000055.PRO") == @v1
     assert Interlock.holds?(ws, :table, :robot)
+    assert_receive {:remote_request, _, %{result: :sent, verified: :ok}}, 10_000
   end
 
   # The machine asks while the CEC reads its status: an R command of the CEC's that reaches the
@@ -171,6 +173,8 @@ defmodule Vws.Partitions.Monarch.RemoteRequestTest do
     reads = Task.await(reader, 60_000)
 
     assert Enum.frequencies(results) == %{:ok => 20}
+    # and each one checked on the machine after it (the check runs apart from the answer)
+    for _ <- 1..20, do: assert_receive({:remote_request, _, %{verified: :ok}}, 10_000)
     assert Enum.count(reads, &match?({:ok, _}, &1)) > 0
     assert GE2000.state(sim).alarm == 0
   end
