@@ -101,13 +101,19 @@ defmodule Vws.Partitions.Monarch.RemoteRequest do
       if match?({:sent, _, _}, outcome), do: if(result == {:ok, []}, do: :ok, else: result)
 
     tell(ws, asked, outcome, verified, byte_size(text))
+  rescue
+    # the history could not be written (its library gone with the workstation)
+    error -> not_checked(asked, outcome, Exception.message(error))
   catch
     # the link or the workstation went away during the check
-    :exit, reason ->
-      Logger.warning(
-        "MONARCH: the machine asked for #{asked}: #{inspect(outcome)}, not checked: #{inspect(reason, limit: 5)}"
-      )
+    :exit, reason -> not_checked(asked, outcome, inspect(reason, limit: 5))
   end
+
+  defp not_checked(asked, outcome, why),
+    do:
+      Logger.warning(
+        "MONARCH: the machine asked for #{asked}: #{inspect(outcome)}, not checked: #{why}"
+      )
 
   defp ended(ws, link, {:sent, file, _v}, text, options) do
     with :ok <- Monarch.verify_download(ws, link, file, text, options), do: {:ok, []}
