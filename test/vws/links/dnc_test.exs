@@ -373,21 +373,15 @@ defmodule Vws.Links.DNCTest do
       assert_receive {:dnc, ^link, {:unsolicited, ["STATE=IDLE;PROG=000000;ALARM=0"]}}, 5_000
       # our request goes out after the GE's EOT
       expect(peer, @enq)
-      DNCPeer.send_raw(peer, @ack0)
-      expect(peer, @sns_bytes)
-      DNCPeer.send_raw(peer, @ack1)
-      expect(peer, @eot)
-      assert Task.await(task) == {:ok, []}
+      own_request_goes(peer, task)
       assert DNC.info(link).counters.contentions == 1
     end
 
-    # The GE's R command (a remote request from its panel) won the line from the CEC's bid:
-    # the CEC answers it, then bids again for its own request. It used to forget that request
-    # once the answer was out (the answer's transmission took its place): its caller waited
-    # for ever, and MONARCH's status reads with it.
-    test "the CEC's bid meets the GE's R command: it answers it, then bids again for its own",
-         ctx do
-      {link, peer} = connected(ctx)
+    # The GE's R command (a remote request from its panel) wins the line from the CEC's bid for
+    # an S request: up to the GE's EOT, after which the CEC owes an answer. Returns the link, the
+    # peer, the request's task and the GE's command.
+    defp yield_to_rcs(ctx, opts \\ []) do
+      {link, peer} = connected(ctx, opts)
       task = request(link, @sns, [])
       expect(peer, @enq)
       DNCPeer.send_raw(peer, @enq_del)
@@ -402,6 +396,24 @@ defmodule Vws.Links.DNCTest do
 
       DNCPeer.send_raw(peer, IO.iodata_to_binary(Frame.encode(rcs)))
       expect(peer, @ack1)
+      {link, peer, task, rcs}
+    end
+
+    # the CEC's own S request, bid for again: it goes, and its caller has its answer
+    defp own_request_goes(peer, task) do
+      DNCPeer.send_raw(peer, @ack0)
+      expect(peer, @sns_bytes)
+      DNCPeer.send_raw(peer, @ack1)
+      expect(peer, @eot)
+      assert Task.await(task) == {:ok, []}
+    end
+
+    # The CEC answers the GE's R command, then bids again for its own request. It used to forget
+    # that request once the answer was out (the answer's transmission took its place): its
+    # caller waited for ever, and MONARCH's status reads with it.
+    test "the CEC's bid meets the GE's R command: it answers it, then bids again for its own",
+         ctx do
+      {link, peer, task, rcs} = yield_to_rcs(ctx)
       DNCPeer.send_raw(peer, @eot_del)
       assert_receive {:dnc, ^link, {:request, ref, ^rcs, []}}, 5_000
 
@@ -414,29 +426,11 @@ defmodule Vws.Links.DNCTest do
 
       # our own request's turn
       expect(peer, @enq)
-      DNCPeer.send_raw(peer, @ack0)
-      expect(peer, @sns_bytes)
-      DNCPeer.send_raw(peer, @ack1)
-      expect(peer, @eot)
-      assert Task.await(task) == {:ok, []}
+      own_request_goes(peer, task)
     end
 
     test "an R command of the GE's left unanswered: the CEC's yielded request still goes", ctx do
-      {link, peer} = connected(ctx, answer_timeout: 200)
-      task = request(link, @sns, [])
-      expect(peer, @enq)
-      DNCPeer.send_raw(peer, @enq_del)
-      expect(peer, @ack0)
-
-      rcs = %Command{
-        direction: :receive,
-        check: :crc,
-        operation: :part_program,
-        text: "000055.PRO"
-      }
-
-      DNCPeer.send_raw(peer, IO.iodata_to_binary(Frame.encode(rcs)))
-      expect(peer, @ack1)
+      {link, peer, task, rcs} = yield_to_rcs(ctx, answer_timeout: 200)
 
       ExUnit.CaptureLog.capture_log(fn ->
         DNCPeer.send_raw(peer, @eot_del)
@@ -445,11 +439,7 @@ defmodule Vws.Links.DNCTest do
         expect(peer, @enq)
       end)
 
-      DNCPeer.send_raw(peer, @ack0)
-      expect(peer, @sns_bytes)
-      DNCPeer.send_raw(peer, @ack1)
-      expect(peer, @eot)
-      assert Task.await(task) == {:ok, []}
+      own_request_goes(peer, task)
     end
 
     test "the GE role keeps the line when its bid meets the CEC's ENQ", ctx do
@@ -496,14 +486,20 @@ defmodule Vws.Links.DNCTest do
       assert_receive {:dnc, ^link, {:received, @sns, ["O1\n", "M30\n"]}}, 5_000
     end
 
-    test "an R command: the owner answers, the link bids ENQ DEL and sends", ctx do
-      {link, peer} = connected(ctx, role: :ge, reply_timeout: 500)
+    # the peer (the CEC) sends the R command RNL to the link (the GE's side): its owner is told
+    defp asked_rnl(link, peer) do
       DNCPeer.send_raw(peer, @enq)
       expect(peer, @ack0)
       DNCPeer.send_raw(peer, @rnl_bytes)
       expect(peer, @ack1)
       DNCPeer.send_raw(peer, @eot)
       assert_receive {:dnc, ^link, {:request, ref, @rnl, []}}, 5_000
+      ref
+    end
+
+    test "an R command: the owner answers, the link bids ENQ DEL and sends", ctx do
+      {link, peer} = connected(ctx, role: :ge, reply_timeout: 500)
+      ref = asked_rnl(link, peer)
       assert DNC.answer(link, ref, ["STATE=ACTIVE;", "PROG=000001;ALARM=0"]) == :ok
       expect(peer, @enq_del)
       DNCPeer.send_raw(peer, @ack0)
@@ -528,12 +524,7 @@ defmodule Vws.Links.DNCTest do
 
       log =
         ExUnit.CaptureLog.capture_log(fn ->
-          DNCPeer.send_raw(peer, @enq)
-          expect(peer, @ack0)
-          DNCPeer.send_raw(peer, @rnl_bytes)
-          expect(peer, @ack1)
-          DNCPeer.send_raw(peer, @eot)
-          assert_receive {:dnc, ^link, {:request, ref, @rnl, []}}, 5_000
+          ref = asked_rnl(link, peer)
           # the owner (this test) is held up elsewhere past the answer timeout
           Process.sleep(600)
           assert DNC.answer(link, ref, ["STATE=ACTIVE;"]) == {:error, :not_asked}
