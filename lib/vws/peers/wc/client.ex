@@ -329,9 +329,9 @@ defmodule Vws.Peers.WC.Client do
 
   @doc """
   The client's state: `%{endpoint, peer, next_sequence, next_numbers, counters}` (`peer` nil
-  while it has no link), the counters being `strings`, `commands`, `status_queries`, `resends`, `naks` (E received),
-  `timeouts`, `lines_sent`, `lines_received`, `naks_sent`, `stray` (replies not awaited) and
-  `reconnects`.
+  while it has no link), the counters being `strings`, `commands`, `status_queries`, `resends`,
+  `naks` (E received), `timeouts`, `lines_sent`, `lines_received`, `naks_sent`, `stray` (replies
+  not awaited) and `reconnects`.
   """
   @spec info(client) :: map
   def info(client), do: :gen_statem.call(client, :info)

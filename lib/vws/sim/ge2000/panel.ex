@@ -35,7 +35,8 @@ defmodule Vws.Sim.GE2000.Panel do
       link = Vws.Sim.GE2000.link(sim)
       Vws.Sim.GE2000.connected(link, System.monotonic_time(:millisecond) + min(timeout, 5_000))
       # the link ends the request by its deadline: the call waits a little longer than that
-      GenServer.call(sim, {:program_request, command, timeout}, timeout + 5_000)
+      wait = if timeout == :infinity, do: :infinity, else: timeout + 5_000
+      GenServer.call(sim, {:program_request, command, timeout}, wait)
     end
   catch
     :exit, reason -> {:error, reason}
