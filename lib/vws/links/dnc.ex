@@ -186,11 +186,35 @@ defmodule Vws.Links.DNC do
   def request(link, %Frame.Command{} = command, text_blocks, timeout \\ :infinity)
       when is_list(text_blocks) do
     case Vws.Links.Connection.call(link, {:request, command, text_blocks}, timeout) do
-      {:ok, result} -> result
       {:error, :timeout} -> {:error, %LinkError{reason: :timeout}}
-      {:error, {:exit, _reason}} -> {:error, %LinkError{reason: :link_down}}
+      called -> result(called)
     end
   end
+
+  @doc """
+  `request/4` without waiting: the answer arrives as a message to the caller, which
+  `check_response/2` reads (for an owner that must stay free meanwhile, as the simulated
+  GE-2000 does while its panel's request is out). The link ends the request by `timeout`.
+  """
+  @spec send_request(link, Frame.Command.t(), [binary], timeout) :: term
+  def send_request(link, %Frame.Command{} = command, text_blocks, timeout \\ :infinity)
+      when is_list(text_blocks),
+      do: Vws.Links.Connection.send_request(link, {:request, command, text_blocks}, timeout)
+
+  @doc """
+  Whether `msg` is the answer to the request `request_id` (`send_request/4`): what `request/4`
+  would have returned, or `:no_reply` for any other message.
+  """
+  @spec check_response(term, term) :: {:ok, [binary]} | {:error, LinkError.t()} | :no_reply
+  def check_response(msg, request_id) do
+    case Vws.Links.Connection.check_response(msg, request_id) do
+      :no_reply -> :no_reply
+      checked -> result(checked)
+    end
+  end
+
+  defp result({:ok, result}), do: result
+  defp result({:error, {:exit, _reason}}), do: {:error, %LinkError{reason: :link_down}}
 
   @doc "Answers the peer's `R` command announced to the owner as `{:request, ref, command, blocks}`."
   @spec answer(link, reference, [binary]) :: :ok | {:error, :not_asked | LinkError.t()}

@@ -77,7 +77,7 @@ defmodule Vws.Sim.GE2000 do
   use GenServer
   require Logger
 
-  alias Vws.Links.{Connection, DNC}
+  alias Vws.Links.DNC
   alias Vws.Links.DNC.{Frame, Program, Report}
   alias Vws.Links.DNC.Frame.Command
   alias Vws.Sim.GE2000.Faults
@@ -392,7 +392,7 @@ defmodule Vws.Sim.GE2000 do
     do: {:reply, {:error, :busy}, s}
 
   def handle_call({:program_request, command, timeout}, from, s) do
-    request = Connection.send_request(s.link, {:request, command, []}, timeout)
+    request = DNC.send_request(s.link, command, [], timeout)
     {:noreply, %{s | requesting: {from, request, program_file(command.text)}}}
   end
 
@@ -480,25 +480,13 @@ defmodule Vws.Sim.GE2000 do
     {:noreply, s}
   end
 
-  # the answer to our remote request: filed (or its message shown), and the panel told
-  def handle_info({[:alias | ref], reply}, %{requesting: {from, {ref, _} = request, file}} = s) do
-    {:ok, reply} = Connection.check_response({[:alias | ref], reply}, request)
+  # the answer to our remote request (or its link gone): filed, or its message shown, or the
+  # link's error — and the panel told
+  def handle_info({[:alias | ref], _} = msg, %{requesting: {_, {ref, _}, _}} = s),
+    do: remote_request_answered(msg, s)
 
-    {told, s} =
-      case reply do
-        {:ok, blocks} -> requested_program(file, IO.iodata_to_binary(blocks), s)
-        error -> {error, s}
-      end
-
-    GenServer.reply(from, told)
-    {:noreply, %{s | requesting: nil}}
-  end
-
-  # (as Vws.Links.DNC.request/4 says a link that went away)
-  def handle_info({:DOWN, ref, _, _, _}, %{requesting: {from, {ref, _}, _}} = s) do
-    GenServer.reply(from, {:error, %DNC.LinkError{reason: :link_down}})
-    {:noreply, %{s | requesting: nil}}
-  end
+  def handle_info({:DOWN, ref, _, _, _} = msg, %{requesting: {_, {ref, _}, _}} = s),
+    do: remote_request_answered(msg, s)
 
   def handle_info({:dnc, link, {:request, ref, command, _blocks}}, %{link: link} = s) do
     {text, s} = requested(command, s)
@@ -676,6 +664,17 @@ defmodule Vws.Sim.GE2000 do
         s = received(%Command{operation: :part_program, text: file}, text, s)
         {if(s.alarm == 0, do: :ok, else: {:error, {:alarm, s.alarm}}), s}
     end
+  end
+
+  defp remote_request_answered(msg, %{requesting: {from, request, file}} = s) do
+    {told, s} =
+      case DNC.check_response(msg, request) do
+        {:ok, blocks} -> requested_program(file, IO.iodata_to_binary(blocks), s)
+        error -> {error, s}
+      end
+
+    GenServer.reply(from, told)
+    {:noreply, %{s | requesting: nil}}
   end
 
   # the file an R command's text names (nnnnnn.PRO of nnnnnn.PRO/v)

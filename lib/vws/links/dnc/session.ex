@@ -603,17 +603,13 @@ defmodule Vws.Links.DNC.Session do
         reply(%{s | tx: nil}, {:ok, []})
 
       {:answer, _} ->
-        after_answer(%{s | tx: nil})
+        # a request of ours that yielded the line to that peer is bid for again
+        after_slave(%{s | tx: s.yielded, yielded: nil})
 
       {_unsolicited, _} ->
         %{s | tx: nil, state: :idle}
     end
   end
-
-  # The answer to the peer's R command is out (or was never given): a request of ours that
-  # yielded the line to that peer is bid for again — it was waiting, and its caller with it.
-  defp after_answer(%{yielded: nil} = s), do: %{s | state: :idle}
-  defp after_answer(%{yielded: tx} = s), do: bid(%{s | tx: tx, yielded: nil})
 
   ## Receiving
 
