@@ -396,10 +396,10 @@ defmodule Vws.Codecs.SCPI do
     line = strip_terminator(line)
 
     result =
-      if response?(query) do
-        with :ok <- printable(line), do: response(query, line)
-      else
-        {:error, :no_response}
+      cond do
+        not response?(query) -> {:error, :no_response}
+        (readings = readings_at_once(query, line)) != :slow -> readings
+        true -> with :ok <- printable(line), do: response(query, line)
       end
 
     case result do
@@ -487,34 +487,46 @@ defmodule Vws.Codecs.SCPI do
 
   defp all_ok([], _parse, acc), do: {:ok, :lists.reverse(acc)}
 
-  # all_ok(fields, &parse_number/1) without the call through a fun: a poll reads 17 of them
-  defp all_numbers([field | rest], acc) do
-    case parse_number(field) do
-      {:ok, value} -> all_numbers(rest, [value | acc])
-      :error -> :error
-    end
-  end
-
-  defp all_numbers([], acc), do: {:ok, :lists.reverse(acc)}
-
-  defp parse_bit("1"), do: {:ok, true}
-  defp parse_bit("0"), do: {:ok, false}
-  defp parse_bit(_), do: :error
-
   defguardp digit(d) when d in ?0..?9
 
   @powers_of_ten List.to_tuple(for n <- 0..22, do: :math.pow(10, n))
 
-  # SCPI NR1/NR2/NR3: [+-] digits [. digits] [E [+-] digits], or [+-] . digits [...]; at
-  # most 4 exponent digits. Read by matching bytes (a DAQ #1 poll reads 17 numbers: a regex
-  # and Float.parse/1 each were most of the CEC's cost of decoding it).
-  # the form every reading of ours has (number/1: "+1.23456789E+00"), matched at once
-  defp parse_number(<<s, i, ?., f1, f2, f3, f4, f5, f6, f7, f8, e, es, x1, x2>> = text)
-       when s in [?+, ?-] and digit(i) and digit(f1) and digit(f2) and digit(f3) and
+  # A line of readings all in the form every DAQ reading of ours has ("+1.23456789E+00",
+  # number/1), read in one pass: each matched byte is a digit, sign, point, E or comma, so the
+  # line is printable without looking at it again, and no field is split off. Anything else —
+  # another form, a damaged byte, a count that differs, a scale beyond Clinger's fast path —
+  # is :slow, and the line is read field by field below, to the same values or the same error.
+  defp readings_at_once({kind, channels}, line) when kind in [:meas_volt_dc?, :meas_res?],
+    do: readings_at_once(line, length(channels), [])
+
+  defp readings_at_once(_query, _line), do: :slow
+
+  defp readings_at_once(
+         <<s, i, ?., f1, f2, f3, f4, f5, f6, f7, f8, e, es, x1, x2, rest::binary>>,
+         n,
+         acc
+       )
+       when n > 0 and s in [?+, ?-] and digit(i) and digit(f1) and digit(f2) and digit(f3) and
               digit(f4) and digit(f5) and digit(f6) and digit(f7) and digit(f8) and
               e in [?E, ?e] and es in [?+, ?-] and digit(x1) and digit(x2) do
-    # the nine digits and the exponent in arithmetic, no binaries: to_float/4's fast path,
-    # the same value to the bit
+    case fast_number(s, i, f1, f2, f3, f4, f5, f6, f7, f8, es, x1, x2) do
+      :slow ->
+        :slow
+
+      value ->
+        case rest do
+          <<>> when n == 1 -> {:ok, :lists.reverse([value | acc])}
+          <<?,, rest::binary>> when n > 1 -> readings_at_once(rest, n - 1, [value | acc])
+          _ -> :slow
+        end
+    end
+  end
+
+  defp readings_at_once(_line, _n, _acc), do: :slow
+
+  # the nine digits and the exponent in arithmetic, no binaries: to_float/4's fast path, the
+  # same value to the bit; :slow when the scale is beyond it
+  defp fast_number(s, i, f1, f2, f3, f4, f5, f6, f7, f8, es, x1, x2) do
     m =
       (i - ?0) * 100_000_000 + (f1 - ?0) * 10_000_000 + (f2 - ?0) * 1_000_000 +
         (f3 - ?0) * 100_000 + (f4 - ?0) * 10_000 + (f5 - ?0) * 1_000 + (f6 - ?0) * 100 +
@@ -529,9 +541,37 @@ defmodule Vws.Codecs.SCPI do
           do: m * 1.0 * elem(@powers_of_ten, scale),
           else: m * 1.0 / elem(@powers_of_ten, -scale)
 
-      {:ok, if(s == ?-, do: -value, else: value)}
+      if s == ?-, do: -value, else: value
     else
-      to_float(binary_part(text, 0, 1), <<i>>, binary_part(text, 3, 8), <<es, x1, x2>>)
+      :slow
+    end
+  end
+
+  # all_ok(fields, &parse_number/1) without the call through a fun: a poll reads 17 of them
+  defp all_numbers([field | rest], acc) do
+    case parse_number(field) do
+      {:ok, value} -> all_numbers(rest, [value | acc])
+      :error -> :error
+    end
+  end
+
+  defp all_numbers([], acc), do: {:ok, :lists.reverse(acc)}
+
+  defp parse_bit("1"), do: {:ok, true}
+  defp parse_bit("0"), do: {:ok, false}
+  defp parse_bit(_), do: :error
+
+  # SCPI NR1/NR2/NR3: [+-] digits [. digits] [E [+-] digits], or [+-] . digits [...]; at
+  # most 4 exponent digits. Read by matching bytes (a DAQ #1 poll reads 17 numbers: a regex
+  # and Float.parse/1 each were most of the CEC's cost of decoding it).
+  # the form every reading of ours has (number/1: "+1.23456789E+00"), matched at once
+  defp parse_number(<<s, i, ?., f1, f2, f3, f4, f5, f6, f7, f8, e, es, x1, x2>> = text)
+       when s in [?+, ?-] and digit(i) and digit(f1) and digit(f2) and digit(f3) and
+              digit(f4) and digit(f5) and digit(f6) and digit(f7) and digit(f8) and
+              e in [?E, ?e] and es in [?+, ?-] and digit(x1) and digit(x2) do
+    case fast_number(s, i, f1, f2, f3, f4, f5, f6, f7, f8, es, x1, x2) do
+      :slow -> to_float(binary_part(text, 0, 1), <<i>>, binary_part(text, 3, 8), <<es, x1, x2>>)
+      value -> {:ok, value}
     end
   end
 

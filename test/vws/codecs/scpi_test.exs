@@ -369,6 +369,48 @@ defmodule Vws.Codecs.SCPITest do
     )
   end
 
+  test "property: a line of readings, whole or with one byte changed, reads as its fields' text" do
+    # the DAQ's own form (read in one pass) mixed with others, then perhaps one byte anywhere
+    # changed: what is read is what each field's text says (Float.parse/1), or an error —
+    # never a value that no field says, never the right count from a damaged count
+    field =
+      :proper_types.oneof([
+        :proper_types.bind(:proper_types.float(), &SCPI.number/1, false),
+        :proper_types.bind(:proper_types.float(), &:erlang.float_to_binary(&1, [:short]), false)
+      ])
+
+    gen =
+      {:proper_types.non_empty(:proper_types.list(field)), :proper_types.boolean(),
+       :proper_types.non_neg_integer(), :proper_types.integer(0, 255)}
+
+    assert_property(
+      :proper.forall(gen, fn {fields, damage?, at, byte} ->
+        text = Enum.join(fields, ",")
+        at = rem(at, byte_size(text))
+
+        text =
+          if damage?,
+            do:
+              binary_part(text, 0, at) <>
+                <<byte>> <> binary_part(text, at + 1, byte_size(text) - at - 1),
+            else: text
+
+        channels = Enum.to_list(101..(100 + length(fields)))
+
+        case SCPI.decode_response({:meas_volt_dc?, channels}, text <> "\n") do
+          {:ok, values} ->
+            parsed = text |> String.split(",") |> Enum.map(&Float.parse/1)
+            parsed == Enum.map(values, &{&1, ""}) or {text, values, parsed}
+
+          {:error, %SCPI.Error{}} ->
+            damaged = text != Enum.join(fields, ",")
+            damaged or {:refused_whole, text}
+        end == true
+      end),
+      1_000
+    )
+  end
+
   test "property: lines cut anywhere come out whole, errors in place, buffer empty" do
     short_line =
       :proper_types.bind(
