@@ -439,33 +439,44 @@ defmodule Vws.Sim.GE2000 do
   def handle_cast({:cycle_start_input, false}, s), do: {:noreply, s}
 
   @impl true
+  # the answer to our remote request (or its link gone) before anything else: filed, or its
+  # message shown, or the link's error — and the panel told
+  def handle_info(msg, %{requesting: {_, request, _}} = s) do
+    case DNC.check_response(msg, request) do
+      :no_reply -> info(msg, s)
+      answer -> remote_request_answered(answer, s)
+    end
+  end
+
+  def handle_info(msg, s), do: info(msg, s)
+
   # the first text block (the command block was 1) starts a new drip feed
-  def handle_info({:dnc, link, {:block, %Command{} = command, 2, text}}, %{link: link} = s),
+  defp info({:dnc, link, {:block, %Command{} = command, 2, text}}, %{link: link} = s),
     do: {:noreply, s |> drip_end(:broken) |> drip_block(command, text)}
 
-  def handle_info({:dnc, link, {:block, %Command{} = command, _index, text}}, %{link: link} = s),
+  defp info({:dnc, link, {:block, %Command{} = command, _index, text}}, %{link: link} = s),
     do: {:noreply, drip_block(s, command, text)}
 
   # (a tick of a drip feed that has ended is dropped: one tick chain per feed)
-  def handle_info({:drip_tick, n}, %{drips: n} = s), do: {:noreply, drip_tick(s)}
-  def handle_info({:drip_tick, _ended}, s), do: {:noreply, s}
+  defp info({:drip_tick, n}, %{drips: n} = s), do: {:noreply, drip_tick(s)}
+  defp info({:drip_tick, _ended}, s), do: {:noreply, s}
 
-  def handle_info(
-        {:dnc, link, {:received, %Command{operation: :download_execute}, _}},
-        %{link: link} = s
-      ),
-      do: {:noreply, drip_end(s, :arrived)}
+  defp info(
+         {:dnc, link, {:received, %Command{operation: :download_execute}, _}},
+         %{link: link} = s
+       ),
+       do: {:noreply, drip_end(s, :arrived)}
 
-  def handle_info(
-        {:dnc, link, {:aborted, %Command{operation: :download_execute}, _}},
-        %{link: link} = s
-      ),
-      do: {:noreply, drip_end(s, :broken)}
+  defp info(
+         {:dnc, link, {:aborted, %Command{operation: :download_execute}, _}},
+         %{link: link} = s
+       ),
+       do: {:noreply, drip_end(s, :broken)}
 
-  def handle_info({:dnc, link, :disconnected}, %{link: link, drip: %{}} = s),
+  defp info({:dnc, link, :disconnected}, %{link: link, drip: %{}} = s),
     do: {:noreply, drip_end(s, :broken)}
 
-  def handle_info({:dnc, link, {:received, command, blocks}}, %{link: link} = s) do
+  defp info({:dnc, link, {:received, command, blocks}}, %{link: link} = s) do
     text = IO.iodata_to_binary(blocks)
     s = received(command, text, s)
 
@@ -480,15 +491,7 @@ defmodule Vws.Sim.GE2000 do
     {:noreply, s}
   end
 
-  # the answer to our remote request (or its link gone): filed, or its message shown, or the
-  # link's error — and the panel told
-  def handle_info({[:alias | ref], _} = msg, %{requesting: {_, {ref, _}, _}} = s),
-    do: remote_request_answered(msg, s)
-
-  def handle_info({:DOWN, ref, _, _, _} = msg, %{requesting: {_, {ref, _}, _}} = s),
-    do: remote_request_answered(msg, s)
-
-  def handle_info({:dnc, link, {:request, ref, command, _blocks}}, %{link: link} = s) do
+  defp info({:dnc, link, {:request, ref, command, _blocks}}, %{link: link} = s) do
     {text, s} = requested(command, s)
     blocks = Frame.split_text(text, s.max_text)
 
@@ -500,13 +503,13 @@ defmodule Vws.Sim.GE2000 do
     {:noreply, s}
   end
 
-  def handle_info({:dnc, _link, event}, s) do
+  defp info({:dnc, _link, event}, s) do
     Logger.debug("GE-2000 simulator: link event #{inspect(event, limit: 5)}")
     {:noreply, s}
   end
 
   # the tap took the CEC's bid for ours meeting it (:bid_contention): the link bids now
-  def handle_info({:tap, tap, {:transmit, blocks}}, %{tap: tap} = s) do
+  defp info({:tap, tap, {:transmit, blocks}}, %{tap: tap} = s) do
     case DNC.transmit(s.link, blocks) do
       :ok -> :ok
       error -> Logger.warning("GE-2000 simulator could not bid: #{inspect(error)}")
@@ -515,14 +518,14 @@ defmodule Vws.Sim.GE2000 do
     {:noreply, s}
   end
 
-  def handle_info({:cycle_end, n}, %{cycles: n} = s), do: {:noreply, end_cycle_now(s)}
-  def handle_info({:cycle_end, _earlier}, s), do: {:noreply, s}
+  defp info({:cycle_end, n}, %{cycles: n} = s), do: {:noreply, end_cycle_now(s)}
+  defp info({:cycle_end, _earlier}, s), do: {:noreply, s}
 
-  def handle_info({:EXIT, pid, reason}, s) when pid in [s.link, s.acceptor, s.line, s.tap] do
+  defp info({:EXIT, pid, reason}, s) when pid in [s.link, s.acceptor, s.line, s.tap] do
     {:stop, reason, s}
   end
 
-  def handle_info(msg, s) do
+  defp info(msg, s) do
     Logger.debug("GE-2000 simulator ignored #{inspect(msg, limit: 5)}")
     {:noreply, s}
   end
@@ -666,9 +669,9 @@ defmodule Vws.Sim.GE2000 do
     end
   end
 
-  defp remote_request_answered(msg, %{requesting: {from, request, file}} = s) do
+  defp remote_request_answered(answer, %{requesting: {from, _request, file}} = s) do
     {told, s} =
-      case DNC.check_response(msg, request) do
+      case answer do
         {:ok, blocks} -> requested_program(file, IO.iodata_to_binary(blocks), s)
         error -> {error, s}
       end
