@@ -24,29 +24,19 @@ defmodule Vws.Test.FailureRecap do
   end
 
   @impl true
-  def handle_cast({:test_finished, %ExUnit.Test{state: {:failed, _}} = test}, count) do
-    count = count + 1
-    :persistent_term.put(@key, [entry(test, count) | :persistent_term.get(@key, [])])
-    {:noreply, count}
-  end
+  def handle_cast({:test_finished, %ExUnit.Test{state: {:failed, _}} = test}, count),
+    do: keep(count + 1, &entry(test, &1))
 
-  def handle_cast({:module_finished, %ExUnit.TestModule{state: {:failed, _}} = module}, count) do
-    count = count + 1
-
-    text =
-      ExUnit.Formatter.format_test_all_failure(
-        module,
-        module.state |> elem(1),
-        count,
-        80,
-        &plain/2
-      )
-
-    :persistent_term.put(@key, [cut(text) | :persistent_term.get(@key, [])])
-    {:noreply, count}
-  end
+  def handle_cast({:module_finished, %ExUnit.TestModule{state: {:failed, _}} = module}, count),
+    do: keep(count + 1, &module_entry(module, &1))
 
   def handle_cast(_event, count), do: {:noreply, count}
+
+  # the failure numbered `count`, its text made by `text`, kept for the recap
+  defp keep(count, text) do
+    :persistent_term.put(@key, [text.(count) | :persistent_term.get(@key, [])])
+    {:noreply, count}
+  end
 
   @doc "Prints the failures kept (nothing when there were none)."
   def recap do
@@ -61,6 +51,9 @@ defmodule Vws.Test.FailureRecap do
         )
     end
   end
+
+  defp module_entry(%ExUnit.TestModule{state: {:failed, failures}} = module, count),
+    do: cut(ExUnit.Formatter.format_test_all_failure(module, failures, count, 80, &plain/2))
 
   defp entry(test, count) do
     {:failed, failures} = test.state
