@@ -399,7 +399,13 @@ defmodule Vws.Codecs.SCPITest do
 
         case SCPI.decode_response({:meas_volt_dc?, channels}, text <> "\n") do
           {:ok, values} ->
-            parsed = text |> String.split(",") |> Enum.map(&Float.parse/1)
+            # as the line is read: a CR before its LF ends it (CR LF), whatever the CR was
+            seen = String.replace_suffix(text, "\r", "")
+            # (SCPI also reads "+.5", which Float.parse/1 reads as "+0.5")
+            parsed =
+              for field <- String.split(seen, ","),
+                  do: Float.parse(Regex.replace(~r/^([+-]?)\./, field, "\\g{1}0."))
+
             parsed == Enum.map(values, &{&1, ""}) or {text, values, parsed}
 
           {:error, %SCPI.Error{}} ->
