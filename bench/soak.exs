@@ -9,8 +9,10 @@
 #
 #     mix run bench/soak.exs [--cycles 100] [--ber 1.0e-4] [--seed 1] [--time-scale 20]
 #
-# Prints a line per cycle, then one block of figures. Exits 1 if a cycle did not complete, a
-# command was lost or duplicated, or a silent difference was found.
+# Prints a line per cycle, then one block of figures. After a stopped cycle the floor is
+# recovered as an operator would (priv/sims/recover.vws, the blank back in tray #1), so that one
+# stop does not stop every cycle after it. Exits 1 if a cycle did not complete, a command was
+# lost or duplicated, or a silent difference was found.
 
 Code.require_file("support.exs", __DIR__)
 Logger.configure(level: :error)
@@ -39,6 +41,21 @@ report =
   )
 
 r = report.retries
+
+# after a stopped cycle the floor is recovered as an operator would (Vws.Ops.Soak)
+recovered =
+  case {report.recovered, report.unrecovered} do
+    {[], nil} ->
+      "none needed"
+
+    {ns, nil} ->
+      "after cycles #{Enum.join(ns, ", ")} (the recovery script, the blank back in tray #1)"
+
+    {ns, {n, why}} ->
+      done = if ns == [], do: "", else: "after cycles #{Enum.join(ns, ", ")}; "
+      done <> "not after cycle #{n}: #{why} — the soak ended there"
+  end
+
 flipped = report.bits_flipped
 
 IO.puts("""
@@ -48,6 +65,7 @@ IO.puts("""
   faults         BER #{ber} on #{map_size(flipped)} links, seed #{seed}, time scale ×#{time_scale}
   bits flipped   #{Enum.map_join(Enum.sort(flipped), ", ", fn {l, n} -> "#{l} #{n}" end)}
   cycles         #{report.completed} of #{report.cycles} completed in #{Float.round(report.elapsed_ms / 1000, 1)} s#{if report.stopped == [], do: "", else: " — stopped: " <> inspect(report.stopped)}
+  recovered      #{recovered}
   commands       #{report.commands} numbered by the WC: lost #{report.lost}, duplicated #{report.duplicated}
   silent         #{report.silent_differences} silent differences (program bytes at the CEC, the GE-2000 and the WC; relays)#{if report.silent == [], do: "", else: ": " <> inspect(report.silent)}
   retries        #{Enum.sum(Map.values(r))} in all: WC strings/lines sent again #{r.wc_resends}, transfers made again #{r.transfers_made_again},

@@ -165,12 +165,18 @@ defmodule Vws.Ops.Demo do
   end
 
   @doc """
-  The default cycle script: `priv/sims/machining_cycle.vws` of the project (in the current
-  directory when it is there, else in the application's priv directory).
+  The default cycle script: `priv/sims/machining_cycle.vws` of the project (`sims_script/1`).
   """
   @spec default_script() :: Path.t()
-  def default_script do
-    local = "priv/sims/machining_cycle.vws"
+  def default_script, do: sims_script("machining_cycle.vws")
+
+  @doc """
+  A shipped script, `priv/sims/<name>`: in the current directory when it is there (a checkout),
+  else in the application's priv directory (a release).
+  """
+  @spec sims_script(String.t()) :: Path.t()
+  def sims_script(name) do
+    local = Path.join("priv/sims", name)
     if File.regular?(local), do: local, else: Application.app_dir(:vws, local)
   end
 

@@ -23,6 +23,12 @@ defmodule Vws.Ops.Soak do
       `DONE`, so any difference there is one; in a completed cycle every comparison counts, in a
       stopped one those whose command may not have run are left out. Must be 0.
 
+  A cycle that stops leaves the floor where it stopped: the part in the gripper or the vise, the
+  arm in a work volume, leases held. Before the next cycle the soak does what an operator would
+  (`priv/sims/recover.vws`'s header): it runs the recovery script, the lines clean for it, and
+  puts the blank back in tray #1 by hand. Each cycle after a stop then measures the faults, not
+  the stop before it. A recovery that stops too ends the soak (`unrecovered`).
+
   `bench/soak.exs` prints the figures of a long run; the reliability tests run a short one.
 
       report = Vws.Ops.Soak.run(cycles: 3, ber: 1.0e-4, seed: 1, time_scale: 20)
@@ -59,7 +65,9 @@ defmodule Vws.Ops.Soak do
           silent_differences: non_neg_integer,
           silent: [{pos_integer, term}],
           bits_flipped: %{atom => non_neg_integer},
-          elapsed_ms: non_neg_integer
+          elapsed_ms: non_neg_integer,
+          recovered: [pos_integer],
+          unrecovered: nil | {pos_integer, String.t()}
         }
 
   @doc """
@@ -67,7 +75,8 @@ defmodule Vws.Ops.Soak do
   reference, then `:cycles` cycles under the faults, and returns the report. Options: `:cycles`
   (default 100), `:ber` (1.0e-4), `:faults` (more `Vws.Sim.Line` faults for every link),
   `:links` (the links that get the faults, default all: `#{inspect(@links)}`), `:seed` (0),
-  `:time_scale` (20), `:id`, `:script` (default the shipped machining cycle),
+  `:time_scale` (20), `:id`, `:script` (default the shipped machining cycle), `:recover` (the
+  script run after a stopped cycle, default the shipped `priv/sims/recover.vws`),
   `:timeout` (ms a command may take, 60 000), `:on_cycle` — called with `(n, summary)` after each.
   The floor and the workstation are stopped at the end.
   """
@@ -78,6 +87,12 @@ defmodule Vws.Ops.Soak do
     faults = [ber: Keyword.get(opts, :ber, 1.0e-4)] ++ Keyword.get(opts, :faults, [])
     path = Keyword.get_lazy(opts, :script, &Vws.Ops.Demo.default_script/0)
     {:ok, script} = Script.parse_file(path)
+
+    {:ok, recover_script} =
+      Script.parse_file(
+        Keyword.get_lazy(opts, :recover, fn -> Vws.Ops.Demo.sims_script("recover.vws") end)
+      )
+
     {script, program} = with_round_trip(script)
     runner_opts = [timeout: Keyword.get(opts, :timeout, 60_000)]
     on_cycle = Keyword.get(opts, :on_cycle, fn _n, _summary -> :ok end)
@@ -108,25 +123,62 @@ defmodule Vws.Ops.Soak do
       clean = Map.put(clean, :next_numbers, Client.info(client).next_numbers)
       :ets.delete_all_objects(counts)
 
-      for {link, line} <- Floor.lines(id),
-          link in links,
-          do: :ok = Line.set_faults(line, :both, faults)
+      faulty = fn faults ->
+        for {link, line} <- Floor.lines(id),
+            link in links,
+            do: :ok = Line.set_faults(line, :both, faults)
+      end
 
+      faulty.(faults)
       t0 = System.monotonic_time(:millisecond)
 
-      results =
-        for n <- 1..cycles//1 do
+      {results, recovered, unrecovered} =
+        Enum.reduce_while(1..cycles//1, {[], [], nil}, fn n, {results, recovered, nil} ->
           result = run_cycle(client, script, runner_opts, id)
           {silent, _unverified} = audit(id, result, clean, program)
           on_cycle.(n, result.summary)
-          Map.put(result, :silent, silent)
-        end
+          results = [Map.put(result, :silent, silent) | results]
 
-      report(id, client, clean, results, counts, System.monotonic_time(:millisecond) - t0)
+          if result.summary.result == :completed or n == cycles do
+            {:cont, {results, recovered, nil}}
+          else
+            case recover(client, recover_script, runner_opts, id, faulty, faults) do
+              :ok -> {:cont, {results, recovered ++ [n], nil}}
+              why -> {:halt, {results, recovered, {n, why}}}
+            end
+          end
+        end)
+
+      elapsed = System.monotonic_time(:millisecond) - t0
+
+      report(id, client, clean, Enum.reverse(results), counts, elapsed)
+      |> Map.merge(%{recovered: recovered, unrecovered: unrecovered})
     after
       Vws.Telemetry.detach(handler)
       Vws.CEC.Workstation.stop(id)
       stop_floor(id)
+    end
+  end
+
+  # After a stopped cycle, what an operator does before the next one (priv/sims/recover.vws's
+  # header): the arm to SAFE and every lease given up, by the recovery script, with the lines
+  # clean (the recovery is not what is measured), then the blank put back in tray #1 by hand.
+  # `:ok`, or why the floor could not be recovered (the soak ends there: a cycle after it
+  # would only measure where the stopped one left the floor).
+  defp recover(client, script, runner_opts, id, faulty, faults) do
+    faulty.([])
+    summary = Runner.run(client, script, runner_opts)
+    faulty.(faults)
+
+    if summary.result == :completed do
+      plant = Floor.plant(id)
+
+      for where <- [:gripper, :vise, :tray2],
+          do: :ok = Vws.Sim.Plant.set_part(plant, where, false)
+
+      :ok = Vws.Sim.Plant.set_part(plant, :tray1, true)
+    else
+      "the recovery stopped: #{summary.stopped.reason}"
     end
   end
 

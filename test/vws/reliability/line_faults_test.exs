@@ -70,6 +70,40 @@ defmodule Vws.Reliability.LineFaultsTest do
 
   @moduletag timeout: 300_000
 
+  test "a stopped cycle: the floor is recovered as an operator would, and the next cycle completes" do
+    # the vise closes on nothing in cycle 2 only: the cycle stops at the vise, the blank still
+    # in the gripper, the arm in the table's volume holding its lease. Without a recovery the
+    # next cycle starts from there (it opens the gripper at SAFE, the blank falls, and its pick
+    # from tray #1 closes on nothing), and so does every cycle after it
+    id = "SOAK-RECOVER-#{System.unique_integer([:positive])}"
+    plant = Vws.Sim.Floor.plant(id)
+
+    on_cycle = fn
+      1, _summary -> :ok = Vws.Sim.Plant.inject_fault(plant, :no_part, where: :vise)
+      2, _summary -> :ok = Vws.Sim.Plant.clear_fault(plant, :no_part)
+      _n, _summary -> :ok
+    end
+
+    report =
+      Soak.run(
+        id: id,
+        cycles: 3,
+        ber: 0.0,
+        seed: 5,
+        time_scale: 40,
+        timeout: 30_000,
+        on_cycle: on_cycle
+      )
+
+    assert [{2, reason}] = report.stopped
+    assert reason =~ "VISE"
+    assert report.recovered == [2]
+    assert report.completed == 2
+    assert report.lost == 0
+    assert report.duplicated == 0
+    assert report.silent_differences == 0, inspect(report.silent)
+  end
+
   test "BER 1e-4 on every link at once: two cycles complete, each retry counted" do
     report = Soak.run(cycles: 2, ber: 1.0e-4, seed: 3, time_scale: 40, timeout: 30_000)
     assert_clean(report, 2)
