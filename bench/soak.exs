@@ -66,7 +66,7 @@ IO.puts("""
   bits flipped   #{Enum.map_join(Enum.sort(flipped), ", ", fn {l, n} -> "#{l} #{n}" end)}
   cycles         #{report.completed} of #{report.cycles} completed in #{Float.round(report.elapsed_ms / 1000, 1)} s#{if report.stopped == [], do: "", else: " — stopped: " <> inspect(report.stopped)}
   recovered      #{recovered}
-  commands       #{report.commands} numbered by the WC: lost #{report.lost}, duplicated #{report.duplicated}
+  commands       #{report.commands} numbered by the WC: lost #{report.lost}, duplicated #{report.duplicated}#{if report.lost_commands == [], do: "", else: "\n                 lost: " <> inspect(report.lost_commands)}#{if report.duplicates == [], do: "", else: "\n                 duplicated: " <> inspect(report.duplicates)}
   silent         #{report.silent_differences} silent differences (program bytes at the CEC, the GE-2000 and the WC; relays)#{if report.silent == [], do: "", else: ": " <> inspect(report.silent)}
   retries        #{Enum.sum(Map.values(r))} in all: WC strings/lines sent again #{r.wc_resends}, transfers made again #{r.transfers_made_again},
                  retransmissions recognised by SUN_COMM #{r.sun_comm_retransmissions}, DDCMP retransmissions #{r.ddcmp_retransmissions},

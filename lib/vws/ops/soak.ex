@@ -40,6 +40,9 @@ defmodule Vws.Ops.Soak do
   alias Vws.Peers.WC.{Client, Runner, Script}
 
   @links [:wc, :robot, :ge2000, :daq1, :hydraulic, :daq2]
+  # how long a recovery waits for the stopped cycle's commands to end (the cycle script's own
+  # longest TIMEOUT, a machining cycle's)
+  @recover_wait_ms 900_000
   @retry_events [
     {[:vws, :sun_comm, :retransmission], :sun_comm_retransmissions},
     {[:vws, :ddcmp, :retransmission], :ddcmp_retransmissions},
@@ -61,7 +64,12 @@ defmodule Vws.Ops.Soak do
           stopped: [{pos_integer, String.t()}],
           retries: %{atom => non_neg_integer},
           lost: non_neg_integer,
+          lost_commands: [{atom, pos_integer}],
           duplicated: non_neg_integer,
+          duplicates: [
+            {:started | :finished, atom, pos_integer, pos_integer}
+            | {:equipment, pos_integer, keyword}
+          ],
           silent_differences: non_neg_integer,
           silent: [{pos_integer, term}],
           bits_flipped: %{atom => non_neg_integer},
@@ -166,19 +174,50 @@ defmodule Vws.Ops.Soak do
   # `:ok`, or why the floor could not be recovered (the soak ends there: a cycle after it
   # would only measure where the stopped one left the floor).
   defp recover(client, script, runner_opts, id, faulty, faults) do
-    faulty.([])
-    summary = Runner.run(client, script, runner_opts)
+    # the damaging faults off (Line.set_faults/3 keeps what it is not told); a line's pacing
+    # and delays stay as they are
+    faulty.(ber: 0.0, drop: 0.0, disconnect_after: nil, disconnect_rate: 0.0)
+
+    # a command of the stopped cycle may still run (the WC gave up on a status query, not on
+    # the command): the operator waits for it to end, as the script waits for the machine
+    result =
+      with :ok <- commands_ended(id, System.monotonic_time(:millisecond) + @recover_wait_ms) do
+        summary = Runner.run(client, script, runner_opts)
+
+        if summary.result == :completed,
+          do: :ok,
+          else: "the recovery stopped: #{summary.stopped.reason}"
+      end
+
     faulty.(faults)
 
-    if summary.result == :completed do
+    with :ok <- result do
       plant = Floor.plant(id)
 
       for where <- [:gripper, :vise, :tray2],
           do: :ok = Vws.Sim.Plant.set_part(plant, where, false)
 
       :ok = Vws.Sim.Plant.set_part(plant, :tray1, true)
-    else
-      "the recovery stopped: #{summary.stopped.reason}"
+    end
+  end
+
+  defp commands_ended(id, deadline) do
+    in_flight =
+      for letter <- ~w(R M G F V H),
+          p = partition(letter),
+          n = Vws.CEC.Mailbox.in_flight(id, p),
+          do: {p, n}
+
+    cond do
+      in_flight == [] ->
+        :ok
+
+      System.monotonic_time(:millisecond) > deadline ->
+        "commands still running after #{div(@recover_wait_ms, 1000)} s: #{inspect(in_flight)}"
+
+      true ->
+        Process.sleep(100)
+        commands_ended(id, deadline)
     end
   end
 
@@ -216,19 +255,22 @@ defmodule Vws.Ops.Soak do
 
     finished = for {{:finished, p, n}, c} <- rows, into: %{}, do: {{p, n}, c}
     started = for {{:started, p, n}, c} <- rows, into: %{}, do: {{p, n}, c}
-    lost = Enum.count(used, &(Map.get(finished, &1, 0) == 0))
+    lost = Enum.filter(used, &(Map.get(finished, &1, 0) == 0))
 
     twice =
-      Enum.count(finished, fn {_, c} -> c > 1 end) + Enum.count(started, fn {_, c} -> c > 1 end)
+      for {what, seen} <- [started: started, finished: finished],
+          {{p, n}, c} <- Enum.sort(seen),
+          c > 1,
+          do: {what, p, n, c}
 
     # equipment that did more than a clean cycle does, in a completed cycle
     extra =
-      Enum.sum(
-        for r <- completed,
-            do:
-              max(r.robot_commands - clean.robot_commands, 0) +
-                max(r.machined - clean.machined, 0)
-      )
+      for {r, n} <- Enum.with_index(results, 1),
+          r.summary.result == :completed,
+          robot = max(r.robot_commands - clean.robot_commands, 0),
+          machined = max(r.machined - clean.machined, 0),
+          robot + machined > 0,
+          do: {:equipment, n, robot: robot, machined: machined}
 
     summaries = Enum.map(results, & &1.summary)
 
@@ -251,8 +293,12 @@ defmodule Vws.Ops.Soak do
             transfers_made_again: Enum.sum(Enum.map(summaries, & &1.transfers_broken))
           }
         ),
-      lost: lost,
-      duplicated: twice + extra,
+      lost: length(lost),
+      lost_commands: lost,
+      duplicated:
+        length(twice) +
+          Enum.sum(for {:equipment, _, extra} <- extra, do: extra[:robot] + extra[:machined]),
+      duplicates: twice ++ extra,
       silent_differences: Enum.sum(Enum.map(results, &length(&1.silent))),
       silent: for({r, n} <- Enum.with_index(results, 1), d <- r.silent, do: {n, d}),
       bits_flipped:
