@@ -420,10 +420,15 @@ defmodule Vws.Links.DDCMP.Protocol do
     %__MODULE__{p | state: new}
   end
 
+  # Whatever the role, the start-up after declaring the link down is this side's to begin (STRT):
+  # the peer may have nothing outstanding, no timer running, and would never learn that this
+  # side stopped — a passive side waiting in ISTRT for a STRT that does not come, and a peer
+  # waiting in RUNNING for an answer lost with the old stream. `:passive` is how a link starts
+  # when its transport comes up, not how it restarts.
   defp too_many_failures(p) do
     p = p |> link_down(:too_many_failures) |> drop_queue() |> count(:restarts)
     p = %__MODULE__{p | last_error: :too_many_failures}
-    enter(p, :istrt, p.role)
+    enter(p, :istrt, :active)
   end
 
   defp maintenance(p) do

@@ -431,6 +431,27 @@ defmodule Vws.Links.DDCMP.LinkTest do
       quiet(peer)
     end
 
+    test "a passive link that declares its link down starts up again itself: STRT" do
+      # the peer may have nothing outstanding and never learn otherwise (a VAL II simulator
+      # waited in ISTRT while the CEC waited, RUNNING, for a response it had lost)
+      {link, peer} = start(role: :passive, rep_timeout: 20)
+      Peer.send_frames(peer, Frame.strt())
+      expect(peer, Frame.stack())
+      Peer.send_frames(peer, Frame.ack(0))
+      assert_receive {:ddcmp, ^link, :up}, 2000
+
+      send!(link, "x")
+      expect(peer, Frame.data(1, 0, "x"))
+      for _ <- 1..7, do: expect(peer, Frame.rep(1))
+      expect(peer, Frame.strt())
+      assert_receive {:ddcmp, ^link, {:down, :too_many_failures}}, 2000
+
+      Peer.send_frames(peer, Frame.stack())
+      expect(peer, Frame.ack(0))
+      assert_receive {:ddcmp, ^link, :up}
+      quiet(peer)
+    end
+
     test "successive NAKs count as failures too (max_failures: 3)" do
       {link, peer} = to_state(:running, max_failures: 3)
       send!(link, "x")
