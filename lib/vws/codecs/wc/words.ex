@@ -20,7 +20,9 @@ defmodule Vws.Codecs.WC.Words do
 
   # what a status text may hold: upper-case letters, digits, blanks and the punctuation the
   # seed's and our texts use (`DAQ #1`, `(…)`, `1.5`, `-301`, `TRAY1/50`, `%`, `:` of a time)
-  @allowed ~r/^[A-Z0-9 #().,:;?!*\/%+\-=<>_']*$/
+  # (\z, not $: $ also matches before a final newline, and "LOST\n" is no status text — a reason
+  # ending in a newline was taken as words, and SUN_COMM crashed framing "ERROR LOST\n")
+  @allowed ~r/\A[A-Z0-9 #().,:;?!*\/%+\-=<>_']*\z/
 
   @doc "True when `text` is a status text a WC may be shown (see the moduledoc)."
   @spec text?(String.t()) :: boolean

@@ -72,11 +72,48 @@ defmodule Vws.Codecs.WC.WordsTest do
 
         case ended do
           :done -> result == :done
-          {:error, text} -> Words.text?(text) and text != ""
+          {:error, text} -> Words.text?(text) and text != "" and frames?(text)
         end
       end)
 
     assert_property(property, 1_000)
+  end
+
+  test "a reason ending in a newline is no status text: it ends ERROR in words the WC link frames" do
+    # PCRE's $ matches before a final newline: "LOST\n" passed text?/1, the command ended
+    # "ERROR LOST\n", and SUN_COMM crashed framing its status reply (error_paths_test, a seed)
+    refute Words.text?("LOST\n")
+    refute Words.text?("\n")
+    assert Words.text?("LOST")
+    assert Words.of("lost\n") == "LOST"
+
+    ws = "words-nl-#{System.unique_integer([:positive])}"
+    {:ok, _} = Vws.CEC.Mailbox.Owner.start_link(workstation: ws)
+
+    for reason <- ["LOST\n", "\n", "A\r\n"] do
+      ctx = %{
+        workstation: ws,
+        partition: :vacuum,
+        number: 1,
+        text: "ON",
+        link: :test,
+        interlocks: :off,
+        options: [result: {:error, reason}]
+      }
+
+      {:error, text} = Vws.CEC.Partition.run(AnyResult, ctx)
+      assert Words.text?(text) and text != "" and frames?(text), inspect(text)
+    end
+  end
+
+  # the status reply a WC poll gets for a command that ended ERROR with `text` (cut to what a
+  # reply carries, as SUN_COMM's answer is) can be framed
+  defp frames?(text) do
+    answer = Vws.Codecs.WC.Reply.truncate_status_text("0001ERROR " <> text)
+    Vws.Codecs.WC.Reply.encode({:status, 1, answer})
+    true
+  rescue
+    ArgumentError -> false
   end
 
   # every DNC link error MONARCH reports: test/vws/cec/error_paths_test.exs
