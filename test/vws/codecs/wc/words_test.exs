@@ -54,19 +54,7 @@ defmodule Vws.Codecs.WC.WordsTest do
 
     property =
       :proper.forall(term(), fn result ->
-        ctx = %{
-          workstation: ws,
-          partition: :vacuum,
-          number: 1,
-          text: "ON",
-          link: :test,
-          interlocks: :off,
-          options: [result: result]
-        }
-
-        ExUnit.CaptureLog.capture_log(fn ->
-          send(self(), {:result, Vws.CEC.Partition.run(AnyResult, ctx)})
-        end)
+        ExUnit.CaptureLog.capture_log(fn -> send(self(), {:result, run_any(ws, result)}) end)
 
         assert_received {:result, ended}
 
@@ -91,19 +79,22 @@ defmodule Vws.Codecs.WC.WordsTest do
     {:ok, _} = Vws.CEC.Mailbox.Owner.start_link(workstation: ws)
 
     for reason <- ["LOST\n", "\n", "A\r\n"] do
-      ctx = %{
-        workstation: ws,
-        partition: :vacuum,
-        number: 1,
-        text: "ON",
-        link: :test,
-        interlocks: :off,
-        options: [result: {:error, reason}]
-      }
-
-      {:error, text} = Vws.CEC.Partition.run(AnyResult, ctx)
+      {:error, text} = run_any(ws, {:error, reason})
       assert Words.text?(text) and text != "" and frames?(text), inspect(text)
     end
+  end
+
+  # a command of AnyResult run by the partition's one path, ending with `result`
+  defp run_any(ws, result) do
+    Vws.CEC.Partition.run(AnyResult, %{
+      workstation: ws,
+      partition: :vacuum,
+      number: 1,
+      text: "ON",
+      link: :test,
+      interlocks: :off,
+      options: [result: result]
+    })
   end
 
   # the status reply a WC poll gets for a command that ended ERROR with `text` (cut to what a
