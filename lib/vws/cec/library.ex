@@ -423,7 +423,8 @@ defmodule Vws.CEC.Library do
   defp reference_version(lib, name, n), do: version(lib, name, n)
 
   defp check_source(source) when is_binary(source) do
-    if source =~ ~r/^[a-z0-9][a-z0-9 ._-]{0,31}$/, do: :ok, else: {:error, :bad_source}
+    # \A…\z, not ^…$: $ also matches before a final newline, and "shop\n" is no label
+    if source =~ ~r/\A[a-z0-9][a-z0-9 ._-]{0,31}\z/, do: :ok, else: {:error, :bad_source}
   end
 
   defp check_source(_), do: {:error, :bad_source}

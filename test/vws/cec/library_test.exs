@@ -65,6 +65,7 @@ defmodule Vws.CEC.LibraryTest do
 
     assert Library.store(lib, "1", @prog, source: "Bad/Source") == {:error, :bad_source}
     assert Library.store(lib, "1", @prog, source: "a~b") == {:error, :bad_source}
+    assert Library.store(lib, "1", @prog, source: "shop\n") == {:error, :bad_source}
     # the library keeps up to 64 MiB (a drip feed's program); what the GE-2000 stores is bounded
     # apart (999,999 bytes, its directory's six digits: Vws.Links.DNC.Program.check_size/1)
     assert Library.max_bytes() == 64 * 1024 * 1024

@@ -24,16 +24,17 @@ defmodule Vws.Ops.Web.Command do
 
   @max_body 1_024
   @program ~S"\d{6}\.PRO"
+  # (\A…\z, not ^…$: $ also matches before a final newline)
   @allowed [
-    {"M", ~r/^DOWNLOAD_GE\(#{@program}(\/\d{1,4})?\)$/},
-    {"M", ~r/^COMPARE_GE\(#{@program}\)$/},
-    {"M", ~r/^UPLOAD_GE\(#{@program}\)$/},
-    {"M", ~r/^DRIP_FEED$/},
-    {"M", ~r/^DRIP_FEED\(#{@program}(\/\d{1,6})?(\/N\d{1,7})?\)$/},
-    {"M", ~r/^RELEASE_TABLE$/},
-    {"R", ~r/^RELEASE_TABLE$/},
-    {"R", ~r/^RELEASE_TRAY[12]$/},
-    {"F", ~r/^RELEASE_TABLE$/}
+    {"M", ~r/\ADOWNLOAD_GE\(#{@program}(\/\d{1,4})?\)\z/},
+    {"M", ~r/\ACOMPARE_GE\(#{@program}\)\z/},
+    {"M", ~r/\AUPLOAD_GE\(#{@program}\)\z/},
+    {"M", ~r/\ADRIP_FEED\z/},
+    {"M", ~r/\ADRIP_FEED\(#{@program}(\/\d{1,6})?(\/N\d{1,7})?\)\z/},
+    {"M", ~r/\ARELEASE_TABLE\z/},
+    {"R", ~r/\ARELEASE_TABLE\z/},
+    {"R", ~r/\ARELEASE_TRAY[12]\z/},
+    {"F", ~r/\ARELEASE_TABLE\z/}
   ]
 
   @doc "The largest request body taken, in bytes."

@@ -62,7 +62,9 @@ defmodule Vws.Ops.Web.CommandTest do
           {"G", "OPEN"},
           {"S", "ROBOT_CMD"},
           {"m", "DRIP_FEED"},
-          {"M", "DRIP_FEED\r\n"}
+          {"M", "DRIP_FEED\r\n"},
+          {"M", "DRIP_FEED\n"},
+          {"R", "RELEASE_TRAY1\n"}
         ],
         do: refute(Command.allowed?(set, text), "#{inspect(set)} #{inspect(text)}")
   end
