@@ -203,8 +203,7 @@ defmodule Vws.Ops.Soak do
 
   defp commands_ended(id, deadline) do
     in_flight =
-      for letter <- ~w(R M G F V H),
-          p = partition(letter),
+      for p <- Vws.CEC.Mailbox.partitions(),
           n = Vws.CEC.Mailbox.in_flight(id, p),
           do: {p, n}
 
